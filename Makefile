@@ -1,0 +1,38 @@
+# Lamina: the two commands a newcomer needs are `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+OUT    := out
+
+.PHONY: install demo test lint bench clean
+
+$(STAMP): shared/pyproject.toml device/pyproject.toml host/pyproject.toml requirements-dev.txt
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Lamina needs Python 3.11 or newer; run: make PYTHON=python3.11 ...")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	# One command, so pip resolves lamina-shared from this tree rather than a registry.
+	$(BIN)/python -m pip install --quiet -e shared -e device -e host -r requirements-dev.txt
+	touch $@
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/lamina scan --device sim --object cylinder:d=19.05 --sections 4 --pitch 2 --views 8 \
+		--expect cylinder:d=19.05 -o $(OUT)/demo/cylinder
+	$(BIN)/lamina scan --device sim --object ellipsoid:a=10,b=6.5,c=20,z=-1 --sections 10 \
+		--pitch 2 --views 8 --expect ellipsoid:a=10,b=6.5,c=20,z=-1 -o $(OUT)/demo/oval-cap
+
+test: install
+	$(BIN)/python -m pytest -q
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy shared/lamina_shared host/lamina_host
+
+bench: install
+	$(BIN)/python -m benchmarks --out $(OUT)/bench.json
+
+clean:
+	rm -rf $(VENV) $(OUT)

@@ -1,0 +1,113 @@
+"""``lamina-device``: serve a host over a serial port, or record a raw capture.
+
+Every user mistake ends in one line on stderr naming the problem and a non-zero
+exit status, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+
+import serial
+
+from lamina_device import __version__
+from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.hardware import Hardware, HardwareError, open_hardware
+from lamina_device.server import DeviceServer
+from lamina_shared.capture import CaptureError, CaptureWriter
+from lamina_shared.link import Channel
+from lamina_shared.types import ScanPlan
+
+EXIT_USAGE = 2
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    # gpiozero installs no SIGTERM handler and systemd's stop skips atexit, so turn the
+    # signal into SystemExit: the finally blocks then switch the laser off.
+    raise SystemExit(128 + signum)
+
+
+def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--hardware", required=True, help="sim or replay:CAPTURE_DIR")
+    parser.add_argument("--object", help="simulated object, e.g. cylinder:d=19.05 (sim only)")
+    parser.add_argument("--seed", type=int, default=0, help="simulation noise seed")
+    parser.add_argument("--noise", choices=("thesis", "none"), default="thesis",
+                        help="simulated noise and mechanical error (default: thesis-like)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser."""
+    parser = argparse.ArgumentParser(prog="lamina-device", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"lamina-device {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
+    sub = parser.add_subparsers(dest="command", required=True)
+    serve = sub.add_parser("serve", help="serve a host over a serial port")
+    serve.add_argument("--port", required=True, help="serial port, e.g. /dev/ttyGS0")
+    serve.add_argument("--baud", type=int, default=115200)
+    _add_hardware_options(serve)
+    record = sub.add_parser("record", help="record a raw capture (grid, cylinder, object)")
+    _add_hardware_options(record)
+    record.add_argument("--out", required=True, type=Path, help="new capture folder")
+    record.add_argument("--sections", type=int, default=4)
+    record.add_argument("--pitch", type=float, default=2.0, help="section pitch in mm")
+    record.add_argument("--views", type=int, default=8, help="views per section")
+    record.add_argument("--cylinder-views", type=int, default=8)
+    return parser
+
+
+def serve(args: argparse.Namespace, hardware: Hardware) -> int:
+    """Serve the host on ``args.port`` until it disconnects or asks to stop."""
+    try:
+        port = serial.Serial(args.port, baudrate=args.baud, timeout=0.05, exclusive=True)
+    except (serial.SerialException, OSError) as exc:
+        print(f"lamina-device: cannot open serial port {args.port}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    with port:
+        DeviceServer(Channel(port), hardware).serve()
+    return 0
+
+
+def record(args: argparse.Namespace, hardware: Hardware) -> int:
+    """Record the grid image, the cylinder views and the object views into a capture."""
+    try:
+        plan = ScanPlan.regular(args.sections, args.pitch, args.views)
+        cylinder_plan = ScanPlan.regular(1, args.pitch, args.cylinder_views)
+        writer = CaptureWriter(args.out, hardware.camera.size,
+                               {"object": hardware.description, "recorded_by": "lamina-device"})
+    except (ValueError, OSError) as exc:
+        print(f"lamina-device: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if hardware.board is not None:
+        writer.add_grid(grab_grid(hardware), hardware.board)
+    if hardware.cylinder_diameter_mm is not None:
+        writer.set_cylinder(hardware.cylinder_diameter_mm)
+        acquire(hardware, "cylinder", cylinder_plan, lambda s: None, sink=writer.add_view)
+    acquire(hardware, "object", plan, lambda s: None, sink=writer.add_view)
+    path = writer.close()
+    print(f"capture written: {path} ({len(plan.views)} object views)")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit status."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="lamina-device: %(message)s")
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        hardware = open_hardware(args.hardware, args.object, args.seed, args.noise)
+    except (HardwareError, CaptureError) as exc:
+        print(f"lamina-device: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return serve(args, hardware) if args.command == "serve" else record(args, hardware)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        hardware.close()

@@ -1,0 +1,619 @@
+"""Things that stand on the simulated turntable, with exact ray casts and true sections.
+
+Every object lives in the *object frame* of ``shared/specs/capture-format.md``: origin on
+the turntable axis at the first section's laser height, ``z`` up, mm. Objects answer two
+questions: where does a ray first meet me (for rendering) and what is my exact
+cross-section at height ``z`` (for the laser-visibility test and as ground truth).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = [
+    "Cylinder",
+    "Ellipsoid",
+    "SceneObject",
+    "TriangleMesh",
+    "cylinder",
+    "ellipsoid",
+    "load_mesh",
+    "parse_object",
+    "sphere",
+]
+
+OUTLINE_VERTICES = 4096
+_EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
+
+
+@runtime_checkable
+class SceneObject(Protocol):
+    """A solid in the object frame that can be ray cast and sliced."""
+
+    name: str
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit distance t (N,) (inf on a miss) and outward unit normals (N, 3)."""
+        ...
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Return the closed CCW cross-section polygons (K, 2) at height ``z_mm``."""
+        ...
+
+
+def _as_rays(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Broadcast ray origins and directions to two (N, 3) float arrays."""
+    d = np.atleast_2d(np.asarray(dirs, dtype=float))
+    o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
+    return o, d
+
+
+def _yaw_matrix(yaw_deg: float) -> np.ndarray:
+    """Return the 3x3 rotation about +z by ``yaw_deg``."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _smallest_positive(*candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the smallest candidate t > eps per ray and which candidate it was."""
+    stack = np.stack([np.where(c > _EPS_T_MM, c, np.inf) for c in candidates])
+    which = np.argmin(stack, axis=0)
+    return np.take_along_axis(stack, which[None], axis=0)[0], which
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """A closed upright circular cylinder: base centre ``(x, y, z)``, diameter and height."""
+
+    diameter_mm: float
+    height_mm: float = 40.0
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    z_mm: float = -5.0
+    name: str = "cylinder"
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t (N,) and outward normals (N, 3) of the wall and both caps."""
+        o, d = _as_rays(origins, dirs)
+        r = self.diameter_mm / 2.0
+        z0, z1 = self.z_mm, self.z_mm + self.height_mm
+        ox, oy = o[:, 0] - self.x_mm, o[:, 1] - self.y_mm
+        a = d[:, 0] ** 2 + d[:, 1] ** 2
+        b = 2.0 * (ox * d[:, 0] + oy * d[:, 1])
+        c = ox**2 + oy**2 - r * r
+        disc = b * b - 4.0 * a * c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+            walls = []
+            for t in ((-b - root) / (2.0 * a), (-b + root) / (2.0 * a)):
+                z = o[:, 2] + t * d[:, 2]
+                walls.append(np.where((z >= z0) & (z <= z1), t, np.inf))
+            caps = []
+            for zc in (z0, z1):
+                t = (zc - o[:, 2]) / d[:, 2]
+                px, py = ox + t * d[:, 0], oy + t * d[:, 1]
+                caps.append(np.where(px * px + py * py <= r * r, t, np.inf))
+        t, which = _smallest_positive(*walls, *caps)
+        t_hit = np.where(np.isfinite(t), t, 0.0)
+        hx, hy = ox + t_hit * d[:, 0], oy + t_hit * d[:, 1]
+        on_wall = which < 2
+        n = np.zeros_like(d)
+        on_wall &= np.isfinite(t)
+        n[:, 0] = np.where(on_wall, hx / r, 0.0)
+        n[:, 1] = np.where(on_wall, hy / r, 0.0)
+        n[:, 2] = np.where(which == 2, -1.0, np.where(which == 3, 1.0, 0.0))
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return t, n
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Return the circle at height ``z_mm`` as one CCW polygon, or [] above or below."""
+        if not self.z_mm <= z_mm <= self.z_mm + self.height_mm:
+            return []
+        phi = np.linspace(0.0, 2.0 * np.pi, OUTLINE_VERTICES, endpoint=False)
+        r = self.diameter_mm / 2.0
+        return [np.stack([self.x_mm + r * np.cos(phi), self.y_mm + r * np.sin(phi)], axis=1)]
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """An ellipsoid with semi-axes ``(a, b, c)`` along x, y, z, centre ``(x, y, z)``, yaw."""
+
+    semi_axes_mm: tuple[float, float, float]
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    z_mm: float = 0.0
+    yaw_deg: float = 0.0
+    name: str = "ellipsoid"
+
+    def _to_local(self, p: np.ndarray) -> np.ndarray:
+        """Rotate object-frame vectors (N, 3) into the ellipsoid's own axes."""
+        return p @ _yaw_matrix(self.yaw_deg)  # row vectors: p R == R^T p
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t (N,) and outward normals (N, 3) by solving a unit-sphere quadratic."""
+        o, d = _as_rays(origins, dirs)
+        axes = np.asarray(self.semi_axes_mm, dtype=float)
+        centre = np.array([self.x_mm, self.y_mm, self.z_mm])
+        # Scaling space by 1/axes maps the ellipsoid to the unit sphere; t is unchanged.
+        lo = self._to_local(o - centre) / axes
+        ld = self._to_local(d) / axes
+        a = np.einsum("ij,ij->i", ld, ld)
+        b = 2.0 * np.einsum("ij,ij->i", lo, ld)
+        c = np.einsum("ij,ij->i", lo, lo) - 1.0
+        disc = b * b - 4.0 * a * c
+        with np.errstate(invalid="ignore"):
+            root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+            t, _ = _smallest_positive((-b - root) / (2 * a), (-b + root) / (2 * a))
+        hit_local = (lo + np.where(np.isfinite(t), t, 0.0)[:, None] * ld) * axes
+        n = self._to_local_inverse(hit_local / axes**2)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return t, n
+
+    def _to_local_inverse(self, v: np.ndarray) -> np.ndarray:
+        """Rotate vectors from the ellipsoid's own axes back to the object frame."""
+        return v @ _yaw_matrix(self.yaw_deg).T
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Return the ellipse cut at height ``z_mm`` as one CCW polygon, or [] if missed."""
+        a, b, c = self.semi_axes_mm
+        frac = 1.0 - ((z_mm - self.z_mm) / c) ** 2
+        if frac <= 0.0:
+            return []
+        phi = np.linspace(0.0, 2.0 * np.pi, OUTLINE_VERTICES, endpoint=False)
+        s = math.sqrt(frac)
+        local = np.stack([a * s * np.cos(phi), b * s * np.sin(phi)], axis=1)
+        rot = _yaw_matrix(self.yaw_deg)[:2, :2]
+        return [local @ rot.T + np.array([self.x_mm, self.y_mm])]
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+def _moller_trumbore(
+    o: np.ndarray, d: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray
+) -> np.ndarray:
+    """Return t for paired rays and triangles (all (P, 3)), inf where they miss."""
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-12
+    inv = 1.0 / np.where(ok, det, 1.0)
+    s = o - v0
+    u = np.einsum("ij,ij->i", s, p) * inv
+    q = np.cross(s, e1)
+    v = np.einsum("ij,ij->i", d, q) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > _EPS_T_MM)
+    return np.where(hit, t, np.inf)
+
+
+def _expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (owner, index) pairs enumerating ``starts[k] + 0..counts[k]-1`` for every k."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    first = np.cumsum(counts) - counts
+    local = np.arange(owner.size) - np.repeat(first, counts)
+    return owner, np.repeat(starts, counts) + local
+
+
+def _keep_nearest(
+    best_t: np.ndarray, best_f: np.ndarray, ray: np.ndarray, t: np.ndarray, face: np.ndarray
+) -> None:
+    """Update per-ray nearest hit arrays in place from candidate (ray, t, face) triples."""
+    hit = np.isfinite(t)
+    ray, t, face = ray[hit], t[hit], face[hit]
+    order = np.lexsort((t, ray))
+    ray, t, face = ray[order], t[order], face[order]
+    first = np.ones(ray.size, dtype=bool)
+    first[1:] = ray[1:] != ray[:-1]
+    ray, t, face = ray[first], t[first], face[first]
+    better = t < best_t[ray]
+    best_t[ray[better]] = t[better]
+    best_f[ray[better]] = face[better]
+
+
+@dataclass(frozen=True, eq=False)
+class _RayBuckets:
+    """2D ray positions sorted into a uniform grid, with an integral image of counts."""
+
+    lo: np.ndarray
+    cell: np.ndarray
+    n: int
+    order: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    integral: np.ndarray
+
+    @classmethod
+    def build(cls, xy: np.ndarray, rays_per_cell: float = 8.0) -> _RayBuckets:
+        """Bucket (N, 2) points into about N / rays_per_cell square-ish cells."""
+        n = max(1, int(math.sqrt(len(xy) / rays_per_cell)))
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        cell = np.maximum((hi - lo) / n, 1e-12)
+        ij = np.minimum(((xy - lo) / cell).astype(np.int64), n - 1)
+        flat = ij[:, 1] * n + ij[:, 0]
+        count = np.bincount(flat, minlength=n * n)
+        integral = np.zeros((n + 1, n + 1), dtype=np.int64)
+        integral[1:, 1:] = count.reshape(n, n).cumsum(0).cumsum(1)
+        order = np.argsort(flat, kind="stable")
+        return cls(lo, cell, n, order, np.cumsum(count) - count, count, integral)
+
+    def cell_range(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return inclusive (M, 2) cell index ranges covering boxes [lo, hi]."""
+        pad = 1e-9 * self.cell
+        c0 = np.floor((lo - pad - self.lo) / self.cell)
+        c1 = np.floor((hi + pad - self.lo) / self.cell)
+        return (np.clip(c0, 0, self.n - 1).astype(np.int64), np.clip(c1, 0, self.n - 1).astype(np.int64))
+
+    def count_in(self, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
+        """Return how many points fall in each inclusive cell range."""
+        s = self.integral
+        return s[c1[:, 1] + 1, c1[:, 0] + 1] - s[c0[:, 1], c1[:, 0] + 1] - s[c1[:, 1] + 1, c0[:, 0]] + s[
+            c0[:, 1], c0[:, 0]
+        ]
+
+    def pairs(self, c0: np.ndarray, c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (box index, point index) for every point in every box's cell range."""
+        span = c1 - c0 + 1
+        owner, k = _expand_ranges(np.zeros(len(c0), np.int64), span[:, 0] * span[:, 1])
+        cells = (c0[owner, 1] + k // span[owner, 0]) * self.n + c0[owner, 0] + k % span[owner, 0]
+        which, slot = _expand_ranges(self.start[cells], self.count[cells])
+        return owner[which], self.order[slot]
+
+
+def _inside_2d(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Return True where points (P, 2) lie in (or within rounding of) triangles (P, 3, 2)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+
+    def side(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return (r[:, 0] - q[:, 0]) * (p[:, 1] - q[:, 1]) - (r[:, 1] - q[:, 1]) * (p[:, 0] - q[:, 0])
+
+    s0, s1, s2 = side(a, b), side(b, c), side(c, a)
+    eps = 1e-12  # generous: the exact 3D test decides, this only culls
+    return ((s0 >= -eps) & (s1 >= -eps) & (s2 >= -eps)) | ((s0 <= eps) & (s1 <= eps) & (s2 <= eps))
+
+
+def _cast_pinhole(
+    origin: np.ndarray, d: np.ndarray, tri: np.ndarray, best_t: np.ndarray, best_f: np.ndarray
+) -> np.ndarray:
+    """Cast rays sharing one origin via a 2D bucket grid; return faces left for brute force."""
+    # Gnomonic projection about the mean ray maps straight lines to straight lines, so a
+    # triangle wholly in front of the origin projects to a triangle holding exactly the rays
+    # that hit it. Buckets pair each triangle with nearby rays, a cheap 2D test culls most
+    # pairs, and Möller–Trumbore in 3D decides the rest exactly.
+    axis = d.mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    frame = np.stack([side, np.cross(axis, side), axis])
+    rel = (tri - origin) @ frame.T
+    front = np.all(rel[..., 2] > 1e-6, axis=1)
+    fidx = np.flatnonzero(front)
+    tri_xy = rel[fidx, :, :2] / rel[fidx, :, 2:3]
+    rd = d @ frame.T
+    live = np.flatnonzero(rd[:, 2] > 1e-6)
+    ray_xy = rd[live, :2] / rd[live, 2:3]
+    if fidx.size and live.size:
+        lo, hi = tri_xy.min(axis=1), tri_xy.max(axis=1)
+        inside = np.all((ray_xy >= lo.min(0)) & (ray_xy <= hi.max(0)), axis=1)
+        live, ray_xy = live[inside], ray_xy[inside]
+    if not (fidx.size and live.size):
+        return np.flatnonzero(~front)
+    buckets = _RayBuckets.build(ray_xy)
+    c0, c1 = buckets.cell_range(lo, hi)
+    load = np.cumsum(buckets.count_in(c0, c1))
+    bounds = np.searchsorted(load, np.arange(1, load[-1] // 1_000_000 + 1) * 1_000_000)
+    for chunk in np.split(np.arange(fidx.size), bounds):  # ~1e6 candidate pairs per chunk
+        if chunk.size == 0:
+            continue
+        owner, ray = buckets.pairs(c0[chunk], c1[chunk])
+        keep = _inside_2d(tri_xy[chunk][owner], ray_xy[ray])
+        face, ray = fidx[chunk][owner[keep]], live[ray[keep]]
+        v0 = tri[face, 0]
+        t = _moller_trumbore(origin[None], d[ray], v0, tri[face, 1] - v0, tri[face, 2] - v0)
+        _keep_nearest(best_t, best_f, ray, t, face)
+    return np.flatnonzero(~front)
+
+
+@dataclass(frozen=True, eq=False)
+class TriangleMesh:
+    """A triangle mesh (vertices (V, 3), faces (F, 3) indices) placed in the object frame."""
+
+    vertices: np.ndarray = field(repr=False)
+    faces: np.ndarray = field(repr=False)
+    name: str = "mesh"
+
+    @classmethod
+    def from_triangles(cls, tris: np.ndarray, name: str = "mesh") -> TriangleMesh:
+        """Build an indexed mesh from a triangle soup (F, 3, 3), welding equal vertices."""
+        flat = np.asarray(tris, dtype=float).reshape(-1, 3)
+        # Weld on a 1e-6 mm lattice so STL soups share edges and sections chain up.
+        keys = np.round(flat * 1e6).astype(np.int64)
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        faces = inverse.reshape(-1, 3)
+        good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (
+            faces[:, 2] != faces[:, 0]
+        )
+        return cls(flat[first], faces[good], name)
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """Return the (F, 3, 3) corner coordinates."""
+        return self.vertices[self.faces]
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the nearest hit t (N,) and unit normals facing the ray (N, 3), Möller–Trumbore."""
+        o, d = _as_rays(origins, dirs)
+        best_t = np.full(len(d), np.inf)
+        best_f = np.full(len(d), -1)
+        tri = self.triangles
+        if np.all(o == o[0]):
+            rest = _cast_pinhole(o[0], d, tri, best_t, best_f)
+        else:
+            rest = np.arange(len(tri))
+        self._cast_brute(o, d, tri, rest, best_t, best_f)
+        n = np.zeros_like(d)
+        hit = best_f >= 0
+        t3 = tri[best_f[hit]]
+        fn = np.cross(t3[:, 1] - t3[:, 0], t3[:, 2] - t3[:, 0])
+        fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+        # The first hit from outside is a front face, so facing the ray means outward even
+        # when a file's winding is inconsistent.
+        flip = np.einsum("ij,ij->i", fn, d[hit]) > 0
+        n[hit] = np.where(flip[:, None], -fn, fn)
+        return best_t, n
+
+    @staticmethod
+    def _cast_brute(
+        o: np.ndarray,
+        d: np.ndarray,
+        tri: np.ndarray,
+        faces: np.ndarray,
+        best_t: np.ndarray,
+        best_f: np.ndarray,
+    ) -> None:
+        """Test every ray against the given faces in bounded-memory chunks."""
+        if faces.size == 0 or len(d) == 0:
+            return
+        per_chunk = max(1, 2_000_000 // len(d))
+        for start in range(0, faces.size, per_chunk):
+            f = faces[start : start + per_chunk]
+            ray = np.tile(np.arange(len(d)), f.size)
+            face = np.repeat(f, len(d))
+            v0 = tri[face, 0]
+            t = _moller_trumbore(o[ray], d[ray], v0, tri[face, 1] - v0, tri[face, 2] - v0)
+            _keep_nearest(best_t, best_f, ray, t, face)
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Slice the mesh at ``z_mm`` and chain the segments into closed CCW polygons."""
+        above = self.vertices[:, 2] >= z_mm  # on-plane vertices count as above: no degeneracy
+        f = self.faces
+        n_above = above[f].sum(axis=1)
+        cut = f[(n_above == 1) | (n_above == 2)]
+        if cut.size == 0:
+            return []
+        edges = np.stack([cut[:, [0, 1]], cut[:, [1, 2]], cut[:, [2, 0]]], axis=1)
+        crosses = above[edges[..., 0]] != above[edges[..., 1]]
+        seg_edges = edges[crosses].reshape(-1, 2, 2)  # two crossing edges per cut face
+        a, b = np.sort(seg_edges, axis=2)[..., 0], np.sort(seg_edges, axis=2)[..., 1]
+        key = a * len(self.vertices) + b
+        za, zb = self.vertices[a, 2], self.vertices[b, 2]
+        w = ((z_mm - za) / (zb - za))[..., None]
+        pts = self.vertices[a, :2] + w * (self.vertices[b, :2] - self.vertices[a, :2])
+        return _chain_segments(key, pts)
+
+
+def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
+    """Join segments (S, 2) that share edge keys into closed CCW polygons."""
+    point_of = {int(k): p for k, p in zip(key.ravel(), pts.reshape(-1, 2))}
+    touching: dict[int, list[int]] = {}
+    for s, (k0, k1) in enumerate(key.tolist()):
+        touching.setdefault(k0, []).append(s)
+        touching.setdefault(k1, []).append(s)
+    used = np.zeros(len(key), dtype=bool)
+    polygons = []
+    for start in range(len(key)):
+        if used[start]:
+            continue
+        used[start] = True
+        ring = [int(key[start, 0])]
+        cur = int(key[start, 1])
+        while cur != ring[0]:
+            ring.append(cur)
+            nxt = [s for s in touching[cur] if not used[s]]
+            if not nxt:
+                break  # open chain from a non-manifold mesh: keep what we have
+            used[nxt[0]] = True
+            k0, k1 = key[nxt[0]]
+            cur = int(k1 if k0 == cur else k0)
+        poly = np.array([point_of[k] for k in ring])
+        if len(poly) >= 3:
+            area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+            polygons.append(poly if area > 0 else poly[::-1])
+    return polygons
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _read_stl(data: bytes) -> np.ndarray:
+    """Return the (F, 3, 3) triangles of a binary or ASCII STL file."""
+    if len(data) >= 84:
+        (count,) = struct.unpack_from("<I", data, 80)
+        if len(data) == 84 + 50 * count:  # binary files may also start with "solid"
+            rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+            return np.frombuffer(data, rec, count, 84)["v"].astype(float)
+    words = data.decode("ascii", errors="replace").split()
+    idx = [i for i, w in enumerate(words) if w == "vertex"]
+    if not idx or len(idx) % 3:
+        raise ValueError("mesh: not a valid STL file (no complete 'vertex' triples)")
+    return np.array([[float(words[i + k]) for k in (1, 2, 3)] for i in idx]).reshape(-1, 3, 3)
+
+
+def _fan(polys: list[list[int]]) -> np.ndarray:
+    """Triangulate polygons given as vertex index lists by fanning from the first vertex."""
+    tris = [(p[0], p[k], p[k + 1]) for p in polys for k in range(1, len(p) - 1)]
+    return np.array(tris, dtype=np.int64).reshape(-1, 3)
+
+
+def _read_ply(text: str) -> np.ndarray:
+    """Return the (F, 3, 3) triangles of an ASCII PLY file."""
+    lines = text.splitlines()
+    if not lines or lines[0].strip() != "ply":
+        raise ValueError("mesh: not a PLY file")
+    counts: dict[str, int] = {}
+    props: list[str] = []
+    current = ""
+    body = 0
+    for i, line in enumerate(lines):
+        parts = line.split()
+        if parts[:1] == ["format"] and parts[1] != "ascii":
+            raise ValueError("mesh: only ASCII PLY is supported, this file is " + parts[1])
+        if parts[:1] == ["element"]:
+            current, counts[parts[1]] = parts[1], int(parts[2])
+        elif parts[:1] == ["property"] and current == "vertex":
+            props.append(parts[-1])
+        elif parts[:1] == ["end_header"]:
+            body = i + 1
+            break
+    nv, nf = counts.get("vertex", 0), counts.get("face", 0)
+    cols = [props.index(c) for c in ("x", "y", "z")]
+    verts = np.array([[float(lines[body + i].split()[c]) for c in cols] for i in range(nv)])
+    polys = [[int(x) for x in lines[body + nv + i].split()[1:]] for i in range(nf)]
+    return verts[_fan(polys)]
+
+
+def _read_obj(text: str) -> np.ndarray:
+    """Return the (F, 3, 3) triangles of an OBJ file's ``v`` and ``f`` lines."""
+    verts: list[list[float]] = []
+    polys: list[list[int]] = []
+    for line in text.splitlines():
+        parts = line.split()
+        if parts[:1] == ["v"]:
+            verts.append([float(x) for x in parts[1:4]])
+        elif parts[:1] == ["f"]:
+            # "f 1/2/3 ..." is vertex/texture/normal; negative indices count from the end.
+            idx = [int(p.split("/")[0]) for p in parts[1:]]
+            polys.append([i - 1 if i > 0 else len(verts) + i for i in idx])
+    return np.array(verts)[_fan(polys)]
+
+
+def load_mesh(
+    path: str | Path,
+    scale: float = 1.0,
+    x_mm: float = 0.0,
+    y_mm: float = 0.0,
+    z_mm: float = 0.0,
+    yaw_deg: float = 0.0,
+) -> TriangleMesh:
+    """Load an STL, ASCII PLY or OBJ file, scale it, yaw it and move its origin to (x, y, z)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"mesh: file not found: {p}")
+    data = p.read_bytes()
+    suffix = p.suffix.lower()
+    if suffix == ".stl":
+        tris = _read_stl(data)
+    elif suffix == ".ply":
+        tris = _read_ply(data.decode("ascii", errors="replace"))
+    elif suffix == ".obj":
+        tris = _read_obj(data.decode("ascii", errors="replace"))
+    else:
+        raise ValueError(f"mesh: unknown file type {suffix!r}; expected .stl, .ply or .obj")
+    if tris.size == 0:
+        raise ValueError(f"mesh: {p} holds no triangles")
+    placed = (tris * scale) @ _yaw_matrix(yaw_deg).T + np.array([x_mm, y_mm, z_mm])
+    return TriangleMesh.from_triangles(placed, name=f"mesh:{p.name}")
+
+
+# ----------------------------------------------------------------------------- builders
+
+
+def cylinder(
+    diameter_mm: float, height_mm: float = 40.0, x: float = 0.0, y: float = 0.0, z: float = -5.0
+) -> Cylinder:
+    """Return an upright cylinder whose base centre sits at ``(x, y, z)``."""
+    return Cylinder(diameter_mm, height_mm, x, y, z)
+
+
+def sphere(diameter_mm: float, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> Ellipsoid:
+    """Return a sphere centred at ``(x, y, z)``."""
+    r = diameter_mm / 2.0
+    return Ellipsoid((r, r, r), x, y, z, 0.0, name="sphere")
+
+
+def ellipsoid(
+    a: float, b: float, c: float, x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0
+) -> Ellipsoid:
+    """Return an ellipsoid with semi-axes a, b, c (x, y, z) centred at ``(x, y, z)``, yawed."""
+    return Ellipsoid((a, b, c), x, y, z, yaw)
+
+
+_FORMS = {
+    "cylinder": ("cylinder:d=19.05,h=40", {"d"}, {"h"}),
+    "sphere": ("sphere:d=25", {"d"}, set()),
+    "ellipsoid": ("ellipsoid:a=10,b=6.5,c=20", {"a", "b", "c"}, set()),
+    "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
+}
+_PLACEMENT = {"x", "y", "z", "yaw"}
+_POSITIVE = {"d", "h", "a", "b", "c", "scale"}
+
+
+def _parse_fields(kind: str, body: str, form: str) -> dict[str, str]:
+    """Split ``k=v,k=v`` into a dict, rejecting malformed, empty, repeated or unknown keys."""
+    _, required, optional = _FORMS[kind]
+    allowed = required | optional | _PLACEMENT
+    fields: dict[str, str] = {}
+    for part in filter(None, (p.strip() for p in body.split(","))):
+        key, eq, value = (s.strip() for s in part.partition("="))
+        if not eq:
+            raise ValueError(f"{kind}: {part!r} is not key=value; expected e.g. {form}")
+        if key not in allowed:
+            raise ValueError(
+                f"{kind}: unknown key {key!r}; accepted: {', '.join(sorted(allowed))} (e.g. {form})"
+            )
+        if key in fields:
+            raise ValueError(f"{kind}: key {key!r} given twice; expected e.g. {form}")
+        if not value:
+            raise ValueError(f"{kind}: key {key!r} has no value; expected e.g. {form}")
+        fields[key] = value
+    missing = sorted(required - fields.keys())
+    if missing:
+        raise ValueError(f"{kind}: missing {', '.join(k + '=' for k in missing)}; expected e.g. {form}")
+    return fields
+
+
+def _number(kind: str, key: str, value: str, form: str) -> float:
+    """Parse one finite number (positive for sizes), naming the key when it is bad."""
+    try:
+        x = float(value)
+    except ValueError:
+        raise ValueError(f"{kind}: {key}={value!r} is not a number; expected e.g. {form}") from None
+    if not math.isfinite(x) or (key in _POSITIVE and x <= 0):
+        kind_of = "a positive number" if key in _POSITIVE else "a finite number"
+        raise ValueError(f"{kind}: {key}={value!r} must be {kind_of}; expected e.g. {form}")
+    return x
+
+
+def parse_object(spec: str) -> SceneObject:
+    """Build a scene object from ``kind:key=value,...`` (cylinder, sphere, ellipsoid, mesh)."""
+    kind, colon, body = spec.strip().partition(":")
+    kind = kind.strip().lower()
+    if kind not in _FORMS:
+        kinds = ", ".join(f[0] for f in _FORMS.values())
+        raise ValueError(f"unknown object kind {kind!r} in {spec!r}; accepted forms: {kinds}")
+    form = _FORMS[kind][0]
+    fields = _parse_fields(kind, body if colon else "", form)
+    num = {k: _number(kind, k, v, form) for k, v in fields.items() if k != "path"}
+    x, y, yaw = num.get("x", 0.0), num.get("y", 0.0), num.get("yaw", 0.0)
+    if kind == "cylinder":
+        return Cylinder(num["d"], num.get("h", 40.0), x, y, num.get("z", -5.0))
+    if kind == "sphere":
+        return sphere(num["d"], x, y, num.get("z", 0.0))
+    if kind == "ellipsoid":
+        return ellipsoid(num["a"], num["b"], num["c"], x, y, num.get("z", 0.0), yaw)
+    return load_mesh(fields["path"], num.get("scale", 1.0), x, y, num.get("z", 0.0), yaw)

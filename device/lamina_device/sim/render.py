@@ -1,0 +1,355 @@
+"""Physically honest simulated camera frames of the light-sectioning rig.
+
+Every pixel casts one ray from the pinhole to the nearest surface. A lit pixel gets the
+ambient term (albedo x a smooth, non-uniform ambient field x simple shading) and, in the
+laser-on frame, a laser term: peak x Gaussian sheet profile in world z x Lambert cosine
+toward the laser source x "can the laser reach this point" x multiplicative speckle.
+The sensor then adds shot and read noise and quantises to 8 bits. The non-uniform ambient
+(gradient, vignette, a soft shadow) is there because the thesis removes exactly that kind
+of background before finding the stripe (section 5.2.1); the stripe centre is what a
+centre-of-gravity extractor (section 5.2.3) must find.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from lamina_device.sim.objects import SceneObject, cylinder
+from lamina_device.sim.rig import Rig
+
+__all__ = ["NoiseModel", "SimScene", "ambient_field", "laser_reaches", "speckle_field"]
+
+_VIEW_CACHE_SIZE = 4
+_SHEET_REACH_SIGMAS = 5.0  # beyond 5 sigma the sheet adds < 1e-5 of its peak
+_SLAB_SIGMAS = 0.5  # lit-test outlines are sliced every half sigma of sheet height
+_GRID_SAMPLES = 64  # samples per pixel on the board: edges land to ~1/64 px
+_GRID_LATTICE_STEP = 39  # coprime to 64 and near 64 / golden ratio: well-spread samples
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Light levels and noise of the simulated camera; defaults are the thesis-like model."""
+
+    read_noise_dn: float = 1.5
+    shot_gain_dn: float = 0.15  # DN per photo-electron: shot variance = gain x signal (DN^2)
+    speckle_contrast: float = 0.5  # std / mean of the multiplicative speckle
+    speckle_grain_px: float = 1.0  # Gaussian sigma of the speckle correlation, px
+    laser_peak_dn: float = 170.0  # stripe peak on a surface facing the laser squarely
+    albedo: float = 0.8
+    ambient_dn: float = 70.0  # a white (albedo 1) surface facing the lamp, mid-image
+    background_dn: float = 22.0  # the box interior beyond the object (no laser there)
+    ambient_gradient: tuple[float, float] = (0.25, -0.15)  # fractional change across u, v
+    vignette: float = 0.2  # fractional fall-off at the image corners
+    shadow_depth: float = 0.35  # soft shadow, like the one the thesis shows (figure 5.3)
+    shadow_centre_frac: tuple[float, float] = (0.15, 0.85)  # (u, v) as fractions of the size
+    shadow_radius_frac: float = 0.2
+    grid_white_dn: float = 190.0  # the board is photographed with its own exposure
+    grid_black_dn: float = 25.0
+    grid_paper_margin_mm: float = 3.0  # white paper beyond the outer squares
+
+    @classmethod
+    def thesis(cls) -> NoiseModel:
+        """Return the default model: ~0.05 mm RMS per-point scatter in the laser plane."""
+        return cls()
+
+    @classmethod
+    def none(cls) -> NoiseModel:
+        """Return a noise-free model (no speckle, shot or read noise); ambient stays."""
+        return cls(read_noise_dn=0.0, shot_gain_dn=0.0, speckle_contrast=0.0)
+
+
+def _stable_seed(*parts: object) -> int:
+    """Return a 64-bit seed from the repr of ``parts`` (stable across runs, unlike hash())."""
+    return int.from_bytes(hashlib.sha256(repr(parts).encode()).digest()[:8], "little")
+
+
+def ambient_field(image_size: tuple[int, int], noise: NoiseModel) -> np.ndarray:
+    """Return the (H, W) smooth ambient multiplier: gradient x vignette x soft shadow."""
+    w, h = image_size
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    x, y = x / (w - 1) - 0.5, y / (h - 1) - 0.5
+    gradient = 1.0 + noise.ambient_gradient[0] * x + noise.ambient_gradient[1] * y
+    vignette = 1.0 - noise.vignette * (x * x + y * y) / 0.5
+    sx, sy = (c - 0.5 for c in noise.shadow_centre_frac)
+    blob = np.exp(-((x - sx) ** 2 + (y - sy) ** 2) / (2.0 * noise.shadow_radius_frac**2))
+    return gradient * vignette * (1.0 - noise.shadow_depth * blob)
+
+
+def speckle_field(
+    rng: np.random.Generator, shape: tuple[int, int], contrast: float, grain_px: float
+) -> np.ndarray:
+    """Return unit-mean multiplicative speckle with the given contrast and grain size."""
+    if contrast <= 0.0:
+        return np.ones(shape)
+    # Fully developed speckle is |low-passed complex Gaussian field|^2 (exponential, contrast
+    # 1); mixing it with a constant keeps the mean at 1 and sets the contrast.
+    ksize = 2 * math.ceil(3.0 * grain_px) + 1
+    field = rng.standard_normal((2, *shape))
+    re = cv2.GaussianBlur(field[0], (ksize, ksize), grain_px)
+    im = cv2.GaussianBlur(field[1], (ksize, ksize), grain_px)
+    k1 = cv2.getGaussianKernel(ksize, grain_px)
+    expected = 2.0 * float(np.sum(k1**2)) ** 2  # E|k * n|^2 for unit real and imaginary parts
+    return (1.0 - contrast) + contrast * (re * re + im * im) / expected
+
+
+def _expose(rng: np.random.Generator, expected_dn: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """Add shot and read noise to an expected image, round and clip to uint8."""
+    signal = expected_dn
+    if noise.shot_gain_dn > 0.0:
+        sd = np.sqrt(noise.shot_gain_dn * np.maximum(signal, 0.0))
+        signal = signal + sd * rng.standard_normal(signal.shape)
+    if noise.read_noise_dn > 0.0:
+        signal = signal + noise.read_noise_dn * rng.standard_normal(signal.shape)
+    return np.clip(np.rint(signal), 0, 255).astype(np.uint8)
+
+
+def _expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (owner, index) pairs enumerating ``starts[k] + 0..counts[k]-1`` for every k."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    first = np.cumsum(counts) - counts
+    return owner, np.repeat(starts, counts) + np.arange(owner.size) - np.repeat(first, counts)
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the z component of the cross product of (N, 2) vectors."""
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
+def laser_reaches(
+    source_xy: np.ndarray, points_xy: np.ndarray, polygons: list[np.ndarray], tol_mm: np.ndarray
+) -> np.ndarray:
+    """Return (N,) True where the segment source->point crosses no polygon edge.
+
+    The last ``tol_mm`` (scalar or (N,)) of each segment is ignored, so a point on the
+    outline does not shadow itself.
+    """
+    pts = np.asarray(points_xy, dtype=float).reshape(-1, 2)
+    if not polygons or len(pts) == 0:
+        return np.ones(len(pts), dtype=bool)
+    src = np.asarray(source_xy, dtype=float)
+    a = np.concatenate(polygons)
+    b = np.concatenate([np.roll(p, -1, axis=0) for p in polygons])
+    ref = np.arctan2(*(a.mean(axis=0) - src)[::-1])
+
+    def bearing(p: np.ndarray) -> np.ndarray:
+        # Angles about the source measured from the polygon's direction never wrap unless
+        # the outline surrounds the source, which the rig never does.
+        ang = np.arctan2(p[:, 1] - src[1], p[:, 0] - src[0]) - ref
+        return (ang + np.pi) % (2.0 * np.pi) - np.pi
+
+    ba, bb = bearing(a), bearing(b)
+    lo, hi = np.minimum(ba, bb), np.maximum(ba, bb)
+    order = np.argsort(lo)
+    lo, hi, a, b = lo[order], hi[order], a[order], b[order]
+    phi = bearing(pts)
+    # Only edges whose bearing interval can contain the point's bearing are candidates.
+    start = np.searchsorted(lo, phi - (hi - lo).max(), side="left")
+    stop = np.searchsorted(lo, phi, side="right")
+    owner, edge = _expand_ranges(start, stop - start)
+    keep = hi[edge] >= phi[owner]
+    owner, edge = owner[keep], edge[keep]
+    ray = pts - src
+    length = np.linalg.norm(ray, axis=1)
+    ray *= (np.maximum(length - tol_mm, 0.0) / np.maximum(length, 1e-300))[:, None]
+    d, e, w = ray[owner], b[edge] - a[edge], a[edge] - src
+    den = _cross2(d, e)
+    ok = np.abs(den) > 1e-300
+    den = np.where(ok, den, 1.0)
+    s, u = _cross2(w, e) / den, _cross2(w, d) / den
+    blocked = ok & (s >= 0.0) & (s <= 1.0) & (u >= 0.0) & (u <= 1.0)
+    reaches = np.ones(len(pts), dtype=bool)
+    reaches[owner[blocked]] = False
+    return reaches
+
+
+def _rz(angle_deg: float) -> np.ndarray:
+    """Return the 3x3 rotation about +z."""
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class _View:
+    """Noise-free expected images of one (target, angle, z) geometry."""
+
+    ambient_dn: np.ndarray
+    laser_dn: np.ndarray
+
+
+class SimScene:
+    """The rig with a board, the calibration cylinder and optionally an object to scan."""
+
+    def __init__(
+        self,
+        rig: Rig,
+        obj: SceneObject | None = None,
+        noise: NoiseModel | None = None,
+        seed: int = 0,
+    ) -> None:
+        """Set up the scene; nothing is rendered until asked."""
+        self.rig = rig
+        self.obj = obj
+        self.noise = noise if noise is not None else NoiseModel.thesis()
+        self.seed = seed
+        ox, oy = rig.cylinder_offset_mm
+        self.cylinder: SceneObject = cylinder(rig.cylinder_diameter_mm, 40.0, ox, oy, -5.0)
+        w, h = rig.image_size
+        self._shape = (h, w)
+        self._centre, dirs = rig.pixel_rays()
+        self._dirs = dirs.reshape(-1, 3)
+        self._field = ambient_field(rig.image_size, self.noise)
+        self._views: OrderedDict[tuple[str, float, float], _View] = OrderedDict()
+        self._grid: np.ndarray | None = None
+
+    def _target(self, target: str) -> SceneObject:
+        """Return the solid for ``target``, refusing unknown targets and a missing object."""
+        if target == "cylinder":
+            return self.cylinder
+        if target == "object":
+            if self.obj is None:
+                raise ValueError("this scene has no object: pass obj= to SimScene")
+            return self.obj
+        raise ValueError(f"unknown target {target!r}; expected 'grid', 'cylinder' or 'object'")
+
+    def truth_outline(self, target: str, z_mm: float) -> list[np.ndarray]:
+        """Return the object-frame section polygons of ``target`` at section height ``z_mm``."""
+        return self._target(target).section_outline(z_mm)
+
+    def render(
+        self,
+        target: str,
+        angle_deg: float,
+        z_mm: float,
+        laser_on: bool,
+        noise_key: tuple[object, ...] = (),
+    ) -> np.ndarray:
+        """Return one uint8 (H, W) frame of ``target`` at the true angle and section height."""
+        key = (self.seed, target, float(angle_deg), float(z_mm), bool(laser_on), tuple(noise_key))
+        rng = np.random.default_rng(_stable_seed(*key))
+        if target == "grid":
+            return _expose(rng, self._grid_expected(), self.noise)
+        view = self._view(target, float(angle_deg), float(z_mm))
+        expected = view.ambient_dn
+        if laser_on:
+            n = self.noise
+            speckle = speckle_field(rng, self._shape, n.speckle_contrast, n.speckle_grain_px)
+            expected = expected + view.laser_dn * speckle
+        return _expose(rng, expected, self.noise)
+
+    def _view(self, target: str, angle_deg: float, z_mm: float) -> _View:
+        """Return the cached noise-free images of a geometry, computing them on a miss."""
+        key = (target, angle_deg, z_mm)
+        if key in self._views:
+            self._views.move_to_end(key)
+            return self._views[key]
+        view = self._compute_view(self._target(target), angle_deg, z_mm)
+        self._views[key] = view
+        if len(self._views) > _VIEW_CACHE_SIZE:
+            self._views.popitem(last=False)
+        return view
+
+    def _compute_view(self, obj: SceneObject, angle_deg: float, z_mm: float) -> _View:
+        """Ray cast every pixel and evaluate ambient and laser light, noise-free."""
+        rig, n = self.rig, self.noise
+        axis = np.array([*rig.axis_xy_mm, 0.0])
+        to_obj = _rz(-angle_deg)
+        lift = np.array([0.0, 0.0, z_mm])  # world z = object z - z_mm
+        t, normal_obj = obj.raycast(to_obj @ (self._centre - axis) + lift, self._dirs @ to_obj.T)
+        hit = np.isfinite(t)
+        p = self._centre + t[hit, None] * self._dirs[hit]
+        normal = normal_obj[hit] @ _rz(angle_deg).T
+        field = self._field.ravel()
+        ambient = n.background_dn * field
+        # Soft lamp from above-front-left plus fill light: enough shading to look like a solid.
+        lamp = np.array([-0.4, -0.6, 0.7]) / np.linalg.norm([-0.4, -0.6, 0.7])
+        shade = 0.35 + 0.65 * np.maximum(normal @ lamp, 0.0)
+        ambient[hit] = n.albedo * n.ambient_dn * field[hit] * shade
+        laser = np.zeros_like(ambient)
+        laser[np.flatnonzero(hit)] = self._laser_term(obj, p, normal, angle_deg, z_mm)
+        return _View(ambient.reshape(self._shape), laser.reshape(self._shape))
+
+    def _laser_term(
+        self, obj: SceneObject, p: np.ndarray, normal: np.ndarray, angle_deg: float, z_mm: float
+    ) -> np.ndarray:
+        """Return the noise-free laser DN at world surface points ``p`` with world normals."""
+        rig = self.rig
+        sigma = rig.laser_sigma_mm
+        out = np.zeros(len(p))
+        near = np.flatnonzero(np.abs(p[:, 2]) < _SHEET_REACH_SIGMAS * sigma)
+        if near.size == 0:
+            return out
+        q, nrm = p[near], normal[near]
+        to_src = rig.laser_source_mm - q
+        to_src /= np.linalg.norm(to_src, axis=1, keepdims=True)
+        cosine = np.maximum(np.einsum("ij,ij->i", nrm, to_src), 0.0)
+        sheet = np.exp(-(q[:, 2] ** 2) / (2.0 * sigma**2))
+        lit = self._lit(obj, q, nrm, angle_deg, z_mm)
+        out[near] = self.noise.laser_peak_dn * sheet * cosine * lit
+        return out
+
+    def _lit(
+        self, obj: SceneObject, q: np.ndarray, nrm: np.ndarray, angle_deg: float, z_mm: float
+    ) -> np.ndarray:
+        """Return True where the laser, travelling in the sheet, reaches world points ``q``."""
+        rig = self.rig
+        to_obj = _rz(-angle_deg)[:2, :2]
+        axis = np.asarray(rig.axis_xy_mm)
+        src = to_obj @ (np.asarray(rig.laser_source_xy_mm) - axis)
+        q_obj = (q[:, :2] - axis) @ to_obj.T
+        # Test each point against the section at (nearly) its own height: slabs every half
+        # sigma. A point may then sit off its slab's outline by up to half a slab times the
+        # surface's horizontal slope, so that much of the segment's end is forgiven.
+        slab_mm = _SLAB_SIGMAS * rig.laser_sigma_mm
+        slab = np.rint(q[:, 2] / slab_mm).astype(int)
+        n_xy = np.hypot(nrm[:, 0], nrm[:, 1])
+        tol = 1e-3 + np.minimum(0.5 * slab_mm * np.abs(nrm[:, 2]) / np.maximum(n_xy, 1e-3), 1.0)
+        lit = np.ones(len(q), dtype=bool)
+        for k in np.unique(slab):
+            sel = slab == k
+            outline = obj.section_outline(z_mm + k * slab_mm)
+            lit[sel] = laser_reaches(src, q_obj[sel], outline, tol[sel])
+        return lit
+
+    def _grid_expected(self) -> np.ndarray:
+        """Return the noise-free board image, supersampled so corners land exactly."""
+        if self._grid is not None:
+            return self._grid
+        w, h = self.rig.image_size
+        inv = np.linalg.inv(self.rig.plane_homography())
+        v, u = np.mgrid[0:h, 0:w].astype(float)
+        total = np.zeros((h, w))
+        # A rank-1 lattice: every sample has its own row and column offset, so even edges
+        # parallel to the pixel grid are resolved to 1/N px (a square s x s grid gives 1/s).
+        n = _GRID_SAMPLES
+        for k in range(n):
+            du, dv = (k + 0.5) / n - 0.5, ((k * _GRID_LATTICE_STEP) % n + 0.5) / n - 0.5
+            x, y, s = (inv[r, 0] * (u + du) + inv[r, 1] * (v + dv) + inv[r, 2] for r in range(3))
+            total += self._board_value(x / s, y / s)
+        self._grid = total / n * self._field
+        return self._grid
+
+    def _board_value(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Return the DN (before the ambient field) at world plane points: squares, paper, box."""
+        n, board = self.noise, self.rig.board
+        sq = board.square_mm
+        i = np.floor((x - board.origin_mm[0]) / sq)
+        j = np.floor((y - board.origin_mm[1]) / sq)
+        nx, ny = board.inner_corners
+        on_board = (i >= -1) & (i <= nx - 1) & (j >= -1) & (j <= ny - 1)
+        margin = n.grid_paper_margin_mm + sq
+        ox, oy = board.origin_mm
+        on_paper = (
+            (x >= ox - margin)
+            & (x <= ox + (nx - 1) * sq + margin)
+            & (y >= oy - margin)
+            & (y <= oy + (ny - 1) * sq + margin)
+        )
+        black = on_board & ((i + j) % 2 == 0)
+        value = np.where(on_paper, n.grid_white_dn, n.background_dn)
+        return np.where(black, n.grid_black_dn, value)

@@ -1,0 +1,114 @@
+"""Geometry of the simulated scanner: pinhole camera, turntable axis, laser and board.
+
+Conventions follow ``shared/specs/capture-format.md`` (world frame in the laser plane,
+``x`` right as the camera sees it, ``y`` away from the camera, ``z`` up, mm) and
+``lamina_shared.types`` (pixel ``(i, j)`` centre at exactly ``u = i, v = j``).
+The layout mirrors the thesis prototype (section 3.2.1): camera inclined 30 degrees,
+object about 10 cm away.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lamina_shared.types import BoardSpec
+
+__all__ = ["Rig"]
+
+
+@dataclass(frozen=True)
+class Rig:
+    """The true (simulated) scanner geometry; calibration must recover what it can of it."""
+
+    image_size: tuple[int, int] = (640, 480)
+    # 640 px * 100 mm / 1422 px ~= 45 mm across the image at the axis distance.
+    focal_px: float = 1422.0
+    camera_distance_mm: float = 100.0
+    tilt_deg: float = 30.0
+    axis_xy_mm: tuple[float, float] = (0.6, -0.4)
+    # Beside and in front of the axis, so the camera and laser shadow different arcs.
+    laser_source_xy_mm: tuple[float, float] = (15.0, -85.0)
+    # ~0.16 mm gives a stripe of ~2 px sigma on a wall facing the camera near the axis.
+    laser_sigma_mm: float = 0.16
+    board: BoardSpec = BoardSpec((9, 7), 3.0, (-12.0, -9.0))
+    cylinder_diameter_mm: float = 19.05
+    cylinder_offset_mm: tuple[float, float] = (1.5, -0.8)
+
+    @property
+    def principal_point_px(self) -> tuple[float, float]:
+        """Return ``(cx, cy)``, the image centre in the pixel-centre convention."""
+        w, h = self.image_size
+        return ((w - 1) / 2.0, (h - 1) / 2.0)
+
+    @property
+    def camera_matrix(self) -> np.ndarray:
+        """Return the 3x3 intrinsic matrix K."""
+        cx, cy = self.principal_point_px
+        return np.array([[self.focal_px, 0.0, cx], [0.0, self.focal_px, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def camera_centre_mm(self) -> np.ndarray:
+        """Return the camera centre in world coordinates (above the plane, on the -y side)."""
+        t = math.radians(self.tilt_deg)
+        ax, ay = self.axis_xy_mm
+        d = self.camera_distance_mm
+        return np.array([ax, ay - d * math.cos(t), d * math.sin(t)])
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Return R whose rows are the camera x (right), y (down) and z (forward) axes in world."""
+        t = math.radians(self.tilt_deg)
+        forward = np.array([0.0, math.cos(t), -math.sin(t)])
+        right = np.array([1.0, 0.0, 0.0])
+        down = np.cross(forward, right)  # OpenCV camera frame is right-handed: x * y = z
+        return np.stack([right, down, forward])
+
+    @property
+    def laser_source_mm(self) -> np.ndarray:
+        """Return the laser fan origin as a 3D world point (it lies in the plane z = 0)."""
+        return np.array([*self.laser_source_xy_mm, 0.0])
+
+    def plane_homography(self) -> np.ndarray:
+        """Return H mapping homogeneous world ``(x, y, 1)`` on z = 0 to homogeneous ``(u, v, 1)``."""
+        r = self.rotation
+        t = -r @ self.camera_centre_mm
+        return self.camera_matrix @ np.column_stack([r[:, 0], r[:, 1], t])
+
+    def project(self, xyz_world: np.ndarray) -> np.ndarray:
+        """Project (N, 3) world points in mm to (N, 2) pixel coordinates ``(u, v)``."""
+        p = np.asarray(xyz_world, dtype=float)
+        cam = (p - self.camera_centre_mm) @ self.rotation.T
+        cx, cy = self.principal_point_px
+        u = cx + self.focal_px * cam[..., 0] / cam[..., 2]
+        v = cy + self.focal_px * cam[..., 1] / cam[..., 2]
+        return np.stack([u, v], axis=-1)
+
+    def backproject_to_plane(self, uv: np.ndarray) -> np.ndarray:
+        """Return the (N, 2) world ``(x, y)`` where pixel rays through ``uv`` meet z = 0."""
+        uv = np.asarray(uv, dtype=float)
+        hom = np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1)
+        xyw = hom @ np.linalg.inv(self.plane_homography()).T
+        return xyw[..., :2] / xyw[..., 2:3]
+
+    def object_to_world(self, q_obj_mm: np.ndarray, angle_deg: float, z_mm: float) -> np.ndarray:
+        """Map object-frame points (N, 2) or (N, 3) to world (N, 3) at turntable angle and section."""
+        q = np.asarray(q_obj_mm, dtype=float)
+        qz = q[..., 2] if q.shape[-1] == 3 else np.zeros(q.shape[:-1])
+        th = math.radians(angle_deg)
+        c, s = math.cos(th), math.sin(th)
+        x = self.axis_xy_mm[0] + c * q[..., 0] - s * q[..., 1]
+        y = self.axis_xy_mm[1] + s * q[..., 0] + c * q[..., 1]
+        return np.stack([x, y, qz - z_mm], axis=-1)
+
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the camera centre (3,) and unit ray directions (H, W, 3) through pixel centres."""
+        w, h = self.image_size
+        cx, cy = self.principal_point_px
+        vv, uu = np.mgrid[0:h, 0:w].astype(float)
+        cam = np.stack([(uu - cx) / self.focal_px, (vv - cy) / self.focal_px, np.ones_like(uu)], -1)
+        dirs = cam @ self.rotation  # camera -> world is R^T, applied to row vectors
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        return self.camera_centre_mm.copy(), dirs

@@ -1,0 +1,120 @@
+"""Reassemble stripe segments into one contour per section (thesis 6.1-6.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lamina_host.calibration import CalibrationError
+
+TWO_PI = 2.0 * np.pi
+
+
+def trim(points: np.ndarray, fraction: float = 0.10) -> np.ndarray:
+    """Drop the first and last ``fraction`` of a segment's points (thesis 6.1).
+
+    The stripe is weakest and noisiest where it grazes the object's edges, so the thesis
+    discards 10 % at each end.
+
+    Args:
+        points: (K, ...) points ordered along the segment (by image column).
+        fraction: share of the points dropped at each end, 0 <= fraction < 0.5.
+
+    Returns:
+        The middle points; ``floor(K * fraction)`` are removed from each end.
+    """
+    if not 0.0 <= fraction < 0.5:
+        raise ValueError(f"trim fraction must be in [0, 0.5), not {fraction}")
+    pts = np.asarray(points)
+    k = int(np.floor(len(pts) * fraction + 1e-9))
+    return pts[k : len(pts) - k]
+
+
+def to_object_frame(
+    points_world: np.ndarray,
+    angle_deg: float,
+    axis_xy_mm: tuple[float, float],
+    correction_factor: float,
+) -> np.ndarray:
+    """Move laser-plane points into the object's frame: ``q = C_f Rz(-angle)(p - a)``.
+
+    Capture-spec convention; thesis 6.2.3 (translate to the axis, rotate, eq. 6.2) and
+    6.2.4 (scale by the correction factor about the axis).
+
+    Args:
+        points_world: (N, 2) world points in mm.
+        angle_deg: turntable angle of the view, counter-clockwise seen from above.
+        axis_xy_mm: turntable axis ``a`` in world mm.
+        correction_factor: ``C_f`` from the calibration cylinder.
+
+    Returns:
+        (N, 2) object-frame points in mm.
+    """
+    p = np.asarray(points_world, dtype=float).reshape(-1, 2) - np.asarray(axis_xy_mm, float)
+    th = np.deg2rad(angle_deg)
+    c, s = np.cos(th), np.sin(th)
+    # Rz(-theta) = [[c, s], [-s, c]]; applied to row vectors as p @ Rz(-theta).T.
+    rot_t = np.array([[c, -s], [s, c]])
+    return correction_factor * (p @ rot_t)
+
+
+def _polar(points: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (angle in (-pi, pi], radius) of points about centre."""
+    d = points - centre
+    return np.arctan2(d[:, 1], d[:, 0]), np.hypot(d[:, 0], d[:, 1])
+
+
+def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
+    """Average overlapping segments radially and merge them into one closed contour.
+
+    Thesis 6.3, generalised from pairs to any number of overlapping segments: polar
+    coordinates are taken about the mean of all the section's points; every point's radius
+    is replaced by the mean of its own radius and the radius of each *other* segment whose
+    angular range covers the point's angle, linearly interpolated there (6.3 steps 3-4).
+    Angles are unwrapped along each segment, so segments crossing +-pi and segments running
+    clockwise are handled. The section must be star-shaped about that centre (one radius per
+    angle), as the thesis' method assumes.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm, each ordered along its stripe.
+
+    Returns:
+        (N, 2) closed contour of all points, sorted by polar angle in (-pi, pi].
+
+    Raises:
+        CalibrationError: no points at all.
+    """
+    segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
+    segs = [s for s in segs if len(s) > 0]
+    if not segs:
+        raise CalibrationError("the section has no stripe points; check the scan views")
+    centre = np.concatenate(segs).mean(axis=0)
+
+    # Per segment: raw angles/radii plus an increasing unwrapped copy for interpolation.
+    polar = [_polar(s, centre) for s in segs]
+    tables = []
+    for ang, rad in polar:
+        unwrapped = np.unwrap(ang)
+        order = np.argsort(unwrapped, kind="stable")
+        tables.append((unwrapped[order], rad[order]))
+
+    out_ang, out_rad = [], []
+    for k, (ang, rad) in enumerate(polar):
+        total = rad.copy()
+        count = np.ones_like(rad)
+        for m, (xp, fp) in enumerate(tables):
+            if m == k or len(xp) < 2:
+                continue
+            lo, hi = xp[0], xp[-1]
+            # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
+            shifted = lo + np.mod(ang - lo, TWO_PI)
+            covered = shifted <= hi
+            total[covered] += np.interp(shifted[covered], xp, fp)
+            count[covered] += 1.0
+        out_ang.append(ang)
+        out_rad.append(total / count)
+
+    ang = np.concatenate(out_ang)
+    rad = np.concatenate(out_rad)
+    order = np.argsort(ang, kind="stable")
+    ang, rad = ang[order], rad[order]
+    return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)

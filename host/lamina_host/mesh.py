@@ -1,0 +1,149 @@
+"""Normals, ball-pivoting surface reconstruction and PLY output (thesis chapter 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lamina_host.calibration import CalibrationError
+from lamina_host.measure import signed_area
+
+
+def contour_normals(contour: np.ndarray) -> np.ndarray:
+    """Return (N, 2) outward unit normals of a closed contour in the xy plane.
+
+    The tangent at each point is the central difference of its neighbours (wrapping round);
+    the outward side follows from the contour's orientation (sign of its shoelace area).
+    """
+    pts = np.asarray(contour, dtype=float)
+    tangent = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
+    # For a counter-clockwise contour the outside is on the right of the tangent.
+    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+    if signed_area(pts) < 0:
+        normal = -normal
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    if np.any(length == 0):
+        raise CalibrationError(
+            "the contour has repeated neighbouring points, so a normal is undefined; "
+            "remove duplicate points first"
+        )
+    return normal / length
+
+
+def _normals3(normals: np.ndarray, n: int) -> np.ndarray:
+    """Return normals as (n, 3), padding xy normals with z = 0."""
+    nrm = np.asarray(normals, dtype=float)
+    if nrm.ndim != 2 or len(nrm) != n or nrm.shape[1] not in (2, 3):
+        raise ValueError(f"normals must be ({n}, 2) or ({n}, 3), got {nrm.shape}")
+    if nrm.shape[1] == 2:
+        nrm = np.concatenate([nrm, np.zeros((n, 1))], axis=1)
+    return nrm
+
+
+def _points3(points: np.ndarray) -> np.ndarray:
+    """Return a validated (N, 3) float array."""
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be an (N, 3) array, got {pts.shape}")
+    return pts
+
+
+def ball_pivoting(
+    points: np.ndarray, normals: np.ndarray, radius_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh a point cloud with MeshLab's ball-pivoting algorithm (thesis 7.2.1).
+
+    Args:
+        points: (N, 3) vertices in mm.
+        normals: (N, 3) or (N, 2) outward normals (xy normals get z = 0).
+        radius_mm: ball radius in mm (the thesis used 2 mm for 2 mm section pitch).
+
+    Returns:
+        (vertices (V, 3) float64, faces (F, 3) int64).
+    """
+    import pymeshlab  # deferred: heavy import, only needed for meshing
+
+    pts = _points3(points)
+    if len(pts) < 3:
+        raise CalibrationError(f"meshing needs at least 3 points, got {len(pts)}")
+    if not radius_mm > 0:
+        raise ValueError(f"ball radius must be a positive number of mm, not {radius_mm}")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, v_normals_matrix=_normals3(normals, len(pts))))
+    ms.generate_surface_reconstruction_ball_pivoting(ballradius=pymeshlab.PureValue(radius_mm))
+    mesh = ms.current_mesh()
+    return (
+        np.asarray(mesh.vertex_matrix(), dtype=np.float64),
+        np.asarray(mesh.face_matrix(), dtype=np.int64),
+    )
+
+
+def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:
+    """Return MeshLab's topological measures of a triangle mesh.
+
+    Returns:
+        dict with watertight (no boundary edges), two_manifold, components, faces,
+        vertices and boundary_edges.
+    """
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(
+        pymeshlab.Mesh(
+            vertex_matrix=_points3(vertices), face_matrix=np.asarray(faces, dtype=np.int32)
+        )
+    )
+    m = ms.get_topological_measures()
+    return {
+        "watertight": int(m["boundary_edges"]) == 0,
+        "two_manifold": bool(m["is_mesh_two_manifold"]),
+        "components": int(m["connected_components_number"]),
+        "faces": int(m["faces_number"]),
+        "vertices": int(m["vertices_number"]),
+        "boundary_edges": int(m["boundary_edges"]),
+    }
+
+
+def save_ply(
+    path: str | Path,
+    vertices: np.ndarray,
+    faces: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+) -> None:
+    """Write a binary little-endian PLY: float32 vertices, optional normals and faces.
+
+    With ``faces`` None the file is a point cloud: no face element at all.
+
+    Args:
+        path: output file.
+        vertices: (V, 3) mm.
+        faces: optional (F, 3) vertex indices.
+        normals: optional (V, 3) or (V, 2) normals.
+    """
+    verts = _points3(vertices)
+    n = len(verts)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    vrec = np.empty(n, dtype=fields)
+    vrec["x"], vrec["y"], vrec["z"] = verts.T
+    if normals is not None:
+        vrec["nx"], vrec["ny"], vrec["nz"] = _normals3(normals, n).T
+    header = ["ply", "format binary_little_endian 1.0", "comment written by Lamina"]
+    header += [f"element vertex {n}"] + [f"property float {name}" for name, _ in fields]
+    body = [vrec.tobytes()]
+    if faces is not None:
+        f = np.asarray(faces, dtype=np.int64)
+        if f.ndim != 2 or f.shape[1] != 3 or (f.size and (f.min() < 0 or f.max() >= n)):
+            raise ValueError(f"faces must be (F, 3) indices into {n} vertices")
+        frec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+        frec["n"] = 3
+        frec["idx"] = f
+        header += [f"element face {len(f)}", "property list uchar int vertex_indices"]
+        body.append(frec.tobytes())
+    header.append("end_header")
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        for chunk in body:
+            fh.write(chunk)

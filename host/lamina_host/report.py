@@ -1,0 +1,137 @@
+"""What a scan leaves behind: PLY files, the raw segments and ``report.json``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lamina_host.expect import Expectation
+from lamina_host.measure import centroid, perimeter, polygon_area
+from lamina_host.mesh import save_ply
+from lamina_host.pipeline import Reconstruction, Section, stack, stacked_normals
+from lamina_shared.types import Segment
+
+SEGMENT_FIELDS = ("cols", "rows", "peak", "width")
+
+
+def save_segments(path: Path, segments: list[Segment]) -> None:
+    """Write segments losslessly to one ``.npz`` file (kept so a scan can be reprocessed)."""
+    arrays: dict[str, np.ndarray] = {}
+    for k, s in enumerate(segments):
+        head = np.array([s.section, s.view, s.z_mm, s.angle_deg], dtype=np.float64)
+        arrays[f"{k:05d}_head"] = head
+        arrays[f"{k:05d}_target"] = np.array(s.target)
+        for name in SEGMENT_FIELDS:
+            arrays[f"{k:05d}_{name}"] = getattr(s, name)
+    np.savez_compressed(path, **arrays)
+
+
+def load_segments(path: Path) -> list[Segment]:
+    """Read segments written by :func:`save_segments`."""
+    with np.load(path) as data:
+        keys = sorted({name.split("_", 1)[0] for name in data.files})
+        segments = []
+        for k in keys:
+            section, view, z_mm, angle = data[f"{k}_head"]
+            segments.append(
+                Segment(
+                    str(data[f"{k}_target"]),
+                    int(section),
+                    int(view),
+                    float(z_mm),
+                    float(angle),
+                    *(data[f"{k}_{n}"] for n in SEGMENT_FIELDS),
+                )
+            )
+    return segments
+
+
+def radial_errors(sections: list[Section], expect: Expectation) -> dict[str, Any]:
+    """Return thesis Table 8.3 figures: RMS radial error about own and mean centroid (mm)."""
+    centres = {s.index: centroid(s.contour) for s in sections}
+    mean_centre = np.mean(list(centres.values()), axis=0)
+    rows = []
+    for s in sections:
+        row: dict[str, Any] = {"section": s.index, "z_mm": s.z_mm}
+        for label, centre in (("own_centroid", centres[s.index]), ("mean_centroid", mean_centre)):
+            rel = s.contour - centre
+            error = np.hypot(rel[:, 0], rel[:, 1]) - expect.radius_mm(
+                np.arctan2(rel[:, 1], rel[:, 0]), s.z_mm
+            )
+            row[f"rms_{label}_mm"] = float(np.sqrt(np.mean(error**2)))
+            row[f"max_{label}_mm"] = float(np.max(np.abs(error)))
+        rows.append(row)
+    return {
+        "expected": expect.spec,
+        "sections": rows,
+        "mean_rms_own_centroid_mm": float(np.mean([r["rms_own_centroid_mm"] for r in rows])),
+        "mean_rms_mean_centroid_mm": float(np.mean([r["rms_mean_centroid_mm"] for r in rows])),
+        "max_rms_mean_centroid_mm": float(np.max([r["rms_mean_centroid_mm"] for r in rows])),
+        "mean_centroid_mm": [float(v) for v in mean_centre],
+    }
+
+
+def build_report(
+    result: Reconstruction,
+    device: dict[str, Any],
+    segments: list[Segment],
+    expect: Expectation | None,
+    acquisition_s: dict[str, float],
+) -> dict[str, Any]:
+    """Return the JSON-ready report of one scan."""
+    report: dict[str, Any] = {
+        "device": device,
+        "calibration": result.grid.to_dict(),
+        "axis": result.axis.to_dict(),
+        "correction_factor": result.axis.correction_factor,
+        "sections": [
+            {
+                "section": s.index,
+                "z_mm": s.z_mm,
+                "segments": s.segments,
+                "raw_points": len(s.raw),
+                "outline_points": len(s.contour),
+                "harmonics": s.harmonics,
+                "perimeter_mm": perimeter(s.contour),
+                "area_mm2": polygon_area(s.contour),
+            }
+            for s in result.sections
+        ],
+        "point_counts": {
+            "segments": len(segments),
+            "segment_points": int(sum(len(s) for s in segments)),
+            "raw_points": int(sum(len(s.raw) for s in result.sections)),
+            "outline_points": int(sum(len(s.contour) for s in result.sections)),
+        },
+        "mesh": {
+            "method": "ball-pivoting",
+            "vertices": len(result.vertices),
+            "faces": len(result.faces),
+            "topology": result.mesh_topology,
+        },
+        "timings_s": {**acquisition_s, **result.timings_s},
+        "warnings": result.warnings,
+    }
+    if expect is not None:
+        report["accuracy"] = radial_errors(result.sections, expect)
+    return report
+
+
+def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> dict[str, Path]:
+    """Write the point clouds, the mesh and the report into ``out``; return their paths."""
+    paths = {
+        name: out / name for name in ("raw_points.ply", "points.ply", "mesh.ply", "report.json")
+    }
+    heights = [s.z_mm for s in result.sections]
+    contours = [s.contour for s in result.sections]
+    save_ply(paths["raw_points.ply"], stack([s.raw for s in result.sections], heights))
+    save_ply(paths["points.ply"], stack(contours, heights), normals=stacked_normals(contours))
+    if len(result.faces):
+        save_ply(paths["mesh.ply"], result.vertices, result.faces)
+    else:
+        del paths["mesh.ply"]
+    paths["report.json"].write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return paths

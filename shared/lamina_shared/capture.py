@@ -1,0 +1,376 @@
+"""Raw captures: read, validate and write the format of ``../shared/specs/capture-format.md``.
+
+A reader validates the whole capture before any work starts and reports every
+problem at once, each naming the offending key. Frame pixels are decoded with
+OpenCV, which both the device and the host distributions install; the manifest
+checks need only the standard library.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+
+from lamina_shared.types import BoardSpec, ScanPlan, ViewSpec
+
+FORMAT_NAME = "lightsection-capture"
+FORMAT_VERSION = 1
+MANIFEST = "capture.json"
+LASER_CHANNELS = {"red": 2, "green": 1, "blue": 0}  # index into OpenCV's BGR order
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+class CaptureError(ValueError):
+    """A capture that cannot be used; ``problems`` lists every reason found."""
+
+    def __init__(self, root: Path, problems: list[str]) -> None:
+        self.problems = problems
+        listing = "; ".join(problems)
+        super().__init__(f"capture {root} is not usable ({len(problems)} problem(s)): {listing}")
+
+
+@dataclass(frozen=True)
+class CaptureView:
+    """One view of a capture: its place in the scan and its two frame files."""
+
+    spec: ViewSpec
+    laser_on: Path
+    laser_off: Path | None
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A validated capture folder."""
+
+    root: Path
+    image_size: tuple[int, int]
+    laser_channel: str
+    board: BoardSpec | None
+    grid_image: Path | None
+    cylinder_diameter_mm: float | None
+    cylinder_views: tuple[CaptureView, ...]
+    scan_views: tuple[CaptureView, ...]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def views(self, target: str) -> tuple[CaptureView, ...]:
+        """Return the views recorded for ``"cylinder"`` or ``"object"``."""
+        return self.cylinder_views if target == "cylinder" else self.scan_views
+
+    def plan(self, target: str) -> ScanPlan | None:
+        """Return the scan plan the views of ``target`` follow, or None if there are none."""
+        views = self.views(target)
+        return ScanPlan(tuple(v.spec for v in views)) if views else None
+
+
+# --- reading --------------------------------------------------------------------------
+
+
+def _png_size(path: Path) -> tuple[int, int, int]:
+    """Return (width, height, bit depth) from a PNG header; raise ValueError if not a PNG."""
+    with path.open("rb") as fh:
+        head = fh.read(33)
+    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError("not a PNG file")
+    width, height, depth = struct.unpack(">IIB", head[16:25])
+    return width, height, depth
+
+
+def read_frame(path: Path, laser_channel: str = "red") -> np.ndarray:
+    """Return a frame as a 2-D uint8 or uint16 array, the laser's channel for colour PNGs."""
+    import cv2  # the device and host distributions both install opencv
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"{path} cannot be decoded as an image")
+    if image.ndim == 3:
+        image = image[:, :, LASER_CHANNELS[laser_channel]]
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{path} has pixel type {image.dtype}; 8- or 16-bit expected")
+    return np.ascontiguousarray(image)
+
+
+class _Checker:
+    """Collects problems while walking a manifest, so all of them are reported at once."""
+
+    def __init__(self, root: Path, decode: bool) -> None:
+        self.root = root
+        self.decode = decode
+        self.problems: list[str] = []
+        self.image_size: tuple[int, int] | None = None
+        self.laser_channel = "red"
+
+    def number(self, data: dict[str, Any], key: str, where: str, positive: bool = False) -> float:
+        value = data.get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            self.problems.append(f"{where}.{key}: a number is required, found {value!r}")
+            return math.nan
+        if not math.isfinite(value) or (positive and value <= 0):
+            kind = "a positive finite" if positive else "a finite"
+            self.problems.append(f"{where}.{key}: {kind} number is required, found {value!r}")
+            return math.nan
+        return float(value)
+
+    def frame(self, rel: Any, where: str) -> Path | None:
+        if not isinstance(rel, str) or not rel:
+            self.problems.append(f"{where}: a relative file path is required, found {rel!r}")
+            return None
+        pure = PurePosixPath(rel)
+        if pure.is_absolute() or ".." in pure.parts:
+            self.problems.append(f"{where}: {rel!r} must stay inside the capture folder")
+            return None
+        path = self.root / pure
+        if not path.is_file():
+            self.problems.append(f"{where}: file {rel} is missing")
+            return None
+        try:
+            width, height, depth = _png_size(path)
+        except (OSError, ValueError) as exc:
+            self.problems.append(f"{where}: {rel} is unreadable ({exc})")
+            return None
+        if depth not in (8, 16):
+            self.problems.append(f"{where}: {rel} has bit depth {depth}; 8 or 16 is required")
+        if self.image_size and (width, height) != self.image_size:
+            self.problems.append(
+                f"{where}: {rel} is {width}x{height}, image_size says "
+                f"{self.image_size[0]}x{self.image_size[1]}"
+            )
+        if self.decode:
+            try:
+                read_frame(path, self.laser_channel)
+            except ValueError:
+                self.problems.append(f"{where}: {rel} is unreadable (damaged or truncated PNG)")
+        return path
+
+    def views(self, data: Any, where: str) -> list[CaptureView]:
+        if not isinstance(data, list):
+            self.problems.append(f"{where}: a list of views is required")
+            return []
+        views, seen = [], set()
+        for k, item in enumerate(data):
+            at = f"{where}[{k}]"
+            if not isinstance(item, dict):
+                self.problems.append(f"{at}: a view object is required")
+                continue
+            section = item.get("section")
+            if isinstance(section, bool) or not isinstance(section, int) or section < 0:
+                self.problems.append(f"{at}.section: a whole number >= 0 is required")
+                section = -1
+            z_mm = self.number(item, "z_mm", at)
+            angle = self.number(item, "angle_deg", at)
+            if (section, angle) in seen:
+                self.problems.append(f"{at}: duplicate (section {section}, angle {angle} deg)")
+            seen.add((section, angle))
+            on = self.frame(item.get("laser_on"), f"{at}.laser_on")
+            off = None
+            if item.get("laser_off") is not None:
+                off = self.frame(item.get("laser_off"), f"{at}.laser_off")
+            if on is not None and section >= 0 and math.isfinite(z_mm + angle):
+                views.append(CaptureView(ViewSpec(section, z_mm, angle), on, off))
+        return views
+
+    def board(self, data: dict[str, Any]) -> tuple[BoardSpec | None, Path | None]:
+        where = "calibration_grid"
+        if data.get("pattern", "chessboard") != "chessboard":
+            self.problems.append(f"{where}.pattern: unknown pattern {data.get('pattern')!r}")
+        corners = data.get("inner_corners")
+        if not (
+            isinstance(corners, list)
+            and len(corners) == 2
+            and all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in corners)
+        ):
+            self.problems.append(f"{where}.inner_corners: two whole numbers >= 1 are required")
+            corners = None
+        square = self.number(data, "square_mm", where, positive=True)
+        origin = data.get("origin_mm", [0.0, 0.0])
+        if not (
+            isinstance(origin, list)
+            and len(origin) == 2
+            and all(isinstance(o, int | float) and math.isfinite(o) for o in origin)
+        ):
+            self.problems.append(f"{where}.origin_mm: two finite numbers are required")
+            origin = None
+        image = self.frame(data.get("image"), f"{where}.image")
+        if corners is None or origin is None or math.isnan(square):
+            return None, image
+        return BoardSpec((corners[0], corners[1]), square, (origin[0], origin[1])), image
+
+
+def _load_manifest(root: Path) -> dict[str, Any]:
+    path = root / MANIFEST
+    if not root.is_dir():
+        raise CaptureError(root, [f"folder {root} does not exist"])
+    if not path.is_file():
+        raise CaptureError(root, [f"{MANIFEST} is missing"])
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(root, [f"{MANIFEST} is not valid JSON ({exc})"]) from None
+    if not isinstance(data, dict):
+        raise CaptureError(root, [f"{MANIFEST} must hold a JSON object"])
+    if data.get("format") != FORMAT_NAME:
+        raise CaptureError(root, [f"format: {data.get('format')!r} is not {FORMAT_NAME!r}"])
+    if data.get("version") != FORMAT_VERSION:
+        raise CaptureError(
+            root,
+            [f"version: capture version {data.get('version')!r} is not supported "
+             f"(this reader knows version {FORMAT_VERSION})"],
+        )
+    return data
+
+
+def load_capture(root: Path | str, decode_frames: bool = True) -> Capture:
+    """Read and validate a capture folder; raise :class:`CaptureError` listing every problem.
+
+    Args:
+        root: the capture folder (holding ``capture.json``).
+        decode_frames: also decode every frame, catching damaged files (slower).
+
+    Returns:
+        The validated capture, with absolute frame paths.
+    """
+    root = Path(root)
+    data = _load_manifest(root)
+    check = _Checker(root, decode_frames)
+    size = data.get("image_size")
+    if (
+        isinstance(size, list)
+        and len(size) == 2
+        and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+    ):
+        check.image_size = (size[0], size[1])
+    else:
+        check.problems.append(f"image_size: two positive whole numbers are required, found {size!r}")
+    channel = data.get("laser_channel", "red")
+    if channel not in LASER_CHANNELS:
+        check.problems.append(f"laser_channel: {channel!r} is not one of red, green, blue")
+    else:
+        check.laser_channel = channel
+    board, grid_image = None, None
+    if isinstance(data.get("calibration_grid"), dict):
+        board, grid_image = check.board(data["calibration_grid"])
+    elif "calibration_grid" in data:
+        check.problems.append("calibration_grid: an object is required")
+    diameter, cylinder_views = None, []
+    cylinder = data.get("calibration_cylinder")
+    if isinstance(cylinder, dict):
+        diameter = check.number(cylinder, "diameter_mm", "calibration_cylinder", positive=True)
+        cylinder_views = check.views(cylinder.get("views"), "calibration_cylinder.views")
+    elif cylinder is not None:
+        check.problems.append("calibration_cylinder: an object is required")
+    scan = data.get("scan")
+    scan_views = check.views(scan.get("views") if isinstance(scan, dict) else None, "scan.views")
+    if check.problems:
+        raise CaptureError(root, check.problems)
+    assert check.image_size is not None
+    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    return Capture(
+        root, check.image_size, check.laser_channel, board, grid_image,
+        diameter, tuple(cylinder_views), tuple(scan_views), meta,
+    )
+
+
+# --- writing --------------------------------------------------------------------------
+
+
+class CaptureWriter:
+    """Write frames and, on :meth:`close`, the manifest of a new capture folder.
+
+    The manifest is written last and atomically, so a folder without one is an
+    interrupted recording, never a capture that silently lacks views.
+    """
+
+    _FOLDERS = {"cylinder": "cyl", "object": "scan"}
+
+    def __init__(
+        self,
+        root: Path | str,
+        image_size: tuple[int, int],
+        meta: dict[str, Any] | None = None,
+    ) -> None:
+        self.root = Path(root)
+        if (self.root / MANIFEST).exists():
+            raise FileExistsError(f"{self.root} already holds a capture; choose a new folder")
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.image_size = image_size
+        self.meta = dict(meta or {})
+        self._grid: dict[str, Any] | None = None
+        self._cylinder_mm: float | None = None
+        self._views: dict[str, list[dict[str, Any]]] = {"cylinder": [], "object": []}
+
+    def _write_png(self, rel: str, image: np.ndarray) -> str:
+        import cv2
+
+        if image.shape[::-1] != self.image_size:
+            raise ValueError(f"frame {rel} is {image.shape[::-1]}, expected {self.image_size}")
+        path = self.root / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(path), image):
+            raise OSError(f"could not write {path}")
+        return rel
+
+    def add_grid(self, image: np.ndarray, board: BoardSpec) -> None:
+        """Store the calibration board image and the board's geometry."""
+        self._grid = {"image": self._write_png("calib/grid.png", image), **board.to_dict()}
+
+    def set_cylinder(self, diameter_mm: float) -> None:
+        """Record the calibration cylinder's diameter."""
+        self._cylinder_mm = diameter_mm
+
+    def add_view(
+        self, target: str, view: ViewSpec, index: int, on: np.ndarray, off: np.ndarray | None
+    ) -> None:
+        """Store one view's laser-on (and laser-off) frame for ``cylinder`` or ``object``."""
+        stem = f"{self._FOLDERS[target]}/s{view.section:03d}_v{index:02d}"
+        entry: dict[str, Any] = {**view.to_dict(), "laser_on": self._write_png(f"{stem}_on.png", on)}
+        if off is not None:
+            entry["laser_off"] = self._write_png(f"{stem}_off.png", off)
+        self._views[target].append(entry)
+
+    def manifest(self) -> dict[str, Any]:
+        """Return the manifest as it stands."""
+        data: dict[str, Any] = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "image_size": list(self.image_size),
+            "laser_channel": "red",
+        }
+        if self._grid:
+            data["calibration_grid"] = self._grid
+        if self._cylinder_mm is not None:
+            data["calibration_cylinder"] = {
+                "diameter_mm": self._cylinder_mm,
+                "views": self._views["cylinder"],
+            }
+        data["scan"] = {"views": self._views["object"]}
+        created = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+        data["meta"] = {"created": created, **self.meta}
+        return data
+
+    def close(self) -> Path:
+        """Write ``capture.json`` atomically and return its path."""
+        path = self.root / MANIFEST
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.manifest(), indent=2) + "\n", encoding="utf-8")
+        tmp.replace(path)
+        return path
+
+
+def iter_frames(capture: Capture) -> Iterator[Path]:
+    """Yield every frame path of a capture (grid, cylinder, scan)."""
+    if capture.grid_image:
+        yield capture.grid_image
+    for view in capture.cylinder_views + capture.scan_views:
+        yield view.laser_on
+        if view.laser_off:
+            yield view.laser_off
+
+
+FrameReader = Callable[[Path], np.ndarray]

@@ -1,0 +1,160 @@
+"""Data that crosses module and process boundaries: scan plans, boards, segments.
+
+Image coordinates follow one convention everywhere in Lamina: ``(u, v)`` is
+(column, row), ``v`` grows downwards, and the centre of pixel ``(i, j)`` sits at
+exactly ``u = i, v = j`` (the same convention as OpenCV's corner detectors).
+World and object coordinates follow ``../shared/specs/capture-format.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+TARGETS = ("grid", "cylinder", "object")
+"""What can sit on the turntable: the calibration board, the calibration cylinder, the subject."""
+
+
+@dataclass(frozen=True)
+class ViewSpec:
+    """One turntable position of a scan: which section, how high, which angle."""
+
+    section: int
+    z_mm: float
+    angle_deg: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form used by the wire protocol and capture files."""
+        return {"section": self.section, "z_mm": self.z_mm, "angle_deg": self.angle_deg}
+
+
+@dataclass(frozen=True)
+class ScanPlan:
+    """The ordered views a scan visits; sections may hold different view counts."""
+
+    views: tuple[ViewSpec, ...]
+
+    @classmethod
+    def regular(cls, sections: int, pitch_mm: float, views: int) -> ScanPlan:
+        """Return ``sections`` sections ``pitch_mm`` apart with ``views`` evenly spaced angles."""
+        if sections < 1 or views < 1:
+            raise ValueError("a scan needs at least one section and one view per section")
+        if not math.isfinite(pitch_mm) or pitch_mm <= 0:
+            raise ValueError(f"section pitch must be a positive number of mm, not {pitch_mm}")
+        step = 360.0 / views
+        return cls(
+            tuple(
+                ViewSpec(s, round(s * pitch_mm, 9), round(v * step, 9))
+                for s in range(sections)
+                for v in range(views)
+            )
+        )
+
+    @property
+    def sections(self) -> list[int]:
+        """Return the distinct section indices in scan order."""
+        return list(dict.fromkeys(v.section for v in self.views))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form used by the wire protocol."""
+        return {"views": [v.to_dict() for v in self.views]}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ScanPlan:
+        """Build a plan from its JSON form, checking every number is finite."""
+        views = []
+        for item in data["views"]:
+            view = ViewSpec(int(item["section"]), float(item["z_mm"]), float(item["angle_deg"]))
+            if not (math.isfinite(view.z_mm) and math.isfinite(view.angle_deg)):
+                raise ValueError(f"non-finite number in scan plan view {item}")
+            views.append(view)
+        if not views:
+            raise ValueError("a scan plan needs at least one view")
+        return cls(tuple(views))
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A chessboard lying in the laser plane (capture spec, ``calibration_grid``)."""
+
+    inner_corners: tuple[int, int]
+    square_mm: float
+    origin_mm: tuple[float, float]
+
+    @property
+    def corner_count(self) -> int:
+        """Return how many inner corners the board has."""
+        return self.inner_corners[0] * self.inner_corners[1]
+
+    def world_corners(self) -> np.ndarray:
+        """Return the (N, 2) world positions in mm, ``i`` fastest: index = j * nx + i."""
+        nx, ny = self.inner_corners
+        jj, ii = np.mgrid[0:ny, 0:nx]
+        xy = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(float) * self.square_mm
+        return xy + np.asarray(self.origin_mm, dtype=float)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the capture-spec JSON form."""
+        return {
+            "pattern": "chessboard",
+            "inner_corners": list(self.inner_corners),
+            "square_mm": self.square_mm,
+            "origin_mm": list(self.origin_mm),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> BoardSpec:
+        """Build a board from its capture-spec JSON form."""
+        nx, ny = (int(n) for n in data["inner_corners"])
+        ox, oy = (float(o) for o in data["origin_mm"])
+        return cls((nx, ny), float(data["square_mm"]), (ox, oy))
+
+
+@dataclass(frozen=True, eq=False)
+class Segment:
+    """The stripe points the device extracted from one laser-on/laser-off view.
+
+    ``cols`` are image columns (integers), ``rows`` the sub-pixel stripe centre in
+    each column, ``peak`` the highest difference intensity of the run used and
+    ``width`` its length in pixels: per-point quality for the host to judge.
+    """
+
+    target: str
+    section: int
+    view: int
+    z_mm: float
+    angle_deg: float
+    cols: np.ndarray = field(repr=False)
+    rows: np.ndarray = field(repr=False)
+    peak: np.ndarray = field(repr=False)
+    width: np.ndarray = field(repr=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.cols)
+        if not (len(self.rows) == len(self.peak) == len(self.width) == n):
+            raise ValueError("segment arrays differ in length")
+
+    def __len__(self) -> int:
+        return len(self.cols)
+
+    @property
+    def uv(self) -> np.ndarray:
+        """Return the (N, 2) image points ``(u, v)`` as float64."""
+        return np.stack([self.cols.astype(float), self.rows.astype(float)], axis=1)
+
+    def same_as(self, other: Segment) -> bool:
+        """Return True when both segments are identical bit for bit."""
+        return (
+            (self.target, self.section, self.view, self.z_mm, self.angle_deg)
+            == (other.target, other.section, other.view, other.z_mm, other.angle_deg)
+            and all(
+                a.dtype == b.dtype and a.tobytes() == b.tobytes()
+                for a, b in zip(
+                    (self.cols, self.rows, self.peak, self.width),
+                    (other.cols, other.rows, other.peak, other.width),
+                )
+            )
+        )

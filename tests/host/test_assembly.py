@@ -1,0 +1,101 @@
+"""Tests for lamina_host.assembly: trimming, object frame and overlap averaging (6.1-6.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from lamina_host.assembly import average_overlaps, to_object_frame, trim
+
+R = 9.525
+
+
+def test_trim_drops_ten_percent_each_end() -> None:
+    """trim removes floor(10 %) of the points from each end."""
+    pts = np.arange(40.0).reshape(20, 2)
+    out = trim(pts)
+    assert np.array_equal(out, pts[2:18])
+    assert len(trim(pts, 0.25)) == 10
+    with pytest.raises(ValueError):
+        trim(pts, 0.5)
+
+
+def test_to_object_frame_known_rotation_and_round_trip() -> None:
+    """to_object_frame inverts p = a + Rz(theta) q / C_f."""
+    axis = (2.0, 30.0)
+    # A point 1 mm along +x from the axis, seen after the table turned +90 deg, was at
+    # the object's -y... i.e. q = Rz(-90)(1, 0) = (0, -1).
+    q = to_object_frame(np.array([[3.0, 30.0]]), 90.0, axis, 1.0)
+    assert np.allclose(q, [[0.0, -1.0]])
+    rng = np.random.default_rng(0)
+    obj = rng.uniform(-10, 10, (50, 2))
+    th = np.deg2rad(135.0)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    cf = 1.02
+    world = obj / cf @ rot.T + axis  # forward model: p = a + Rz(theta) q / C_f
+    assert np.allclose(to_object_frame(world, 135.0, axis, cf), obj, atol=1e-12)
+
+
+def noisy_arcs(rng: np.random.Generator, sigma: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """8 object-frame arcs of 128 deg (160 deg trimmed) at 45 deg steps; some run clockwise."""
+    centre = np.array([0.3, -0.2])
+    segs = []
+    for k in range(8):
+        t = np.deg2rad(45.0 * k - 64.0 + np.linspace(0.0, 128.0, 120))
+        if k % 2:
+            t = t[::-1]  # stripe order may run either way in angle
+        r = R + rng.normal(0.0, sigma, t.shape)
+        segs.append(centre + np.stack([r * np.cos(t), r * np.sin(t)], axis=1))
+    return segs, centre
+
+
+def test_average_overlaps_orders_and_reduces_noise() -> None:
+    """Averaging 8 overlapping noisy arcs sorts by angle and lowers radial noise."""
+    rng = np.random.default_rng(1)
+    segs, centre = noisy_arcs(rng, 0.05)
+    out = average_overlaps(segs)
+    assert out.shape == (8 * 120, 2)
+    c = np.concatenate(segs).mean(axis=0)  # the polar centre average_overlaps uses
+    ang = np.arctan2(out[:, 1] - c[1], out[:, 0] - c[0])
+    assert np.all(np.diff(ang) >= 0)
+    before = np.std(np.hypot(*(np.concatenate(segs) - centre).T) - R)
+    after = np.std(np.hypot(*(out - centre).T) - R)
+    print(f"average_overlaps: radial noise {before:.4f} -> {after:.4f} mm")
+    assert after < 0.7 * before
+    assert abs(np.mean(np.hypot(*(out - centre).T)) - R) < 0.01
+
+
+def test_average_overlaps_wrap_matches_unwrapped_case() -> None:
+    """Overlaps across +-pi average exactly as the same data turned 180 deg."""
+    # Overlaps straddling +-pi must be averaged exactly as the same data turned 180 deg,
+    # where nothing wraps: the method is rotation-equivariant.
+    rng = np.random.default_rng(2)
+    segs, _ = noisy_arcs(rng, 0.05)
+    rot = np.array([[-1.0, 0.0], [0.0, -1.0]])
+    direct = average_overlaps(segs)
+    turned = average_overlaps([s @ rot.T for s in segs]) @ rot.T
+
+    def key(p: np.ndarray) -> np.ndarray:
+        c = p.mean(axis=0)
+        return p[np.argsort(np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0]))]
+
+    assert np.allclose(key(direct), key(turned), atol=1e-9)
+
+
+def test_average_overlaps_two_arcs_meet_halfway() -> None:
+    """Two arcs of radii 5.0 and 5.2 average to 5.1 where they overlap."""
+    t1 = np.deg2rad(np.linspace(-100.0, 100.0, 201))
+    t2 = np.deg2rad(np.linspace(80.0, 280.0, 201))
+    a = 5.0 * np.stack([np.cos(t1), np.sin(t1)], axis=1)
+    b = 5.2 * np.stack([np.cos(t2), np.sin(t2)], axis=1)
+    out = average_overlaps([a, b])
+    c = np.concatenate([a, b]).mean(axis=0)
+    ang = np.degrees(np.arctan2(out[:, 1] - c[1], out[:, 0] - c[0]))
+    rad = np.hypot(*(out - c).T)
+    # Both overlaps (near +90 and near -90 = 270) average to ~5.1 about the centroid.
+    seam = np.abs(np.abs(ang) - 90.0) < 5.0
+    assert seam.sum() > 20
+    assert np.allclose(rad[seam], 5.1, atol=0.03)
+    single = average_overlaps([a])
+    assert np.allclose(
+        np.sort(np.hypot(*(single - a.mean(0)).T)), np.sort(np.hypot(*(a - a.mean(0)).T))
+    )

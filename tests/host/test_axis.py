@@ -1,0 +1,121 @@
+"""Tests for lamina_host.axis: circle fitting and the turntable axis (thesis 6.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from lamina_host.assembly import trim
+from lamina_host.axis import find_axis, fit_circle
+from lamina_host.calibration import CalibrationError
+
+R_CYL = 9.525  # thesis test cylinder, 19.05 mm diameter
+
+
+def arc(
+    centre: tuple[float, float],
+    r: float,
+    start_deg: float,
+    span_deg: float,
+    n: int,
+    sigma: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Points on a circular arc with isotropic Gaussian noise."""
+    t = np.deg2rad(start_deg + np.linspace(0.0, span_deg, n))
+    pts = np.stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)], axis=1)
+    return pts + rng.normal(0.0, sigma, pts.shape)
+
+
+def kasa(pts: np.ndarray) -> tuple[float, float, float]:
+    """Kasa's algebraic fit, for comparison: biased towards small circles on short arcs."""
+    x, y = pts.T
+    a = np.stack([x, y, np.ones_like(x)], axis=1)
+    sol, *_ = np.linalg.lstsq(a, x * x + y * y, rcond=None)
+    cx, cy = sol[0] / 2, sol[1] / 2
+    return cx, cy, float(np.sqrt(sol[2] + cx * cx + cy * cy))
+
+
+def test_fit_circle_exact() -> None:
+    """Noise-free arc points give the circle exactly."""
+    pts = arc((3.0, -2.0), 5.0, 10.0, 100.0, 20, 0.0, np.random.default_rng(0))
+    c = fit_circle(pts)
+    assert c.cx == pytest.approx(3.0, abs=1e-9) and c.cy == pytest.approx(-2.0, abs=1e-9)
+    assert c.r == pytest.approx(5.0, abs=1e-9) and c.rms_mm < 1e-9
+
+
+def test_fit_circle_short_arc_unbiased() -> None:
+    """On a noisy 60 deg arc the radius is unbiased, unlike Kasa's fit."""
+    rng = np.random.default_rng(3)
+    ours, theirs = [], []
+    for _ in range(100):
+        pts = arc((1.0, 2.0), R_CYL, -120.0, 60.0, 500, 0.02, rng)
+        c = fit_circle(pts)
+        ours.append((c.r - R_CYL, np.hypot(c.cx - 1.0, c.cy - 2.0)))
+        k = kasa(pts)
+        theirs.append((k[2] - R_CYL, np.hypot(k[0] - 1.0, k[1] - 2.0)))
+    ours_a, theirs_a = np.array(ours), np.array(theirs)
+    print(
+        f"60 deg arc, sigma 0.02: radius error mean {ours_a[:, 0].mean():+.4f} "
+        f"max |{np.abs(ours_a[:, 0]).max():.4f}| (Kasa mean {theirs_a[:, 0].mean():+.4f}); "
+        f"centre error mean {ours_a[:, 1].mean():.4f} (Kasa {theirs_a[:, 1].mean():.4f})"
+    )
+    # A single 60 deg arc cannot pin the radius to 0.02 mm (its spread is ~0.02 mm at
+    # K = 500), so the bias is judged on the mean of 100 fits (standard error ~0.002 mm).
+    assert abs(ours_a[:, 0].mean()) < 0.006
+    assert np.sqrt(np.mean(ours_a[:, 0] ** 2)) < 0.03
+    assert theirs_a[:, 0].mean() < -0.02  # Kasa shrinks the circle on short arcs
+    assert ours_a[:, 1].mean() < theirs_a[:, 1].mean()
+
+
+def test_fit_circle_errors() -> None:
+    """Too few or collinear points raise CalibrationError."""
+    with pytest.raises(CalibrationError):
+        fit_circle(np.array([[0.0, 0.0], [1.0, 1.0]]))
+    with pytest.raises(CalibrationError):
+        fit_circle(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]))
+
+
+def cylinder_arcs(
+    axis: tuple[float, float], offset: float, r: float, scale: float, rng: np.random.Generator
+) -> list[np.ndarray]:
+    """8 camera-facing 160 deg arcs of a cylinder offset from the axis, at 45 deg steps."""
+    arcs = []
+    for k in range(8):
+        th = np.deg2rad(45.0 * k + 20.0)
+        centre = (axis[0] + offset * np.cos(th), axis[1] + offset * np.sin(th))
+        # The camera looks along +y, so it sees the side facing -y: angles -170..-10 deg.
+        pts = arc(centre, r, -170.0, 160.0, 300, 0.01, rng)
+        pts = np.asarray(axis) + scale * (pts - np.asarray(axis))
+        arcs.append(trim(pts))
+    return arcs
+
+
+def test_find_axis_recovers_axis_and_scale() -> None:
+    """8 arcs of an off-centre cylinder give the axis and C_f ~ 1."""
+    axis = (-3.2, 41.7)
+    cal = find_axis(cylinder_arcs(axis, 1.5, R_CYL, 1.0, np.random.default_rng(4)), 2 * R_CYL)
+    err = np.hypot(cal.axis_xy_mm[0] - axis[0], cal.axis_xy_mm[1] - axis[1])
+    print(f"find_axis: axis error {err:.5f} mm, C_f {cal.correction_factor:.6f}")
+    assert err < 0.01
+    assert abs(cal.correction_factor - 1.0) < 1e-3
+    assert cal.warnings == ()
+    assert cal.arc_centres_mm.shape == (8, 2) and cal.arc_radii_mm.shape == (8,)
+    assert np.allclose(np.hypot(*(cal.arc_centres_mm - axis).T), 1.5, atol=0.02)
+    assert cal.to_dict()["axis_xy_mm"] == list(cal.axis_xy_mm)
+
+
+def test_find_axis_warns_on_scale_error() -> None:
+    """A 7 % scale error gives C_f ~ 1/1.07 and a warning."""
+    arcs = cylinder_arcs((0.0, 40.0), 1.5, R_CYL, 1.07, np.random.default_rng(5))
+    cal = find_axis(arcs, 2 * R_CYL)
+    assert cal.correction_factor == pytest.approx(1 / 1.07, abs=2e-3)
+    assert len(cal.warnings) == 1 and "correction factor" in cal.warnings[0]
+
+
+def test_find_axis_needs_three_arcs() -> None:
+    """Fewer than 3 arcs or a bad diameter raise CalibrationError."""
+    arcs = cylinder_arcs((0.0, 40.0), 1.5, R_CYL, 1.0, np.random.default_rng(6))
+    with pytest.raises(CalibrationError, match="at least 3"):
+        find_axis(arcs[:2], 2 * R_CYL)
+    with pytest.raises(CalibrationError, match="diameter"):
+        find_axis(arcs, -1.0)

@@ -1,0 +1,209 @@
+"""Tests for lamina_host.calibration: corner detection, DLT homography, grid calibration."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from lamina_host.calibration import (
+    CalibrationError,
+    Homography,
+    calibrate_grid,
+    dlt_homography,
+    find_corners,
+)
+from lamina_shared.types import BoardSpec
+
+IMAGE_SIZE = (480, 360)  # (W, H)
+
+
+def render_board(
+    board: BoardSpec, world_to_image: np.ndarray, flip_colour: bool = False, ss: int = 8
+) -> np.ndarray:
+    """Render an anti-aliased chessboard: ss x ss stratified-jittered samples per pixel.
+
+    Pixel (col, row) covers [col - 0.5, col + 0.5] x [row - 0.5, row + 0.5] so its centre
+    is at integer coordinates. Jitter avoids quantising edge positions to 1/ss pixel.
+    ``flip_colour`` swaps black and white, which is the board turned 180 degrees.
+    """
+    nx, ny = board.inner_corners
+    sq = board.square_mm
+    ox, oy = board.origin_mm
+    width, height = IMAGE_SIZE
+    inv = np.linalg.inv(world_to_image)
+    rng = np.random.default_rng(0)
+    base = np.arange(ss) / ss - 0.5
+    bu, bv = (g.ravel() for g in np.meshgrid(base, base))
+    out = np.empty((height, width))
+    for r0 in range(0, height, 40):
+        rows = np.arange(r0, min(height, r0 + 40))
+        vv, uu = np.meshgrid(rows, np.arange(width), indexing="ij")
+        jitter = rng.uniform(0.0, 1.0 / ss, (2, len(rows), width, ss * ss))
+        u = uu[..., None] + bu + jitter[0]
+        v = vv[..., None] + bv + jitter[1]
+        w = inv[2, 0] * u + inv[2, 1] * v + inv[2, 2]
+        x = (inv[0, 0] * u + inv[0, 1] * v + inv[0, 2]) / w
+        y = (inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]) / w
+        a = np.floor((x - ox) / sq)
+        b = np.floor((y - oy) / sq)
+        inside = (a >= -1) & (a <= nx - 1) & (b >= -1) & (b <= ny - 1)
+        black = ((a + b) % 2 == 0) ^ flip_colour
+        out[rows] = np.where(inside & black, 30.0, 220.0).mean(axis=-1)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def camera_homography(board: BoardSpec) -> np.ndarray:
+    """World -> image H of a camera ~30 deg above the plane: far edge narrower and higher."""
+    nx, ny = board.inner_corners
+    sq = board.square_mm
+    ox, oy = board.origin_mm
+    x0, x1 = ox - 2 * sq, ox + (nx + 1) * sq
+    y0, y1 = oy - 2 * sq, oy + (ny + 1) * sq
+    src = np.float32([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    dst = np.float32([[55, 335], [425, 322], [362, 78], [112, 86]])
+    return cv2.getPerspectiveTransform(src, dst).astype(float)
+
+
+def project(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 homography to (N, 2) points."""
+    hom = pts @ h[:, :2].T + h[:, 2]
+    return hom[:, :2] / hom[:, 2:3]
+
+
+BOARD = BoardSpec((9, 7), 2.5, (-10.0, 20.0))
+
+
+@pytest.mark.parametrize("board", [BOARD, BoardSpec((7, 7), 2.5, (-8.0, 20.0))])
+@pytest.mark.parametrize("flip_colour", [False, True])
+def test_find_corners_subpixel_and_ordered(board: BoardSpec, flip_colour: bool) -> None:
+    """Rendered boards give sub-pixel corners in world_corners() order."""
+    h = camera_homography(board)
+    truth = project(h, board.world_corners())
+    image = render_board(board, h, flip_colour=flip_colour)
+    nx, ny = board.inner_corners
+    found, raw = cv2.findChessboardCornersSB(image, (nx, ny))
+    assert found
+    # OpenCV's own order does not start at corner (0, 0), so reordering is exercised.
+    assert np.linalg.norm(raw.reshape(-1, 2)[0] - truth[0]) > 5.0
+
+    corners = find_corners(image, board)
+    err = np.linalg.norm(corners - truth, axis=1)
+    rms = float(np.sqrt(np.mean(err**2)))
+    print(f"find_corners {nx}x{ny} flip={flip_colour}: rms {rms:.4f} px, max {err.max():.4f}")
+    assert corners.shape == (nx * ny, 2) and corners.dtype == np.float64
+    assert rms < 0.05
+    assert err.max() < 0.15  # every corner matched to its own truth, so order is right
+
+
+def test_find_corners_without_board_raises() -> None:
+    """An image without a board raises CalibrationError naming the board."""
+    rng = np.random.default_rng(1)
+    image = rng.integers(100, 140, size=(360, 480), dtype=np.uint8)
+    with pytest.raises(CalibrationError, match="no chessboard with 9x7 inner corners"):
+        find_corners(image, BOARD)
+
+
+def test_find_corners_rejects_tiny_board_and_colour_image() -> None:
+    """Boards under 4 corners and colour images are refused."""
+    image = np.zeros((360, 480), np.uint8)
+    with pytest.raises(CalibrationError, match="at least 4 corners"):
+        find_corners(image, BoardSpec((1, 3), 2.5, (0.0, 0.0)))
+    with pytest.raises(CalibrationError, match="grayscale"):
+        find_corners(np.zeros((360, 480, 3), np.uint8), BOARD)
+
+
+# Image -> world homography typical of a camera ~30 deg above the plane.
+H_TRUE = np.array([[0.085, 0.004, -21.0], [0.001, -0.16, 58.0], [0.00002, -0.0011, 1.0]])
+
+
+def _grid_points() -> tuple[np.ndarray, np.ndarray]:
+    world = BOARD.world_corners()
+    image = project(np.linalg.inv(H_TRUE), world)
+    return image, world
+
+
+def test_dlt_recovers_exact_homography() -> None:
+    """Noise-free points recover the known H to rounding error."""
+    image, world = _grid_points()
+    h = dlt_homography(image, world)
+    assert np.allclose(h.matrix, H_TRUE, rtol=1e-9, atol=1e-12)
+    assert np.allclose(h.apply(image), world, atol=1e-9)
+
+
+def test_dlt_four_point_exact() -> None:
+    """Four points in general position determine H exactly."""
+    image, world = _grid_points()
+    idx = [0, 8, 62, 54]
+    h = dlt_homography(image[idx], world[idx])
+    assert np.allclose(h.matrix, H_TRUE, rtol=1e-8, atol=1e-11)
+
+
+def test_dlt_with_noise_63_points() -> None:
+    """With 0.5 px noise the 63-point fit is much closer to the truth than the points."""
+    image, world = _grid_points()
+    rng = np.random.default_rng(2)
+    noisy = image + rng.normal(0.0, 0.5, image.shape)
+    h = dlt_homography(noisy, world)
+    fit_rms = float(np.sqrt(np.mean(np.sum((h.apply(noisy) - world) ** 2, axis=1))))
+    true_rms = float(np.sqrt(np.mean(np.sum((h.apply(image) - world) ** 2, axis=1))))
+    # What 0.5 px of noise is worth in mm when mapped through the true H.
+    noise_rms = float(np.sqrt(np.mean(np.sum((project(H_TRUE, noisy) - world) ** 2, axis=1))))
+    print(
+        f"DLT 0.5 px noise, 63 pts: input noise {noise_rms:.4f} mm, residual rms "
+        f"{fit_rms:.4f} mm, fitted-vs-true map {true_rms:.4f} mm"
+    )
+    # The least-squares residual cannot beat the noise by much (8 of 126 dof absorbed)...
+    assert 0.85 * noise_rms < fit_rms <= noise_rms
+    # ...while the fitted map itself is far closer to the truth than any single point.
+    assert true_rms < 0.3 * noise_rms
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0], [4.0, 4.0]]),
+        np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.0, 1.0]]),
+        np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]),
+    ],
+    ids=["all-collinear", "three-collinear", "too-few"],
+)
+def test_dlt_degenerate_raises(image: np.ndarray) -> None:
+    """Collinear or too few points raise CalibrationError."""
+    world = image * 2.0 + 1.0
+    with pytest.raises(CalibrationError):
+        dlt_homography(image, world)
+
+
+def test_homography_apply_vectorised() -> None:
+    """apply on many points equals apply point by point."""
+    h = Homography(H_TRUE)
+    pts = np.array([[100.0, 200.0], [300.0, 50.0]])
+    one = np.vstack([h.apply(p[None]) for p in pts])
+    assert np.allclose(h.apply(pts), one)
+
+
+def test_calibrate_grid_end_to_end() -> None:
+    """A rendered board calibrates to micrometre residuals without warnings."""
+    h = camera_homography(BOARD)
+    cal = calibrate_grid(render_board(BOARD, h), BOARD)
+    print(f"calibrate_grid: rms {cal.rms_mm:.5f} mm, max {cal.max_mm:.5f} mm")
+    assert cal.n_corners == 63 and cal.warnings == ()
+    assert cal.rms_mm < 0.01
+    assert np.allclose(
+        cal.residuals_mm,
+        np.linalg.norm(cal.homography.apply(cal.image_pts) - cal.world_pts, axis=1),
+    )
+    # The recovered map agrees with the true image -> world map across the board.
+    truth_h = np.linalg.inv(h)
+    probe = project(h, BOARD.world_corners())
+    assert np.abs(cal.homography.apply(probe) - project(truth_h, probe)).max() < 0.01
+    d = cal.to_dict()
+    assert d["n_corners"] == 63 and len(d["residuals_mm"]) == 63 and len(d["matrix"]) == 3
+
+
+def test_calibrate_grid_warns_on_few_corners() -> None:
+    """A 12-corner board calibrates with the thesis' 20-point warning."""
+    board = BoardSpec((4, 3), 5.0, (-10.0, 20.0))
+    cal = calibrate_grid(render_board(board, camera_homography(board)), board)
+    assert cal.n_corners == 12
+    assert any("at least 20" in w for w in cal.warnings)

@@ -1,0 +1,107 @@
+"""Tests for lamina_host.efd: Kuhl-Giardina coefficients and harmonic choice (thesis 6.4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyefd
+import pytest
+from lamina_host.efd import (
+    choose_harmonics,
+    efd_fit,
+    harmonics_thesis,
+    nyquist_max,
+)
+from lamina_host.measure import signed_area
+
+R = 9.525
+
+
+def blob(n: int = 200) -> np.ndarray:
+    """A smooth, non-symmetric closed outline, counter-clockwise, off the origin."""
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    r = 8.0 + 1.5 * np.cos(3 * t) + 0.7 * np.sin(2 * t + 0.3)
+    return np.stack([3.0 + r * np.cos(t), -2.0 + 1.3 * r * np.sin(t)], axis=1)
+
+
+def regular_polygon(sides: int, area_mm2: float, pts_per_side: int = 40) -> np.ndarray:
+    """A regular polygon of the given area, sampled densely along its edges."""
+    circumradius = np.sqrt(2 * area_mm2 / (sides * np.sin(2 * np.pi / sides)))
+    ang = 2 * np.pi * np.arange(sides) / sides + np.pi / sides
+    v = circumradius * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    s = np.linspace(0.0, 1.0, pts_per_side, endpoint=False)[:, None]
+    return np.concatenate([v[k] + (v[(k + 1) % sides] - v[k]) * s for k in range(sides)])
+
+
+@pytest.mark.parametrize("order", [1, 5, 12])
+def test_efd_matches_pyefd(order: int) -> None:
+    """Coefficients and DC terms agree with pyefd, closing point or not."""
+    contour = blob()
+    ours = efd_fit(contour, order)
+    ref = pyefd.elliptic_fourier_descriptors(contour, order=order, normalize=False)
+    a0, c0 = pyefd.calculate_dc_coefficients(contour)
+    assert ours.order == order
+    assert np.allclose(ours.coeffs, ref, rtol=1e-10, atol=1e-12)
+    assert ours.a0 == pytest.approx(a0, abs=1e-10) and ours.c0 == pytest.approx(c0, abs=1e-10)
+    # An explicit closing point and repeated points change nothing.
+    messy = np.concatenate([contour[:5], contour[4:5], contour[5:], contour[:1]])
+    again = efd_fit(messy, order)
+    assert np.allclose(again.coeffs, ours.coeffs) and again.a0 == pytest.approx(ours.a0)
+    recon = pyefd.reconstruct_contour(ref, locus=(a0, c0), num_points=301)[:-1]
+    assert np.allclose(ours.evaluate(300), recon, atol=1e-10)
+
+
+def test_evaluate_starts_at_first_point_same_orientation() -> None:
+    """evaluate starts at the first input point and keeps its orientation."""
+    contour = blob(400)
+    for c in (contour, contour[::-1]):
+        fit = efd_fit(c, 40)
+        pts = fit.evaluate(400)
+        assert np.linalg.norm(pts[0] - c[0]) < 0.05
+        assert np.sign(signed_area(pts)) == np.sign(signed_area(c))
+
+
+def test_noisy_circle_reconstruction_thesis_642() -> None:
+    """The thesis 6.4.2 noisy circle is reconstructed within 0.1 mm."""
+    # Thesis 6.4.2: r = 9.525 mm with white noise of variance 3.9e-3 mm^2.
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 2 * np.pi, 500, endpoint=False)
+    clean = R * np.stack([np.cos(t), np.sin(t)], axis=1)
+    noisy = clean + rng.normal(0.0, np.sqrt(3.9e-3), clean.shape)
+    order = choose_harmonics(noisy)
+    recon = efd_fit(noisy, order).evaluate(500)
+    err = np.abs(np.hypot(*recon.T) - R)
+    raw = np.abs(np.hypot(*noisy.T) - R)
+    print(
+        f"noisy circle: {order} harmonics, max radial error {err.max():.4f} mm "
+        f"(raw data max {raw.max():.4f}), raw-polyline HN {harmonics_thesis(noisy)}"
+    )
+    assert 1 <= order <= 6
+    assert err.max() < 0.1
+    assert err.max() < 0.5 * raw.max()
+
+
+def test_harmonics_thesis_polygons_fig_6_11() -> None:
+    """HN gives 6, 5, 5 for an equal-area square, pentagon and octagon."""
+    # HN = 1/(PA*RF) reduces to perimeter / (4 pi). At equal area the square has the
+    # longest perimeter, so area ~310 mm^2 (side 17.6 mm) gives the thesis' 6, 5, 5.
+    area = 17.6**2
+    assert harmonics_thesis(regular_polygon(4, area)) == 6
+    assert harmonics_thesis(regular_polygon(5, area)) == 5
+    assert harmonics_thesis(regular_polygon(8, area)) == 5
+    circle = R * np.stack(
+        [
+            np.cos(np.linspace(0, 2 * np.pi, 720, endpoint=False)),
+            np.sin(np.linspace(0, 2 * np.pi, 720, endpoint=False)),
+        ],
+        axis=1,
+    )
+    assert harmonics_thesis(circle) == round(2 * np.pi * R / (4 * np.pi))  # = 5
+    tiny = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    assert harmonics_thesis(tiny) == 1
+
+
+def test_nyquist_and_cap() -> None:
+    """The Nyquist cap is n // 2 and limits choose_harmonics."""
+    assert nyquist_max(500) == 250 and nyquist_max(501) == 250 and nyquist_max(7) == 3
+    few = regular_polygon(8, 40.0**2, pts_per_side=1)  # 8 points, HN would be ~11
+    assert choose_harmonics(few) == 4

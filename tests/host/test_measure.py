@@ -1,0 +1,61 @@
+"""Tests for lamina_host.measure: polygon measures and the Table 8.3 radial errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from lamina_host.calibration import CalibrationError
+from lamina_host.measure import centroid, perimeter, polygon_area, radial_error_table, signed_area
+
+R = 9.525
+
+
+def circle(centre: tuple[float, float], r: float = R, n: int = 500) -> np.ndarray:
+    """Regular n-gon inscribed in a circle, counter-clockwise."""
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    return np.stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)], axis=1)
+
+
+def test_polygon_measures() -> None:
+    """Area, perimeter and area centroid of simple polygons."""
+    square = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0], [1.0, 3.0]])
+    assert polygon_area(square) == pytest.approx(6.0)
+    assert signed_area(square[::-1]) == pytest.approx(-6.0)
+    assert perimeter(square) == pytest.approx(10.0)
+    assert np.allclose(centroid(square), [2.5, 2.0])
+    # Area centroid, not point mean: extra points on one edge must not move it.
+    dense = np.array([[0.0, 0.0], [1, 0], [2, 0], [3, 0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])
+    assert np.allclose(centroid(dense), [2.0, 2.0])
+    with pytest.raises(CalibrationError):
+        centroid(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]))
+
+
+def test_radial_error_perfect_circles() -> None:
+    """Perfect concentric circles have zero radial error."""
+    contours = {s: circle((0.5, -0.25)) for s in range(4)}
+    table = radial_error_table(contours, {s: 2.0 * s for s in range(4)}, R)
+    assert table.mean_own_mm < 1e-9 and table.mean_mean_mm < 1e-9
+    assert [r.section for r in table.rows] == [0, 1, 2, 3]
+    assert table.rows[2].z_mm == 4.0
+    assert table.rows[0].mean_radius_mm == pytest.approx(R, abs=1e-3)
+
+
+def test_radial_error_shifted_centres() -> None:
+    """Shifted circles give e / sqrt(2) about the mean centroid, 0 about their own."""
+    shifts = np.array([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.2], [0.0, -0.2]])
+    contours = {s: circle(tuple(d)) for s, d in enumerate(shifts)}
+    table = radial_error_table(contours, dict.fromkeys(range(4), 0.0), R)
+    assert np.allclose(table.mean_centroid_mm, (0.0, 0.0), atol=1e-12)
+    # A circle shifted by e from the centre has radial error ~ e cos(phi): RMS e / sqrt(2).
+    expected = np.hypot(*shifts.T) / np.sqrt(2.0)
+    got = np.array([r.rms_mean_mm for r in table.rows])
+    assert np.allclose(got, expected, rtol=0.01)
+    assert np.allclose([r.rms_own_mm for r in table.rows], 0.0, atol=1e-9)
+    assert table.mean_mean_mm == pytest.approx(expected.mean(), rel=0.01)
+    assert table.to_dict()["rows"][3]["section"] == 3
+
+
+def test_radial_error_needs_heights() -> None:
+    """A section without a height raises CalibrationError."""
+    with pytest.raises(CalibrationError, match="z_mm"):
+        radial_error_table({0: circle((0.0, 0.0))}, {}, R)
