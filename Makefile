@@ -32,7 +32,7 @@ lint: install
 	$(BIN)/mypy shared/lamina_shared host/lamina_host
 
 bench: install
-	$(BIN)/python -m benchmarks --out $(OUT)/bench.json
+	$(BIN)/python tests/benchmarks/run.py --out $(OUT)/bench.json
 
 clean:
 	rm -rf $(VENV) $(OUT)

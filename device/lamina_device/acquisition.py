@@ -14,7 +14,7 @@ import numpy as np
 
 from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
-from lamina_shared.types import Segment, ScanPlan, ViewSpec
+from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
 
 @dataclass(frozen=True)

@@ -37,8 +37,12 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hardware", required=True, help="sim or replay:CAPTURE_DIR")
     parser.add_argument("--object", help="simulated object, e.g. cylinder:d=19.05 (sim only)")
     parser.add_argument("--seed", type=int, default=0, help="simulation noise seed")
-    parser.add_argument("--noise", choices=("thesis", "none"), default="thesis",
-                        help="simulated noise and mechanical error (default: thesis-like)")
+    parser.add_argument(
+        "--noise",
+        choices=("thesis", "none"),
+        default="thesis",
+        help="simulated noise and mechanical error (default: thesis-like)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,8 +82,11 @@ def record(args: argparse.Namespace, hardware: Hardware) -> int:
     try:
         plan = ScanPlan.regular(args.sections, args.pitch, args.views)
         cylinder_plan = ScanPlan.regular(1, args.pitch, args.cylinder_views)
-        writer = CaptureWriter(args.out, hardware.camera.size,
-                               {"object": hardware.description, "recorded_by": "lamina-device"})
+        writer = CaptureWriter(
+            args.out,
+            hardware.camera.size,
+            {"object": hardware.description, "recorded_by": "lamina-device"},
+        )
     except (ValueError, OSError) as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -97,8 +104,9 @@ def record(args: argparse.Namespace, hardware: Hardware) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit status."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="lamina-device: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="lamina-device: %(message)s"
+    )
     signal.signal(signal.SIGTERM, _terminate)
     try:
         hardware = open_hardware(args.hardware, args.object, args.seed, args.noise)

@@ -129,8 +129,10 @@ def extract(
     return centre_of_gravity(diff, threshold, settings.power, settings.subtract_threshold)
 
 
-def to_segment(points: StripePoints, target: str, section: int, view: int,
-               z_mm: float, angle_deg: float) -> Segment:
+def to_segment(
+    points: StripePoints, target: str, section: int, view: int, z_mm: float, angle_deg: float
+) -> Segment:
     """Label one view's stripe points with where they were taken."""
-    return Segment(target, section, view, z_mm, angle_deg,
-                   points.cols, points.rows, points.peak, points.width)
+    return Segment(
+        target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak, points.width
+    )

@@ -70,7 +70,14 @@ def open_sim(object_spec: str | None = None, seed: int = 0, noise: str = "thesis
     turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics), Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser)
     return Hardware(
-        "sim", camera, laser, turntable, lift, stage, rig.board, rig.cylinder_diameter_mm,
+        "sim",
+        camera,
+        laser,
+        turntable,
+        lift,
+        stage,
+        rig.board,
+        rig.cylinder_diameter_mm,
         {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
         f"simulated rig, object {spec}, seed {seed}, noise {noise}",
     )
@@ -85,13 +92,22 @@ def open_replay(folder: Path) -> Hardware:
     camera = ReplayCamera(capture, stage, turntable, lift, laser)
     plans = {t: p for t in ("cylinder", "object") if (p := capture.plan(t)) is not None}
     return Hardware(
-        "replay", camera, laser, turntable, lift, stage, capture.board,
-        capture.cylinder_diameter_mm, plans, f"replay of {folder}",
+        "replay",
+        camera,
+        laser,
+        turntable,
+        lift,
+        stage,
+        capture.board,
+        capture.cylinder_diameter_mm,
+        plans,
+        f"replay of {folder}",
     )
 
 
-def open_hardware(spec: str, object_spec: str | None = None, seed: int = 0,
-                  noise: str = "thesis") -> Hardware:
+def open_hardware(
+    spec: str, object_spec: str | None = None, seed: int = 0, noise: str = "thesis"
+) -> Hardware:
     """Return the hardware named by ``spec``: ``sim`` or ``replay:DIR``."""
     if spec == "sim":
         return open_sim(object_spec, seed, noise)

@@ -13,7 +13,9 @@ from gpiozero.pins import Factory
 class Laser:
     """A laser that starts off and is switched off again before its pin is released."""
 
-    def __init__(self, pin: int | str, active_high: bool = True, pin_factory: Factory | None = None):
+    def __init__(
+        self, pin: int | str, active_high: bool = True, pin_factory: Factory | None = None
+    ):
         self._output = DigitalOutputDevice(
             pin, active_high=active_high, initial_value=False, pin_factory=pin_factory
         )

@@ -146,15 +146,23 @@ class DeviceServer:
     def _scan(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
         target = args.get("target")
         if target not in ("cylinder", "object"):
-            raise RequestError("bad-args", f"scan target must be cylinder or object, not {target!r}")
+            raise RequestError(
+                "bad-args", f"scan target must be cylinder or object, not {target!r}"
+            )
         plan = self._plan(target, args)
 
         def send_progress(progress: Progress) -> None:
             self.channel.send(
                 encode_json(
                     Kind.EVENT,
-                    {"id": request_id, "event": "progress", "target": progress.target,
-                     "done": progress.done, "total": progress.total, "section": progress.section},
+                    {
+                        "id": request_id,
+                        "event": "progress",
+                        "target": progress.target,
+                        "done": progress.done,
+                        "total": progress.total,
+                        "section": progress.section,
+                    },
                 )
             )
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from lamina_shared.types import BoardSpec
 
 MIN_CORNERS_THESIS = 20
@@ -142,7 +143,7 @@ def find_corners(image: np.ndarray, board: BoardSpec) -> np.ndarray:
     grid's own directions, never from OpenCV's start corner.
 
     Args:
-        image: (H, W) uint8 grayscale calibration image.
+        image: (H, W) grayscale calibration image, 8- or 16-bit (colour is converted).
         board: the chessboard lying in the laser plane.
 
     Returns:
@@ -163,9 +164,14 @@ def find_corners(image: np.ndarray, board: BoardSpec) -> np.ndarray:
             "for OpenCV's detector; use a larger board"
         )
     img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        # Corner detection works on 8-bit images; the top byte keeps all the contrast.
+        img = (img >> 8).astype(np.uint8)
     if img.ndim != 2 or img.dtype != np.uint8:
         raise CalibrationError(
-            f"calibration image must be 8-bit grayscale (H, W), got {img.dtype} {img.shape}; "
+            f"calibration image must be 8- or 16-bit grayscale (H, W), got {img.dtype} {img.shape}; "
             "convert it before calibrating"
         )
     found, corners = cv2.findChessboardCornersSB(

@@ -90,12 +90,12 @@ def _check_args(args: argparse.Namespace) -> tuple[ScanPlan | None, Expectation 
         raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
     if args.harmonics is not None and args.harmonics < 1:
         raise UsageError("--harmonics must be 1 or more")
-    if args.device == "sim" or args.device.startswith("replay:"):
-        if find_spec("lamina_device") is None:
-            raise UsageError(
-                f"--device {args.device} runs the device program here, but "
-                "lamina-device is not installed: pip install -e device"
-            )
+    spawns_device = args.device == "sim" or args.device.startswith("replay:")
+    if spawns_device and find_spec("lamina_device") is None:
+        raise UsageError(
+            f"--device {args.device} runs the device program here, but "
+            "lamina-device is not installed: pip install -e device"
+        )
     if args.object and args.device != "sim":
         raise UsageError("--object only applies to --device sim")
     try:
@@ -110,8 +110,9 @@ def _progress(event: dict[str, Any]) -> None:
         return
     done, total = event.get("done"), event.get("total")
     if sys.stderr.isatty():
-        print(f"\r  {event.get('target')}: view {done}/{total}", end="", file=sys.stderr,
-              flush=True)
+        print(
+            f"\r  {event.get('target')}: view {done}/{total}", end="", file=sys.stderr, flush=True
+        )
     elif done == total:
         print(f"  {event.get('target')}: {total} views", file=sys.stderr)
 
@@ -159,26 +160,26 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
         f"axis: ({axis['axis_xy_mm'][0]:.3f}, {axis['axis_xy_mm'][1]:.3f}) mm, correction "
         f"factor {report['correction_factor']:.5f}"
     )
-    accuracy = {r["section"]: r for r in report.get("accuracy", {}).get("sections", [])}
+    accuracy = {r["section"]: r for r in report.get("accuracy", {}).get("rows", [])}
     header = "section  z_mm  points  harmonics"
     print(header + ("  rms_own_mm  rms_mean_mm" if accuracy else ""))
     for s in report["sections"]:
         line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}  {s['harmonics']:>9}"
         if s["section"] in accuracy:
             row = accuracy[s["section"]]
-            line += f"  {row['rms_own_centroid_mm']:10.4f}  {row['rms_mean_centroid_mm']:11.4f}"
+            line += f"  {row['rms_own_mm']:10.4f}  {row['rms_mean_mm']:11.4f}"
         print(line)
     if accuracy:
         acc = report["accuracy"]
         print(
-            f"   mean RMS radial error: {acc['mean_rms_own_centroid_mm']:.4f} mm (own centroid),"
-            f" {acc['mean_rms_mean_centroid_mm']:.4f} mm (mean centroid); thesis 0.1069/0.1354"
+            f"   mean RMS radial error: {acc['mean_own_mm']:.4f} mm (own centroid), "
+            f"{acc['mean_mean_mm']:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
         )
     mesh = report["mesh"]
     print(f"mesh: {mesh['faces']} faces, {mesh['vertices']} vertices")
     for warning in report["warnings"]:
         print(f"warning: {warning}")
-    for name, path in paths.items():
+    for path in paths.values():
         print(f"wrote {path}")
 
 

@@ -163,7 +163,8 @@ class DeviceClient:
                 if info.protocol != PROTOCOL_VERSION:
                     raise DeviceError(
                         f"the device speaks protocol version {info.protocol}, this host speaks "
-                        f"{PROTOCOL_VERSION}: install matching lamina-device and lamina-host versions"
+                        f"{PROTOCOL_VERSION}: install matching lamina-device and lamina-host "
+                        "versions"
                     )
                 self.info = info
                 return info

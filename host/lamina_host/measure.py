@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,6 +59,10 @@ def centroid(contour: np.ndarray) -> np.ndarray:
     return np.array([cx, cy])
 
 
+RadiusModel = Callable[[np.ndarray, float], np.ndarray]
+"""True outline radius at polar angles ``phi`` (rad) of the section at height ``z`` (mm)."""
+
+
 @dataclass(frozen=True)
 class RadialErrorRow:
     """One section of Table 8.3: RMS radial error about its own and the mean centroid."""
@@ -89,7 +94,11 @@ class RadialErrorTable:
     mean_own_mm: float
     mean_mean_mm: float
     mean_centroid_mm: tuple[float, float]
-    ideal_radius_mm: float
+
+    @property
+    def max_mean_mm(self) -> float:
+        """Return the worst section's RMS error about the mean centroid."""
+        return max(row.rms_mean_mm for row in self.rows)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form."""
@@ -97,17 +106,24 @@ class RadialErrorTable:
             "rows": [row.to_dict() for row in self.rows],
             "mean_own_mm": self.mean_own_mm,
             "mean_mean_mm": self.mean_mean_mm,
+            "max_mean_mm": self.max_mean_mm,
             "mean_centroid_mm": list(self.mean_centroid_mm),
-            "ideal_radius_mm": self.ideal_radius_mm,
         }
 
 
-def radial_error_table(
-    contours: dict[int, np.ndarray], z_mm: dict[int, float], radius_mm: float
-) -> RadialErrorTable:
-    """Compute the RMS radial error of each section of a scanned cylinder (thesis 8.2.1).
+def _radial_rms(points: np.ndarray, centre: np.ndarray, z_mm: float, radius: RadiusModel) -> float:
+    rel = points - centre
+    error = np.hypot(rel[:, 0], rel[:, 1]) - radius(np.arctan2(rel[:, 1], rel[:, 0]), z_mm)
+    return float(np.sqrt(np.mean(error**2)))
 
-    The error of a point is ``|point - centre| - radius_mm``. Column one uses each
+
+def radial_error_table(
+    contours: dict[int, np.ndarray], z_mm: dict[int, float], radius_mm: float | RadiusModel
+) -> RadialErrorTable:
+    """Compute the RMS radial error of each section of a scanned object (thesis 8.2.1).
+
+    The error of a point is ``|point - centre| - r``, with ``r`` the true radius in the
+    point's direction (a constant for a cylinder, see :class:`RadiusModel`). Column one uses each
     section's own area centroid as the centre (xy accuracy only); column two uses the mean
     of all sections' centroids, so section-to-section misalignment is included. The
     "mean" entries average the per-section RMS values, as in Table 8.3.
@@ -115,7 +131,8 @@ def radial_error_table(
     Args:
         contours: section index -> (N, 2) closed contour in mm (object frame).
         z_mm: section index -> height in mm.
-        radius_mm: the cylinder's true radius.
+        radius_mm: the cylinder's true radius, or the true radius as a function of angle
+            and height for other shapes.
 
     Returns:
         RadialErrorTable with rows in ascending section order.
@@ -128,21 +145,22 @@ def radial_error_table(
     missing = sorted(set(contours) - set(z_mm))
     if missing:
         raise CalibrationError(f"sections {missing} have no z_mm; pass a height for each")
+    radius: RadiusModel = (
+        radius_mm if callable(radius_mm) else (lambda phi, z: np.full(len(phi), radius_mm))
+    )
     sections = sorted(contours)
     pts = [np.asarray(contours[s], dtype=float) for s in sections]
     centres = np.array([centroid(p) for p in pts])
     mean_centre = centres.mean(axis=0)
     rows = []
     for s, p, c in zip(sections, pts, centres, strict=True):
-        d_own = np.linalg.norm(p - c, axis=1)
-        d_mean = np.linalg.norm(p - mean_centre, axis=1)
         rows.append(
             RadialErrorRow(
                 section=s,
                 z_mm=float(z_mm[s]),
-                rms_own_mm=float(np.sqrt(np.mean((d_own - radius_mm) ** 2))),
-                rms_mean_mm=float(np.sqrt(np.mean((d_mean - radius_mm) ** 2))),
-                mean_radius_mm=float(d_own.mean()),
+                rms_own_mm=_radial_rms(p, c, z_mm[s], radius),
+                rms_mean_mm=_radial_rms(p, mean_centre, z_mm[s], radius),
+                mean_radius_mm=float(np.linalg.norm(p - c, axis=1).mean()),
                 centroid_mm=(float(c[0]), float(c[1])),
             )
         )
@@ -151,5 +169,4 @@ def radial_error_table(
         mean_own_mm=float(np.mean([r.rms_own_mm for r in rows])),
         mean_mean_mm=float(np.mean([r.rms_mean_mm for r in rows])),
         mean_centroid_mm=(float(mean_centre[0]), float(mean_centre[1])),
-        ideal_radius_mm=float(radius_mm),
     )

@@ -135,7 +135,8 @@ def fit_section(
 
 def stack(contours: list[np.ndarray], heights: list[float]) -> np.ndarray:
     """Return planar contours as one (N, 3) array with their heights as z."""
-    parts = [np.column_stack([c, np.full(len(c), z)]) for c, z in zip(contours, heights)]
+    pairs = zip(contours, heights, strict=True)
+    parts = [np.column_stack([c, np.full(len(c), z)]) for c, z in pairs]
     return np.vstack(parts) if parts else np.empty((0, 3))
 
 
@@ -159,9 +160,7 @@ def mesh_ball_pivoting(
         count = max(16, int(np.ceil(perimeter(s.contour) / (pitch_mm / 4.0))))
         contours.append(s.efd.evaluate(count))
     heights = [s.z_mm for s in sections]
-    return ball_pivoting(
-        stack(contours, heights), stacked_normals(contours), radius_mm or pitch_mm
-    )
+    return ball_pivoting(stack(contours, heights), stacked_normals(contours), radius_mm or pitch_mm)
 
 
 def section_pitch_mm(sections: list[Section]) -> float | None:

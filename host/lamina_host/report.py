@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 
 from lamina_host.expect import Expectation
-from lamina_host.measure import centroid, perimeter, polygon_area
+from lamina_host.measure import perimeter, polygon_area, radial_error_table
 from lamina_host.mesh import save_ply
-from lamina_host.pipeline import Reconstruction, Section, stack, stacked_normals
+from lamina_host.pipeline import Reconstruction, stack, stacked_normals
 from lamina_shared.types import Segment
 
 SEGMENT_FIELDS = ("cols", "rows", "peak", "width")
@@ -19,7 +19,7 @@ SEGMENT_FIELDS = ("cols", "rows", "peak", "width")
 
 def save_segments(path: Path, segments: list[Segment]) -> None:
     """Write segments losslessly to one ``.npz`` file (kept so a scan can be reprocessed)."""
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}
     for k, s in enumerate(segments):
         head = np.array([s.section, s.view, s.z_mm, s.angle_deg], dtype=np.float64)
         arrays[f"{k:05d}_head"] = head
@@ -47,31 +47,6 @@ def load_segments(path: Path) -> list[Segment]:
                 )
             )
     return segments
-
-
-def radial_errors(sections: list[Section], expect: Expectation) -> dict[str, Any]:
-    """Return thesis Table 8.3 figures: RMS radial error about own and mean centroid (mm)."""
-    centres = {s.index: centroid(s.contour) for s in sections}
-    mean_centre = np.mean(list(centres.values()), axis=0)
-    rows = []
-    for s in sections:
-        row: dict[str, Any] = {"section": s.index, "z_mm": s.z_mm}
-        for label, centre in (("own_centroid", centres[s.index]), ("mean_centroid", mean_centre)):
-            rel = s.contour - centre
-            error = np.hypot(rel[:, 0], rel[:, 1]) - expect.radius_mm(
-                np.arctan2(rel[:, 1], rel[:, 0]), s.z_mm
-            )
-            row[f"rms_{label}_mm"] = float(np.sqrt(np.mean(error**2)))
-            row[f"max_{label}_mm"] = float(np.max(np.abs(error)))
-        rows.append(row)
-    return {
-        "expected": expect.spec,
-        "sections": rows,
-        "mean_rms_own_centroid_mm": float(np.mean([r["rms_own_centroid_mm"] for r in rows])),
-        "mean_rms_mean_centroid_mm": float(np.mean([r["rms_mean_centroid_mm"] for r in rows])),
-        "max_rms_mean_centroid_mm": float(np.max([r["rms_mean_centroid_mm"] for r in rows])),
-        "mean_centroid_mm": [float(v) for v in mean_centre],
-    }
 
 
 def build_report(
@@ -116,7 +91,12 @@ def build_report(
         "warnings": result.warnings,
     }
     if expect is not None:
-        report["accuracy"] = radial_errors(result.sections, expect)
+        table = radial_error_table(
+            {s.index: s.contour for s in result.sections},
+            {s.index: s.z_mm for s in result.sections},
+            expect.radius_mm,
+        )
+        report["accuracy"] = {"expected": expect.spec, **table.to_dict()}
     return report
 
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -220,8 +220,10 @@ def _load_manifest(root: Path) -> dict[str, Any]:
     if data.get("version") != FORMAT_VERSION:
         raise CaptureError(
             root,
-            [f"version: capture version {data.get('version')!r} is not supported "
-             f"(this reader knows version {FORMAT_VERSION})"],
+            [
+                f"version: capture version {data.get('version')!r} is not supported "
+                f"(this reader knows version {FORMAT_VERSION})"
+            ],
         )
     return data
 
@@ -247,7 +249,9 @@ def load_capture(root: Path | str, decode_frames: bool = True) -> Capture:
     ):
         check.image_size = (size[0], size[1])
     else:
-        check.problems.append(f"image_size: two positive whole numbers are required, found {size!r}")
+        check.problems.append(
+            f"image_size: two positive whole numbers are required, found {size!r}"
+        )
     channel = data.get("laser_channel", "red")
     if channel not in LASER_CHANNELS:
         check.problems.append(f"laser_channel: {channel!r} is not one of red, green, blue")
@@ -270,10 +274,17 @@ def load_capture(root: Path | str, decode_frames: bool = True) -> Capture:
     if check.problems:
         raise CaptureError(root, check.problems)
     assert check.image_size is not None
-    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    meta = data["meta"] if isinstance(data.get("meta"), dict) else {}
     return Capture(
-        root, check.image_size, check.laser_channel, board, grid_image,
-        diameter, tuple(cylinder_views), tuple(scan_views), meta,
+        root,
+        check.image_size,
+        check.laser_channel,
+        board,
+        grid_image,
+        diameter,
+        tuple(cylinder_views),
+        tuple(scan_views),
+        meta,
     )
 
 
@@ -287,7 +298,7 @@ class CaptureWriter:
     interrupted recording, never a capture that silently lacks views.
     """
 
-    _FOLDERS = {"cylinder": "cyl", "object": "scan"}
+    _FOLDERS: ClassVar[dict[str, str]] = {"cylinder": "cyl", "object": "scan"}
 
     def __init__(
         self,
@@ -329,7 +340,10 @@ class CaptureWriter:
     ) -> None:
         """Store one view's laser-on (and laser-off) frame for ``cylinder`` or ``object``."""
         stem = f"{self._FOLDERS[target]}/s{view.section:03d}_v{index:02d}"
-        entry: dict[str, Any] = {**view.to_dict(), "laser_on": self._write_png(f"{stem}_on.png", on)}
+        entry: dict[str, Any] = {
+            **view.to_dict(),
+            "laser_on": self._write_png(f"{stem}_on.png", on),
+        }
         if off is not None:
             entry["laser_off"] = self._write_png(f"{stem}_off.png", off)
         self._views[target].append(entry)

@@ -147,14 +147,16 @@ class Segment:
 
     def same_as(self, other: Segment) -> bool:
         """Return True when both segments are identical bit for bit."""
-        return (
-            (self.target, self.section, self.view, self.z_mm, self.angle_deg)
-            == (other.target, other.section, other.view, other.z_mm, other.angle_deg)
-            and all(
-                a.dtype == b.dtype and a.tobytes() == b.tobytes()
-                for a, b in zip(
-                    (self.cols, self.rows, self.peak, self.width),
-                    (other.cols, other.rows, other.peak, other.width),
-                )
+        return (self.target, self.section, self.view, self.z_mm, self.angle_deg) == (
+            other.target,
+            other.section,
+            other.view,
+            other.z_mm,
+            other.angle_deg,
+        ) and all(
+            a.dtype == b.dtype and a.tobytes() == b.tobytes()
+            for a, b in zip(  # noqa: B905 - two tuples of four arrays
+                (self.cols, self.rows, self.peak, self.width),
+                (other.cols, other.rows, other.peak, other.width),
             )
         )

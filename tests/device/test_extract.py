@@ -12,8 +12,7 @@ from lamina_device.extract import (
 )
 
 
-def stripe_frames(centres, sigma_px=2.0, peak=180.0, ambient=40.0, height=120, noise=0.0,
-                  seed=0):
+def stripe_frames(centres, sigma_px=2.0, peak=180.0, ambient=40.0, height=120, noise=0.0, seed=0):
     """Return (on, off) frames with a Gaussian stripe at a known row per column."""
     rng = np.random.default_rng(seed)
     rows = np.arange(height, dtype=float)[:, None]

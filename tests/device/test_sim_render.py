@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import struct
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -108,7 +109,12 @@ def test_board_and_outer_squares_inside_image_with_margin():
     ox, oy = board.origin_mm
     corners = np.column_stack([board.world_corners(), np.zeros(board.corner_count)])
     outer = np.array(
-        [[ox - sq, oy - sq], [ox + nx * sq, oy - sq], [ox - sq, oy + ny * sq], [ox + nx * sq, oy + ny * sq]]
+        [
+            [ox - sq, oy - sq],
+            [ox + nx * sq, oy - sq],
+            [ox - sq, oy + ny * sq],
+            [ox + nx * sq, oy + ny * sq],
+        ]
     )
     w, h = RIG.image_size
     for pts, margin_px in ((corners[:, :2], 10.0), (outer, 10.0)):
@@ -145,6 +151,27 @@ def test_noise_free_grid_corners_match_projection():
     rms = float(np.sqrt(np.mean(nearest**2)))
     print(f"grid corner RMS vs projection: {rms:.4f} px")
     assert rms < 0.1
+
+
+def test_board_edges_are_rendered_exactly():
+    """Square edges crossing a column sit on the projected board lines within 0.02 px."""
+    flat = replace(NoiseModel.none(), ambient_gradient=(0.0, 0.0), vignette=0.0, shadow_depth=0.0)
+    img = SimScene(RIG, noise=flat).render("grid", 0.0, 0.0, False).astype(float)
+    board = RIG.board
+    sq, (ox, oy) = board.square_mm, board.origin_mm
+    errors = []
+    for j in range(board.inner_corners[1]):
+        for i in range(-1, board.inner_corners[0]):
+            xs = np.linspace(ox + (i + 0.25) * sq, ox + (i + 0.75) * sq, 501)
+            line = RIG.project(np.column_stack([xs, np.full_like(xs, oy + j * sq), 0 * xs]))
+            u = round(float(line[250, 0]))
+            v_true = float(np.interp(u, line[:, 0], line[:, 1]))
+            r0 = int(np.floor(v_true)) - 4
+            col = img[r0 : r0 + 10, u]
+            # An anti-aliased step: the edge is where the summed coverage says it is.
+            cover = (col - col[-1]) / (col[0] - col[-1])
+            errors.append(r0 - 0.5 + cover.sum() - v_true)
+    assert np.abs(errors).max() < 0.02
 
 
 @pytest.mark.parametrize("angle_deg", [0.0, 37.0])
@@ -198,7 +225,9 @@ def test_frames_are_deterministic_and_thesis_noise_has_measured_scatter():
     assert np.array_equal(first, a.render("cylinder", 10.0, 0.0, True, ("x", 1)))
     assert np.array_equal(first, b.render("cylinder", 10, 0, True, ("x", 1)))
     assert not np.array_equal(first, a.render("cylinder", 10.0, 0.0, True, ("x", 2)))
-    assert not np.array_equal(first, SimScene(RIG, seed=8).render("cylinder", 10.0, 0.0, True, ("x", 1)))
+    assert not np.array_equal(
+        first, SimScene(RIG, seed=8).render("cylinder", 10.0, 0.0, True, ("x", 1))
+    )
     off1 = a.render("cylinder", 10.0, 0.0, False, (1,))
     off2 = a.render("cylinder", 10.0, 0.0, False, (2,))
     assert not np.array_equal(off1, off2)
@@ -243,7 +272,9 @@ def test_mesh_cylinder_matches_analytic_cylinder(tmp_path):
         common = sorted(set(mesh_rows) & set(ref_rows))
         assert len(common) > 0.95 * len(ref_rows) > 200
         err = np.array([mesh_rows[u] - ref_rows[u] for u in common])
-        print(f"mesh vs analytic at {angle_deg} deg: max {np.abs(err).max():.3f} px, {elapsed:.2f} s")
+        print(
+            f"mesh vs analytic at {angle_deg} deg: max {np.abs(err).max():.3f} px, {elapsed:.2f} s"
+        )
         assert np.abs(err).max() < 0.3
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lamina_host.assembly import average_overlaps, to_object_frame, trim
 
 R = 9.525

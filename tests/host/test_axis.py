@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lamina_host.assembly import trim
 from lamina_host.axis import find_axis, fit_circle
 from lamina_host.calibration import CalibrationError

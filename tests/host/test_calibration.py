@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from lamina_host.calibration import (
     CalibrationError,
     Homography,
@@ -103,12 +104,14 @@ def test_find_corners_without_board_raises() -> None:
         find_corners(image, BOARD)
 
 
-def test_find_corners_rejects_tiny_board_and_colour_image() -> None:
-    """Boards under 4 corners and colour images are refused."""
+def test_find_corners_rejects_tiny_board_and_odd_images() -> None:
+    """Boards under 4 corners and images that are not pictures are refused."""
     image = np.zeros((360, 480), np.uint8)
     with pytest.raises(CalibrationError, match="at least 4 corners"):
         find_corners(image, BoardSpec((1, 3), 2.5, (0.0, 0.0)))
     with pytest.raises(CalibrationError, match="grayscale"):
+        find_corners(np.zeros((360, 480), np.float32), BOARD)
+    with pytest.raises(CalibrationError, match="no chessboard"):
         find_corners(np.zeros((360, 480, 3), np.uint8), BOARD)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyefd
 import pytest
+
 from lamina_host.efd import (
     choose_harmonics,
     efd_fit,

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lamina_host.calibration import CalibrationError
-from lamina_host.measure import centroid, perimeter, polygon_area, radial_error_table, signed_area
+from lamina_host.measure import (
+    centroid,
+    perimeter,
+    polygon_area,
+    radial_error_table,
+    signed_area,
+)
 
 R = 9.525
 
@@ -59,3 +66,19 @@ def test_radial_error_needs_heights() -> None:
     """A section without a height raises CalibrationError."""
     with pytest.raises(CalibrationError, match="z_mm"):
         radial_error_table({0: circle((0.0, 0.0))}, {}, R)
+
+
+def test_radial_error_table_with_a_radius_model_for_ellipses():
+    a, b = 10.0, 6.5
+    t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    ellipse = np.c_[a * np.cos(t), b * np.sin(t)]
+
+    def radius(phi, z):
+        return a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2)
+
+    exact = radial_error_table({0: ellipse, 1: ellipse}, {0: 0.0, 1: 2.0}, radius)
+    assert exact.max_mean_mm < 1e-9
+    bigger = radial_error_table({0: ellipse * 1.01}, {0: 0.0}, radius)
+    # Every point is 1% too far out: RMS equals 1% of the RMS radius.
+    expected = 0.01 * np.sqrt(np.mean(radius(t, 0.0) ** 2))
+    assert bigger.rows[0].rms_own_mm == pytest.approx(expected, rel=0.05)

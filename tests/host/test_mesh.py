@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pymeshlab
+
 from lamina_host.mesh import ball_pivoting, contour_normals, save_ply, topology
 
 R = 9.525

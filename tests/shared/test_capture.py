@@ -98,7 +98,7 @@ def test_unknown_version_is_named(capture_dir):
 def test_missing_manifest_and_folder(tmp_path):
     with pytest.raises(CaptureError, match="does not exist"):
         load_capture(tmp_path / "nope")
-    with pytest.raises(CaptureError, match="capture.json is missing"):
+    with pytest.raises(CaptureError, match=r"capture\.json is missing"):
         load_capture(tmp_path)
 
 

@@ -25,7 +25,11 @@ from lamina_shared.types import Segment
 def make_segment(n: int = 640) -> Segment:
     rng = np.random.default_rng(1)
     return Segment(
-        "object", 3, 5, 6.0, 225.0,
+        "object",
+        3,
+        5,
+        6.0,
+        225.0,
         np.arange(n, dtype=np.uint16),
         rng.uniform(0, 479, n).astype(np.float32),
         rng.integers(0, 256, n).astype(np.uint8),

@@ -136,7 +136,7 @@ class Ellipsoid:
         return p @ _yaw_matrix(self.yaw_deg)  # row vectors: p R == R^T p
 
     def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return the first hit t (N,) and outward normals (N, 3) by solving a unit-sphere quadratic."""
+        """Return the first hit t (N,) and outward normals (N, 3) via a unit-sphere quadratic."""
         o, d = _as_rays(origins, dirs)
         axes = np.asarray(self.semi_axes_mm, dtype=float)
         centre = np.array([self.x_mm, self.y_mm, self.z_mm])
@@ -247,14 +247,20 @@ class _RayBuckets:
         pad = 1e-9 * self.cell
         c0 = np.floor((lo - pad - self.lo) / self.cell)
         c1 = np.floor((hi + pad - self.lo) / self.cell)
-        return (np.clip(c0, 0, self.n - 1).astype(np.int64), np.clip(c1, 0, self.n - 1).astype(np.int64))
+        return (
+            np.clip(c0, 0, self.n - 1).astype(np.int64),
+            np.clip(c1, 0, self.n - 1).astype(np.int64),
+        )
 
     def count_in(self, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
         """Return how many points fall in each inclusive cell range."""
         s = self.integral
-        return s[c1[:, 1] + 1, c1[:, 0] + 1] - s[c0[:, 1], c1[:, 0] + 1] - s[c1[:, 1] + 1, c0[:, 0]] + s[
-            c0[:, 1], c0[:, 0]
-        ]
+        return (
+            s[c1[:, 1] + 1, c1[:, 0] + 1]
+            - s[c0[:, 1], c1[:, 0] + 1]
+            - s[c1[:, 1] + 1, c0[:, 0]]
+            + s[c0[:, 1], c0[:, 0]]
+        )
 
     def pairs(self, c0: np.ndarray, c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (box index, point index) for every point in every box's cell range."""
@@ -270,6 +276,7 @@ def _inside_2d(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
 
     def side(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Return the 2D cross product telling which side of edge q->r each point is on."""
         return (r[:, 0] - q[:, 0]) * (p[:, 1] - q[:, 1]) - (r[:, 1] - q[:, 1]) * (p[:, 0] - q[:, 0])
 
     s0, s1, s2 = side(a, b), side(b, c), side(c, a)
@@ -335,8 +342,10 @@ class TriangleMesh:
         keys = np.round(flat * 1e6).astype(np.int64)
         _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
         faces = inverse.reshape(-1, 3)
-        good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (
-            faces[:, 2] != faces[:, 0]
+        good = (
+            (faces[:, 0] != faces[:, 1])
+            & (faces[:, 1] != faces[:, 2])
+            & (faces[:, 2] != faces[:, 0])
         )
         return cls(flat[first], faces[good], name)
 
@@ -409,7 +418,7 @@ class TriangleMesh:
 
 def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
     """Join segments (S, 2) that share edge keys into closed CCW polygons."""
-    point_of = {int(k): p for k, p in zip(key.ravel(), pts.reshape(-1, 2))}
+    point_of = {int(k): p for k, p in zip(key.ravel(), pts.reshape(-1, 2), strict=True)}
     touching: dict[int, list[int]] = {}
     for s, (k0, k1) in enumerate(key.tolist()):
         touching.setdefault(k0, []).append(s)
@@ -432,7 +441,9 @@ def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
             cur = int(k1 if k0 == cur else k0)
         poly = np.array([point_of[k] for k in ring])
         if len(poly) >= 3:
-            area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+            area = 0.5 * np.sum(
+                poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]
+            )
             polygons.append(poly if area > 0 else poly[::-1])
     return polygons
 
@@ -583,7 +594,9 @@ def _parse_fields(kind: str, body: str, form: str) -> dict[str, str]:
         fields[key] = value
     missing = sorted(required - fields.keys())
     if missing:
-        raise ValueError(f"{kind}: missing {', '.join(k + '=' for k in missing)}; expected e.g. {form}")
+        raise ValueError(
+            f"{kind}: missing {', '.join(k + '=' for k in missing)}; expected e.g. {form}"
+        )
     return fields
 
 

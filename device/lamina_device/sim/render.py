@@ -138,6 +138,7 @@ def laser_reaches(
     ref = np.arctan2(*(a.mean(axis=0) - src)[::-1])
 
     def bearing(p: np.ndarray) -> np.ndarray:
+        """Return the direction of points seen from the source, relative to the outline."""
         # Angles about the source measured from the polygon's direction never wrap unless
         # the outline surrounds the source, which the rig never does.
         ang = np.arctan2(p[:, 1] - src[1], p[:, 0] - src[0]) - ref

@@ -33,7 +33,7 @@ class Rig:
     laser_source_xy_mm: tuple[float, float] = (15.0, -85.0)
     # ~0.16 mm gives a stripe of ~2 px sigma on a wall facing the camera near the axis.
     laser_sigma_mm: float = 0.16
-    board: BoardSpec = BoardSpec((9, 7), 3.0, (-12.0, -9.0))
+    board: BoardSpec = BoardSpec((9, 7), 3.0, (-12.0, -9.0))  # noqa: RUF009 (frozen, shared safely)
     cylinder_diameter_mm: float = 19.05
     cylinder_offset_mm: tuple[float, float] = (1.5, -0.8)
 
@@ -72,7 +72,7 @@ class Rig:
         return np.array([*self.laser_source_xy_mm, 0.0])
 
     def plane_homography(self) -> np.ndarray:
-        """Return H mapping homogeneous world ``(x, y, 1)`` on z = 0 to homogeneous ``(u, v, 1)``."""
+        """Return H mapping homogeneous plane points ``(x, y, 1)`` (z = 0) to ``(u, v, 1)``."""
         r = self.rotation
         t = -r @ self.camera_centre_mm
         return self.camera_matrix @ np.column_stack([r[:, 0], r[:, 1], t])
@@ -89,12 +89,12 @@ class Rig:
     def backproject_to_plane(self, uv: np.ndarray) -> np.ndarray:
         """Return the (N, 2) world ``(x, y)`` where pixel rays through ``uv`` meet z = 0."""
         uv = np.asarray(uv, dtype=float)
-        hom = np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1)
+        hom = np.concatenate([uv, np.ones((*uv.shape[:-1], 1))], axis=-1)
         xyw = hom @ np.linalg.inv(self.plane_homography()).T
         return xyw[..., :2] / xyw[..., 2:3]
 
     def object_to_world(self, q_obj_mm: np.ndarray, angle_deg: float, z_mm: float) -> np.ndarray:
-        """Map object-frame points (N, 2) or (N, 3) to world (N, 3) at turntable angle and section."""
+        """Map object-frame points (N, 2) or (N, 3) to world (N, 3) for one view's angle and z."""
         q = np.asarray(q_obj_mm, dtype=float)
         qz = q[..., 2] if q.shape[-1] == 3 else np.zeros(q.shape[:-1])
         th = math.radians(angle_deg)
