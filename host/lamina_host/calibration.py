@@ -171,8 +171,8 @@ def find_corners(image: np.ndarray, board: BoardSpec) -> np.ndarray:
         img = (img >> 8).astype(np.uint8)
     if img.ndim != 2 or img.dtype != np.uint8:
         raise CalibrationError(
-            f"calibration image must be 8- or 16-bit grayscale (H, W), got {img.dtype} {img.shape}; "
-            "convert it before calibrating"
+            f"calibration image must be 8- or 16-bit grayscale (H, W), got {img.dtype} "
+            f"{img.shape}; convert it before calibrating"
         )
     found, corners = cv2.findChessboardCornersSB(
         img,

@@ -53,8 +53,8 @@ def bench_extraction() -> list[dict[str, Any]]:
     rows = []
     for width, height in RESOLUTIONS:
         on, off = stripe_pair(width, height)
-        extract_s = best_time_s(lambda: extract(on, off))
-        subtract_s = best_time_s(lambda: np.subtract(on, off, dtype=np.int16))
+        extract_s = best_time_s(lambda on=on, off=off: extract(on, off))
+        subtract_s = best_time_s(lambda on=on, off=off: np.subtract(on, off, dtype=np.int16))
         rows.append(
             {
                 "resolution": f"{width}x{height}",
