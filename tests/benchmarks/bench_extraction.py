@@ -1,0 +1,56 @@
+"""Extraction speed: frames per second and cost relative to one frame subtraction."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from timing import best_time_s
+
+from lamina_device.extract import extract
+
+TITLE = "extraction (Otsu + centre of gravity)"
+RESOLUTIONS = ((640, 480), (1536, 864), (2304, 1296))
+
+
+def stripe_pair(width: int, height: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Return a laser-on/laser-off pair with a wavy Gaussian stripe and sensor noise."""
+    rng = np.random.default_rng(seed)
+    rows = np.arange(height, dtype=np.float32)[:, None]
+    centre = height / 2 + height / 8 * np.sin(np.linspace(0, 6, width, dtype=np.float32))
+    ambient = 30 + 40 * np.linspace(0, 1, width, dtype=np.float32)[None, :]
+    stripe = 170 * np.exp(-0.5 * ((rows - centre) / 2.0) ** 2)
+    noise_on = rng.normal(0, 2, (height, width)).astype(np.float32)
+    noise_off = rng.normal(0, 2, (height, width)).astype(np.float32)
+    on = np.clip(ambient + stripe + noise_on, 0, 255).astype(np.uint8)
+    off = np.clip(ambient + noise_off, 0, 255).astype(np.uint8)
+    return on, off
+
+
+def run() -> dict[str, Any]:
+    """Time extraction against one plain numpy subtraction of the same two frames."""
+    rows = []
+    for width, height in RESOLUTIONS:
+        on, off = stripe_pair(width, height)
+        extract_s = best_time_s(lambda on=on, off=off: extract(on, off))
+        subtract_s = best_time_s(lambda on=on, off=off: np.subtract(on, off, dtype=np.int16))
+        rows.append(
+            {
+                "resolution": f"{width}x{height}",
+                "extract_ms": 1e3 * extract_s,
+                "frames_per_s": 1.0 / extract_s,
+                "ratio_to_subtraction": extract_s / subtract_s,
+            }
+        )
+    return {"rows": rows}
+
+
+def report(results: dict[str, Any]) -> list[str]:
+    """Return the table lines."""
+    lines = ["  resolution    ms/frame   frames/s   x one subtraction"]
+    for row in results["rows"]:
+        lines.append(
+            f"  {row['resolution']:>10}  {row['extract_ms']:9.2f}  {row['frames_per_s']:9.1f}"
+            f"  {row['ratio_to_subtraction']:10.1f}"
+        )
+    return lines
