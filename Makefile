@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    := out
 
-.PHONY: install demo test lint bench clean
+.PHONY: install demo test lint bench tui fuzz clean
 
 $(STAMP): shared/pyproject.toml device/pyproject.toml host/pyproject.toml requirements-dev.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Lamina needs Python 3.11 or newer; run: make PYTHON=python3.11 ...")'
@@ -31,8 +31,17 @@ lint: install
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy shared/lamina_shared host/lamina_host
 
+# The terminal UI on the simulated scanner (add DEVICE=/dev/ttyACM0 for a real one).
+DEVICE ?= sim
+tui: install
+	$(BIN)/lamina tui --device $(DEVICE)
+
 bench: install
 	$(BIN)/python tests/benchmarks/run.py --out $(OUT)/bench.json
+
+# The normal suite runs a short fuzz; this runs the same properties with many more examples.
+fuzz: install
+	LAMINA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py
 
 clean:
 	rm -rf $(VENV) $(OUT)

@@ -1,12 +1,23 @@
-"""Running a scan plan: move, capture the laser-off/laser-on pair, extract, hand on.
+"""Running a scan plan as a pipeline: move, settle, capture the off/on pair, extract, send.
+
+The main thread drives the mechanics and the camera; a worker thread extracts each
+view's stripe and hands the segment on, so the next move and capture overlap the
+extraction and sending of the previous view. The queue between them is short
+(memory stays bounded) and first-in first-out (segments keep the plan's order); an
+exception on either side ends the scan and is raised to the caller.
 
 The laser is on only while its frame is exposed (thesis appendix A asks for
 automatic shut-off safeguards): it is switched on just before the laser-on capture
-and off straight after, and off again whatever goes wrong.
+and off straight after, and off again whatever goes wrong. The lift goes home at
+the end of every scan, finished, failed or aborted.
 """
 
 from __future__ import annotations
 
+import logging
+import queue
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -16,19 +27,93 @@ from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
+log = logging.getLogger(__name__)
+
+PIPELINE_DEPTH = 2
+"""Captured views waiting for extraction: enough to keep both stages busy, little memory."""
+
+
+class ScanAborted(Exception):
+    """The scan was aborted through its :class:`ScanControl`; the laser is off, the lift home."""
+
+
+class ScanControl:
+    """Pause, resume or abort a running scan from another thread (thread-safe).
+
+    The scan checks it between views: a pause takes effect after the current view's
+    capture, with the laser off, and an abort also ends a pause.
+    """
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self._paused = False
+        self._aborted = False
+
+    @property
+    def paused(self) -> bool:
+        """Return True while a pause is requested."""
+        return self._paused
+
+    @property
+    def aborted(self) -> bool:
+        """Return True once an abort is requested."""
+        return self._aborted
+
+    def pause(self) -> None:
+        """Hold the scan at the next view boundary."""
+        with self._changed:
+            self._paused = True
+            self._changed.notify_all()
+
+    def resume(self) -> None:
+        """Let a paused scan go on."""
+        with self._changed:
+            self._paused = False
+            self._changed.notify_all()
+
+    def abort(self) -> None:
+        """End the scan at the next view boundary (or at once if it is paused)."""
+        with self._changed:
+            self._aborted = True
+            self._changed.notify_all()
+
+    def checkpoint(self) -> None:
+        """Block while paused; raise ScanAborted if an abort was requested."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._aborted or not self._paused)
+            if self._aborted:
+                raise ScanAborted("scan aborted")
+
 
 @dataclass(frozen=True)
 class Progress:
-    """Where a running scan is: ``done`` of ``total`` views."""
+    """Where a running scan is: ``done`` of ``total`` views.
+
+    ``state`` is ``scanning``, ``paused`` (a pause is pending or held) or ``done``;
+    ``eta_s`` estimates the time left from the pace so far.
+    """
 
     target: str
     done: int
     total: int
     section: int
+    state: str = "scanning"
+    eta_s: float | None = None
 
 
 FrameSink = Callable[[str, ViewSpec, int, np.ndarray, np.ndarray], None]
 """Receives (target, view, index in section, laser-on frame, laser-off frame): recording."""
+
+
+@dataclass(frozen=True)
+class _Captured:
+    """One view's frames on their way from the capture stage to the extraction stage."""
+
+    view: ViewSpec
+    index: int
+    done: int
+    on: np.ndarray
+    off: np.ndarray
 
 
 def grab_grid(hardware: Hardware) -> np.ndarray:
@@ -50,6 +135,55 @@ def capture_pair(hardware: Hardware) -> tuple[np.ndarray, np.ndarray]:
     return on, off
 
 
+class _Stage:
+    """A worker thread applying ``handle`` to queued items in order.
+
+    After a failure it keeps draining the queue (so the producer never blocks) and
+    :meth:`raise_error` re-raises the failure in the producer's thread.
+    """
+
+    _END = object()
+
+    def __init__(self, handle: Callable[[_Captured], None], depth: int = PIPELINE_DEPTH) -> None:
+        self._handle = handle
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="scan-extract", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not self._END:
+            if self._error is None:
+                try:
+                    self._handle(item)  # type: ignore[arg-type]
+                except BaseException as exc:  # re-raised in the scan's thread
+                    self._error = exc
+
+    def raise_error(self) -> None:
+        """Re-raise the worker's failure, if any, in the calling thread."""
+        if self._error is not None:
+            raise self._error
+
+    def put(self, item: _Captured) -> None:
+        """Queue ``item`` (blocks while the queue is full); raise an earlier worker failure."""
+        self.raise_error()
+        self._queue.put(item)
+
+    def finish(self) -> None:
+        """Let the worker handle everything queued, then stop it."""
+        self._queue.put(self._END)
+        self._thread.join()
+
+
+def _progress(
+    target: str, item: _Captured, total: int, started_s: float, control: ScanControl
+) -> Progress:
+    elapsed_s = time.monotonic() - started_s
+    eta_s = elapsed_s / item.done * (total - item.done)
+    state = "done" if item.done == total else "paused" if control.paused else "scanning"
+    return Progress(target, item.done, total, item.view.section, state, round(eta_s, 3))
+
+
 def acquire(
     hardware: Hardware,
     target: str,
@@ -58,6 +192,7 @@ def acquire(
     on_progress: Callable[[Progress], None] | None = None,
     settings: ExtractSettings | None = None,
     sink: FrameSink | None = None,
+    control: ScanControl | None = None,
 ) -> int:
     """Scan ``target`` along ``plan``; return the number of segments produced.
 
@@ -65,30 +200,68 @@ def acquire(
         hardware: the device's hardware.
         target: ``cylinder`` or ``object``.
         plan: the views to visit, in order.
-        on_segment: called with each view's segment as soon as it is extracted.
-        on_progress: called after each view.
+        on_segment: called with each view's segment, in plan order, from the worker thread.
+        on_progress: called after each view's segment, from the worker thread.
         settings: extraction settings (Otsu, p = 1 by default).
-        sink: called with the raw frames of each view, for recording captures.
+        sink: called with the raw frames of each view (recording), from the worker thread.
+        control: pause, resume and abort from another thread.
 
     Returns:
         How many segments were handed to ``on_segment``.
+
+    Raises:
+        ScanAborted: ``control`` aborted the scan; views captured before it were sent.
     """
+    control = control or ScanControl()
+    total = len(plan.views)
+    started_s = time.monotonic()
+
+    def handle(item: _Captured) -> None:
+        if sink is not None:
+            sink(target, item.view, item.index, item.on, item.off)
+        view = item.view
+        points = extract(item.on, item.off, settings)
+        on_segment(to_segment(points, target, view.section, item.index, view.z_mm, view.angle_deg))
+        if on_progress is not None:
+            on_progress(_progress(target, item, total, started_s, control))
+
     hardware.place(target)
+    stage = _Stage(handle)
     index_in_section: dict[int, int] = {}
+    captured = 0
+    ok = False
     try:
-        for done, view in enumerate(plan.views, start=1):
-            hardware.lift.move_to(view.z_mm)
-            hardware.turntable.move_to(view.angle_deg)
-            on, off = capture_pair(hardware)
-            index = index_in_section.get(view.section, 0)
-            index_in_section[view.section] = index + 1
-            if sink is not None:
-                sink(target, view, index, on, off)
-            points = extract(on, off, settings)
-            on_segment(to_segment(points, target, view.section, index, view.z_mm, view.angle_deg))
-            if on_progress is not None:
-                on_progress(Progress(target, done, len(plan.views), view.section))
+        try:
+            for done, view in enumerate(plan.views, start=1):
+                control.checkpoint()
+                hardware.lift.move_to(view.z_mm)
+                hardware.turntable.move_to(view.angle_deg)
+                hardware.settle()
+                on, off = capture_pair(hardware)
+                index = index_in_section.get(view.section, 0)
+                index_in_section[view.section] = index + 1
+                stage.put(_Captured(view, index, done, on, off))
+                captured = done
+        finally:
+            hardware.laser.off()
+            # Views already captured are still extracted and sent: nothing recorded is lost.
+            stage.finish()
+        stage.raise_error()
+        ok = True
+    except ScanAborted:
+        log.info("scan of %s aborted after %d of %d views", target, captured, total)
+        raise ScanAborted(f"scan of {target} aborted after {captured} of {total} views") from None
     finally:
         hardware.laser.off()
-        hardware.lift.move_to(0.0)
-    return len(plan.views)
+        _home(hardware, raise_errors=ok)
+    return total
+
+
+def _home(hardware: Hardware, raise_errors: bool) -> None:
+    """Send the lift home; while another error is on its way out, only log a failure."""
+    try:
+        hardware.lift.home()
+    except Exception:
+        if raise_errors:
+            raise
+        log.exception("the lift could not go home after the scan failed")

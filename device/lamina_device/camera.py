@@ -1,6 +1,8 @@
 """Cameras: where frames come from. All of them answer :class:`Camera`.
 
-The simulated camera renders what the virtual rig would show given the real
+The Pi camera (picamera2) captures the luminance plane at fixed exposure and gain
+and returns only frames exposed entirely under the laser's current state. The
+simulated camera renders what the virtual rig would show given the real
 (error-laden) axis positions and the laser's actual pin state; the replay camera
 serves a recorded capture's frame for the commanded view. Either way the frame
 then goes through the same extraction as a live one.
@@ -8,15 +10,27 @@ then goes through the same extraction as a live one.
 
 from __future__ import annotations
 
+import importlib
+import logging
+import time
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
+from lamina_device.config import CameraConfig
 from lamina_device.laser import Laser
 from lamina_device.motion import SimLift, SimTurntable
 from lamina_device.sim import SimScene
 from lamina_shared.capture import Capture, read_frame
+
+log = logging.getLogger(__name__)
+
+PICAMERA2_HELP = (
+    "the Pi camera needs picamera2, which comes from Raspberry Pi OS, not PyPI: "
+    "run 'sudo apt install python3-picamera2' and create the venv with "
+    "'python3 -m venv --system-site-packages'"
+)
 
 
 class CameraError(RuntimeError):
@@ -116,3 +130,147 @@ class ReplayCamera:
 
     def close(self) -> None:
         """Nothing to release."""
+
+
+# The sensor timestamps a frame when its first row ends exposure; the last row ends up
+# to one frame period later (rolling shutter). GPIO and driver latency is well below this.
+_LASER_LATENCY_NS = 100_000
+# Exposure is quantised to sensor lines: accept the metadata within this fraction.
+_EXPOSURE_TOLERANCE = 0.05
+_GAIN_TOLERANCE = 0.05
+
+
+def import_picamera2() -> Any:
+    """Return the picamera2 module, or raise CameraError saying how to install it."""
+    try:
+        return importlib.import_module("picamera2")
+    except ImportError as exc:
+        raise CameraError(f"{PICAMERA2_HELP} ({exc})") from None
+
+
+def exposure_window_ns(metadata: dict[str, Any]) -> tuple[int, int]:
+    """Return when a frame's first row started and its last row could have ended exposing.
+
+    ``SensorTimestamp`` (ns, CLOCK_MONOTONIC) marks the end of the first row's
+    exposure; the rolling shutter reads the last row at most one frame later.
+    """
+    end_first_ns = int(metadata["SensorTimestamp"])
+    exposure_ns = int(metadata["ExposureTime"]) * 1000
+    frame_ns = int(metadata.get("FrameDuration", metadata["ExposureTime"])) * 1000
+    return end_first_ns - exposure_ns, end_first_ns + frame_ns
+
+
+class PiCamera:
+    """A Raspberry Pi camera (picamera2) returning the Y plane at fixed exposure and gain.
+
+    Every frame is matched to the laser state it was exposed under: frames whose
+    exposure began before the laser's last switch (stale or straddling ones) are
+    released and skipped, so the caller gets a frame lit exactly as the laser is now.
+    """
+
+    def __init__(self, config: CameraConfig, laser: Laser, picamera2: Any | None = None) -> None:
+        self.config = config
+        self.laser = laser
+        module = picamera2 if picamera2 is not None else import_picamera2()
+        self._mapped_array = module.MappedArray
+        self.frames_dropped = 0
+        self._cam = module.Picamera2()
+        try:
+            self._start()
+        except Exception:
+            self._cam.close()
+            raise
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Return (width, height) in pixels."""
+        return (self.config.width, self.config.height)
+
+    def _controls(self) -> dict[str, Any]:
+        cfg = self.config
+        return {
+            "AeEnable": False,
+            "AwbEnable": False,
+            "ExposureTime": cfg.exposure_us,
+            "AnalogueGain": cfg.gain,
+            "FrameDurationLimits": (cfg.frame_duration_us, cfg.frame_duration_us),
+        }
+
+    def _start(self) -> None:
+        cfg = self.config
+        # YUV420's first plane is the luminance: no colour conversion, no extra copy.
+        camera_config = self._cam.create_video_configuration(
+            main={"format": "YUV420", "size": (cfg.width, cfg.height)},
+            controls=self._controls(),
+            buffer_count=cfg.buffer_count,
+        )
+        self._cam.configure(camera_config)
+        self._cam.set_controls(self._controls())
+        self._cam.start()
+        self._confirm_controls()
+
+    def _controls_applied(self, metadata: dict[str, Any]) -> bool:
+        cfg = self.config
+        exposure = metadata.get("ExposureTime", 0)
+        gain = metadata.get("AnalogueGain", 0.0)
+        return (
+            abs(exposure - cfg.exposure_us) <= _EXPOSURE_TOLERANCE * cfg.exposure_us
+            and abs(gain - cfg.gain) <= _GAIN_TOLERANCE * cfg.gain
+        )
+
+    def _confirm_controls(self) -> None:
+        """Wait until frames report the requested exposure and gain (they lag a few frames)."""
+        deadline = time.monotonic() + self.config.timeout_s
+        metadata: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            request = self._cam.capture_request()
+            try:
+                metadata = request.get_metadata()
+            finally:
+                request.release()
+            if self._controls_applied(metadata):
+                return
+        raise CameraError(
+            f"the camera did not apply exposure {self.config.exposure_us} us and gain "
+            f"{self.config.gain:g} within {self.config.timeout_s:g} s (it reports "
+            f"{metadata.get('ExposureTime')} us, gain {metadata.get('AnalogueGain')}); "
+            "check [camera] exposure_us, gain and frame_duration_us against the sensor's limits"
+        )
+
+    def _luminance(self, request: Any) -> np.ndarray:
+        width, height = self.size
+        with self._mapped_array(request, "main") as mapped:
+            return np.array(mapped.array[:height, :width], dtype=np.uint8, copy=True)
+
+    def capture(self) -> np.ndarray:
+        """Return the next frame exposed entirely under the laser's current state."""
+        state, changed_ns = self.laser.is_on, self.laser.changed_ns
+        deadline = time.monotonic() + self.config.timeout_s
+        while time.monotonic() < deadline:
+            request = self._cam.capture_request()
+            try:
+                start_ns, _ = exposure_window_ns(request.get_metadata())
+                if start_ns >= changed_ns + _LASER_LATENCY_NS:
+                    frame = self._luminance(request)
+                else:
+                    frame = None
+            finally:
+                request.release()
+            # The frame was read out before capture_request returned, so if the laser has
+            # not switched since, every row of it was exposed under ``state``.
+            if self.laser.changed_ns != changed_ns or self.laser.is_on != state:
+                raise CameraError("the laser switched while a frame was exposed")
+            if frame is not None:
+                return frame
+            self.frames_dropped += 1
+            log.debug("dropped a frame whose exposure began before the laser switched")
+        raise CameraError(
+            f"no frame exposed after the laser switched arrived within {self.config.timeout_s:g} s"
+        )
+
+    def close(self) -> None:
+        """Stop and release the camera."""
+        try:
+            self._cam.stop()
+        finally:
+            self._cam.close()

@@ -1,4 +1,4 @@
-"""``lamina-device``: serve a host over a serial port, or record a raw capture.
+"""``lamina-device``: serve a host over a serial port, record a raw capture, check a config.
 
 Every user mistake ends in one line on stderr naming the problem and a non-zero
 exit status, never a traceback.
@@ -7,6 +7,7 @@ exit status, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import signal
 import sys
@@ -18,7 +19,10 @@ import serial
 
 from lamina_device import __version__
 from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.camera import CameraError
+from lamina_device.config import check_config
 from lamina_device.hardware import Hardware, HardwareError, open_hardware
+from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer
 from lamina_shared.capture import CaptureError, CaptureWriter
 from lamina_shared.link import Channel
@@ -34,7 +38,12 @@ def _terminate(signum: int, frame: FrameType | None) -> None:
 
 
 def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--hardware", required=True, help="sim or replay:CAPTURE_DIR")
+    parser.add_argument(
+        "--hardware", required=True, help="sim, replay:CAPTURE_DIR or pi (the scanner box)"
+    )
+    parser.add_argument(
+        "--config", type=Path, help="TOML configuration for --hardware pi (default: packaged)"
+    )
     parser.add_argument("--object", help="simulated object, e.g. cylinder:d=19.05 (sim only)")
     parser.add_argument("--seed", type=int, default=0, help="simulation noise seed")
     parser.add_argument(
@@ -42,6 +51,12 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
         choices=("thesis", "none"),
         default="thesis",
         help="simulated noise and mechanical error (default: thesis-like)",
+    )
+    parser.add_argument(
+        "--rig",
+        choices=("thesis", "limb"),
+        default="thesis",
+        help="simulated rig geometry: thesis scale (640x480) or limb scale (1536x864)",
     )
 
 
@@ -62,7 +77,31 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--pitch", type=float, default=2.0, help="section pitch in mm")
     record.add_argument("--views", type=int, default=8, help="views per section")
     record.add_argument("--cylinder-views", type=int, default=8)
+    check = sub.add_parser("check-config", help="validate a TOML configuration file")
+    check.add_argument("file", type=Path, help="the configuration file")
     return parser
+
+
+def check_config_command(path: Path) -> int:
+    """Print OK or every problem of the configuration at ``path``; return the exit status."""
+    problems = check_config(path)
+    if not problems:
+        print(f"{path}: OK")
+        return 0
+    count = f"{len(problems)} problem" + ("s" if len(problems) != 1 else "")
+    print(f"lamina-device: config {path} has {count}:", file=sys.stderr)
+    for problem in problems:
+        print(f"  - {problem}", file=sys.stderr)
+    return EXIT_USAGE
+
+
+def _ask_operator(hardware: Hardware, what: str) -> None:
+    """On the scanner box, wait until the operator has put ``what`` on the turntable."""
+    if hardware.kind != "pi":
+        return
+    # Unattended (no terminal to read): the targets are assumed to be in place.
+    with contextlib.suppress(EOFError, OSError):
+        input(f"Put the {what} on the turntable, then press Enter: ")
 
 
 def serve(args: argparse.Namespace, hardware: Hardware) -> int:
@@ -90,12 +129,23 @@ def record(args: argparse.Namespace, hardware: Hardware) -> int:
     except (ValueError, OSError) as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    if hardware.board is not None:
-        writer.add_grid(grab_grid(hardware), hardware.board)
-    if hardware.cylinder_diameter_mm is not None:
-        writer.set_cylinder(hardware.cylinder_diameter_mm)
-        acquire(hardware, "cylinder", cylinder_plan, lambda s: None, sink=writer.add_view)
-    acquire(hardware, "object", plan, lambda s: None, sink=writer.add_view)
+    try:
+        if hardware.board is not None:
+            _ask_operator(hardware, "calibration board")
+            writer.add_grid(grab_grid(hardware), hardware.board)
+        if hardware.cylinder_diameter_mm is not None:
+            _ask_operator(hardware, "calibration cylinder")
+            writer.set_cylinder(hardware.cylinder_diameter_mm)
+            acquire(hardware, "cylinder", cylinder_plan, lambda s: None, sink=writer.add_view)
+        _ask_operator(hardware, "object")
+        acquire(hardware, "object", plan, lambda s: None, sink=writer.add_view)
+    except (CameraError, ValueError, OSError) as exc:
+        print(
+            f"lamina-device: recording stopped: {exc} (the frames recorded so far stay in "
+            f"{args.out}, without a manifest as the capture is incomplete)",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     path = writer.close()
     print(f"capture written: {path} ({len(plan.views)} object views)")
     return 0
@@ -107,14 +157,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="lamina-device: %(message)s"
     )
+    if args.command == "check-config":
+        return check_config_command(args.file)
     signal.signal(signal.SIGTERM, _terminate)
     try:
-        hardware = open_hardware(args.hardware, args.object, args.seed, args.noise)
+        hardware = open_hardware(
+            args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
+        )
     except (HardwareError, CaptureError) as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        return serve(args, hardware) if args.command == "serve" else record(args, hardware)
+        # From here SIGTERM, SIGINT and exit switch the laser off before anything else.
+        with LaserShutdown(hardware.laser):
+            return serve(args, hardware) if args.command == "serve" else record(args, hardware)
     except KeyboardInterrupt:
         return 130
     finally:

@@ -1,20 +1,35 @@
 """Choosing and assembling the hardware the device program drives.
 
-``sim`` is the virtual rig; ``replay:DIR`` is a recorded capture standing in for
-the camera. Both use gpiozero's MockFactory for the laser pin, so the laser's state
-history is real gpiozero behaviour, and simulated axes for motion.
+``pi`` is the scanner box: picamera2, the laser on a GPIO, stepper axes, all as the
+TOML configuration says. ``sim`` is the virtual rig; ``replay:DIR`` is a recorded
+capture standing in for the camera. Sim and replay use gpiozero's MockFactory for
+the laser pin, so the laser's state history is real gpiozero behaviour, and
+simulated axes for motion. Every kind comes with its laser watchdog running.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gpiozero.exc import GPIOZeroError
+from gpiozero.pins import Factory
 from gpiozero.pins.mock import MockFactory
 
-from lamina_device.camera import Camera, ReplayCamera, SimCamera, Stage
+from lamina_device.camera import Camera, CameraError, PiCamera, ReplayCamera, SimCamera, Stage
+from lamina_device.config import ConfigError, DeviceConfig, load_config
 from lamina_device.laser import Laser
-from lamina_device.motion import Mechanics, SimLift, SimTurntable
+from lamina_device.motion import (
+    Lift,
+    Mechanics,
+    SimLift,
+    SimTurntable,
+    StepperLift,
+    StepperTurntable,
+    Turntable,
+)
+from lamina_device.safety import LaserWatchdog
 from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
 from lamina_shared.capture import load_capture
 from lamina_shared.types import BoardSpec, ScanPlan
@@ -36,26 +51,49 @@ class Hardware:
     kind: str
     camera: Camera
     laser: Laser
-    turntable: SimTurntable
-    lift: SimLift
+    turntable: Turntable
+    lift: Lift
     stage: Stage
     board: BoardSpec | None
     cylinder_diameter_mm: float | None
     default_plans: dict[str, ScanPlan] = field(default_factory=dict)
     description: str = ""
+    settle_s: float = 0.0
+    watchdog: LaserWatchdog | None = None
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
         self.stage.target = target
 
+    def settle(self) -> None:
+        """Wait for vibration after a move to die down before exposing."""
+        if self.settle_s > 0:
+            time.sleep(self.settle_s)
+
     def close(self) -> None:
-        """Switch the laser off and release everything."""
-        self.laser.close()
-        self.camera.close()
+        """Switch the laser off and release everything (the laser first)."""
+        self.laser.off()
+        try:
+            if self.watchdog is not None:
+                self.watchdog.stop()
+            self.camera.close()
+            self.turntable.close()
+            self.lift.close()
+        finally:
+            self.laser.close()
 
 
-def open_sim(object_spec: str | None = None, seed: int = 0, noise: str = "thesis") -> Hardware:
-    """Return the simulated rig with ``object_spec`` on the turntable."""
+def _watched(hardware: Hardware, max_on_s: float = 2.0, link_silence_s: float = 10.0) -> Hardware:
+    """Start the laser watchdog of ``hardware`` and return it."""
+    hardware.watchdog = LaserWatchdog(hardware.laser, max_on_s, link_silence_s)
+    hardware.watchdog.start()
+    return hardware
+
+
+def open_sim(
+    object_spec: str | None = None, seed: int = 0, noise: str = "thesis", rig_name: str = "thesis"
+) -> Hardware:
+    """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it."""
     spec = object_spec or DEFAULT_OBJECT
     try:
         obj = parse_object(spec)
@@ -63,13 +101,16 @@ def open_sim(object_spec: str | None = None, seed: int = 0, noise: str = "thesis
         raise HardwareError(f"object {spec!r}: {exc}") from None
     noise_model = NoiseModel.thesis() if noise == "thesis" else NoiseModel.none()
     mechanics = Mechanics() if noise == "thesis" else Mechanics.ideal()
-    rig = Rig()
+    try:
+        rig = Rig.preset(rig_name)
+    except ValueError as exc:
+        raise HardwareError(str(exc)) from None
     scene = SimScene(rig, obj, noise_model, seed)
     factory = MockFactory()
     laser = Laser(LASER_PIN, pin_factory=factory)
     turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics), Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser)
-    return Hardware(
+    hardware = Hardware(
         "sim",
         camera,
         laser,
@@ -79,8 +120,9 @@ def open_sim(object_spec: str | None = None, seed: int = 0, noise: str = "thesis
         rig.board,
         rig.cylinder_diameter_mm,
         {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
-        f"simulated rig, object {spec}, seed {seed}, noise {noise}",
+        f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
     )
+    return _watched(hardware)
 
 
 def open_replay(folder: Path) -> Hardware:
@@ -91,7 +133,7 @@ def open_replay(folder: Path) -> Hardware:
     turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics, 10_000.0), Stage()
     camera = ReplayCamera(capture, stage, turntable, lift, laser)
     plans = {t: p for t in ("cylinder", "object") if (p := capture.plan(t)) is not None}
-    return Hardware(
+    hardware = Hardware(
         "replay",
         camera,
         laser,
@@ -103,19 +145,93 @@ def open_replay(folder: Path) -> Hardware:
         plans,
         f"replay of {folder}",
     )
+    return _watched(hardware)
+
+
+def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = None) -> Hardware:
+    """Return the scanner box's hardware as ``config`` describes it.
+
+    Args:
+        config: a validated configuration.
+        source: where the configuration came from (for the description).
+        pin_factory: gpiozero pin factory; None uses gpiozero's choice
+            (``GPIOZERO_PIN_FACTORY``: lgpio on the Pi, ``mock`` in tests).
+    """
+    laser = Laser(config.laser.pin, config.laser.active_high, pin_factory)
+    parts: list[StepperTurntable | StepperLift] = []
+    try:
+        turntable = StepperTurntable(config.turntable, pin_factory)
+        parts.append(turntable)
+        lift = StepperLift(config.lift, pin_factory)
+        parts.append(lift)
+        camera = PiCamera(config.camera, laser)
+    except Exception:
+        for part in parts:
+            part.close()
+        laser.close()
+        raise
+    board = config.board
+    plan = config.plan
+    hardware = Hardware(
+        "pi",
+        camera,
+        laser,
+        turntable,
+        lift,
+        Stage(),
+        BoardSpec(board.inner_corners, board.square_mm, board.origin_mm),
+        config.cylinder.diameter_mm,
+        {
+            "object": ScanPlan.regular(plan.sections, plan.pitch_mm, plan.views),
+            "cylinder": ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views),
+        },
+        f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
+        settle_s=max(config.turntable.settle_s, config.lift.settle_s),
+    )
+    return _watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
 
 
 def open_hardware(
-    spec: str, object_spec: str | None = None, seed: int = 0, noise: str = "thesis"
+    spec: str,
+    object_spec: str | None = None,
+    seed: int = 0,
+    noise: str = "thesis",
+    config_path: Path | str | None = None,
+    pin_factory: Factory | None = None,
+    rig: str = "thesis",
 ) -> Hardware:
-    """Return the hardware named by ``spec``: ``sim`` or ``replay:DIR``."""
+    """Return the hardware named by ``spec``: ``sim``, ``replay:DIR`` or ``pi``.
+
+    Args:
+        spec: which hardware.
+        object_spec: the simulated object (sim only).
+        seed: simulation noise seed (sim only).
+        noise: ``thesis`` or ``none`` (sim only).
+        config_path: the TOML configuration (pi only; the packaged default if None).
+        pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
+        rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
+
+    Raises:
+        HardwareError: naming what is wrong and what to do.
+    """
     if spec == "sim":
-        return open_sim(object_spec, seed, noise)
+        return open_sim(object_spec, seed, noise, rig)
     if spec.startswith("replay:"):
         folder = spec.removeprefix("replay:")
         if not folder:
             raise HardwareError("replay needs a capture folder: --hardware replay:DIR")
         return open_replay(Path(folder))
+    if spec == "pi":
+        try:
+            config = load_config(config_path)
+            return open_pi(config, str(config_path or "(default)"), pin_factory)
+        except (ConfigError, CameraError) as exc:
+            raise HardwareError(str(exc)) from None
+        except GPIOZeroError as exc:
+            raise HardwareError(
+                f"cannot drive the GPIO pins: {exc}; on the Pi install python3-lgpio "
+                "(GPIOZERO_PIN_FACTORY=lgpio), off the Pi use GPIOZERO_PIN_FACTORY=mock"
+            ) from None
     raise HardwareError(
-        f"unknown hardware {spec!r}: use 'sim' or 'replay:DIR' (a recorded capture folder)"
+        f"unknown hardware {spec!r}: use 'sim', 'replay:DIR' (a recorded capture folder) or 'pi'"
     )

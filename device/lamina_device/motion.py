@@ -1,19 +1,38 @@
 """The two motion axes: the turntable (degrees) and the lift (millimetres).
 
-The acquisition only sees :class:`Turntable` and :class:`Lift`. The simulated axes
-below carry a mechanical error model, so the simulated scanner puts objects where
-real mechanics would, not where they were asked to go: a gear-ratio error (the
-thesis measured about 0.2 degrees undershoot per 45 degree step, section 8.3), a
-once-per-revolution runout, and a small repeatable jitter per position.
+The acquisition only sees :class:`Turntable` and :class:`Lift`. Two families answer
+them. The stepper axes drive step/dir drivers (A4988, DRV8825, TMC2209 class) through
+gpiozero outputs: trapezoidal acceleration with the step timing computed up front,
+position kept in whole microsteps, a homing limit switch and soft limits on the lift,
+and backlash take-up on the turntable. The simulated axes carry a mechanical error
+model, so the simulated scanner puts objects where real mechanics would, not where
+they were asked to go: a gear-ratio error (the thesis measured about 0.2 degrees
+undershoot per 45 degree step, section 8.3), a once-per-revolution runout, and a
+small repeatable jitter per position.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import struct
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
+
+import numpy as np
+from gpiozero import DigitalInputDevice, DigitalOutputDevice
+from gpiozero.pins import Factory
+
+from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig
+
+log = logging.getLogger(__name__)
+
+
+class MotionError(ValueError):
+    """A move was refused or failed; the message says why and what to do."""
 
 
 class Turntable(Protocol):
@@ -21,11 +40,15 @@ class Turntable(Protocol):
 
     @property
     def angle_deg(self) -> float:
-        """Return the commanded angle."""
+        """Return the angle the axis is at, in [0, 360) for stepper axes."""
         ...  # pragma: no cover - protocol
 
     def move_to(self, angle_deg: float) -> None:
         """Rotate to ``angle_deg`` (counter-clockwise seen from above)."""
+        ...  # pragma: no cover - protocol
+
+    def close(self) -> None:
+        """Release the axis."""
         ...  # pragma: no cover - protocol
 
 
@@ -34,11 +57,19 @@ class Lift(Protocol):
 
     @property
     def z_mm(self) -> float:
-        """Return the commanded height."""
+        """Return the height the axis is at."""
         ...  # pragma: no cover - protocol
 
     def move_to(self, z_mm: float) -> None:
         """Move so the laser plane is ``z_mm`` above the first section."""
+        ...  # pragma: no cover - protocol
+
+    def home(self) -> None:
+        """Return to the home position (re-referencing it where the axis can)."""
+        ...  # pragma: no cover - protocol
+
+    def close(self) -> None:
+        """Release the axis."""
         ...  # pragma: no cover - protocol
 
 
@@ -98,6 +129,9 @@ class SimTurntable:
             raise ValueError(f"turntable angle must be finite, not {angle_deg}")
         self._angle_deg = angle_deg
 
+    def close(self) -> None:
+        """Nothing to release."""
+
 
 class SimLift:
     """A simulated lift between soft limits."""
@@ -122,3 +156,334 @@ class SimLift:
         if not (math.isfinite(z_mm) and 0.0 <= z_mm <= self.travel_mm):
             raise ValueError(f"lift height {z_mm} mm is outside 0..{self.travel_mm} mm")
         self._z_mm = z_mm
+
+    def home(self) -> None:
+        """Return to z = 0."""
+        self.move_to(0.0)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+# --- Stepper axes on step/dir drivers -------------------------------------------------
+
+_SPIN_S = 0.0005  # sleep until this close to a step's deadline, then spin (sleep overshoots)
+_ENABLE_SETTLE_S = 0.001  # drivers want about 1 ms between EN and the first STEP edge
+
+
+def trapezoid_intervals_s(
+    steps: int, start_speed_sps: float, max_speed_sps: float, accel_sps2: float
+) -> np.ndarray:
+    """Return the wait before each step pulse of a trapezoidal move, computed up front.
+
+    The axis starts at ``start_speed_sps`` (below the motor's pull-in rate), gains
+    speed at ``accel_sps2`` up to ``max_speed_sps`` and slows down symmetrically, so
+    intervals shrink, stay at ``1 / max_speed_sps`` and grow again (a triangle when
+    the move is too short to reach full speed).
+
+    Args:
+        steps: number of step pulses (0 gives an empty profile).
+        start_speed_sps: speed at the first and last step, steps per second.
+        max_speed_sps: cruising speed, steps per second.
+        accel_sps2: acceleration, steps per second squared.
+
+    Returns:
+        ``steps`` intervals in seconds.
+    """
+    if steps <= 0:
+        return np.empty(0)
+    # Under constant acceleration from v0, step k is reached at t = (sqrt(v0^2 + 2ak) - v0) / a.
+    k = np.arange(steps + 1, dtype=np.float64)
+    t_s = (np.sqrt(start_speed_sps**2 + 2.0 * accel_sps2 * k) - start_speed_sps) / accel_sps2
+    ramp = np.diff(t_s)
+    return np.maximum(np.maximum(ramp, ramp[::-1]), 1.0 / max_speed_sps)
+
+
+def _wait_until(deadline_s: float, clock: Callable[[], float]) -> None:
+    """Sleep, then spin, until ``clock()`` reaches ``deadline_s``."""
+    remaining = deadline_s - clock()
+    if remaining > _SPIN_S:
+        time.sleep(remaining - _SPIN_S)
+    while clock() < deadline_s:
+        pass
+
+
+class StepperDriver:
+    """One step/dir driver: STEP, DIR and EN lines as gpiozero outputs.
+
+    Drivers count STEP edges, so timing jitter from Python changes the speed but
+    never the step count; deadlines are absolute, so jitter does not accumulate.
+    """
+
+    def __init__(
+        self,
+        config: DriverConfig,
+        pin_factory: Factory | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self._step = DigitalOutputDevice(
+            config.step_pin, initial_value=False, pin_factory=pin_factory
+        )
+        self._dir = DigitalOutputDevice(
+            config.dir_pin, initial_value=False, pin_factory=pin_factory
+        )
+        self._enable = DigitalOutputDevice(
+            config.enable_pin,
+            active_high=config.enable_active_high,
+            initial_value=False,
+            pin_factory=pin_factory,
+        )
+        self._dir_high_positive = config.dir_high_positive
+        self._clock = clock
+        self.last_run_steps = 0
+
+    @property
+    def enabled(self) -> bool:
+        """Return True while the driver powers the motor."""
+        return bool(self._enable.is_active)
+
+    def run(
+        self,
+        direction: int,
+        intervals_s: np.ndarray,
+        stop_when: Callable[[], bool] | None = None,
+    ) -> int:
+        """Step once per interval in ``direction`` (+1 or -1); return the steps made.
+
+        ``stop_when`` is checked before every pulse; the move ends early when it
+        returns True. ``last_run_steps`` counts pulses as they go out, so the caller
+        knows the position even if the move is interrupted by an exception.
+        """
+        self.last_run_steps = 0
+        if not self._enable.is_active:
+            self._enable.on()
+            _wait_until(self._clock() + _ENABLE_SETTLE_S, self._clock)
+        self._dir.value = (direction > 0) == self._dir_high_positive
+        deadline_s = self._clock()
+        for interval_s in intervals_s.tolist():
+            deadline_s += interval_s
+            _wait_until(deadline_s, self._clock)
+            if stop_when is not None and stop_when():
+                break
+            # Each gpiozero call takes longer than the drivers' minimum pulse (<= 2 us).
+            self._step.on()
+            self._step.off()
+            self.last_run_steps += 1
+        return self.last_run_steps
+
+    def disable(self) -> None:
+        """Cut the motor current (the axis may then be turned by hand)."""
+        if not self._enable.closed:
+            self._enable.off()
+
+    def close(self) -> None:
+        """Disable the driver, then release its pins."""
+        self.disable()
+        for device in (self._enable, self._step, self._dir):
+            device.close()
+
+
+def _speed_sps(units_per_s: float, steps_per_unit: float) -> float:
+    return units_per_s * steps_per_unit
+
+
+class StepperTurntable:
+    """The turntable on a stepper: position in whole microsteps, reported in degrees.
+
+    Every view is approached counter-clockwise (the positive way): a move that must
+    end clockwise overshoots by ``backlash_deg`` and comes back, so gear backlash is
+    always taken up the same way. Moves take the short way round.
+    """
+
+    def __init__(self, config: TurntableConfig, pin_factory: Factory | None = None) -> None:
+        self.config = config
+        self.driver = StepperDriver(config, pin_factory)
+        self.steps_per_rev = round(
+            config.full_steps_per_rev * config.microsteps * config.gear_ratio
+        )
+        self._position = 0
+        # Unknown at power-up: the first move takes the backlash up before it arrives.
+        self._engaged = False
+
+    @property
+    def steps_per_deg(self) -> float:
+        """Return microsteps per table degree."""
+        return self.steps_per_rev / 360.0
+
+    @property
+    def position_steps(self) -> int:
+        """Return the position in microsteps since power-up (not wrapped)."""
+        return self._position
+
+    @property
+    def angle_deg(self) -> float:
+        """Return the table angle in [0, 360)."""
+        return (self._position % self.steps_per_rev) / self.steps_per_deg
+
+    def move_to(self, angle_deg: float) -> None:
+        """Rotate to ``angle_deg`` the short way, arriving counter-clockwise."""
+        if not math.isfinite(angle_deg):
+            raise MotionError(f"turntable angle must be finite, not {angle_deg}")
+        rev = self.steps_per_rev
+        target = round((angle_deg % 360.0) * self.steps_per_deg) % rev
+        delta = (target - self._position) % rev
+        if delta > rev // 2:
+            delta -= rev
+        backlash = round(self.config.backlash_deg * self.steps_per_deg)
+        if backlash == 0 or (delta >= 0 and self._engaged):
+            self._move(delta)
+        else:
+            self._move(delta - backlash)
+            self._move(backlash)
+
+    def _move(self, steps: int) -> None:
+        if steps == 0:
+            return
+        spd = self.steps_per_deg
+        intervals = trapezoid_intervals_s(
+            abs(steps),
+            _speed_sps(self.config.start_speed_deg_s, spd),
+            _speed_sps(self.config.max_speed_deg_s, spd),
+            self.config.accel_deg_s2 * spd,
+        )
+        direction = 1 if steps > 0 else -1
+        try:
+            self.driver.run(direction, intervals)
+        finally:
+            self._position += direction * self.driver.last_run_steps
+        self._engaged = direction > 0
+
+    def close(self) -> None:
+        """Disable the driver and release the pins."""
+        self.driver.close()
+
+
+class StepperLift:
+    """The lift on a lead screw: homes down onto its limit switch, refuses soft-limit breaches.
+
+    The switch is normally closed to ground with the pin pulled up, so a pressed
+    switch and a broken wire both read high, i.e. "hit": the lift then stops rather
+    than drive into the end of its travel.
+    """
+
+    def __init__(self, config: LiftConfig, pin_factory: Factory | None = None) -> None:
+        self.config = config
+        self.driver = StepperDriver(config, pin_factory)
+        self._switch = DigitalInputDevice(config.limit_pin, pull_up=True, pin_factory=pin_factory)
+        self.steps_per_mm = (
+            config.full_steps_per_rev * config.microsteps * config.gear_ratio / config.lead_mm
+        )
+        self._position = 0
+        self._homed = False
+
+    @property
+    def homed(self) -> bool:
+        """Return True once the position is referenced to the limit switch."""
+        return self._homed
+
+    @property
+    def position_steps(self) -> int:
+        """Return the position in microsteps (0 at z = 0 once homed)."""
+        return self._position
+
+    @property
+    def z_mm(self) -> float:
+        """Return the height in mm."""
+        return self._position / self.steps_per_mm
+
+    def switch_hit(self) -> bool:
+        """Return True when the limit switch is pressed or its wire is broken."""
+        # With pull_up=True gpiozero calls a low pin "active": the closed switch.
+        return not self._switch.is_active
+
+    def move_to(self, z_mm: float) -> None:
+        """Move to ``z_mm``, homing first if the lift has not been homed.
+
+        Raises:
+            MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
+        """
+        low, high = self.config.min_mm, self.config.max_mm
+        if not (math.isfinite(z_mm) and low <= z_mm <= high):
+            raise MotionError(
+                f"lift height {z_mm} mm is outside its soft limits {low:g}..{high:g} mm; "
+                "choose sections within them or change [lift] min_mm/max_mm in the config"
+            )
+        if not self._homed:
+            log.info("homing the lift before its first move")
+            self.home()
+        self._travel(round(z_mm * self.steps_per_mm) - self._position)
+
+    def _profile(self, steps: int) -> np.ndarray:
+        spm, cfg = self.steps_per_mm, self.config
+        return trapezoid_intervals_s(
+            steps,
+            _speed_sps(cfg.start_speed_mm_s, spm),
+            _speed_sps(cfg.max_speed_mm_s, spm),
+            cfg.accel_mm_s2 * spm,
+        )
+
+    def _run(
+        self, direction: int, intervals: np.ndarray, stop_when: Callable[[], bool] | None
+    ) -> int:
+        """Run the driver, keeping the position even if the move is interrupted."""
+        try:
+            return self.driver.run(direction, intervals, stop_when)
+        finally:
+            self._position += direction * self.driver.last_run_steps
+
+    def _travel(self, steps: int) -> None:
+        if steps == 0:
+            return
+        direction = 1 if steps > 0 else -1
+        done = self._run(
+            direction, self._profile(abs(steps)), self.switch_hit if direction < 0 else None
+        )
+        if done < abs(steps):
+            self._homed = False
+            raise MotionError(
+                f"the lift hit its limit switch at z={self.z_mm:.2f} mm on the way down: it has "
+                "lost steps or the switch wire is broken; it will home again before its next move"
+            )
+
+    def _creep(self, direction: int, max_mm: float, until_hit: bool) -> bool:
+        """Step slowly until the switch reads ``until_hit``; return False if it never did."""
+        count = max(1, math.ceil(max_mm * self.steps_per_mm))
+        interval_s = 1.0 / _speed_sps(self.config.homing_speed_mm_s, self.steps_per_mm)
+        intervals = np.full(count, interval_s)
+        self._run(direction, intervals, lambda: self.switch_hit() == until_hit)
+        return self.switch_hit() == until_hit
+
+    def home(self) -> None:
+        """Creep down onto the limit switch and take its trip point as ``home_mm``.
+
+        Raises:
+            MotionError: the switch never trips, or never releases.
+        """
+        cfg = self.config
+        slow_zone_mm = cfg.homing_slow_zone_mm
+        if self.switch_hit() and not self._creep(+1, slow_zone_mm + 2.0, until_hit=False):
+            # Back off first so the trip point is always reached from above.
+            raise MotionError(
+                f"the lift's limit switch (GPIO{cfg.limit_pin}) reads hit and does not release: "
+                "check the switch and its wire (normally closed to ground)"
+            )
+        search_mm = cfg.max_mm - cfg.home_mm + slow_zone_mm + 5.0
+        if self._homed:
+            above_mm = self.z_mm - (cfg.home_mm + slow_zone_mm)
+            if above_mm > 0:
+                steps = round(above_mm * self.steps_per_mm)
+                self._run(-1, self._profile(steps), self.switch_hit)
+            search_mm = 2.0 * slow_zone_mm + 5.0
+        if not self._creep(-1, search_mm, until_hit=True):
+            self._homed = False
+            raise MotionError(
+                f"the lift went {search_mm:g} mm down without reaching its limit switch "
+                f"(GPIO{cfg.limit_pin}): check the switch, the motor and its driver wiring"
+            )
+        self._position = round(cfg.home_mm * self.steps_per_mm)
+        self._homed = True
+
+    def close(self) -> None:
+        """Disable the driver and release the pins."""
+        self.driver.close()
+        self._switch.close()

@@ -118,3 +118,48 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
     order = np.argsort(ang, kind="stable")
     ang, rad = ang[order], rad[order]
     return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
+
+
+def split_outlines(
+    segments: list[np.ndarray], gap_mm: float, min_points: int = 30
+) -> list[list[np.ndarray]]:
+    """Split a section's segments into separate outlines (fingers, two legs; thesis 9.2).
+
+    Points are binned on a grid of ``gap_mm / 2`` cells and 8-connected occupied cells
+    are joined, so outlines more than ``sqrt(2) gap_mm`` apart are always separate and
+    points closer than ``gap_mm / 2`` (a stripe's neighbouring points) always join. Each
+    segment is cut into its pieces per outline, so each outline can be overlap-averaged
+    and fitted on its own.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm.
+        gap_mm: the smallest gap that separates two outlines.
+        min_points: outlines with fewer points are stray and dropped.
+
+    Returns:
+        One list of segment pieces per outline, the outline with most points first.
+    """
+    from scipy import ndimage  # deferred: only needed when a section is split
+
+    if not gap_mm > 0:
+        raise ValueError(f"the outline gap must be a positive number of mm, not {gap_mm}")
+    segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
+    segs = [s for s in segs if len(s)]
+    if not segs:
+        return []
+    pts = np.concatenate(segs)
+    cell = np.floor((pts - pts.min(axis=0)) / (0.5 * gap_mm)).astype(np.int64)
+    grid = np.zeros(cell.max(axis=0) + 1, dtype=bool)
+    grid[cell[:, 0], cell[:, 1]] = True
+    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=int))
+    point_label = labels[cell[:, 0], cell[:, 1]] - 1
+    sizes = np.bincount(point_label, minlength=count)
+    owner = np.repeat(np.arange(len(segs)), [len(s) for s in segs])
+    outlines = []
+    for label in np.argsort(-sizes, kind="stable"):
+        if sizes[label] < min_points:
+            break
+        mine = point_label == label
+        pieces = [pts[mine & (owner == k)] for k in range(len(segs))]
+        outlines.append([p for p in pieces if len(p)])
+    return outlines

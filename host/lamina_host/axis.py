@@ -1,14 +1,24 @@
 """Turntable axis and scale correction from a calibration cylinder (thesis 6.2).
 
-Each view of the cylinder gives an arc in the laser plane; a circle is fitted to every
-arc (6.2.1), the axis is the centroid of the arc centres (6.2.2) and the correction
-factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning when it is more than 5 %
-from one.
+Two methods (``AXIS_METHODS``):
+
+- ``"joint"`` (default): one circle fitted to all the cylinder's arcs at once in the
+  object frame: every point ``p`` seen at turntable angle ``theta`` must satisfy
+  ``|Rz(-theta)(p - a) - c| = r`` with the axis ``a``, the radius ``r`` and the cylinder's
+  offset ``c`` from the axis unknown (and optionally a turntable angle scale, since the
+  thesis measured about 0.2 degrees undershoot per 45 degree step, section 8.3). It
+  uses every point with its known angle, so it needs neither evenly spread views nor
+  a centred cylinder.
+- ``"centroid"``: the thesis' method. A circle is fitted to every arc (6.2.1) and the
+  axis is the centroid of the arc centres (6.2.2).
+
+Either way the correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning
+when it is more than 5 % from one.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,6 +28,9 @@ from lamina_host.calibration import CalibrationError
 
 CF_WARNING = 0.05
 """Thesis 6.2.4: warn when the correction factor differs from 1 by more than 5 %."""
+
+MIN_OFFSET_FOR_SCALE_MM = 0.5
+"""The angle scale is only estimated from a cylinder at least this far off the axis."""
 
 RADIUS_SPREAD_WARNING = 0.02
 """Fitted arc radii that differ by more than 2 % between views suggest bad arcs."""
@@ -33,9 +46,18 @@ class Circle:
     rms_mm: float
 
 
+AXIS_METHODS = ("joint", "centroid")
+"""Selectable axis methods; the first is the default."""
+
+
 @dataclass(frozen=True, eq=False)
 class AxisCalibration:
-    """Turntable axis, scale correction and the per-arc circles they came from."""
+    """Turntable axis, scale correction and the per-arc circles they came from.
+
+    ``angle_scale`` maps a commanded turntable angle to the true one (1.0 unless the
+    joint fit estimated it); ``cylinder_offset_mm`` is the cylinder's centre in the object
+    frame (joint fit only); ``rms_mm`` is the joint fit's RMS orthogonal residual.
+    """
 
     axis_xy_mm: tuple[float, float]
     correction_factor: float
@@ -44,10 +66,25 @@ class AxisCalibration:
     arc_centres_mm: np.ndarray
     arc_radii_mm: np.ndarray
     warnings: tuple[str, ...]
+    method: str = "centroid"
+    angle_scale: float = 1.0
+    cylinder_offset_mm: tuple[float, float] | None = None
+    rms_mm: float = float("nan")
+
+    def true_angle_deg(self, commanded_deg: float) -> float:
+        """Return the turntable angle the object was really at for a commanded angle."""
+        return commanded_deg * self.angle_scale
 
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
         return {
+            "method": self.method,
+            "angle_scale": self.angle_scale,
+            "undershoot_deg_per_45": 45.0 * (1.0 - self.angle_scale),
+            "cylinder_offset_mm": (
+                list(self.cylinder_offset_mm) if self.cylinder_offset_mm is not None else None
+            ),
+            "rms_mm": self.rms_mm,
             "axis_xy_mm": list(self.axis_xy_mm),
             "correction_factor": self.correction_factor,
             "estimated_diameter_mm": self.estimated_diameter_mm,
@@ -135,6 +172,38 @@ def fit_circle(points: np.ndarray) -> Circle:
     return Circle(float(cx), float(cy), float(abs(r)), rms)
 
 
+def _check_inputs(arcs: list[np.ndarray], actual_diameter_mm: float) -> None:
+    """Raise CalibrationError for a bad diameter or fewer than 3 arcs."""
+    if not np.isfinite(actual_diameter_mm) or actual_diameter_mm <= 0:
+        raise CalibrationError(
+            f"calibration cylinder diameter must be a positive number of mm, not "
+            f"{actual_diameter_mm}; fix calibration_cylinder.diameter_mm"
+        )
+    if len(arcs) < 3:
+        raise CalibrationError(
+            f"finding the turntable axis needs at least 3 cylinder views, got {len(arcs)}; "
+            "capture the cylinder at several evenly spaced angles (the thesis uses 8)"
+        )
+
+
+def _warnings(cf: float, d_est: float, d_true: float, radii: np.ndarray) -> list[str]:
+    """Return the 5 % correction-factor warning and the radius-spread warning, as needed."""
+    warnings: list[str] = []
+    if abs(cf - 1.0) > CF_WARNING:
+        warnings.append(
+            f"correction factor {cf:.4f} is more than {CF_WARNING:.0%} from 1 (measured "
+            f"diameter {d_est:.3f} mm vs {d_true:.3f} mm); check the grid "
+            "calibration and the cylinder diameter"
+        )
+    spread = float((radii.max() - radii.min()) / radii.mean())
+    if spread > RADIUS_SPREAD_WARNING:
+        warnings.append(
+            f"fitted cylinder radii vary by {spread:.1%} between views; check the cylinder "
+            "arcs for outliers or a tilted cylinder"
+        )
+    return warnings
+
+
 def find_axis(arcs: list[np.ndarray], actual_diameter_mm: float) -> AxisCalibration:
     """Locate the turntable axis and the scale correction from calibration-cylinder arcs.
 
@@ -152,35 +221,13 @@ def find_axis(arcs: list[np.ndarray], actual_diameter_mm: float) -> AxisCalibrat
     Raises:
         CalibrationError: fewer than 3 arcs, a bad diameter, or an arc that cannot be fitted.
     """
-    if not np.isfinite(actual_diameter_mm) or actual_diameter_mm <= 0:
-        raise CalibrationError(
-            f"calibration cylinder diameter must be a positive number of mm, not "
-            f"{actual_diameter_mm}; fix calibration_cylinder.diameter_mm"
-        )
-    if len(arcs) < 3:
-        raise CalibrationError(
-            f"finding the turntable axis needs at least 3 cylinder views, got {len(arcs)}; "
-            "capture the cylinder at several evenly spaced angles (the thesis uses 8)"
-        )
+    _check_inputs(arcs, actual_diameter_mm)
     circles = [fit_circle(arc) for arc in arcs]
     centres = np.array([[c.cx, c.cy] for c in circles])
     radii = np.array([c.r for c in circles])
     axis = centres.mean(axis=0)
     d_est = float(2.0 * radii.mean())
     cf = float(actual_diameter_mm / d_est)
-    warnings: list[str] = []
-    if abs(cf - 1.0) > CF_WARNING:
-        warnings.append(
-            f"correction factor {cf:.4f} is more than {CF_WARNING:.0%} from 1 (measured "
-            f"diameter {d_est:.3f} mm vs {actual_diameter_mm:.3f} mm); check the grid "
-            "calibration and the cylinder diameter"
-        )
-    spread = float((radii.max() - radii.min()) / radii.mean())
-    if spread > RADIUS_SPREAD_WARNING:
-        warnings.append(
-            f"fitted cylinder radii vary by {spread:.1%} between views; check the cylinder "
-            "arcs for outliers or a tilted cylinder"
-        )
     return AxisCalibration(
         axis_xy_mm=(float(axis[0]), float(axis[1])),
         correction_factor=cf,
@@ -188,5 +235,91 @@ def find_axis(arcs: list[np.ndarray], actual_diameter_mm: float) -> AxisCalibrat
         actual_diameter_mm=float(actual_diameter_mm),
         arc_centres_mm=centres,
         arc_radii_mm=radii,
+        warnings=tuple(_warnings(cf, d_est, actual_diameter_mm, radii)),
+        method="centroid",
+    )
+
+
+def _rotate(points: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
+    """Rotate (N, 2) points by per-point angles (counter-clockwise)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    x, y = points[:, 0], points[:, 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=1)
+
+
+def find_axis_joint(
+    arcs: list[np.ndarray],
+    angles_deg: list[float],
+    actual_diameter_mm: float,
+    fit_offset: bool = True,
+    fit_angle_scale: bool = False,
+) -> AxisCalibration:
+    """Fit one circle to all cylinder arcs jointly in the object frame.
+
+    Unknowns: the axis ``a``, the radius ``r``, the cylinder's offset ``c`` from the axis
+    (unless ``fit_offset`` is off, i.e. the cylinder is known to be centred) and, with
+    ``fit_angle_scale``, a turntable scale ``k`` (true angle = k x commanded). The
+    residual of a point ``p`` seen at commanded angle ``theta`` is
+    ``|Rz(-k theta)(p - a) - c| - r``, minimised by Levenberg-Marquardt from the thesis'
+    estimate (per-arc circles, centroid of centres). ``C_f = D_a / 2r``.
+
+    Args:
+        arcs: world-frame (K, 2) arcs in mm, one per view, already trimmed.
+        angles_deg: the commanded turntable angle of each arc.
+        actual_diameter_mm: the cylinder's true diameter.
+        fit_offset: estimate the cylinder's offset from the axis.
+        fit_angle_scale: estimate the turntable's angle scale too (needs an off-centre
+            cylinder: a centred one looks the same at every angle).
+
+    Returns:
+        AxisCalibration with method "joint".
+    """
+    _check_inputs(arcs, actual_diameter_mm)
+    if len(angles_deg) != len(arcs):
+        raise CalibrationError("give one turntable angle per cylinder arc")
+    start = find_axis(arcs, actual_diameter_mm)
+    pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
+    theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
+    a0 = np.asarray(start.axis_xy_mm)
+    offsets = _rotate(start.arc_centres_mm - a0, -np.deg2rad(np.asarray(angles_deg, float)))
+    x0 = [*a0, float(start.arc_radii_mm.mean())]
+    if fit_offset:
+        x0 += list(offsets.mean(axis=0))
+    if fit_angle_scale:
+        x0 += [1.0]
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
+        offset = p[3:5] if fit_offset else np.zeros(2)
+        return p[:2], float(p[2]), offset, float(p[-1]) if fit_angle_scale else 1.0
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        axis, r, offset, scale = unpack(p)
+        q = _rotate(pts - axis, -scale * theta) - offset
+        return np.hypot(q[:, 0], q[:, 1]) - r
+
+    sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
+    axis, r, offset, scale = unpack(sol.x)
+    if fit_angle_scale and np.hypot(*offset) < MIN_OFFSET_FOR_SCALE_MM:
+        # A (nearly) centred cylinder looks the same at every angle: the scale is noise.
+        calibration = find_axis_joint(arcs, angles_deg, actual_diameter_mm, fit_offset, False)
+        note = (
+            f"the calibration cylinder is within {MIN_OFFSET_FOR_SCALE_MM} mm of the axis, so "
+            "the turntable angle scale was not estimated; place the cylinder off-centre"
+        )
+        return replace(calibration, warnings=(*calibration.warnings, note))
+    d_est = float(2.0 * abs(r))
+    cf = float(actual_diameter_mm / d_est)
+    warnings = _warnings(cf, d_est, actual_diameter_mm, start.arc_radii_mm)
+    return AxisCalibration(
+        axis_xy_mm=(float(axis[0]), float(axis[1])),
+        correction_factor=cf,
+        estimated_diameter_mm=d_est,
+        actual_diameter_mm=float(actual_diameter_mm),
+        arc_centres_mm=start.arc_centres_mm,
+        arc_radii_mm=start.arc_radii_mm,
         warnings=tuple(warnings),
+        method="joint",
+        angle_scale=scale,
+        cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
+        rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
     )

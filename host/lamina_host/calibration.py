@@ -1,22 +1,35 @@
-"""Grid calibration: chessboard corners and the image-to-laser-plane homography.
+"""Grid calibration: chessboard corners and the image-to-laser-plane map.
 
-Implements the DLT least-squares calibration of the thesis (section 4.2.2, the
-inhomogeneous form of eq. 4.6 with ``h9 = 1``) over every detected board corner, with
-Hartley normalisation of both point sets for numerical conditioning. The thesis'
-recommendation of at least 20 control points (section 4.6) becomes a warning.
+Three estimators of the plane homography are selectable (``CALIBRATION_METHODS``):
+
+- ``"ml"`` (default): the maximum-likelihood route. Only the image corners are noisy
+  (the board is known exactly), so the world-to-image homography is started from the
+  Hartley-normalised DLT over all corners and refined by Levenberg-Marquardt on the
+  image reprojection error, then inverted to map image points onto the plane. Optionally
+  a one-parameter division model of radial lens distortion is estimated jointly (thesis
+  9.2 asks for non-linear distortion). Mis-detected corners are rejected first by a
+  robust consensus on 4-point homographies (least median of squares).
+- ``"dlt"``: the thesis' DLT least squares (section 4.2.2, the inhomogeneous form of
+  eq. 4.6 with ``h9 = 1``) over every corner, with Hartley normalisation for conditioning.
+- ``"analytical"``: the thesis' 4-point method (section 4.2.1) on the board's four
+  outermost corners.
+
+The thesis' recommendation of at least 20 control points (section 4.6) becomes a warning.
 
 Conventions: image points are ``(u, v)`` = (column, row) with pixel centres at integer
-coordinates; world points are millimetres in the laser plane (capture spec).
+coordinates (OpenCV's corner convention, checked against rendered boards in the tests);
+world points are millimetres in the laser plane (capture spec).
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from lamina_shared.types import BoardSpec
 
@@ -26,6 +39,22 @@ MIN_CORNERS_THESIS = 20
 RMS_WARNING_MM = 0.1
 """A grid fit worse than this (mm RMS) deserves a warning: the thesis aims at ~0.1 mm."""
 
+CALIBRATION_METHODS = ("ml", "dlt", "analytical")
+"""Selectable homography estimators; the first is the default."""
+
+RANSAC_ITERATIONS = 200
+"""4-point samples tried; 99.9 % sure of one clean sample with up to 40 % outliers."""
+
+OUTLIER_SIGMAS = 4.0
+"""Corners beyond this many robust standard deviations are rejected (2D Gaussian: 0.03 %)."""
+
+ROBUST_MIN_CORNERS = 10
+"""Below this many corners a robust scale is meaningless, so nothing is rejected."""
+
+MIN_GATE_PX = 1.0
+"""Never reject a corner closer than this: mis-detections are whole pixels off, while
+unmodelled lens distortion can leave sub-pixel systematic residuals."""
+
 
 class CalibrationError(ValueError):
     """A problem the user can fix (board not found, too few points, bad cylinder data)."""
@@ -33,9 +62,26 @@ class CalibrationError(ValueError):
 
 @dataclass(frozen=True, eq=False)
 class Homography:
-    """A plane projective map from image ``(u, v, 1)`` to world ``(x, y, w)`` (thesis eq. 6.1)."""
+    """Image ``(u, v)`` to laser-plane ``(x, y)`` map: radial undistortion, then H (eq. 6.1).
+
+    ``matrix`` maps homogeneous undistorted image points to world points. The optional
+    division model (Fitzgibbon) undistorts ``u_d`` as ``c + (u_d - c) / (1 + k r^2)`` with
+    ``r = |u_d - c| / radius_px``; ``division_k = 0`` is a pure homography.
+    """
 
     matrix: np.ndarray
+    division_k: float = 0.0
+    centre_px: tuple[float, float] = (0.0, 0.0)
+    radius_px: float = 1.0
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """Return (N, 2) image points with the radial distortion removed."""
+        pts = np.asarray(uv, dtype=float).reshape(-1, 2)
+        if self.division_k == 0.0:
+            return pts
+        d = pts - np.asarray(self.centre_px)
+        r2 = np.sum(d * d, axis=1, keepdims=True) / self.radius_px**2
+        return np.asarray(self.centre_px) + d / (1.0 + self.division_k * r2)
 
     def apply(self, uv: np.ndarray) -> np.ndarray:
         """Map image points to the laser plane.
@@ -46,14 +92,23 @@ class Homography:
         Returns:
             (N, 2) world points in mm.
         """
-        pts = np.asarray(uv, dtype=float).reshape(-1, 2)
-        hom = pts @ self.matrix[:, :2].T + self.matrix[:, 2]
-        return hom[:, :2] / hom[:, 2:3]
+        return _project(self.matrix, self.undistort(uv))
+
+
+def _project(matrix: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 homography to (N, 2) inhomogeneous points."""
+    hom = np.asarray(pts, dtype=float) @ matrix[:, :2].T + matrix[:, 2]
+    return hom[:, :2] / hom[:, 2:3]
 
 
 @dataclass(frozen=True, eq=False)
 class GridCalibration:
-    """The result of calibrating against one chessboard image, with its residuals."""
+    """The result of calibrating against one chessboard image, with its residuals.
+
+    ``residuals_mm`` holds ``|H(image_pt) - world_pt|`` for every detected corner, used or
+    rejected; ``inliers`` marks the corners the fit used, and ``rms_mm``/``max_mm``
+    summarise those. ``n_corners`` is the number of corners used.
+    """
 
     homography: Homography
     image_pts: np.ndarray
@@ -63,14 +118,32 @@ class GridCalibration:
     max_mm: float
     n_corners: int
     warnings: tuple[str, ...]
+    method: str = "dlt"
+    inliers: np.ndarray | None = None
+    reprojection_rms_px: float = float("nan")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def rejected(self) -> list[int]:
+        """Return the indices of corners rejected as mis-detected."""
+        if self.inliers is None:
+            return []
+        return [int(i) for i in np.flatnonzero(~self.inliers)]
 
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready summary (matrix, corner count, residuals, warnings)."""
         return {
+            "method": self.method,
             "matrix": self.homography.matrix.tolist(),
+            "division_k": self.homography.division_k,
+            "distortion_centre_px": list(self.homography.centre_px),
+            "distortion_radius_px": self.homography.radius_px,
             "n_corners": self.n_corners,
+            "n_detected": len(self.image_pts),
+            "rejected_corners": self.rejected,
             "rms_mm": self.rms_mm,
             "max_mm": self.max_mm,
+            "reprojection_rms_px": self.reprojection_rms_px,
             "residuals_mm": self.residuals_mm.tolist(),
             "warnings": list(self.warnings),
         }
@@ -205,6 +278,31 @@ def _normaliser(pts: np.ndarray) -> np.ndarray:
     return np.array([[s, 0.0, -s * centre[0]], [0.0, s, -s * centre[1]], [0.0, 0.0, 1.0]])
 
 
+def _check_pairs(image_pts: np.ndarray, world_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return validated float (m, 2) image and world arrays with m >= 4."""
+    img = np.asarray(image_pts, dtype=float)
+    wld = np.asarray(world_pts, dtype=float)
+    if img.ndim != 2 or img.shape[1] != 2 or img.shape != wld.shape:
+        raise CalibrationError(
+            f"calibration points must be two matching (m, 2) arrays, got {img.shape} and "
+            f"{wld.shape}; pass one world point per image point"
+        )
+    if len(img) < 4:
+        raise CalibrationError(
+            f"a homography needs at least 4 point pairs, got {len(img)}; select more grid points"
+        )
+    if not (np.isfinite(img).all() and np.isfinite(wld).all()):
+        raise CalibrationError("calibration points contain NaN or infinity; re-detect the grid")
+    return img, wld
+
+
+def _scaled(matrix: np.ndarray) -> np.ndarray:
+    """Return a homography scaled so ``H[2, 2] = 1`` when that entry is not ~0."""
+    if abs(matrix[2, 2]) > 1e-12 * np.abs(matrix).max():
+        return matrix / matrix[2, 2]
+    return matrix
+
+
 def dlt_homography(image_pts: np.ndarray, world_pts: np.ndarray) -> Homography:
     """Fit the image-to-world homography by inhomogeneous DLT least squares (thesis 4.2.2).
 
@@ -223,19 +321,7 @@ def dlt_homography(image_pts: np.ndarray, world_pts: np.ndarray) -> Homography:
         CalibrationError: fewer than 4 pairs, non-finite values, or a degenerate
             (collinear) configuration.
     """
-    img = np.asarray(image_pts, dtype=float)
-    wld = np.asarray(world_pts, dtype=float)
-    if img.ndim != 2 or img.shape[1] != 2 or img.shape != wld.shape:
-        raise CalibrationError(
-            f"calibration points must be two matching (m, 2) arrays, got {img.shape} and "
-            f"{wld.shape}; pass one world point per image point"
-        )
-    if len(img) < 4:
-        raise CalibrationError(
-            f"the DLT needs at least 4 point pairs, got {len(img)}; select more grid points"
-        )
-    if not (np.isfinite(img).all() and np.isfinite(wld).all()):
-        raise CalibrationError("calibration points contain NaN or infinity; re-detect the grid")
+    img, wld = _check_pairs(image_pts, world_pts)
     t_img = _normaliser(img)
     t_wld = _normaliser(wld)
     x, y = (img @ t_img[:2, :2].T + t_img[:2, 2]).T
@@ -255,36 +341,251 @@ def dlt_homography(image_pts: np.ndarray, world_pts: np.ndarray) -> Homography:
         )
     h, *_ = np.linalg.lstsq(a, b, rcond=None)
     h_norm = np.append(h, 1.0).reshape(3, 3)
-    matrix = np.linalg.inv(t_wld) @ h_norm @ t_img
-    if abs(matrix[2, 2]) > 1e-12 * np.abs(matrix).max():
-        matrix = matrix / matrix[2, 2]
-    return Homography(matrix)
+    return Homography(_scaled(np.linalg.inv(t_wld) @ h_norm @ t_img))
 
 
-def calibrate_grid(image: np.ndarray, board: BoardSpec) -> GridCalibration:
-    """Detect the board, fit H over all its corners and report residuals (thesis 4.2.2, 4.6).
+def _basis_map(pts: np.ndarray) -> np.ndarray:
+    """Return the 3x3 map taking the canonical frame e1, e2, e3, (1, 1, 1) to 4 points."""
+    hom = np.column_stack([pts, np.ones(4)])
+    p3 = hom[:3].T
+    if abs(np.linalg.det(p3)) < 1e-12 * max(np.abs(p3).max() ** 3, 1e-300):
+        raise CalibrationError("three of the four calibration points are collinear")
+    lam = np.linalg.solve(p3, hom[3])
+    scale = np.abs(lam).max()
+    if np.any(np.abs(lam) <= 1e-9 * scale):
+        raise CalibrationError("three of the four calibration points are collinear")
+    return p3 * lam
+
+
+def analytical_homography(image_pts: np.ndarray, world_pts: np.ndarray) -> Homography:
+    """Return the unique projectivity carrying exactly 4 image points to 4 world points.
+
+    Thesis 4.2.1 solves the 12 linear equations of eq. 4.3 (eight entries of H and four
+    scale factors rho_i) symbolically. The same unique solution in closed form: map the
+    canonical projective frame onto each quadruple (``A`` and ``B``), then ``H = B A^-1``.
+
+    Raises:
+        CalibrationError: not exactly 4 pairs, or three of them collinear.
+    """
+    img, wld = _check_pairs(image_pts, world_pts)
+    if len(img) != 4:
+        raise CalibrationError(f"the analytical method takes exactly 4 point pairs, not {len(img)}")
+    return Homography(_scaled(_basis_map(wld) @ np.linalg.inv(_basis_map(img))))
+
+
+def outer_corners(world_pts: np.ndarray) -> np.ndarray:
+    """Return indices of the 4 extreme points (min/max of x+y and x-y): a board's corners."""
+    w = np.asarray(world_pts, dtype=float)
+    s, d = w[:, 0] + w[:, 1], w[:, 0] - w[:, 1]
+    return np.array([np.argmin(s), np.argmax(d), np.argmax(s), np.argmin(d)])
+
+
+def _distort(uv: np.ndarray, k: float, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Invert the division model: undistorted -> distorted image points.
+
+    From ``r_u = r_d / (1 + k r_d^2)``: ``r_d = 2 r_u / (1 + sqrt(1 - 4 k r_u^2))`` (the
+    root that tends to ``r_u`` as ``k -> 0``). Where no real root exists the discriminant is
+    clipped, which leaves a large residual that steers the fit away.
+    """
+    d = uv - centre
+    ru2 = np.sum(d * d, axis=1, keepdims=True) / radius**2
+    return centre + d * (2.0 / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * k * ru2, 0.0))))
+
+
+def ml_homography(
+    image_pts: np.ndarray,
+    world_pts: np.ndarray,
+    distortion: bool = False,
+    centre_px: tuple[float, float] | None = None,
+) -> Homography:
+    """Fit the plane map by maximum likelihood: only the image corners are noisy.
+
+    The world-to-image homography ``G`` starts from the Hartley-normalised DLT and is
+    refined by Levenberg-Marquardt on the reprojection error ``|G(world) - image|`` in
+    pixels (with the division-model distortion applied when ``distortion`` is set);
+    the image-to-world map is ``G^-1`` after undistortion.
 
     Args:
-        image: (H, W) uint8 grayscale image of the board in the laser plane.
+        image_pts: (m, 2) detected corners in pixels, m >= 4 (5 with distortion).
+        world_pts: (m, 2) their exact board positions in mm.
+        distortion: also estimate one division-model coefficient.
+        centre_px: distortion centre (default: the centroid of the image points).
+
+    Returns:
+        The fitted Homography.
+    """
+    img, wld = _check_pairs(image_pts, world_pts)
+    if distortion and len(img) < 5:
+        raise CalibrationError("estimating lens distortion needs at least 5 corners")
+    centre = np.asarray(centre_px if centre_px is not None else img.mean(axis=0), dtype=float)
+    radius = float(max(np.linalg.norm(img - centre, axis=1).max(), 1.0))
+    t_img, t_wld = _normaliser(img), _normaliser(wld)
+    t_img_inv = np.linalg.inv(t_img)
+    wld_n = wld @ t_wld[:2, :2].T + t_wld[:2, 2]
+    start = _scaled(t_img @ np.linalg.inv(dlt_homography(img, wld).matrix) @ np.linalg.inv(t_wld))
+
+    def predict(p: np.ndarray) -> np.ndarray:
+        g = np.append(p[:8], 1.0).reshape(3, 3)
+        uv = _project(t_img_inv @ g, wld_n)
+        return _distort(uv, p[8], centre, radius) if distortion else uv
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return (predict(p) - img).ravel()
+
+    x0 = start.ravel()[:8]
+    if distortion:
+        x0 = np.append(x0, 0.0)
+    sol = least_squares(residuals, x0, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=2000)
+    g = t_img_inv @ np.append(sol.x[:8], 1.0).reshape(3, 3) @ t_wld
+    k = float(sol.x[8]) if distortion else 0.0
+    return Homography(_scaled(np.linalg.inv(g)), k, (float(centre[0]), float(centre[1])), radius)
+
+
+def reprojection_px(
+    homography: Homography, image_pts: np.ndarray, world_pts: np.ndarray
+) -> np.ndarray:
+    """Return each corner's distance in px from the projection of its world point."""
+    g = np.linalg.inv(homography.matrix)
+    uv = _project(g, np.asarray(world_pts, dtype=float))
+    if homography.division_k:
+        uv = _distort(
+            uv, homography.division_k, np.asarray(homography.centre_px), homography.radius_px
+        )
+    return np.linalg.norm(uv - np.asarray(image_pts, dtype=float), axis=1)
+
+
+def robust_inliers(
+    image_pts: np.ndarray,
+    world_pts: np.ndarray,
+    iterations: int = RANSAC_ITERATIONS,
+    seed: int = 0,
+) -> np.ndarray:
+    """Return a mask of corners consistent with the best 4-point homography.
+
+    A RANSAC-style search without a hand-set threshold (least median of squares): every
+    random 4-point sample gives an exact world-to-image homography, scored by the median
+    reprojection error over all corners; the best sample sets the noise scale
+    (``median / 1.1774``, the median of a 2D Gaussian's radius) and the corners within
+    ``OUTLIER_SIGMAS`` of it (never less than ``MIN_GATE_PX``) are kept. Works while
+    fewer than half the corners are wrong. The seed is fixed so a calibration repeats.
+    """
+    img, wld = _check_pairs(image_pts, world_pts)
+    rng = np.random.default_rng(seed)
+    best_err, best_median = None, np.inf
+    for _ in range(iterations):
+        idx = rng.choice(len(img), 4, replace=False)
+        try:
+            g = _basis_map(img[idx]) @ np.linalg.inv(_basis_map(wld[idx]))
+        except (CalibrationError, np.linalg.LinAlgError):
+            continue
+        err = np.linalg.norm(_project(g, wld) - img, axis=1)
+        # The sample's own 4 corners fit exactly; leave them out of the scale estimate.
+        median = float(np.median(np.delete(err, idx)))
+        if median < best_median:
+            best_err, best_median = err, median
+    if best_err is None:
+        return np.ones(len(img), dtype=bool)
+    return _gate(best_err, best_median)
+
+
+def _gate(err_px: np.ndarray, median_px: float) -> np.ndarray:
+    """Return the corners within OUTLIER_SIGMAS robust sigmas (at least MIN_GATE_PX)."""
+    return err_px < max(MIN_GATE_PX, OUTLIER_SIGMAS * median_px / 1.1774)
+
+
+def fit_plane_map(
+    image_pts: np.ndarray,
+    world_pts: np.ndarray,
+    method: str = "ml",
+    distortion: bool = False,
+    robust: bool = True,
+    centre_px: tuple[float, float] | None = None,
+) -> tuple[Homography, np.ndarray]:
+    """Fit the image-to-plane map with one of ``CALIBRATION_METHODS``.
+
+    Args:
+        image_pts: (m, 2) corners in pixels.
+        world_pts: (m, 2) board positions in mm.
+        method: ``"ml"``, ``"dlt"`` (thesis 4.2.2) or ``"analytical"`` (thesis 4.2.1,
+            on the 4 outermost corners).
+        distortion: estimate radial distortion (``"ml"`` only).
+        robust: reject mis-detected corners first (``"ml"`` only; the thesis methods
+            stay as the thesis ran them).
+        centre_px: distortion centre, normally the image centre.
+
+    Returns:
+        (Homography, mask of the corners the fit used).
+    """
+    img, wld = _check_pairs(image_pts, world_pts)
+    if method not in CALIBRATION_METHODS:
+        raise CalibrationError(
+            f"unknown calibration method {method!r}; use one of {', '.join(CALIBRATION_METHODS)}"
+        )
+    if distortion and method != "ml":
+        raise CalibrationError("lens distortion is only estimated by the 'ml' method")
+    used = np.zeros(len(img), dtype=bool)
+    if method == "analytical":
+        idx = outer_corners(wld)
+        used[idx] = True
+        return analytical_homography(img[idx], wld[idx]), used
+    if method == "dlt":
+        return dlt_homography(img, wld), ~used
+    robust = robust and len(img) >= ROBUST_MIN_CORNERS
+    used = robust_inliers(img, wld) if robust else ~used
+    homography = ml_homography(img[used], wld[used], distortion, centre_px)
+    if robust:
+        # Re-admit or reject every corner against the refined model (which may include
+        # distortion the 4-point samples could not), then refit once. A least-squares fit
+        # shrinks its own residuals by sqrt(1 - params / equations): undo that for the scale.
+        err = reprojection_px(homography, img, wld)
+        n_eq, n_par = 2 * int(used.sum()), 9 if distortion else 8
+        median = float(np.median(err[used])) * np.sqrt(n_eq / max(n_eq - n_par, 1))
+        final = _gate(err, median)
+        if final.sum() >= 4 and not np.array_equal(final, used):
+            used = final
+            homography = ml_homography(img[used], wld[used], distortion, centre_px)
+    return homography, used
+
+
+def calibrate_grid(
+    image: np.ndarray, board: BoardSpec, method: str = "ml", distortion: bool = False
+) -> GridCalibration:
+    """Detect the board, fit the plane map and report per-corner residuals (thesis 4.2, 4.6).
+
+    Args:
+        image: (H, W) grayscale image of the board in the laser plane.
         board: the board description from the capture.
+        method: one of ``CALIBRATION_METHODS`` (default ``"ml"``).
+        distortion: estimate one radial distortion coefficient (``"ml"`` only), centred on
+            the image centre.
 
     Returns:
         GridCalibration with residuals ``|H(image_pt) - world_pt|`` in mm and warnings.
 
     Raises:
-        CalibrationError: see ``find_corners`` and ``dlt_homography``.
+        CalibrationError: see ``find_corners`` and ``fit_plane_map``.
     """
     image_pts = find_corners(image, board)
     world_pts = board.world_corners()
-    homography = dlt_homography(image_pts, world_pts)
+    h, w = np.asarray(image).shape[:2]
+    centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+    homography, used = fit_plane_map(image_pts, world_pts, method, distortion, True, centre)
     residuals = np.linalg.norm(homography.apply(image_pts) - world_pts, axis=1)
-    rms = float(np.sqrt(np.mean(residuals**2)))
-    n = len(image_pts)
+    rms = float(np.sqrt(np.mean(residuals[used] ** 2)))
+    reproj = reprojection_px(homography, image_pts[used], world_pts[used])
+    n = int(used.sum())
     warnings: list[str] = []
     if n < MIN_CORNERS_THESIS:
         warnings.append(
-            f"only {n} calibration corners; at least {MIN_CORNERS_THESIS} are recommended "
+            f"only {n} calibration corners used; at least {MIN_CORNERS_THESIS} are recommended "
             "(use a board with more inner corners)"
+        )
+    rejected = np.flatnonzero(~used)
+    if method == "ml" and len(rejected):
+        worst = float(residuals[rejected].max())
+        warnings.append(
+            f"{len(rejected)} of {len(used)} corners rejected as mis-detected (worst {worst:.2f} "
+            f"mm off, corners {rejected.tolist()}); check the board for glare or damage"
         )
     if rms > RMS_WARNING_MM:
         warnings.append(
@@ -297,7 +598,10 @@ def calibrate_grid(image: np.ndarray, board: BoardSpec) -> GridCalibration:
         world_pts=world_pts,
         residuals_mm=residuals,
         rms_mm=rms,
-        max_mm=float(residuals.max()),
+        max_mm=float(residuals[used].max()),
         n_corners=n,
         warnings=tuple(warnings),
+        method=method,
+        inliers=used,
+        reprojection_rms_px=float(np.sqrt(np.mean(reproj**2))),
     )

@@ -1,14 +1,20 @@
-"""The host end of the link: find or start the device, handshake, run requests.
+"""The host end of the link: find or start the device, handshake, run requests reliably.
 
 A DEVICE is a serial port path, ``sim`` or ``replay:CAPTURE_DIR``. For the last two
 the host starts ``lamina-device serve`` itself and joins the two programs with a
 :class:`PtyBridge`: two real pseudo-terminal pairs and a relay, so both ends use
 pyserial on a real tty exactly as they would over a USB cable.
+
+Requests are repeated (same id) until the device answers, and the device answers a
+repeat from its reply cache, so a lost frame in either direction costs a timeout,
+never a request run twice. Each segment is handed to the caller (who stores it)
+before it is acknowledged; transfers are fetched piece by piece until complete.
 """
 
 from __future__ import annotations
 
 import os
+import secrets
 import select
 import subprocess
 import sys
@@ -16,18 +22,21 @@ import threading
 import time
 import tty
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 import serial
 
-from lamina_shared.link import Channel, LinkClosed
+from lamina_shared.link import Channel, LinkClosed, Ticker
 from lamina_shared.protocol import (
+    CHUNK_BYTES,
+    MAX_TRANSFER_BYTES,
     PROTOCOL_VERSION,
+    ROW_SCALE,
     Chunk,
     Kind,
     Message,
@@ -35,6 +44,9 @@ from lamina_shared.protocol import (
     encode_json,
 )
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
+
+MAX_IMAGE_SIDE = 16_384
+"""Largest image side the host accepts from a device."""
 
 
 class DeviceError(RuntimeError):
@@ -53,17 +65,30 @@ class DeviceInfo:
     board: BoardSpec | None
     cylinder_diameter_mm: float | None
     default_plans: dict[str, ScanPlan]
+    axes: dict[str, Any] = field(default_factory=dict)
+    limits: dict[str, Any] = field(default_factory=dict)
+    operations: tuple[str, ...] = ()
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
-        """Build from the WELCOME body; raise DeviceError if it is malformed."""
+        """Build from the WELCOME body; raise DeviceError if it is malformed or out of range."""
         try:
+            protocol = int(data["protocol"])
+            if protocol != PROTOCOL_VERSION:
+                # Nothing else can be trusted to mean the same: report the versions only.
+                return cls(
+                    protocol, str(data.get("software", "?")), "?", "", (0, 0), None, None, {}
+                )
             width, height = (int(v) for v in data["image_size"])
+            if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+                raise ValueError(f"image size {width}x{height} is beyond this host's limits")
+            if int(data.get("segment_encoding", {}).get("row_scale", 0)) != ROW_SCALE:
+                raise ValueError("segment row scale differs from this host's")
             board = BoardSpec.from_dict(data["board"]) if data.get("board") else None
             plans = {k: ScanPlan.from_dict(v) for k, v in (data.get("default_plans") or {}).items()}
             diameter = data.get("cylinder_diameter_mm")
             return cls(
-                int(data["protocol"]),
+                protocol,
                 str(data.get("software", "?")),
                 str(data["hardware"]),
                 str(data.get("description", "")),
@@ -71,8 +96,11 @@ class DeviceInfo:
                 board,
                 float(diameter) if diameter is not None else None,
                 plans,
+                dict(data.get("axes") or {}),
+                dict(data.get("limits") or {}),
+                tuple(str(op) for op in data.get("operations") or ()),
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DeviceError(f"the device's handshake is malformed ({exc})") from None
 
 
@@ -80,7 +108,8 @@ class PtyBridge:
     """A software null-modem cable: two pseudo-terminal pairs joined by a relay thread.
 
     ``host_port`` and ``device_port`` are tty paths each end opens with pyserial.
-    ``transform`` (for fault-injection tests) may alter bytes in flight.
+    ``transform`` (for fault-injection tests, e.g. :class:`LineFaults`) may alter bytes
+    in flight.
     """
 
     def __init__(self, transform: Callable[[bytes, str], bytes] | None = None) -> None:
@@ -124,7 +153,112 @@ class PtyBridge:
                 os.close(fd)
 
 
+@dataclass
+class LineFaults:
+    """A bad cable for :class:`PtyBridge`: flips, drops, duplicates, delays bytes, cuts.
+
+    Each byte meets an error with probability ``error_rate``: half of them flip one bit,
+    a quarter vanish, a quarter arrive twice. With probability ``delay_rate`` a burst
+    of bytes is held for ``delay_s`` (order is kept, as on a real line). When the bytes
+    relayed towards the host pass each of ``cut_after_bytes``, the line goes dead in
+    both directions for ``cut_s``.
+    """
+
+    error_rate: float = 0.0
+    delay_rate: float = 0.0
+    delay_s: float = 0.02
+    cut_after_bytes: tuple[int, ...] = ()
+    cut_s: float = 1.0
+    seed: int = 0
+    counts: dict[str, int] = field(default_factory=dict)
+    _to_host: int = 0
+    _cut_until_s: float = 0.0
+    _rng: np.random.Generator = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+        self._cuts = sorted(self.cut_after_bytes)
+        for name in ("flipped", "dropped", "duplicated", "delayed", "cuts", "cut_bytes"):
+            self.counts[name] = 0
+
+    def __call__(self, data: bytes, direction: str) -> bytes:
+        """Return what arrives at the other end of the line for ``data``."""
+        now = time.monotonic()
+        if direction == "to-host":
+            self._to_host += len(data)
+            if self._cuts and self._to_host >= self._cuts[0]:
+                self._cuts.pop(0)
+                self._cut_until_s = now + self.cut_s
+                self.counts["cuts"] += 1
+        if now < self._cut_until_s:
+            self.counts["cut_bytes"] += len(data)
+            return b""
+        if self.delay_rate and self._rng.random() < self.delay_rate:
+            self.counts["delayed"] += 1
+            time.sleep(self.delay_s)
+        if not self.error_rate:
+            return data
+        arr = np.frombuffer(data, np.uint8).copy()
+        hit = np.flatnonzero(self._rng.random(len(arr)) < self.error_rate)
+        what = self._rng.integers(0, 4, len(hit))
+        flips = hit[what < 2]
+        arr[flips] ^= (1 << self._rng.integers(0, 8, len(flips))).astype(np.uint8)
+        repeat = np.ones(len(arr), np.int64)
+        repeat[hit[what == 2]] = 0
+        repeat[hit[what == 3]] = 2
+        self.counts["flipped"] += len(flips)
+        self.counts["dropped"] += int(np.sum(what == 2))
+        self.counts["duplicated"] += int(np.sum(what == 3))
+        return np.repeat(arr, repeat).tobytes()
+
+
 EventHandler = Callable[[Message], None]
+SegmentHandler = Callable[[int, Segment], object]
+"""Receives (seq, segment) for each new segment; it must have stored it when it returns."""
+
+
+class _Assembly:
+    """One binary transfer being put together from pieces that arrive in any order."""
+
+    def __init__(self, total: int) -> None:
+        if total > MAX_TRANSFER_BYTES:
+            raise DeviceError(f"the device offered {total} bytes, beyond this host's limit")
+        self.total = total
+        self.data = bytearray(total)
+        self.have = np.zeros(-(-total // CHUNK_BYTES), bool)
+
+    def take(self, chunk: Chunk) -> None:
+        """Keep a piece if it is one this transfer expects."""
+        index, expected = divmod(chunk.offset, CHUNK_BYTES)
+        size = min(CHUNK_BYTES, self.total - chunk.offset)
+        if chunk.total == self.total and expected == 0 and len(chunk.data) == size:
+            self.data[chunk.offset : chunk.offset + size] = chunk.data
+            self.have[index] = True
+
+    def missing(self, max_bytes: int) -> list[list[int]]:
+        """Return up to ``max_bytes`` of missing pieces as merged [offset, length] ranges."""
+        ranges: list[list[int]] = []
+        budget = max_bytes
+        for index in np.flatnonzero(~self.have).tolist():
+            offset = index * CHUNK_BYTES
+            size = min(CHUNK_BYTES, self.total - offset)
+            if size > budget:
+                break
+            budget -= size
+            if ranges and ranges[-1][0] + ranges[-1][1] == offset:
+                ranges[-1][1] += size
+            else:
+                ranges.append([offset, size])
+        return ranges
+
+
+@dataclass
+class LinkStats:
+    """What the link cost: resent requests, duplicate segments, fetch rounds."""
+
+    request_retries: int = 0
+    duplicate_segments: int = 0
+    fetch_rounds: int = 0
 
 
 class DeviceClient:
@@ -135,11 +269,16 @@ class DeviceClient:
         channel: Channel,
         process: subprocess.Popen[bytes] | None = None,
         idle_timeout_s: float = 30.0,
+        retry_s: float = 1.0,
     ) -> None:
         self.channel = channel
         self.process = process
         self.idle_timeout_s = idle_timeout_s
+        self.retry_s = retry_s
         self.info: DeviceInfo | None = None
+        self.session = secrets.token_hex(8)
+        self.stats = LinkStats()
+        self._heartbeat = Ticker(0.5)
         self._next_id = 1
 
     def _device_exit_message(self) -> str | None:
@@ -152,91 +291,182 @@ class DeviceClient:
     def hello(self, timeout_s: float = 20.0) -> DeviceInfo:
         """Handshake; return the device's information or raise :class:`DeviceError`."""
         deadline = time.monotonic() + timeout_s
+        hello = {"protocol": PROTOCOL_VERSION, "software": "lamina-host", "session": self.session}
         while time.monotonic() < deadline:
             # Repeat HELLO: a device that opened its port late flushed the earlier ones.
-            self.channel.send(
-                encode_json(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "software": "lamina-host"})
-            )
-            message = self.channel.receive(timeout_s=0.5)
-            if message is not None and message.kind is Kind.WELCOME:
-                info = DeviceInfo.from_dict(message.body)
-                if info.protocol != PROTOCOL_VERSION:
-                    raise DeviceError(
-                        f"the device speaks protocol version {info.protocol}, this host speaks "
-                        f"{PROTOCOL_VERSION}: install matching lamina-device and lamina-host "
-                        "versions"
-                    )
-                self.info = info
-                return info
+            self.channel.send(encode_json(Kind.HELLO, hello))
+            until = time.monotonic() + 0.5
+            while (message := self.channel.receive(until - time.monotonic())) is not None:
+                if message.kind is Kind.WELCOME:
+                    return self._welcome(message.body)
             if (exit_message := self._device_exit_message()) is not None:
                 raise DeviceError(exit_message)
         raise DeviceError(
             "no answer from the device: check the cable and that lamina-device serve is running"
         )
 
+    def _welcome(self, body: dict[str, Any]) -> DeviceInfo:
+        info = DeviceInfo.from_dict(body)
+        if info.protocol != PROTOCOL_VERSION:
+            raise DeviceError(
+                f"the device speaks protocol version {info.protocol}, this host speaks "
+                f"{PROTOCOL_VERSION}: install matching lamina-device and lamina-host versions"
+            )
+        self.info = info
+        return info
+
+    def poll(self, timeout_s: float = 0.05) -> Message | None:
+        """Receive one message (or none), sending our heartbeat when it is due."""
+        if self._heartbeat.due():
+            self.channel.send(encode_json(Kind.HEARTBEAT, {"session": self.session}))
+        return self.channel.receive(timeout_s)
+
     def request(
         self, op: str, args: dict[str, Any] | None = None, on_event: EventHandler | None = None
     ) -> dict[str, Any]:
-        """Send one request; pass its events to ``on_event``; return the reply's result."""
+        """Send one request until answered; pass its events on; return the reply's result."""
         request_id = self._next_id
         self._next_id += 1
-        self.channel.send(
-            encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": args or {}})
-        )
+        frame = encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": args or {}})
+        self.channel.send(frame)
+        last_related = time.monotonic()
         while True:
-            message = self.channel.receive(timeout_s=self.idle_timeout_s)
+            message = self.poll()
+            now = time.monotonic()
             if message is None:
-                exit_message = self._device_exit_message()
-                raise DeviceError(
-                    exit_message or f"the device stopped answering during {op}: check the cable"
-                )
-            if message.kind is Kind.REPLY and message.body.get("id") == request_id:
-                if message.body.get("ok"):
-                    result = message.body.get("result", {})
-                    return result if isinstance(result, dict) else {}
-                error = message.body.get("error") or {}
-                raise DeviceError(f"the device refused {op}: {error.get('message', 'no reason')}")
-            if on_event is not None and _request_id(message) == request_id:
+                if now - self.channel.last_received_s > self.idle_timeout_s:
+                    raise DeviceError(
+                        self._device_exit_message()
+                        or f"the device stopped answering during {op}: check the cable"
+                    )
+                if now - last_related > self.retry_s:
+                    # Our request or its reply was lost (or the line is down): ask again;
+                    # the device answers a repeat from its reply cache, never runs it twice.
+                    self.channel.send(frame)
+                    self.stats.request_retries += 1
+                    last_related = now
+                continue
+            if _request_id(message) != request_id:
+                if message.kind is Kind.HEARTBEAT and now - last_related > 0.3:
+                    # The device says it is not working on our request: it never got it,
+                    # or its reply was lost. Ask again now rather than after a timeout.
+                    self.channel.send(frame)
+                    self.stats.request_retries += 1
+                    last_related = now
+                continue
+            last_related = now
+            if message.kind is Kind.REPLY:
+                return _result(op, message.body)
+            if on_event is not None and message.kind is not Kind.HEARTBEAT:
                 on_event(message)
+
+    def _fetch(self, op: str, args: dict[str, Any] | None = None) -> tuple[bytes, dict[str, Any]]:
+        """Run a request that offers a binary transfer; fetch what did not arrive."""
+        assemblies: dict[int, _Assembly] = {}
+
+        def take(message: Message) -> None:
+            chunk = message.body
+            if isinstance(chunk, Chunk):
+                if chunk.transfer not in assemblies:
+                    assemblies[chunk.transfer] = _Assembly(chunk.total)
+                assemblies[chunk.transfer].take(chunk)
+
+        result = self.request(op, args, on_event=take)
+        transfer, total = result.get("transfer"), result.get("bytes")
+        if not isinstance(transfer, int) or not isinstance(total, int):
+            raise DeviceError(f"the device's {op} reply names no transfer")
+        assembly = assemblies.get(transfer) or _Assembly(total)
+        assemblies = {transfer: assembly}
+        max_bytes = int(self.info.limits.get("max_fetch_bytes", 65536)) if self.info else 65536
+        while not assembly.have.all():
+            before = int(assembly.have.sum())
+            self.request(
+                "fetch", {"transfer": transfer, "ranges": assembly.missing(max_bytes)}, take
+            )
+            self.stats.fetch_rounds += 1
+            if int(assembly.have.sum()) == before and self.stats.fetch_rounds > 1000:
+                raise DeviceError(f"the {op} transfer makes no progress: check the cable")
+        data = bytes(assembly.data)
+        if len(data) != total or zlib.crc32(data) != result.get("crc32"):
+            raise DeviceError(f"the {op} transfer arrived damaged: try again")
+        return data, result
 
     def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
         """Fetch the calibration board image and the board's geometry."""
-        received = bytearray()
-
-        def take(message: Message) -> None:
-            if isinstance(message.body, Chunk) and message.body.offset == len(received):
-                received.extend(message.body.data)
-
-        result = self.request("grab_grid", on_event=take)
-        if len(received) != result.get("bytes") or zlib.crc32(received) != result.get("crc32"):
-            raise DeviceError("the calibration image arrived incomplete: try again")
-        image = cv2.imdecode(np.frombuffer(bytes(received), np.uint8), cv2.IMREAD_UNCHANGED)
+        data, result = self._fetch("grab_grid")
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the calibration image could not be decoded")
         if result.get("board") is None:
             raise DeviceError("the device does not know its calibration board: configure it")
         return image, BoardSpec.from_dict(result["board"])
 
+    def preview(self, laser: bool = False) -> np.ndarray:
+        """Fetch one camera frame taken where the axes stand."""
+        data, _ = self._fetch("preview", {"laser": laser})
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise DeviceError("the preview frame could not be decoded")
+        return image
+
+    def plan_for(self, target: str, plan: ScanPlan | None) -> ScanPlan:
+        """Return ``plan``, or the device's default plan for ``target``."""
+        if plan is not None:
+            return plan
+        default = self.info.default_plans.get(target) if self.info else None
+        if default is None:
+            raise DeviceError(f"the device has no default {target} plan: pass one")
+        return default
+
     def scan(
         self,
         target: str,
         plan: ScanPlan | None = None,
         on_progress: Callable[[dict[str, Any]], None] | None = None,
+        *,
+        have: Collection[int] = (),
+        on_segment: SegmentHandler | None = None,
     ) -> list[Segment]:
-        """Scan ``target`` (``cylinder`` or ``object``); return its segments in order."""
-        segments: list[Segment] = []
+        """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
+
+        Args:
+            target: ``cylinder`` or ``object``.
+            plan: the views; None for the device's default plan.
+            on_progress: receives each progress event's body.
+            have: plan indices the caller already holds (a resumed scan).
+            on_segment: receives (seq, segment) and must store it before returning;
+                only then is the segment acknowledged.
+        """
+        plan = self.plan_for(target, plan)
+        held = set(have)
+        received: dict[int, Segment] = {}
+        expected = [s for s in range(len(plan.views)) if s not in held]
+        size = self.info.image_size if self.info else (65_535, 65_535)
 
         def take(message: Message) -> None:
-            if isinstance(message.body, SegmentEvent):
-                segments.append(message.body.segment)
+            body = message.body
+            if isinstance(body, SegmentEvent):
+                if body.seq not in held and body.seq not in received:
+                    _check_segment(body, target, plan, size)
+                    if on_segment is not None:
+                        on_segment(body.seq, body.segment)
+                    received[body.seq] = body.segment
+                else:
+                    self.stats.duplicate_segments += 1
+                # Stored (or already held): acknowledge, also a repeat whose ack was lost.
+                # Views come in plan order, so earlier ones still missing were lost.
+                lost = [s for s in expected if s < body.seq and s not in received]
+                ack = {"id": body.request_id, "seqs": [body.seq], "lost": lost[:64]}
+                self.channel.send(encode_json(Kind.ACK, ack))
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = {"target": target, "plan": plan.to_dict() if plan else None}
-        result = self.request("scan", args, on_event=take)
-        if result.get("segments") != len(segments):
-            raise DeviceError(f"{result.get('segments')} segments sent, {len(segments)} received")
-        return segments
+        args = {"target": target, "plan": plan.to_dict(), "have": sorted(held)}
+        self.request("scan", args, on_event=take)
+        missing = set(range(len(plan.views))) - held - set(received)
+        if missing:
+            raise DeviceError(f"the device finished the scan but {len(missing)} views are missing")
+        return [received[s] for s in sorted(received)]
 
     def close(self) -> None:
         """Ask a device this host started to stop, then wait for it."""
@@ -250,15 +480,52 @@ class DeviceClient:
                 self.process.wait()
 
 
+def _result(op: str, body: dict[str, Any]) -> dict[str, Any]:
+    """Return a REPLY's result, or raise the device's refusal as a DeviceError."""
+    if body.get("ok") is True:
+        result = body.get("result", {})
+        return result if isinstance(result, dict) else {}
+    error = body.get("error")
+    reason = error.get("message") if isinstance(error, dict) else None
+    raise DeviceError(f"the device refused {op}: {reason or 'no reason given'}")
+
+
+def _check_segment(
+    event: SegmentEvent, target: str, plan: ScanPlan, image_size: tuple[int, int]
+) -> None:
+    """Refuse a segment that does not belong where it claims or lies outside the image."""
+    segment, seq = event.segment, event.seq
+    problem = None
+    if seq >= len(plan.views):
+        problem = f"view {seq} of a {len(plan.views)}-view plan"
+    else:
+        view = plan.views[seq]
+        if (segment.target, segment.section, segment.z_mm, segment.angle_deg) != (
+            target,
+            view.section,
+            view.z_mm,
+            view.angle_deg,
+        ):
+            problem = f"view {seq} labelled differently from the plan"
+        elif len(segment) and (
+            int(segment.cols[-1]) >= image_size[0] or float(segment.rows.max()) >= image_size[1]
+        ):
+            problem = f"view {seq} has points outside the {image_size[0]}x{image_size[1]} image"
+    if problem:
+        raise DeviceError(f"the device sent a segment beyond this host's limits ({problem})")
+
+
 def _request_id(message: Message) -> int | None:
     body = message.body
     if isinstance(body, Chunk | SegmentEvent):
         return body.request_id
+    if message.kind is Kind.HEARTBEAT:
+        return body.get("request") if isinstance(body, dict) else None
     return body.get("id") if isinstance(body, dict) else None
 
 
 def device_command(
-    hardware: str, port: str, object_spec: str | None, seed: int, noise: str
+    hardware: str, port: str, object_spec: str | None, seed: int, noise: str, rig: str = "thesis"
 ) -> list[str]:
     """Return the command line that starts a device program on ``port``."""
     command = [
@@ -277,6 +544,8 @@ def device_command(
     ]
     if object_spec:
         command += ["--object", object_spec]
+    if rig != "thesis":
+        command += ["--rig", rig]
     return command
 
 
@@ -287,10 +556,14 @@ def open_device(
     seed: int = 0,
     noise: str = "thesis",
     transform: Callable[[bytes, str], bytes] | None = None,
+    rig: str = "thesis",
 ) -> Iterator[DeviceClient]:
-    """Connect to DEVICE (a port path, ``sim`` or ``replay:DIR``) and handshake."""
+    """Connect to DEVICE (a port path, ``sim`` or ``replay:DIR``) and handshake.
+
+    ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
+    """
     if device == "sim" or device.startswith("replay:"):
-        with _spawned_device(device, object_spec, seed, noise, transform) as client:
+        with _spawned_device(device, object_spec, seed, noise, transform, rig) as client:
             yield client
         return
     if object_spec:
@@ -317,9 +590,10 @@ def _spawned_device(
     seed: int,
     noise: str,
     transform: Callable[[bytes, str], bytes] | None,
+    rig: str = "thesis",
 ) -> Iterator[DeviceClient]:
     bridge = PtyBridge(transform)
-    command = device_command(device, bridge.device_port, object_spec, seed, noise)
+    command = device_command(device, bridge.device_port, object_spec, seed, noise, rig)
     process = subprocess.Popen(
         command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
     )

@@ -170,3 +170,68 @@ def radial_error_table(
         mean_mean_mm=float(np.mean([r.rms_mean_mm for r in rows])),
         mean_centroid_mm=(float(mean_centre[0]), float(mean_centre[1])),
     )
+
+
+@dataclass(frozen=True)
+class SphereProbing:
+    """Probing errors of a scanned sphere, after VDI/VDE 2634 part 2.
+
+    ``form_mm`` (P_F) is the range of the points' radial distances from the least-squares
+    sphere; ``size_mm`` (P_S) is the fitted diameter minus the true diameter.
+    """
+
+    form_mm: float
+    size_mm: float
+    fitted_diameter_mm: float
+    centre_mm: tuple[float, float, float]
+    rms_mm: float
+    points: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form."""
+        return {
+            "probing_error_form_mm": self.form_mm,
+            "probing_error_size_mm": self.size_mm,
+            "fitted_diameter_mm": self.fitted_diameter_mm,
+            "centre_mm": list(self.centre_mm),
+            "rms_mm": self.rms_mm,
+            "points": self.points,
+        }
+
+
+def sphere_probing(points: np.ndarray, true_diameter_mm: float) -> SphereProbing:
+    """Fit a sphere by orthogonal distance and return the VDI/VDE 2634-2 probing errors.
+
+    The algebraic fit ``|p|^2 = 2 c.p + k`` starts Levenberg-Marquardt on ``|p - c| - r``.
+
+    Args:
+        points: (N, 3) measured surface points in mm, N >= 4.
+        true_diameter_mm: the calibrated sphere's diameter.
+
+    Raises:
+        CalibrationError: too few or degenerate points.
+    """
+    from scipy.optimize import least_squares  # deferred: only sphere reports need it
+
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4 or not np.isfinite(p).all():
+        raise CalibrationError(f"a sphere fit needs at least 4 finite (N, 3) points, got {p.shape}")
+    a = np.column_stack([2.0 * p, np.ones(len(p))])
+    sol, *_ = np.linalg.lstsq(a, np.sum(p * p, axis=1), rcond=None)
+    centre0 = sol[:3]
+    r0 = float(np.sqrt(max(sol[3] + centre0 @ centre0, 1e-12)))
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(p - x[:3], axis=1) - x[3]
+
+    fit = least_squares(residuals, np.append(centre0, r0), method="lm")
+    dist = fit.fun
+    diameter = float(2.0 * abs(fit.x[3]))
+    return SphereProbing(
+        form_mm=float(dist.max() - dist.min()),
+        size_mm=diameter - float(true_diameter_mm),
+        fitted_diameter_mm=diameter,
+        centre_mm=(float(fit.x[0]), float(fit.x[1]), float(fit.x[2])),
+        rms_mm=float(np.sqrt(np.mean(dist**2))),
+        points=len(p),
+    )

@@ -1,4 +1,10 @@
-"""Normals, ball-pivoting surface reconstruction and PLY output (thesis chapter 7)."""
+"""Surface meshes from the contour stack, and PLY output (thesis chapter 7).
+
+``MESH_METHODS``: ``"contours"`` (default) joins neighbouring EFD contours sampled at the
+same parameter values into a watertight, manifold tube with capped ends;
+``"ball-pivoting"`` (the thesis' choice, 7.2.1) and ``"poisson"`` (screened Poisson)
+reconstruct from the points through MeshLab.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_host.calibration import CalibrationError
-from lamina_host.measure import signed_area
+from lamina_host.measure import centroid, signed_area
 
 
 def contour_normals(contour: np.ndarray) -> np.ndarray:
@@ -79,12 +85,90 @@ def ball_pivoting(
     )
 
 
-def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:
+MESH_METHODS = ("contours", "ball-pivoting", "poisson")
+"""Selectable surface methods; the first is the default."""
+
+
+def tube_mesh(rings: np.ndarray, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Join contours sampled at the same parameter values into a closed triangle mesh.
+
+    Ring ``s`` vertex ``j`` joins ring ``s + 1`` by two triangles per quad; each end is
+    closed by a fan from its area centroid (one extra vertex), which is exact for
+    outlines star-shaped about their centroid, as overlap averaging assumes. With
+    counter-clockwise rings in ascending z every face normal points outward.
+
+    Args:
+        rings: (S, M, 2) contours, S >= 1, M >= 3, counter-clockwise, aligned.
+        z_mm: (S,) ascending heights.
+
+    Returns:
+        (vertices (S*M + 2, 3), faces (2*M*(S-1) + 2*M, 3)).
+    """
+    r = np.asarray(rings, dtype=float)
+    z = np.asarray(z_mm, dtype=float)
+    if r.ndim != 3 or r.shape[2] != 2 or r.shape[1] < 3 or len(z) != len(r):
+        raise ValueError(f"rings must be (S, M>=3, 2) with one height each, got {r.shape}")
+    n_rings, m = r.shape[:2]
+    verts = np.concatenate([r.reshape(-1, 2), np.repeat(z, m)[:, None]], axis=1)
+    j = np.arange(m)
+    jn = (j + 1) % m
+    base = (np.arange(n_rings - 1) * m)[:, None]
+    a, b, c, d = base + j, base + jn, base + m + jn, base + m + j
+    side = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], axis=1)
+    bottom, top = n_rings * m, n_rings * m + 1
+    centres = [np.append(centroid(r[0]), z[0]), np.append(centroid(r[-1]), z[-1])]
+    last = (n_rings - 1) * m
+    caps = np.concatenate(
+        [
+            np.stack([np.full(m, bottom), jn, j], axis=1),
+            np.stack([np.full(m, top), last + j, last + jn], axis=1),
+        ]
+    )
+    faces = np.concatenate([side.reshape(-1, 3), caps]).astype(np.int64)
+    return np.vstack([verts, centres]), faces
+
+
+def screened_poisson(
+    points: np.ndarray, normals: np.ndarray, depth: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh oriented points by MeshLab's screened Poisson reconstruction.
+
+    Args:
+        points: (N, 3) vertices in mm.
+        normals: (N, 3) or (N, 2) outward normals.
+        depth: octree depth (resolution ~ object size / 2^depth).
+
+    Returns:
+        (vertices (V, 3), faces (F, 3)).
+    """
+    import pymeshlab
+
+    pts = _points3(points)
+    if len(pts) < 3:
+        raise CalibrationError(f"meshing needs at least 3 points, got {len(pts)}")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, v_normals_matrix=_normals3(normals, len(pts))))
+    ms.generate_surface_reconstruction_screened_poisson(depth=depth, preclean=True)
+    mesh = ms.current_mesh()
+    return (
+        np.asarray(mesh.vertex_matrix(), dtype=np.float64),
+        np.asarray(mesh.face_matrix(), dtype=np.int64),
+    )
+
+
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Return the enclosed volume in mm^3 (divergence theorem): positive when faces face out."""
+    v = _points3(vertices)[np.asarray(faces, dtype=np.int64)]
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+
+
+def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool | float]:
     """Return MeshLab's topological measures of a triangle mesh.
 
     Returns:
         dict with watertight (no boundary edges), two_manifold, components, faces,
-        vertices and boundary_edges.
+        vertices, boundary_edges, non-manifold edge and vertex counts, genus (MeshLab
+        reports -1 when undefined), and the signed volume in mm^3.
     """
     import pymeshlab
 
@@ -102,6 +186,10 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:
         "faces": int(m["faces_number"]),
         "vertices": int(m["vertices_number"]),
         "boundary_edges": int(m["boundary_edges"]),
+        "non_manifold_edges": int(m["non_two_manifold_edges"]),
+        "non_manifold_vertices": int(m["non_two_manifold_vertices"]),
+        "genus": int(m["genus"]),
+        "volume_mm3": signed_volume(vertices, faces) if len(faces) else 0.0,
     }
 
 

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.expect import Expectation
-from lamina_host.measure import perimeter, polygon_area, radial_error_table
+from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import save_ply
 from lamina_host.pipeline import Reconstruction, stack, stacked_normals
 from lamina_shared.types import Segment
@@ -59,12 +59,14 @@ def build_report(
     """Return the JSON-ready report of one scan."""
     report: dict[str, Any] = {
         "device": device,
+        "options": result.options.to_dict(),
         "calibration": result.grid.to_dict(),
         "axis": result.axis.to_dict(),
         "correction_factor": result.axis.correction_factor,
         "sections": [
             {
                 "section": s.index,
+                "part": s.part,
                 "z_mm": s.z_mm,
                 "segments": s.segments,
                 "raw_points": len(s.raw),
@@ -82,7 +84,7 @@ def build_report(
             "outline_points": int(sum(len(s.contour) for s in result.sections)),
         },
         "mesh": {
-            "method": "ball-pivoting",
+            "method": result.options.mesh,
             "vertices": len(result.vertices),
             "faces": len(result.faces),
             "topology": result.mesh_topology,
@@ -91,13 +93,23 @@ def build_report(
         "warnings": result.warnings,
     }
     if expect is not None:
+        # The known shapes have one outline per section: measure each section's largest.
+        main = [s for s in result.sections if s.part == 0]
         table = radial_error_table(
-            {s.index: s.contour for s in result.sections},
-            {s.index: s.z_mm for s in result.sections},
-            expect.radius_mm,
+            {s.index: s.contour for s in main}, {s.index: s.z_mm for s in main}, expect.radius_mm
         )
         report["accuracy"] = {"expected": expect.spec, **table.to_dict()}
+        if expect.kind == "sphere":
+            report["accuracy"]["sphere"] = {
+                "raw_points": sphere_probing(_points3d(main, raw=True), 2 * expect.a_mm).to_dict(),
+                "contours": sphere_probing(_points3d(main, raw=False), 2 * expect.a_mm).to_dict(),
+            }
     return report
+
+
+def _points3d(sections: list[Any], raw: bool) -> np.ndarray:
+    """Return the sections' raw points or EFD contours as one (N, 3) array."""
+    return stack([s.raw if raw else s.contour for s in sections], [s.z_mm for s in sections])
 
 
 def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> dict[str, Path]:

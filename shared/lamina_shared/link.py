@@ -2,11 +2,13 @@
 
 Both ends use it over a pyserial port: the device on ``/dev/ttyGS0`` (or a
 pseudo-terminal in simulation), the host on the matching port. Damaged frames are
-counted and skipped; the message layer above decides what to do about gaps.
+counted and skipped; the message layer above (sequence numbers, acknowledgements,
+retried requests) makes up for what the line loses.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from typing import Any, Protocol
@@ -32,14 +34,29 @@ class LinkClosed(ConnectionError):
 
 
 class Channel:
-    """Send framed bytes and receive decoded messages with a deadline."""
+    """Send framed bytes and receive decoded messages with a deadline.
 
-    def __init__(self, stream: ByteStream, poll_s: float = 0.05) -> None:
+    ``send`` may be called from several threads (the device's scan worker and its
+    reader); ``receive`` from one thread only.
+    """
+
+    def __init__(
+        self, stream: ByteStream, poll_s: float = 0.05, write_timeout_s: float = 10.0
+    ) -> None:
         self.stream = stream
         self.stream.timeout = poll_s
+        if hasattr(stream, "write_timeout"):
+            # A peer that stops reading must not block us forever (pyserial then raises
+            # SerialTimeoutException, an OSError, which becomes LinkClosed).
+            stream.write_timeout = write_timeout_s
         self._decoder = FrameDecoder()
         self._pending: deque[Message] = deque()
+        self._send_lock = threading.Lock()
         self.bad_messages = 0
+        self.bytes_sent = 0
+        self.bytes_received = 0
+        self.last_received_s = time.monotonic()
+        """When the last valid message arrived (``time.monotonic()``)."""
 
     @property
     def bad_frames(self) -> int:
@@ -49,7 +66,9 @@ class Channel:
     def send(self, frame: bytes) -> None:
         """Write one encoded frame (see :mod:`lamina_shared.protocol`)."""
         try:
-            self.stream.write(frame)
+            with self._send_lock:
+                self.stream.write(frame)
+                self.bytes_sent += len(frame)
         except (OSError, ValueError) as exc:
             raise LinkClosed(f"link closed while sending: {exc}") from exc
 
@@ -69,11 +88,29 @@ class Channel:
         except (OSError, ValueError, TypeError) as exc:
             # pyserial raises SerialException (an OSError) when the peer hangs up.
             raise LinkClosed(f"link closed: {exc}") from exc
+        self.bytes_received += len(data)
         for payload in self._decoder.feed(data):
             try:
                 self._pending.append(decode_message(payload))
+                self.last_received_s = time.monotonic()
             except ProtocolError:
                 self.bad_messages += 1
+
+
+class Ticker:
+    """Say when something periodic (a heartbeat) is due, without a thread of its own."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self._next_s = time.monotonic()
+
+    def due(self) -> bool:
+        """Return True (and restart the period) if the period has elapsed."""
+        now = time.monotonic()
+        if now < self._next_s:
+            return False
+        self._next_s = now + self.period_s
+        return True
 
 
 def error_body(request_id: int, code: str, message: str) -> dict[str, Any]:
@@ -86,4 +123,18 @@ def ok_body(request_id: int, result: dict[str, Any]) -> dict[str, Any]:
     return {"id": request_id, "ok": True, "result": result}
 
 
-__all__ = ["ByteStream", "Channel", "Kind", "LinkClosed", "error_body", "ok_body"]
+def is_count(value: object, limit: int = 2**32) -> bool:
+    """Return True for a JSON integer in ``0..limit-1`` (bools are not integers here)."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < limit
+
+
+__all__ = [
+    "ByteStream",
+    "Channel",
+    "Kind",
+    "LinkClosed",
+    "Ticker",
+    "error_body",
+    "is_count",
+    "ok_body",
+]

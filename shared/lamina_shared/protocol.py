@@ -3,14 +3,18 @@
 See ``shared/PROTOCOL.md`` for the specification. A frame on the wire is
 ``0x00 || COBS(kind || body || crc32_le(kind || body)) || 0x00``: the zero byte only
 ever appears as a delimiter, so a reader resynchronises at the next zero after garbage.
+
+Decoding anything received raises nothing but :class:`ProtocolError`, and allocates at
+most a small multiple of :data:`MAX_PAYLOAD_BYTES` whatever the bytes say.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Any
 
@@ -18,12 +22,29 @@ import numpy as np
 
 from lamina_shared.types import TARGETS, Segment
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Largest decoded payload either end accepts; longer frames are discarded unread."""
 
-CHUNK_BYTES = 4096
-"""Size of the pieces a binary transfer (calibration image) is cut into."""
+CHUNK_BYTES = 512
+"""Size of the pieces a binary transfer is cut into: small enough that most pieces still
+get through a line with one byte error in a thousand."""
+
+MAX_TRANSFER_BYTES = 32 * 1024 * 1024
+"""Largest binary transfer (calibration image, preview frame) either end accepts."""
+
+ROW_SCALE = 64
+"""Stripe rows travel as fixed-point integers in units of 1/ROW_SCALE pixel."""
+
+MAX_SEGMENT_POINTS = 65_535
+"""A segment holds at most one point per image column and at most this many."""
+
+MAX_ACK_SEQS = 1024
+"""Most sequence numbers one ACK may carry."""
+
+_RICE_BLOCK = 32  # values per Rice block: each block picks its own parameter k
+_RICE_MAX_K = 15  # k travels as a 4-bit nibble
+_ROW_LIMIT_Q = 65_536 * ROW_SCALE  # rows stay below 65,536 px
 
 
 class ProtocolError(Exception):
@@ -40,9 +61,13 @@ class Kind(IntEnum):
     SEGMENT = 5
     EVENT = 6
     CHUNK = 7
+    ACK = 8
+    HEARTBEAT = 9
 
 
-JSON_KINDS = frozenset({Kind.HELLO, Kind.WELCOME, Kind.REQUEST, Kind.REPLY, Kind.EVENT})
+JSON_KINDS = frozenset(
+    {Kind.HELLO, Kind.WELCOME, Kind.REQUEST, Kind.REPLY, Kind.EVENT, Kind.ACK, Kind.HEARTBEAT}
+)
 
 
 @dataclass(frozen=True)
@@ -100,6 +125,8 @@ def encode_frame(payload: bytes) -> bytes:
 
 def decode_frame(frame: bytes) -> bytes:
     """Unwrap one delimiter-free frame and check its CRC; return the payload."""
+    if len(frame) > FrameDecoder.MAX_ENCODED:
+        raise ProtocolError("frame longer than the largest valid frame")
     raw = cobs_decode(frame)
     if len(raw) < 5:
         raise ProtocolError("frame too short to hold a kind byte and a CRC")
@@ -116,7 +143,8 @@ class FrameDecoder:
     than any valid frame is dropped so a noisy line cannot grow memory without bound.
     """
 
-    _MAX_ENCODED = MAX_PAYLOAD_BYTES + 4 + (MAX_PAYLOAD_BYTES + 4) // 254 + 2
+    MAX_ENCODED = MAX_PAYLOAD_BYTES + 4 + (MAX_PAYLOAD_BYTES + 4) // 254 + 2
+    _MAX_ENCODED = MAX_ENCODED  # the name protocol v1 tests used
 
     def __init__(self) -> None:
         self._buffer = bytearray()
@@ -143,16 +171,280 @@ class FrameDecoder:
                 payloads.append(decode_frame(frame))
             except ProtocolError:
                 self.errors += 1
-        if len(self._buffer) > self._MAX_ENCODED:
+        if len(self._buffer) > self.MAX_ENCODED:
             self._buffer.clear()
             self._overflow = True
         return payloads
 
 
-# --- messages -------------------------------------------------------------------------
+# --- varints and Rice codes -------------------------------------------------------------
 
-_SEGMENT_HEAD = struct.Struct("<IBHHddI")
-_CHUNK_HEAD = struct.Struct("<III")
+
+def _put_varint(out: bytearray, value: int) -> None:
+    """Append an unsigned LEB128 varint."""
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+
+
+def _get_varint(data: bytes, at: int) -> tuple[int, int]:
+    """Return (value, next offset) of the u32 varint at ``at``."""
+    value = 0
+    for shift in range(0, 35, 7):
+        if at >= len(data):
+            raise ProtocolError("segment ends inside a varint")
+        byte = data[at]
+        at += 1
+        value |= (byte & 0x7F) << shift
+        if not byte & 0x80:
+            if value >= 2**32:
+                raise ProtocolError("varint exceeds 32 bits")
+            return value, at
+    raise ProtocolError("varint longer than 5 bytes")
+
+
+def _zigzag(values: np.ndarray) -> np.ndarray:
+    """Map signed integers to unsigned ones, small magnitudes to small codes."""
+    return (values << 1) ^ (values >> 63)
+
+
+def _unzigzag(codes: np.ndarray) -> np.ndarray:
+    """Invert :func:`_zigzag`."""
+    return (codes >> 1) ^ -(codes & 1)
+
+
+def _rice_parameters(values: np.ndarray) -> np.ndarray:
+    """Return the cheapest Rice parameter k of each block of ``values`` (int64, >= 0)."""
+    blocks = -(-len(values) // _RICE_BLOCK)
+    padded = np.zeros(blocks * _RICE_BLOCK, np.int64)
+    padded[: len(values)] = values
+    counts = np.full(blocks, _RICE_BLOCK)
+    if len(values) % _RICE_BLOCK:
+        counts[-1] = len(values) % _RICE_BLOCK
+    grid = padded.reshape(blocks, _RICE_BLOCK)
+    # Cost of block b with parameter k: sum(v >> k) unary bits + count * (1 + k) bits.
+    costs = np.stack([(grid >> k).sum(axis=1) + counts * (1 + k) for k in range(_RICE_MAX_K + 1)])
+    return np.argmin(costs, axis=0).astype(np.int64)
+
+
+def _rice_encode(fields: list[np.ndarray]) -> bytes:
+    """Rice-code non-negative integer fields; per block, unary and remainder parts apart.
+
+    Keeping all unary parts in one bit stream and all remainders in another lets the
+    decoder find every value with whole-array operations: the unary stream's one bits
+    are exactly the terminators.
+    """
+    ks_per_field = [_rice_parameters(f) for f in fields]
+    nibbles = np.concatenate([*ks_per_field, np.zeros(0, np.int64)])
+    values = np.concatenate([*fields, np.zeros(0, np.int64)])
+    k = np.concatenate(
+        [np.repeat(ks, _RICE_BLOCK)[: len(f)] for ks, f in zip(ks_per_field, fields, strict=True)]
+        + [np.zeros(0, np.int64)]
+    )
+    quotient = values >> k
+    unary = np.zeros(int((quotient + 1).sum()), np.uint8)
+    unary[np.cumsum(quotient + 1) - 1] = 1
+    remainder = values & ((1 << k) - 1)
+    starts = np.cumsum(k) - k
+    bits = np.zeros(int(k.sum()), np.uint8)
+    for j in range(_RICE_MAX_K):
+        take = j < k
+        bits[starts[take] + j] = (remainder[take] >> (k[take] - 1 - j)) & 1
+    if len(nibbles) % 2:
+        nibbles = np.append(nibbles, 0)
+    packed_k = (nibbles[0::2] << 4 | nibbles[1::2]).astype(np.uint8).tobytes()
+    unary_bytes = np.packbits(unary).tobytes()
+    out = bytearray(packed_k)
+    _put_varint(out, len(unary_bytes))
+    return bytes(out) + unary_bytes + np.packbits(bits).tobytes()
+
+
+def _rice_decode(data: bytes, at: int, lengths: list[int]) -> list[np.ndarray]:
+    """Invert :func:`_rice_encode` for fields of ``lengths`` values; the data must end there."""
+    blocks = [-(-n // _RICE_BLOCK) for n in lengths]
+    nibble_bytes = -(-sum(blocks) // 2)
+    if at + nibble_bytes > len(data):
+        raise ProtocolError("segment ends inside its Rice parameters")
+    packed = np.frombuffer(data, np.uint8, nibble_bytes, at).astype(np.int64)
+    nibbles = np.stack([packed >> 4, packed & 15], axis=1).ravel()[: sum(blocks)]
+    unary_len, at = _get_varint(data, at + nibble_bytes)
+    total = sum(lengths)
+    if at + unary_len > len(data) or 8 * unary_len < total:
+        raise ProtocolError("segment's unary stream does not fit its length")
+    unary = np.unpackbits(np.frombuffer(data, np.uint8, unary_len, at))
+    ends = np.flatnonzero(unary)
+    if len(ends) != total or (total and unary_len != ends[-1] // 8 + 1):
+        raise ProtocolError("segment's unary stream holds the wrong number of values")
+    quotient = np.diff(ends, prepend=-1).astype(np.int64) - 1
+    k_parts, start = [], 0
+    for n, b in zip(lengths, blocks, strict=True):
+        k_parts.append(np.repeat(nibbles[start : start + b], _RICE_BLOCK)[:n])
+        start += b
+    k = np.concatenate([*k_parts, np.zeros(0, np.int64)])
+    rest = data[at + unary_len :]
+    if len(rest) != -(-int(k.sum()) // 8):
+        raise ProtocolError("segment's remainder stream has the wrong length")
+    bits = np.unpackbits(np.frombuffer(rest, np.uint8)).astype(np.int64)
+    starts = np.cumsum(k) - k
+    remainder = np.zeros(total, np.int64)
+    for j in range(_RICE_MAX_K):
+        take = j < k
+        remainder[take] = (remainder[take] << 1) | bits[starts[take] + j]
+    values = (quotient << k) | remainder
+    return list(np.split(values, np.cumsum(lengths)[:-1]))
+
+
+# --- segments ---------------------------------------------------------------------------
+
+
+def quantise_rows(rows: np.ndarray) -> np.ndarray:
+    """Return stripe rows rounded to the wire's 1/ROW_SCALE px grid, as float32 (exact)."""
+    q = np.rint(np.asarray(rows, np.float64) * ROW_SCALE)
+    return (q / ROW_SCALE).astype(np.float32)
+
+
+def quantise_segment(segment: Segment) -> Segment:
+    """Return ``segment`` as it will arrive: rows on the wire's fixed-point grid.
+
+    The device applies this before it sends or buffers a segment, so a live scan, its
+    replay and every retransmission carry identical bits.
+    """
+    return replace(segment, rows=quantise_rows(segment.rows))
+
+
+_SEGMENT_HEAD = struct.Struct("<IIBHHddHIBB")
+"""request id, seq, target, section, view, z_mm, angle_deg, n, first row (1/64 px),
+first peak, first width."""
+
+
+def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
+    """Return the compact binary body of one SEGMENT message (see PROTOCOL.md).
+
+    Raises:
+        ProtocolError: if the segment cannot travel exactly (rows off the fixed-point
+            grid, columns not strictly increasing, too many points).
+    """
+    n = len(segment)
+    if n > MAX_SEGMENT_POINTS:
+        raise ProtocolError(f"segment of {n} points exceeds {MAX_SEGMENT_POINTS}")
+    cols = segment.cols.astype(np.int64)
+    if n and (np.any(np.diff(cols) <= 0) or cols[0] < 0 or cols[-1] > 65_535):
+        raise ProtocolError("segment columns must be strictly increasing u16 values")
+    scaled = segment.rows.astype(np.float64) * ROW_SCALE
+    rows_q = np.rint(scaled).astype(np.int64)
+    if np.any(rows_q != scaled) or np.any((rows_q < 0) | (rows_q >= _ROW_LIMIT_Q)):
+        raise ProtocolError("segment rows must be quantised (quantise_segment) and in range")
+    peak, width = segment.peak.astype(np.int64), segment.width.astype(np.int64)
+    firsts = (int(rows_q[0]), int(peak[0]), int(width[0])) if n else (0, 0, 0)
+    head = _SEGMENT_HEAD.pack(
+        request_id,
+        seq,
+        TARGETS.index(segment.target),
+        segment.section,
+        segment.view,
+        segment.z_mm,
+        segment.angle_deg,
+        n,
+        *firsts,
+    )
+    out = bytearray(head)
+    # Columns come in runs of neighbours: (gap before the run, run length - 1) pairs.
+    breaks = np.flatnonzero(np.diff(cols) != 1) + 1
+    run_starts = np.concatenate([[0], breaks]) if n else np.zeros(0, np.int64)
+    run_ends = np.concatenate([breaks, [n]]) if n else np.zeros(0, np.int64)
+    _put_varint(out, len(run_starts))
+    previous_end = 0
+    for s, e in zip(run_starts.tolist(), run_ends.tolist(), strict=True):
+        _put_varint(out, int(cols[s]) - previous_end)
+        _put_varint(out, e - s - 1)
+        previous_end = int(cols[e - 1]) + 1
+    fields = [_zigzag(np.diff(a)) for a in (rows_q, peak, width)] if n else []
+    return bytes(out) + (_rice_encode(fields) if n > 1 else b"")
+
+
+def encode_segment(request_id: int, seq: int, segment: Segment) -> bytes:
+    """Return the framed bytes of one SEGMENT message."""
+    return encode_frame(bytes([Kind.SEGMENT]) + encode_segment_body(request_id, seq, segment))
+
+
+@dataclass(frozen=True)
+class SegmentEvent:
+    """Segment ``seq`` (its index in the scan plan) sent while request ``request_id`` runs."""
+
+    request_id: int
+    seq: int
+    segment: Segment
+
+
+def _decode_columns(body: bytes, at: int, n: int) -> tuple[np.ndarray, int]:
+    """Return the segment's columns from their run-length form and the next offset."""
+    runs, at = _get_varint(body, at)
+    if runs > n or (n and not runs):
+        raise ProtocolError("segment has an impossible number of column runs")
+    starts: list[int] = []
+    lengths: list[int] = []
+    previous_end = count = 0
+    for _ in range(runs):
+        gap, at = _get_varint(body, at)
+        length, at = _get_varint(body, at)
+        start = previous_end + gap
+        previous_end = start + length + 1
+        count += length + 1
+        if (starts and gap == 0) or previous_end > 65_536 or count > n:
+            raise ProtocolError("segment column runs overlap or leave the u16 range")
+        starts.append(start)
+        lengths.append(length + 1)
+    if count != n:
+        raise ProtocolError("segment column runs do not add up to its point count")
+    cols = np.concatenate(
+        [np.arange(s, s + m, dtype=np.uint16) for s, m in zip(starts, lengths, strict=True)]
+        + [np.zeros(0, np.uint16)]
+    )
+    return cols, at
+
+
+def decode_segment_body(body: bytes) -> SegmentEvent:
+    """Invert :func:`encode_segment_body`; raise :class:`ProtocolError` if malformed."""
+    if len(body) < _SEGMENT_HEAD.size:
+        raise ProtocolError("segment message shorter than its header")
+    head = _SEGMENT_HEAD.unpack_from(body)
+    request_id, seq, target, section, view, z_mm, angle_deg, n, row0, peak0, width0 = head
+    if target >= len(TARGETS):
+        raise ProtocolError(f"unknown segment target code {target}")
+    if not (math.isfinite(z_mm) and math.isfinite(angle_deg)):
+        raise ProtocolError("segment with a non-finite height or angle")
+    cols, at = _decode_columns(body, _SEGMENT_HEAD.size, n)
+    if n > 1:
+        d_rows, d_peak, d_width = _rice_decode(body, at, [n - 1] * 3)
+    elif at != len(body) or (n == 0 and (row0 or peak0 or width0)):
+        raise ProtocolError("segment carries bytes after its last point")
+    else:
+        d_rows = d_peak = d_width = np.zeros(0, np.int64)
+    rows_q = np.cumsum(np.concatenate([[row0], _unzigzag(d_rows)]))[:n]
+    peak = np.cumsum(np.concatenate([[peak0], _unzigzag(d_peak)]))[:n]
+    width = np.cumsum(np.concatenate([[width0], _unzigzag(d_width)]))[:n]
+    if np.any((rows_q < 0) | (rows_q >= _ROW_LIMIT_Q)):
+        raise ProtocolError("segment row outside 0..65535 px")
+    if np.any((peak < 0) | (peak > 255) | (width < 0) | (width > 255)):
+        raise ProtocolError("segment peak or width outside 0..255")
+    segment = Segment(
+        TARGETS[target],
+        section,
+        view,
+        z_mm,
+        angle_deg,
+        cols,
+        (rows_q / ROW_SCALE).astype(np.float32),
+        peak.astype(np.uint8),
+        width.astype(np.uint8),
+    )
+    return SegmentEvent(request_id, seq, segment)
+
+
+# --- other messages ---------------------------------------------------------------------
+
+_CHUNK_HEAD = struct.Struct("<IIII")
 
 
 def encode_json(kind: Kind, body: dict[str, Any]) -> bytes:
@@ -163,94 +455,62 @@ def encode_json(kind: Kind, body: dict[str, Any]) -> bytes:
     return encode_frame(bytes([kind]) + text.encode())
 
 
-def encode_segment(request_id: int, segment: Segment) -> bytes:
-    """Return the framed bytes of one segment event (see PROTOCOL.md for the layout)."""
-    head = _SEGMENT_HEAD.pack(
-        request_id,
-        TARGETS.index(segment.target),
-        segment.section,
-        segment.view,
-        segment.z_mm,
-        segment.angle_deg,
-        len(segment),
-    )
-    body = b"".join(
-        (
-            head,
-            np.ascontiguousarray(segment.cols, dtype="<u2").tobytes(),
-            np.ascontiguousarray(segment.rows, dtype="<f4").tobytes(),
-            np.ascontiguousarray(segment.peak, dtype="u1").tobytes(),
-            np.ascontiguousarray(segment.width, dtype="u1").tobytes(),
-        )
-    )
-    return encode_frame(bytes([Kind.SEGMENT]) + body)
-
-
-def encode_chunk(request_id: int, offset: int, total: int, data: bytes) -> bytes:
-    """Return the framed bytes of one piece of a binary transfer."""
-    return encode_frame(bytes([Kind.CHUNK]) + _CHUNK_HEAD.pack(request_id, offset, total) + data)
+def encode_chunk(request_id: int, transfer: int, offset: int, total: int, data: bytes) -> bytes:
+    """Return the framed bytes of one piece of binary transfer ``transfer``."""
+    head = _CHUNK_HEAD.pack(request_id, transfer, offset, total)
+    return encode_frame(bytes([Kind.CHUNK]) + head + data)
 
 
 @dataclass(frozen=True)
 class Chunk:
-    """One piece of a binary transfer answering request ``request_id``."""
+    """Bytes ``offset..offset+len(data)`` of transfer ``transfer`` (``total`` bytes long)."""
 
     request_id: int
+    transfer: int
     offset: int
     total: int
     data: bytes
 
 
-@dataclass(frozen=True)
-class SegmentEvent:
-    """A segment sent while request ``request_id`` runs."""
-
-    request_id: int
-    segment: Segment
+def _reject_constant(name: str) -> Any:
+    raise ProtocolError(f"JSON constant {name} is not allowed")
 
 
-def _decode_segment(body: bytes) -> SegmentEvent:
-    if len(body) < _SEGMENT_HEAD.size:
-        raise ProtocolError("segment message shorter than its header")
-    req, target, section, view, z_mm, angle_deg, n = _SEGMENT_HEAD.unpack_from(body)
-    if target >= len(TARGETS):
-        raise ProtocolError(f"unknown segment target code {target}")
-    if len(body) != _SEGMENT_HEAD.size + 8 * n:
-        raise ProtocolError(f"segment of {n} points has {len(body)} bytes")
-    if not (np.isfinite(z_mm) and np.isfinite(angle_deg)):
-        raise ProtocolError("segment with a non-finite height or angle")
-    at = _SEGMENT_HEAD.size
-    cols = np.frombuffer(body, "<u2", n, at).astype(np.uint16)
-    rows = np.frombuffer(body, "<f4", n, at + 2 * n).astype(np.float32)
-    peak = np.frombuffer(body, "u1", n, at + 6 * n).copy()
-    width = np.frombuffer(body, "u1", n, at + 7 * n).copy()
-    segment = Segment(TARGETS[target], section, view, z_mm, angle_deg, cols, rows, peak, width)
-    return SegmentEvent(req, segment)
+def _decode_json(kind: Kind, body: bytes) -> Message:
+    try:
+        data = json.loads(body.decode(), parse_constant=_reject_constant)
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        # ValueError covers JSONDecodeError and integers too long to convert.
+        raise ProtocolError(f"{kind.name} body is not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ProtocolError(f"{kind.name} body must be a JSON object")
+    return Message(kind, data)
 
 
 def decode_message(payload: bytes) -> Message:
     """Decode a payload from :class:`FrameDecoder`; raise :class:`ProtocolError` if invalid."""
     if not payload:
         raise ProtocolError("empty payload")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise ProtocolError("payload longer than the protocol allows")
     try:
         kind = Kind(payload[0])
     except ValueError:
         raise ProtocolError(f"unknown message kind {payload[0]}") from None
     body = payload[1:]
     if kind in JSON_KINDS:
-        try:
-            data = json.loads(body.decode())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ProtocolError(f"{kind.name} body is not valid JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise ProtocolError(f"{kind.name} body must be a JSON object")
-        return Message(kind, data)
+        return _decode_json(kind, body)
     if kind is Kind.SEGMENT:
-        return Message(kind, _decode_segment(body))
+        return Message(kind, decode_segment_body(body))
     if len(body) < _CHUNK_HEAD.size:
         raise ProtocolError("chunk message shorter than its header")
-    req, offset, total = _CHUNK_HEAD.unpack_from(body)
+    request_id, transfer, offset, total = _CHUNK_HEAD.unpack_from(body)
     data = body[_CHUNK_HEAD.size :]
-    if offset + len(data) > total:
-        raise ProtocolError("chunk runs past the transfer's declared size")
-    return Message(kind, Chunk(req, offset, total, data))
+    if total > MAX_TRANSFER_BYTES or offset + len(data) > total:
+        raise ProtocolError("chunk runs past its transfer's size or the transfer limit")
+    return Message(kind, Chunk(request_id, transfer, offset, total, data))
+
+
+def segment_bytes_per_point(segment: Segment) -> float:
+    """Return the framed wire size of ``segment`` divided by its point count."""
+    return len(encode_segment(0, 0, quantise_segment(segment))) / max(1, len(segment))

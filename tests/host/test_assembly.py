@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lamina_host.assembly import average_overlaps, to_object_frame, trim
+from lamina_host.assembly import average_overlaps, split_outlines, to_object_frame, trim
 
 R = 9.525
 
@@ -100,3 +100,25 @@ def test_average_overlaps_two_arcs_meet_halfway() -> None:
     assert np.allclose(
         np.sort(np.hypot(*(single - a.mean(0)).T)), np.sort(np.hypot(*(a - a.mean(0)).T))
     )
+
+
+def test_split_outlines_separates_two_legs() -> None:
+    """Two circles 6 mm apart split into two outlines; each piece keeps its own segment."""
+    t = np.deg2rad(np.linspace(-80.0, 80.0, 200))
+    left = np.stack([-10.0 + 7.0 * np.cos(t + np.pi), 7.0 * np.sin(t + np.pi)], axis=1)
+    right = np.stack([10.0 + 7.0 * np.cos(t), 7.0 * np.sin(t)], axis=1)
+    across = np.concatenate([left[:50], right[:50]])  # one stripe crossing both legs
+    outlines = split_outlines([left, right, across], gap_mm=2.0)
+    assert len(outlines) == 2
+    sizes = sorted(sum(len(p) for p in pieces) for pieces in outlines)
+    assert sizes == [250, 250]
+    for pieces in outlines:
+        xs = np.concatenate(pieces)[:, 0]
+        assert np.all(np.sign(xs) == np.sign(xs[0]))  # never mixes the legs
+        assert len(pieces) == 2
+    # One closed outline stays whole; stray points are dropped.
+    ring = 9.0 * np.stack([np.cos(t * 2), np.sin(t * 2)], axis=1)
+    stray = np.array([[40.0, 40.0], [40.1, 40.0]])
+    assert [len(o) for o in split_outlines([ring, stray], gap_mm=2.0)] == [1]
+    with pytest.raises(ValueError):
+        split_outlines([ring], gap_mm=0.0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lamina_host.assembly import trim
-from lamina_host.axis import find_axis, fit_circle
+from lamina_host.axis import find_axis, find_axis_joint, fit_circle
 from lamina_host.calibration import CalibrationError
 
 R_CYL = 9.525  # thesis test cylinder, 19.05 mm diameter
@@ -120,3 +120,60 @@ def test_find_axis_needs_three_arcs() -> None:
         find_axis(arcs[:2], 2 * R_CYL)
     with pytest.raises(CalibrationError, match="diameter"):
         find_axis(arcs, -1.0)
+
+
+def world_arcs(
+    axis: tuple[float, float],
+    offset: tuple[float, float],
+    r: float,
+    angles_deg: list[float],
+    scale: float,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
+    """Camera-facing arcs of a cylinder at object-frame ``offset``, turned to each angle.
+
+    The turntable really turns ``scale`` x the commanded angle (undershoot when < 1).
+    """
+    arcs = []
+    for angle in angles_deg:
+        th = np.deg2rad(scale * angle)
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        centre = np.asarray(axis) + rot @ np.asarray(offset)
+        arcs.append(trim(arc(tuple(centre), r, -170.0, 160.0, 300, 0.02, rng)))
+    return arcs
+
+
+def test_joint_fit_beats_centroid_on_uneven_views() -> None:
+    """Five views over half a turn: the centroid of arc centres is off, the joint fit is not."""
+    axis, offset = (-3.2, 41.7), (1.5, -0.8)
+    angles = [0.0, 45.0, 90.0, 135.0, 180.0]
+    arcs = world_arcs(axis, offset, R_CYL, angles, 1.0, np.random.default_rng(7))
+    joint = find_axis_joint(arcs, angles, 2 * R_CYL)
+    thesis = find_axis(arcs, 2 * R_CYL)
+    err_joint = np.hypot(*(np.asarray(joint.axis_xy_mm) - axis))
+    err_thesis = np.hypot(*(np.asarray(thesis.axis_xy_mm) - axis))
+    print(f"uneven views: joint axis error {err_joint:.4f} mm, centroid {err_thesis:.4f} mm")
+    assert err_joint < 0.01 < 0.5 < err_thesis
+    assert np.allclose(joint.cylinder_offset_mm, offset, atol=0.01)
+    assert joint.correction_factor == pytest.approx(1.0, abs=5e-4)
+    assert joint.method == "joint" and joint.to_dict()["method"] == "joint"
+
+
+def test_joint_fit_recovers_turntable_undershoot() -> None:
+    """0.2 degrees undershoot per 45 degrees is measured from an off-centre cylinder."""
+    axis, offset = (0.6, -0.4), (3.0, -1.5)
+    angles = [45.0 * k for k in range(8)]
+    scale = 1.0 - 0.2 / 45.0
+    arcs = world_arcs(axis, offset, R_CYL, angles, scale, np.random.default_rng(8))
+    cal = find_axis_joint(arcs, angles, 2 * R_CYL, fit_angle_scale=True)
+    undershoot = cal.to_dict()["undershoot_deg_per_45"]
+    print(f"undershoot {undershoot:.4f} deg per 45 deg (true 0.2)")
+    assert undershoot == pytest.approx(0.2, abs=0.03)
+    assert cal.true_angle_deg(315.0) == pytest.approx(315.0 * cal.angle_scale)
+    assert np.hypot(*(np.asarray(cal.axis_xy_mm) - axis)) < 0.01
+    # A centred cylinder cannot show the angle: the scale is left at 1 with a warning.
+    centred = world_arcs(axis, (0.1, 0.0), R_CYL, angles, scale, np.random.default_rng(9))
+    cal = find_axis_joint(centred, angles, 2 * R_CYL, fit_angle_scale=True)
+    assert cal.angle_scale == 1.0 and any("off-centre" in w for w in cal.warnings)
+    with pytest.raises(CalibrationError, match="one turntable angle per"):
+        find_axis_joint(arcs, angles[:-1], 2 * R_CYL)

@@ -6,12 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
+from lamina_device.sim import Rig, SimScene
 from lamina_host.calibration import (
     CalibrationError,
     Homography,
+    analytical_homography,
     calibrate_grid,
     dlt_homography,
     find_corners,
+    fit_plane_map,
+    ml_homography,
+    outer_corners,
+    reprojection_px,
 )
 from lamina_shared.types import BoardSpec
 
@@ -210,3 +216,122 @@ def test_calibrate_grid_warns_on_few_corners() -> None:
     cal = calibrate_grid(render_board(board, camera_homography(board)), board)
     assert cal.n_corners == 12
     assert any("at least 20" in w for w in cal.warnings)
+
+
+def test_pixel_centre_convention_on_the_simulators_board() -> None:
+    """Corners found on the simulator's rendered board sit where Rig.project puts them.
+
+    Pixel (col, row) has its centre at u = col, v = row in both the renderer and OpenCV's
+    corner detector; a half-pixel convention slip would show as a 0.5 px mean offset.
+    """
+    rig = Rig()
+    image = SimScene(rig).render("grid", 0.0, 0.0, False)
+    found = find_corners(image, rig.board)
+    world = rig.board.world_corners()
+    truth = rig.project(np.column_stack([world, np.zeros(len(world))]))
+    offset = (found - truth).mean(axis=0)
+    rms = float(np.sqrt(np.mean(np.sum((found - truth) ** 2, axis=1))))
+    print(f"sim board: mean offset {offset} px, rms {rms:.4f} px")
+    assert np.all(np.abs(offset) < 0.02)
+    assert rms < 0.1
+    cal = calibrate_grid(image, rig.board)
+    # The fitted map agrees with the true back-projection to a few micrometres.
+    probe = truth + np.array([3.0, -2.0])
+    assert np.abs(cal.homography.apply(probe) - rig.backproject_to_plane(probe)).max() < 0.005
+    assert cal.method == "ml" and cal.rejected == [] and cal.warnings == ()
+
+
+def test_analytical_four_points_exact_and_refuses_other_counts() -> None:
+    """The thesis' 4-point method reproduces H exactly and takes exactly 4 pairs."""
+    image, world = _grid_points()
+    idx = outer_corners(world)
+    assert sorted(idx.tolist()) == [0, 8, 54, 62]
+    h = analytical_homography(image[idx], world[idx])
+    assert np.allclose(h.matrix, H_TRUE, rtol=1e-8, atol=1e-11)
+    with pytest.raises(CalibrationError, match="exactly 4"):
+        analytical_homography(image[:5], world[:5])
+    with pytest.raises(CalibrationError, match="collinear"):
+        analytical_homography(image[[0, 1, 2, 62]], world[[0, 1, 2, 62]])
+
+
+def test_ml_exact_and_beats_dlt_on_average() -> None:
+    """ML is exact without noise and, on the same noisy corners, closer to truth than the DLT."""
+    image, world = _grid_points()
+    assert np.allclose(ml_homography(image, world).matrix, H_TRUE, rtol=1e-8, atol=1e-11)
+    rng = np.random.default_rng(11)
+    probe = image[outer_corners(world)]
+    truth = world[outer_corners(world)]
+    dlt_err, ml_err = [], []
+    for _ in range(100):
+        noisy = image + rng.normal(0.0, 1.5, image.shape)
+        dlt_err.append(np.linalg.norm(dlt_homography(noisy, world).apply(probe) - truth, axis=1))
+        ml_err.append(np.linalg.norm(ml_homography(noisy, world).apply(probe) - truth, axis=1))
+    print(f"1.5 px noise: DLT {np.mean(dlt_err):.4f} mm, ML {np.mean(ml_err):.4f} mm")
+    assert np.mean(ml_err) < np.mean(dlt_err)
+    # ML minimises reprojection error, so its image residuals are never larger.
+    noisy = image + rng.normal(0.0, 1.5, image.shape)
+    ml_rms = np.sqrt(np.mean(reprojection_px(ml_homography(noisy, world), noisy, world) ** 2))
+    dlt_rms = np.sqrt(np.mean(reprojection_px(dlt_homography(noisy, world), noisy, world) ** 2))
+    assert ml_rms <= dlt_rms + 1e-9
+
+
+def test_misdetected_corners_are_rejected() -> None:
+    """Three corners moved by several pixels are rejected; the fit ignores them."""
+    image, world = _grid_points()
+    rng = np.random.default_rng(12)
+    noisy = image + rng.normal(0.0, 0.05, image.shape)
+    bad = [5, 30, 47]
+    noisy[bad] += np.array([[6.0, -4.0], [-3.0, 9.0], [12.0, 0.0]])
+    h, used = fit_plane_map(noisy, world, "ml")
+    assert np.flatnonzero(~used).tolist() == bad
+    probe = image[outer_corners(world)]
+    err = np.linalg.norm(h.apply(probe) - world[outer_corners(world)], axis=1).max()
+    naive = np.linalg.norm(
+        dlt_homography(noisy, world).apply(probe) - world[outer_corners(world)], axis=1
+    ).max()
+    print(f"with 3 outliers: robust ML {err:.4f} mm, plain DLT {naive:.4f} mm")
+    assert err < 0.01 < naive
+    # Without outliers nothing is rejected, even with realistic detector noise.
+    _, used = fit_plane_map(image + rng.normal(0.0, 0.05, image.shape), world, "ml")
+    assert used.all()
+
+
+def test_division_distortion_estimated_jointly() -> None:
+    """Corners seen through a division-model lens give back k, and the map undoes it."""
+    rig = Rig()
+    world = rig.board.world_corners()
+    ideal = rig.project(np.column_stack([world, np.zeros(len(world))]))
+    centre = np.array(rig.principal_point_px)
+    radius = float(np.linalg.norm(ideal - centre, axis=1).max())
+    k_true = -0.01  # barrel: about 3 px at the board's far corner
+    # Distort by inverting u = c + d / (1 + k |d|^2 / R^2) with a fixed-point iteration.
+    distorted = ideal.copy()
+    for _ in range(50):
+        d = distorted - centre
+        distorted = centre + (ideal - centre) * (
+            1.0 + k_true * np.sum(d * d, 1, keepdims=True) / radius**2
+        )
+    rng = np.random.default_rng(13)
+    noisy = distorted + rng.normal(0.0, 0.03, distorted.shape)
+    plain, _ = fit_plane_map(noisy, world, "ml", centre_px=tuple(centre))
+    lens, used = fit_plane_map(noisy, world, "ml", distortion=True, centre_px=tuple(centre))
+    assert used.all()
+    k = lens.division_k * (radius / lens.radius_px) ** 2
+    err_plain = np.linalg.norm(plain.apply(distorted) - world, axis=1).max()
+    err_lens = np.linalg.norm(lens.apply(distorted) - world, axis=1).max()
+    print(f"division k {k:.5f} (true {k_true}); max error {err_plain:.4f} -> {err_lens:.4f} mm")
+    assert k == pytest.approx(k_true, rel=0.05)
+    assert err_lens < 0.005 < err_plain
+
+
+def test_calibrate_grid_methods_and_bad_method() -> None:
+    """Every method calibrates the rendered board; an unknown method is one clear error."""
+    h = camera_homography(BOARD)
+    image = render_board(BOARD, h)
+    results = {m: calibrate_grid(image, BOARD, method=m) for m in ("ml", "dlt", "analytical")}
+    assert results["analytical"].n_corners == 4
+    assert any("at least 20" in w for w in results["analytical"].warnings)
+    for m, cal in results.items():
+        assert cal.to_dict()["method"] == m and cal.rms_mm < 0.02, m
+    with pytest.raises(CalibrationError, match="unknown calibration method"):
+        calibrate_grid(image, BOARD, method="magic")

@@ -6,8 +6,17 @@ from pathlib import Path
 
 import numpy as np
 import pymeshlab
+import pytest
 
-from lamina_host.mesh import ball_pivoting, contour_normals, save_ply, topology
+from lamina_host.mesh import (
+    ball_pivoting,
+    contour_normals,
+    save_ply,
+    screened_poisson,
+    signed_volume,
+    topology,
+    tube_mesh,
+)
 
 R = 9.525
 
@@ -65,3 +74,26 @@ def test_save_ply_round_trip(tmp_path: Path) -> None:
     m = ms.current_mesh()
     assert m.vertex_number() == len(verts) and m.face_number() == len(faces)
     assert np.array_equal(m.face_matrix(), faces)
+
+
+def test_tube_mesh_is_closed_manifold_and_outward() -> None:
+    """Rings joined and capped: watertight, 2-manifold, genus 0, the cylinder's volume."""
+    rings = np.stack([ring(200)] * 4)
+    verts, faces = tube_mesh(rings, np.array([0.0, 2.0, 4.0, 6.0]))
+    topo = topology(verts, faces)
+    print(f"tube mesh: {topo}")
+    assert topo["watertight"] and topo["two_manifold"] and topo["genus"] == 0
+    assert topo["components"] == 1 and topo["non_manifold_edges"] == 0
+    # Positive volume means every face points outward; 200-gon area is 0.05 % under pi R^2.
+    assert topo["volume_mm3"] == pytest.approx(np.pi * R**2 * 6.0, rel=1e-3)
+    assert signed_volume(verts, faces[:, ::-1]) < 0
+
+
+def test_screened_poisson_closes_the_stack() -> None:
+    """Screened Poisson turns the four rings into a closed surface near the cylinder."""
+    pts, nrm = stacked_cylinder()
+    verts, faces = screened_poisson(pts, nrm, depth=6)
+    assert len(faces) > 100
+    radial = np.hypot(verts[:, 0], verts[:, 1])
+    mid = (verts[:, 2] > 1.0) & (verts[:, 2] < 5.0)
+    assert np.abs(radial[mid] - R).max() < 0.5

@@ -1,10 +1,13 @@
 """Frames, COBS, CRC and message encodings of the link protocol."""
 
+import json
+
 import numpy as np
 import pytest
 
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
+    ROW_SCALE,
     Chunk,
     FrameDecoder,
     Kind,
@@ -18,22 +21,30 @@ from lamina_shared.protocol import (
     encode_frame,
     encode_json,
     encode_segment,
+    quantise_segment,
 )
 from lamina_shared.types import Segment
 
 
-def make_segment(n: int = 640) -> Segment:
+def make_segment(n: int = 640, noise_px: float = 0.15) -> Segment:
+    """A stripe across ``n`` columns: a smooth curve, speckle-like scatter, varying peaks."""
     rng = np.random.default_rng(1)
-    return Segment(
-        "object",
-        3,
-        5,
-        6.0,
-        225.0,
-        np.arange(n, dtype=np.uint16),
-        rng.uniform(0, 479, n).astype(np.float32),
-        rng.integers(0, 256, n).astype(np.uint8),
-        rng.integers(1, 20, n).astype(np.uint8),
+    cols = np.arange(n)
+    rows = 240 + 60 * np.sin(cols / 150) + rng.normal(0, noise_px, n)
+    peak = np.clip(150 + 40 * np.sin(cols / 40) + rng.normal(0, 20, n), 0, 255)
+    width = np.clip(5 + rng.normal(0, 1.2, n), 1, 20)
+    return quantise_segment(
+        Segment(
+            "object",
+            3,
+            5,
+            6.0,
+            225.0,
+            cols.astype(np.uint16),
+            rows.astype(np.float32),
+            peak.astype(np.uint8),
+            width.astype(np.uint8),
+        )
     )
 
 
@@ -81,8 +92,8 @@ def test_decoder_drops_oversized_runs_without_growing():
     for _ in range(40):
         assert decoder.feed(b"\x01" * 4096) == []
     assert len(decoder._buffer) <= FrameDecoder._MAX_ENCODED
-    payloads = decoder.feed(b"\x00" + encode_json(Kind.HELLO, {"protocol": 1}))
-    assert [decode_message(p).body for p in payloads] == [{"protocol": 1}]
+    payloads = decoder.feed(b"\x00" + encode_json(Kind.HELLO, {"protocol": 2}))
+    assert [decode_message(p).body for p in payloads] == [{"protocol": 2}]
 
 
 def test_payload_limit_is_enforced_on_encode():
@@ -90,29 +101,77 @@ def test_payload_limit_is_enforced_on_encode():
         encode_frame(bytes(MAX_PAYLOAD_BYTES + 1))
 
 
+def decode(frame: bytes):
+    return decode_message(decode_frame(frame[1:-1]))
+
+
 def test_segment_round_trip_is_bit_exact():
     segment = make_segment()
-    message = decode_message(decode_frame(encode_segment(42, segment)[1:-1]))
+    message = decode(encode_segment(42, 17, segment))
     assert message.kind is Kind.SEGMENT
     assert isinstance(message.body, SegmentEvent)
-    assert message.body.request_id == 42
+    assert (message.body.request_id, message.body.seq) == (42, 17)
     assert message.body.segment.same_as(segment)
 
 
+@pytest.mark.parametrize("n", [0, 1, 2, 31, 32, 33, 500])
+def test_segments_of_any_length_and_gappy_columns_round_trip(n):
+    full = make_segment(3 * n + 3)
+    keep = np.sort(np.random.default_rng(n).choice(len(full), n, replace=False))
+    segment = Segment("cylinder", 0, 1, 0.5, -45.0, *(getattr(full, f)[keep] for f in SEG_FIELDS))
+    assert decode(encode_segment(1, 2, segment)).body.segment.same_as(segment)
+
+
+SEG_FIELDS = ("cols", "rows", "peak", "width")
+
+
+def test_full_width_segment_fits_in_one_and_a_half_kilobytes():
+    # 0.15 px scatter is what the simulated rig's speckle gives (see bench_link).
+    frame = encode_segment(1, 0, make_segment(640))
+    assert len(frame) <= 1536, len(frame)
+
+
+def test_rows_are_fixed_point_at_one_sixty_fourth_pixel():
+    raw = make_segment(8)
+    rows = raw.rows + np.float32(0.3 / ROW_SCALE)  # off the grid
+    off_grid = Segment("object", 0, 0, 0.0, 0.0, raw.cols, rows, raw.peak, raw.width)
+    with pytest.raises(ProtocolError, match="quantise"):
+        encode_segment(1, 0, off_grid)
+    on_grid = quantise_segment(off_grid)
+    assert np.max(np.abs(on_grid.rows - rows)) <= 0.5 / ROW_SCALE
+    assert np.array_equal(on_grid.rows * ROW_SCALE, np.rint(on_grid.rows * ROW_SCALE))
+
+
 def test_segment_with_wrong_length_is_a_protocol_error():
-    payload = decode_frame(encode_segment(1, make_segment(10))[1:-1])
+    payload = decode_frame(encode_segment(1, 0, make_segment(10))[1:-1])
+    for cut in (1, 5, len(payload) - 40):
+        with pytest.raises(ProtocolError):
+            decode_message(payload[:-cut])
     with pytest.raises(ProtocolError):
-        decode_message(payload[:-1])
+        decode_message(payload + b"\x00")
 
 
 def test_chunk_round_trip_and_bounds():
-    message = decode_message(decode_frame(encode_chunk(7, 4096, 5000, b"abc")[1:-1]))
-    assert message.body == Chunk(7, 4096, 5000, b"abc")
+    message = decode(encode_chunk(7, 2, 4096, 5000, b"abc"))
+    assert message.body == Chunk(7, 2, 4096, 5000, b"abc")
     with pytest.raises(ProtocolError):
-        decode_message(decode_frame(encode_chunk(7, 4999, 5000, b"abc")[1:-1]))
+        decode(encode_chunk(7, 2, 4999, 5000, b"abc"))
+    with pytest.raises(ProtocolError):
+        decode(encode_chunk(7, 2, 0, 2**32 - 1, b"abc"))  # beyond the transfer limit
 
 
-@pytest.mark.parametrize("payload", [b"", b"\x63{}", b"\x03not json", b"\x03[1, 2]"])
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"",
+        b"\x63{}",
+        b"\x03not json",
+        b"\x03[1, 2]",
+        b'\x03{"x": NaN}',
+        b"\x03" + b"[" * 100_000,
+        b'\x03{"x": ' + b"9" * 5000 + b"}",
+    ],
+)
 def test_bad_messages_raise_protocol_error(payload):
     with pytest.raises(ProtocolError):
         decode_message(payload)
@@ -121,3 +180,11 @@ def test_bad_messages_raise_protocol_error(payload):
 def test_json_encoding_refuses_non_finite_numbers():
     with pytest.raises(ValueError):
         encode_json(Kind.EVENT, {"x": float("nan")})
+
+
+def test_json_kinds_round_trip():
+    for kind in (Kind.ACK, Kind.HEARTBEAT, Kind.REQUEST):
+        body = {"id": 3, "seqs": [1, 2], "note": "é"}
+        assert decode(encode_json(kind, body)) == decode_message(
+            bytes([kind]) + json.dumps(body).encode()
+        )

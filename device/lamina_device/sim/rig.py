@@ -16,7 +16,10 @@ import numpy as np
 
 from lamina_shared.types import BoardSpec
 
-__all__ = ["Rig"]
+__all__ = ["RIG_PRESETS", "Rig"]
+
+RIG_PRESETS = ("thesis", "limb")
+"""Named rig geometries: ``Rig.preset(name)``."""
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,35 @@ class Rig:
     board: BoardSpec = BoardSpec((9, 7), 3.0, (-12.0, -9.0))  # noqa: RUF009 (frozen, shared safely)
     cylinder_diameter_mm: float = 19.05
     cylinder_offset_mm: tuple[float, float] = (1.5, -0.8)
+
+    @classmethod
+    def limb(cls) -> Rig:
+        """Return a limb-scale rig: objects up to ~150 mm across, 1536x864 camera.
+
+        Camera Module 3 binned mode (1536x864, ~1700 px focal length with the stock lens)
+        300 mm from the axis, 30 degrees above the sheet: ~270 mm across the image at the
+        axis. The laser fan, board and cylinder grow with it (a 60 mm pipe as cylinder).
+        """
+        return cls(
+            image_size=(1536, 864),
+            focal_px=1700.0,
+            camera_distance_mm=300.0,
+            axis_xy_mm=(2.0, -1.5),
+            laser_source_xy_mm=(60.0, -340.0),
+            laser_sigma_mm=0.5,
+            board=BoardSpec((13, 9), 12.0, (-72.0, -48.0)),
+            cylinder_diameter_mm=60.0,
+            cylinder_offset_mm=(10.0, -6.0),
+        )
+
+    @classmethod
+    def preset(cls, name: str) -> Rig:
+        """Return the rig named ``name`` (one of ``RIG_PRESETS``)."""
+        if name == "thesis":
+            return cls()
+        if name == "limb":
+            return cls.limb()
+        raise ValueError(f"unknown rig {name!r}; use one of {', '.join(RIG_PRESETS)}")
 
     @property
     def principal_point_px(self) -> tuple[float, float]:

@@ -1,0 +1,337 @@
+"""The scanner box's configuration: one TOML file with pins, mechanics, camera and safety.
+
+The file is validated as a whole before anything moves, and every problem is listed
+at once (unknown key, missing value, wrong type, value out of range, a pin used
+twice), because a wrong steps-per-revolution or a swapped pin silently distorts
+scans or drives the wrong motor. The schema is the dataclasses below: each field's
+type annotation is the expected TOML type and its metadata the allowed range.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+DEFAULT_CONFIG_NAME = "default_config.toml"
+BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
+MICROSTEPS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+
+
+class ConfigError(ValueError):
+    """The configuration file is unusable; ``problems`` lists everything wrong with it."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = problems
+        count = f"{len(problems)} problem" + ("s" if len(problems) != 1 else "")
+        super().__init__(f"config {source}: {count}: " + "; ".join(problems))
+
+
+def _spec(
+    low: float | None = None,
+    high: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+    pin: bool = False,
+) -> Any:
+    """Declare a required config value with its allowed range (dataclass field metadata)."""
+    return field(metadata={"low": low, "high": high, "choices": choices, "pin": pin})
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """The laser diode's switching transistor."""
+
+    pin: int = _spec(pin=True)
+    active_high: bool = _spec()
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """Pins and motor data shared by both step/dir stepper axes."""
+
+    step_pin: int = _spec(pin=True)
+    dir_pin: int = _spec(pin=True)
+    enable_pin: int = _spec(pin=True)
+    # A4988, DRV8825 and TMC2209 enable on a low EN line.
+    enable_active_high: bool = _spec()
+    # Which DIR level moves the axis the positive way (counter-clockwise, or up).
+    dir_high_positive: bool = _spec()
+    full_steps_per_rev: int = _spec(1, 10_000)
+    microsteps: int = _spec(choices=MICROSTEPS)
+    settle_s: float = _spec(0.0, 10.0)
+
+
+@dataclass(frozen=True)
+class TurntableConfig(DriverConfig):
+    """The turntable: ``gear_ratio`` motor turns per table turn."""
+
+    gear_ratio: float = _spec(0.01, 1000.0)
+    start_speed_deg_s: float = _spec(0.01, 3600.0)
+    max_speed_deg_s: float = _spec(0.01, 3600.0)
+    accel_deg_s2: float = _spec(0.01, 100_000.0)
+    backlash_deg: float = _spec(0.0, 30.0)
+
+
+@dataclass(frozen=True)
+class LiftConfig(DriverConfig):
+    """The lift: a lead screw (``lead_mm`` per screw turn) behind ``gear_ratio``."""
+
+    gear_ratio: float = _spec(0.01, 1000.0)
+    lead_mm: float = _spec(0.01, 100.0)
+    start_speed_mm_s: float = _spec(0.001, 200.0)
+    max_speed_mm_s: float = _spec(0.001, 200.0)
+    accel_mm_s2: float = _spec(0.001, 10_000.0)
+    min_mm: float = _spec(-1000.0, 1000.0)
+    max_mm: float = _spec(-1000.0, 1000.0)
+    # The height at which the limit switch trips; the lift homes down onto it.
+    home_mm: float = _spec(-1000.0, 1000.0)
+    homing_speed_mm_s: float = _spec(0.001, 50.0)
+    # How far above home to leave the fast move and creep onto the switch.
+    homing_slow_zone_mm: float = _spec(0.0, 100.0)
+    limit_pin: int = _spec(pin=True)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Camera backend and fixed exposure."""
+
+    backend: str = _spec(choices=("picamera2",))
+    width: int = _spec(64, 4608)
+    height: int = _spec(48, 3456)
+    exposure_us: int = _spec(10, 1_000_000)
+    gain: float = _spec(1.0, 16.0)
+    frame_duration_us: int = _spec(1000, 1_000_000)
+    buffer_count: int = _spec(2, 8)
+    timeout_s: float = _spec(0.05, 30.0)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Automatic laser shut-off (thesis appendix A)."""
+
+    laser_max_on_s: float = _spec(0.01, 60.0)
+    link_silence_s: float = _spec(0.1, 3600.0)
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    """The printed calibration chessboard lying in the laser plane."""
+
+    inner_corners: tuple[int, int] = _spec(2, 100)
+    square_mm: float = _spec(0.1, 100.0)
+    origin_mm: tuple[float, float] = _spec(-1000.0, 1000.0)
+
+
+@dataclass(frozen=True)
+class CylinderConfig:
+    """The calibration cylinder."""
+
+    diameter_mm: float = _spec(1.0, 500.0)
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """The default scans the device offers the host."""
+
+    sections: int = _spec(1, 10_000)
+    pitch_mm: float = _spec(0.01, 100.0)
+    views: int = _spec(1, 360)
+    cylinder_views: int = _spec(1, 360)
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """The whole configuration file, one field per TOML table."""
+
+    laser: LaserConfig
+    turntable: TurntableConfig
+    lift: LiftConfig
+    camera: CameraConfig
+    safety: SafetyConfig
+    board: BoardConfig
+    cylinder: CylinderConfig
+    plan: PlanConfig
+
+
+def default_config_path() -> Path:
+    """Return the configuration shipped with the package (matches hardware/ wiring)."""
+    return Path(str(resources.files("lamina_device") / DEFAULT_CONFIG_NAME))
+
+
+def _type_name(kind: Any) -> str:
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+    if typing.get_origin(kind) is tuple:
+        item = {int: "integers", float: "numbers"}[typing.get_args(kind)[0]]
+        return f"a list of {len(typing.get_args(kind))} {item}"
+    return names[kind]
+
+
+def _convert_scalar(value: Any, kind: Any) -> Any:
+    """Return ``value`` as ``kind`` or raise TypeError (ints are accepted as floats)."""
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+    elif kind is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif kind is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+    elif kind is str and isinstance(value, str):
+        return value
+    raise TypeError
+
+
+def _convert(value: Any, kind: Any) -> Any:
+    if typing.get_origin(kind) is tuple:
+        items = typing.get_args(kind)
+        if not isinstance(value, list) or len(value) != len(items):
+            raise TypeError
+        return tuple(_convert_scalar(v, k) for v, k in zip(value, items, strict=True))
+    return _convert_scalar(value, kind)
+
+
+def _range_problem(value: Any, meta: dict[str, Any]) -> str | None:
+    """Return why ``value`` is outside the field's allowed values, or None."""
+    if meta["choices"] is not None and value not in meta["choices"]:
+        return f"{value!r} is not one of {', '.join(map(repr, meta['choices']))}"
+    if meta["pin"] and value not in BCM_PINS:
+        return f"{value} is not a GPIO pin number (BCM 0..27)"
+    numbers = value if isinstance(value, tuple) else (value,)
+    low, high = meta["low"], meta["high"]
+    for number in numbers:
+        if isinstance(number, float) and not math.isfinite(number):
+            return f"{number} is not a finite number"
+        if isinstance(number, bool) or low is None:
+            continue
+        if not low <= number <= high:
+            return f"{value} is outside {low:g}..{high:g}"
+    return None
+
+
+def _build_table(cls: type, name: str, table: Any, problems: list[str]) -> Any:
+    """Return ``cls`` built from one TOML table, appending every problem found."""
+    if not isinstance(table, dict):
+        problems.append(f"[{name}]: expected a table of settings")
+        return None
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in fields(cls)}
+    problems.extend(f"[{name}] {key}: unknown key" for key in table if key not in known)
+    values: dict[str, Any] = {}
+    for key, spec in known.items():
+        if key not in table:
+            problems.append(f"[{name}] {key}: missing value ({_type_name(hints[key])})")
+            continue
+        try:
+            value = _convert(table[key], hints[key])
+        except TypeError:
+            problems.append(
+                f"[{name}] {key}: expected {_type_name(hints[key])}, got {table[key]!r}"
+            )
+            continue
+        why = _range_problem(value, dict(spec.metadata))
+        if why is not None:
+            problems.append(f"[{name}] {key}: {why}")
+            continue
+        values[key] = value
+    return cls(**values) if len(values) == len(known) else None
+
+
+def _pin_problems(data: dict[str, Any]) -> list[str]:
+    """Return one problem per GPIO pin claimed by more than one setting."""
+    owners: dict[int, list[str]] = {}
+    for cls_field in fields(DeviceConfig):
+        table = data.get(cls_field.name)
+        if not isinstance(table, dict):
+            continue
+        for spec in fields(typing.get_type_hints(DeviceConfig)[cls_field.name]):
+            value = table.get(spec.name)
+            if spec.metadata["pin"] and isinstance(value, int) and not isinstance(value, bool):
+                owners.setdefault(value, []).append(f"[{cls_field.name}] {spec.name}")
+    return [
+        f"GPIO{pin} is used twice: by {' and '.join(users)}"
+        for pin, users in sorted(owners.items())
+        if len(users) > 1
+    ]
+
+
+def _consistency_problems(config: DeviceConfig) -> list[str]:
+    """Return problems that involve more than one value."""
+    problems = []
+    lift, table, camera = config.lift, config.turntable, config.camera
+    if lift.min_mm >= lift.max_mm:
+        problems.append(f"[lift] min_mm {lift.min_mm} must be below max_mm {lift.max_mm}")
+    if lift.home_mm > lift.min_mm:
+        problems.append(f"[lift] home_mm {lift.home_mm} must not be above min_mm {lift.min_mm}")
+    if lift.start_speed_mm_s > lift.max_speed_mm_s:
+        problems.append("[lift] start_speed_mm_s must not exceed max_speed_mm_s")
+    if table.start_speed_deg_s > table.max_speed_deg_s:
+        problems.append("[turntable] start_speed_deg_s must not exceed max_speed_deg_s")
+    if camera.exposure_us > camera.frame_duration_us:
+        problems.append(
+            f"[camera] exposure_us {camera.exposure_us} must fit in frame_duration_us "
+            f"{camera.frame_duration_us}"
+        )
+    top_mm = (config.plan.sections - 1) * config.plan.pitch_mm
+    if not (lift.min_mm <= 0.0 and top_mm <= lift.max_mm):
+        problems.append(
+            f"[plan] the default scan spans 0..{top_mm:g} mm, outside the lift's "
+            f"{lift.min_mm:g}..{lift.max_mm:g} mm"
+        )
+    return problems
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig:
+    """Validate a parsed TOML document and return the configuration.
+
+    Raises:
+        ConfigError: listing every problem found.
+    """
+    problems: list[str] = []
+    tables = {f.name: typing.get_type_hints(DeviceConfig)[f.name] for f in fields(DeviceConfig)}
+    problems.extend(f"[{key}]: unknown section" for key in data if key not in tables)
+    built: dict[str, Any] = {}
+    for name, cls in tables.items():
+        if name not in data:
+            problems.append(f"[{name}]: missing section")
+            continue
+        built[name] = _build_table(cls, name, data[name], problems)
+    problems.extend(_pin_problems(data))
+    if not problems:
+        config = DeviceConfig(**built)
+        problems.extend(_consistency_problems(config))
+        if not problems:
+            return config
+    raise ConfigError(source, problems)
+
+
+def load_config(path: Path | str | None = None) -> DeviceConfig:
+    """Read and validate the TOML file at ``path`` (the packaged default if None).
+
+    Raises:
+        ConfigError: the file is missing, unreadable, not TOML, or has problems.
+    """
+    path = Path(path) if path is not None else default_config_path()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(path), [f"cannot read it: {exc.strerror or exc}"]) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(path), [f"not valid TOML: {exc}"]) from None
+    return parse_config(data, str(path))
+
+
+def check_config(path: Path | str) -> list[str]:
+    """Return every problem with the configuration at ``path`` (empty when it is usable)."""
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        return exc.problems
+    return []

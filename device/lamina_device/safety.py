@@ -1,0 +1,203 @@
+"""Laser safety: automatic shut-off independent of the scan (thesis appendix A).
+
+Three layers keep the laser from staying on. The scan switches it on only while a
+laser-on frame is exposed and off in ``finally`` blocks. :class:`LaserWatchdog`
+runs on its own thread and switches it off when it has been on too long or the host
+link has gone quiet, whatever the main loop is doing. :class:`LaserShutdown`
+switches it off on SIGTERM (systemd's stop, which skips atexit), on SIGINT and at
+interpreter exit.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from types import FrameType, TracebackType
+from typing import Protocol
+
+log = logging.getLogger(__name__)
+
+
+class Switchable(Protocol):
+    """The part of :class:`lamina_device.laser.Laser` the safety layers use."""
+
+    @property
+    def is_on(self) -> bool:
+        """Return True while the laser emits."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def on_count(self) -> int:
+        """Return how many times the laser has been switched on."""
+        ...  # pragma: no cover - protocol
+
+    def off(self) -> None:
+        """Switch the laser off."""
+        ...  # pragma: no cover - protocol
+
+
+class LaserWatchdog:
+    """Switch the laser off after ``max_on_s`` on, or after ``link_silence_s`` without the host.
+
+    The link is only watched once :meth:`link_alive` has been called (a recording
+    run has no host). The watchdog measures on-time with its own ``clock`` from the
+    moment it sees a new switch-on, so it does not trust the code it guards; it
+    polls often enough that the overrun past ``max_on_s`` is at most one poll.
+    """
+
+    def __init__(
+        self,
+        laser: Switchable,
+        max_on_s: float = 2.0,
+        link_silence_s: float = 10.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (max_on_s > 0 and link_silence_s > 0):
+            raise ValueError("watchdog times must be positive")
+        self.laser = laser
+        self.max_on_s = max_on_s
+        self.link_silence_s = link_silence_s
+        self.clock = clock
+        self.poll_s = min(0.05, max_on_s / 20.0)
+        self.trips: list[str] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._seen_on_count: int | None = None
+        self._on_since: float | None = None
+        self._last_link: float | None = None
+        self._link_tripped = False
+
+    def start(self) -> None:
+        """Start watching on a daemon thread (idempotent)."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="laser-watchdog", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop watching and switch the laser off."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+        self._thread = None
+        self.laser.off()
+
+    @property
+    def running(self) -> bool:
+        """Return True while the watchdog thread runs."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def link_alive(self) -> None:
+        """Note that the host was just heard from (the server calls this per message)."""
+        with self._lock:
+            self._last_link = self.clock()
+            self._link_tripped = False
+
+    def check(self) -> str | None:
+        """Check once; switch the laser off and return the reason if a limit was passed."""
+        now = self.clock()
+        with self._lock:
+            reason = self._on_time_reason(now) or self._link_reason(now)
+        if reason is not None:
+            self.laser.off()
+            self.trips.append(reason)
+            log.warning("safety: laser switched off: %s", reason)
+        return reason
+
+    def _on_time_reason(self, now: float) -> str | None:
+        if not self.laser.is_on:
+            self._on_since = None
+            return None
+        count = self.laser.on_count
+        if self._on_since is None or count != self._seen_on_count:
+            self._on_since, self._seen_on_count = now, count
+            return None
+        on_s = now - self._on_since
+        if on_s <= self.max_on_s:
+            return None
+        self._on_since = None
+        return f"it was on for {on_s:.2f} s, longer than the {self.max_on_s:g} s limit"
+
+    def _link_reason(self, now: float) -> str | None:
+        if self._last_link is None or self._link_tripped:
+            return None
+        silent_s = now - self._last_link
+        if silent_s <= self.link_silence_s:
+            return None
+        # Act once per silence: the laser stays off until the host is heard again.
+        self._link_tripped = True
+        limit_s = self.link_silence_s
+        return f"the host link has been silent for {silent_s:.1f} s (limit {limit_s:g} s)"
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            try:
+                self.check()
+            except Exception:  # the guard must outlive any one failure
+                log.exception("safety: watchdog check failed; switching the laser off")
+                self.laser.off()
+
+    def __enter__(self) -> LaserWatchdog:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+class LaserShutdown:
+    """Switch the laser off on SIGTERM, SIGINT and interpreter exit (a context manager).
+
+    SIGTERM becomes ``SystemExit(143)`` and SIGINT ``KeyboardInterrupt``, after the
+    laser is already off, so ``finally`` blocks still run. Install from the main thread.
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self, laser: Switchable) -> None:
+        self.laser = laser
+        self._previous: dict[int, object] = {}
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        self.laser.off()
+        log.info("safety: laser off on signal %s", signal.Signals(signum).name)
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + signum)
+
+    def install(self) -> None:
+        """Install the signal handlers and the exit hook."""
+        for signum in self.SIGNALS:
+            self._previous[signum] = signal.signal(signum, self._handle)
+        atexit.register(self.laser.off)
+
+    def uninstall(self) -> None:
+        """Restore the previous signal handlers and drop the exit hook."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)  # type: ignore[arg-type]
+        self._previous.clear()
+        atexit.unregister(self.laser.off)
+
+    def __enter__(self) -> LaserShutdown:
+        self.install()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.laser.off()
+        self.uninstall()

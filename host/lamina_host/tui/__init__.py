@@ -1,0 +1,1 @@
+"""The Lamina terminal UI (Textual): ``lamina tui``."""

@@ -1,0 +1,1 @@
+"""The six workflow screens of the Lamina terminal UI."""

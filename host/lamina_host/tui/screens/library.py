@@ -1,0 +1,151 @@
+"""Library: past scans; open (and process again), export, delete with confirmation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+from textual import work
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.widgets import DataTable, Static
+
+from lamina_host.store import ScanSummary
+from lamina_host.tui.adapter import Results
+from lamina_host.tui.widgets import AskScreen, ConfirmScreen, LaminaScreen
+
+COLUMNS = ("scan", "subject", "created", "status", "sections", "views", "result")
+
+
+class LibraryScreen(LaminaScreen):
+    """Past scans from the scan library."""
+
+    MODE = "library"
+    AUTO_FOCUS = "#scans"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("o", "open", "Open"),
+        Binding("e", "export", "Export"),
+        Binding("d", "delete", "Delete"),
+        Binding("u", "reload", "Update list"),
+    ]
+
+    def body(self) -> ComposeResult:
+        """The table of scans and a note on the chosen one."""
+        yield DataTable(id="scans", cursor_type="row", zebra_stripes=True)
+        yield Static("", id="library-note")
+
+    def on_mount(self) -> None:
+        """Set up the columns."""
+        self.query_one("#scans", DataTable).add_columns(*COLUMNS)
+
+    def refresh_from_session(self) -> None:
+        """Reload the list whenever the screen is shown."""
+        self.action_reload()
+
+    def action_reload(self) -> None:
+        """Read the library's scans."""
+        self.list_worker()
+
+    @work(thread=True, exclusive=True, group="library")
+    def list_worker(self) -> None:
+        """Read the list in a thread (the file may be large or on a slow disk)."""
+        self.attempt(self.session.scans, self.listed)
+
+    def listed(self, scans: list[ScanSummary]) -> None:
+        """Fill the table."""
+        table = self.query_one("#scans", DataTable)
+        table.clear()
+        for s in scans:
+            table.add_row(
+                str(s.id),
+                s.subject,
+                s.created.replace("T", " ")[:16],
+                s.status,
+                str(s.sections),
+                f"{s.received}/{s.views}",
+                "yes" if s.has_result else "no",
+                key=str(s.id),
+            )
+        note = f"{len(scans)} scan{'s' if len(scans) != 1 else ''}: o opens one, d deletes it"
+        self.query_one("#library-note", Static).update(note if scans else "no scans yet")
+
+    def _chosen(self) -> int | None:
+        table = self.query_one("#scans", DataTable)
+        if not table.row_count:
+            self.say("the library has no scans yet: scan one (F5)", error=True)
+            return None
+        row_key = table.coordinate_to_cell_key(table.cursor_coordinate).row_key
+        return int(str(row_key.value))
+
+    def action_open(self) -> None:
+        """Open the chosen scan and process it again."""
+        scan_id = self._chosen()
+        if scan_id is not None:
+            self.say(f"opening scan {scan_id} ...")
+            self.open_worker(scan_id)
+
+    @work(thread=True, exclusive=True, group="library-open")
+    def open_worker(self, scan_id: int) -> None:
+        """Load and process in a thread."""
+
+        def job() -> Results | int:
+            data = self.session.open_scan(scan_id)
+            return self.session.process() if data.complete else len(data.segments)
+
+        self.attempt(job, lambda outcome: self.opened(scan_id, outcome))
+
+    def opened(self, scan_id: int, outcome: Results | int) -> None:
+        """Show the processed scan, or say how to finish an incomplete one."""
+        if isinstance(outcome, Results):
+            self.say(f"scan {scan_id} processed again: see Results")
+            self.app.switch_mode("results")
+        else:
+            self.say(f"scan {scan_id} is incomplete ({outcome} views): connect and resume (F5, p)")
+
+    def action_export(self) -> None:
+        """Ask for a folder and export the chosen scan into it."""
+        scan_id = self._chosen()
+        if scan_id is None:
+            return
+
+        def answered(folder: str | None) -> None:
+            if folder:
+                self.export_worker(scan_id, Path(folder).expanduser())
+
+        self.app.push_screen(
+            AskScreen(f"Export scan {scan_id} into folder:", "a new or empty folder"), answered
+        )
+
+    @work(thread=True, exclusive=True, group="library-export")
+    def export_worker(self, scan_id: int, folder: Path) -> None:
+        """Export in a thread."""
+        self.attempt(
+            lambda: self.session.export_scan(scan_id, folder),
+            lambda paths: self.say(f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"),
+        )
+
+    def action_delete(self) -> None:
+        """Delete the chosen scan after asking."""
+        scan_id = self._chosen()
+        if scan_id is None:
+            return
+
+        def answered(yes: bool | None) -> None:
+            if yes:
+                self.delete_worker(scan_id)
+            else:
+                self.say(f"scan {scan_id} kept")
+
+        self.app.push_screen(
+            ConfirmScreen(f"Delete scan {scan_id} and everything recorded for it?"), answered
+        )
+
+    @work(thread=True, exclusive=True, group="library")
+    def delete_worker(self, scan_id: int) -> None:
+        """Delete in a thread, then list again."""
+        self.attempt(lambda: self.session.delete_scan(scan_id), lambda _: self.deleted(scan_id))
+
+    def deleted(self, scan_id: int) -> None:
+        """Say so and refresh the list."""
+        self.say(f"scan {scan_id} deleted")
+        self.action_reload()

@@ -1,0 +1,126 @@
+"""Live view: a camera frame in the terminal with the latest detected stripe; jog and home."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from textual import work
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal, Vertical
+from textual.widgets import Label, Static
+
+from lamina_host.tui.widgets import FrameView, LaminaScreen
+from lamina_shared.types import Segment
+
+JOG_DEG = 15.0
+JOG_MM = 1.0
+MISSING_CONTROLS = "Exposure: the device protocol has no request to set it yet."
+
+
+class LiveScreen(LaminaScreen):
+    """A preview frame, the stripe of the latest scanned view, and the axes."""
+
+    MODE = "live"
+    _shown: Segment | None = None
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("g", "grab", "Grab frame"),
+        Binding("l", "laser", "Laser on/off"),
+        Binding("left", "jog('turntable', -1)", "Turn -15", show=False),
+        Binding("right", "jog('turntable', 1)", "Turn"),
+        Binding("up", "jog('lift', 1)", "Lift"),
+        Binding("down", "jog('lift', -1)", "Lift -1", show=False),
+        Binding("h", "home", "Home"),
+    ]
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.laser = False
+
+    def body(self) -> ComposeResult:
+        """Frame on the left, what it shows on the right."""
+        with Horizontal():
+            yield FrameView(id="frame")
+            with Vertical(id="live-side", classes="panel"):
+                yield Label("Axes and laser", classes="panel-title")
+                yield Static(id="axes")
+                yield Label("Stripe (red)", classes="panel-title")
+                yield Static("no view scanned yet", id="stripe-info")
+                yield Static(MISSING_CONTROLS, id="controls-note", classes="dim")
+
+    def on_mount(self) -> None:
+        """Follow the stripe while a scan runs on another screen."""
+        self.set_interval(0.25, self._follow)
+
+    def _follow(self) -> None:
+        latest = self.session.latest_segment
+        if self.is_current and latest is not None and latest is not self._shown:
+            self.show_segment(latest)
+
+    def action_grab(self) -> None:
+        """Fetch a preview frame from the device."""
+        self.say(f"grabbing a frame, laser {'on' if self.laser else 'off'} ...")
+        self.grab_worker(self.laser)
+
+    def action_laser(self) -> None:
+        """Switch the laser for the next preview frames and grab one."""
+        self.laser = not self.laser
+        self._show_axes()
+        self.action_grab()
+
+    @work(thread=True, exclusive=True, group="grab")
+    def grab_worker(self, laser: bool) -> None:
+        """Grab in a thread: the frame crosses the serial link in chunks."""
+        self.attempt(lambda: self.session.preview(laser), self.grabbed)
+
+    def grabbed(self, image: np.ndarray) -> None:
+        """Show the new frame."""
+        self.query_one(FrameView).image = image
+        self.say(f"frame {image.shape[1]} x {image.shape[0]} px")
+
+    def action_jog(self, axis: str, direction: int) -> None:
+        """Move the turntable by 15 deg or the lift by 1 mm, then grab a frame."""
+        step = JOG_DEG if axis == "turntable" else JOG_MM
+        self.move_worker({axis: self.session.pose[axis] + direction * step})
+
+    def action_home(self) -> None:
+        """Move the lift and the turntable back to 0."""
+        self.move_worker({"lift": 0.0, "turntable": 0.0})
+
+    @work(thread=True, exclusive=True, group="grab")
+    def move_worker(self, targets: dict[str, float]) -> None:
+        """Move in a thread, then take a frame where the axes stand."""
+
+        def job() -> np.ndarray:
+            for axis, position in targets.items():
+                self.session.move(axis, position)
+            return self.session.preview(self.laser)
+
+        self.attempt(job, self.grabbed)
+        self.app.call_from_thread(self._show_axes)
+
+    def show_segment(self, segment: Segment) -> None:
+        """Draw ``segment``'s stripe over the frame and describe it."""
+        self._shown = segment
+        self.query_one(FrameView).stripe_uv = segment.uv
+        self.query_one("#stripe-info", Static).update(
+            f"{segment.target} section {segment.section}, view {segment.view}: "
+            f"{len(segment)} points at {segment.angle_deg:.0f} deg, z {segment.z_mm:.1f} mm"
+        )
+
+    def _show_axes(self) -> None:
+        pose = self.session.pose
+        self.query_one("#axes", Static).update(
+            f"turntable {pose['turntable']:.1f} deg\nlift {pose['lift']:.1f} mm\n"
+            f"laser {'on' if self.laser else 'off'}"
+        )
+
+    def refresh_from_session(self) -> None:
+        """Show the session's frame, axes and latest segment."""
+        self._show_axes()
+        view = self.query_one(FrameView)
+        if view.image is None and self.session.data.grid_image is not None:
+            view.image = self.session.data.grid_image
+        if self.session.latest_segment is not None:
+            self.show_segment(self.session.latest_segment)

@@ -1,0 +1,171 @@
+"""Results: per-section measurements, radius profile, volume; process again; export."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+from textual import on, work
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal
+from textual.widgets import Button, DataTable, Input, Label, Select, Static
+from textual_plotext import PlotextPlot
+
+from lamina_host.mesh import MESH_METHODS
+from lamina_host.tui.adapter import Results, UserError, radius_profile
+from lamina_host.tui.widgets import LaminaScreen
+
+COLUMNS = ("sec", "z mm", "points", "perim mm", "area mm2", "round", "harm")
+"""Per-section table; roundness is 4 pi A / P^2 (1 for a circle)."""
+
+
+def parse_harmonics(text: str) -> int | None:
+    """Return the harmonic count typed (None when blank: the thesis rule chooses)."""
+    text = text.strip()
+    if not text or text.lower() == "auto":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise UserError(f"harmonics {text!r} must be a whole number, or blank for auto") from None
+
+
+def summary_text(results: Results | None) -> str:
+    """Return the volume, mesh and warnings as lines."""
+    if results is None:
+        return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
+    result = results.reconstruction
+    topo = result.mesh_topology
+    mesh = (
+        f"mesh ({results.mesh_method}): {len(result.faces)} faces, {len(result.vertices)} vertices"
+        + (", watertight" if topo.get("watertight") else "")
+    )
+    lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
+    return "\n".join(lines + [f"warning: {w}" for w in result.warnings])
+
+
+class ResultsScreen(LaminaScreen):
+    """The processed scan, the choices to process it again, and export."""
+
+    MODE = "results"
+    AUTO_FOCUS = "#sections"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("p", "process", "Process"),
+        Binding("e", "export", "Export"),
+        Binding("escape", "leave_field", "Leave field", show=False),
+    ]
+
+    def body(self) -> ComposeResult:
+        """Options row, table and profile, summary, export row."""
+        with Horizontal(classes="row"):
+            yield Label("Harmonics ", classes="field-label")
+            yield Input(placeholder="auto", id="harmonics", type="integer", compact=True)
+            yield Label(" Mesh ", classes="field-label")
+            yield Select(
+                [(m, m) for m in MESH_METHODS],
+                value=MESH_METHODS[0],
+                allow_blank=False,
+                id="mesh-method",
+                compact=True,
+            )
+            yield Button("Process", id="process", variant="primary", compact=True)
+        with Horizontal(id="results-main"):
+            yield DataTable(id="sections", cursor_type="row", zebra_stripes=True)
+            yield PlotextPlot(id="profile")
+        yield Static(summary_text(None), id="summary")
+        with Horizontal(classes="row"):
+            yield Label("Export to ", classes="field-label")
+            yield Input(placeholder="folder, e.g. out/P001", id="export-dir", compact=True)
+            yield Button("Export", id="export", compact=True)
+
+    def on_mount(self) -> None:
+        """Set up the table columns and the empty profile."""
+        self.query_one("#sections", DataTable).add_columns(*COLUMNS)
+        self._draw_profile(None)
+
+    def action_leave_field(self) -> None:
+        """Leave the text field so the screen's keys work again."""
+        self.set_focus(None)
+
+    @on(Button.Pressed, "#process")
+    @on(Input.Submitted, "#harmonics")
+    def action_process(self) -> None:
+        """Process the scan again with the chosen harmonics and mesh method."""
+        try:
+            harmonics = parse_harmonics(self.query_one("#harmonics", Input).value)
+        except UserError as exc:
+            self.say(str(exc), error=True)
+            return
+        method = str(self.query_one("#mesh-method", Select).value)
+        self.query_one("#process", Button).disabled = True
+        self.say("processing ...")
+        self.process_worker(harmonics, method)
+
+    @work(thread=True, exclusive=True, group="process")
+    def process_worker(self, harmonics: int | None, method: str) -> None:
+        """Reconstruct in a thread (calibration, EFD, meshing)."""
+        self.attempt(lambda: self.session.process(harmonics, method), self.processed)
+
+    def processed(self, results: Results) -> None:
+        """Show the new results."""
+        self.query_one("#process", Button).disabled = False
+        self.refresh_from_session()
+        self.say(f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3")
+
+    def failed(self, message: str) -> None:
+        """Re-enable the controls and say what went wrong."""
+        self.query_one("#process", Button).disabled = False
+        self.query_one("#export", Button).disabled = False
+        super().failed(message)
+
+    @on(Button.Pressed, "#export")
+    @on(Input.Submitted, "#export-dir")
+    def action_export(self) -> None:
+        """Export PLY, OBJ, STL and the report into the folder typed."""
+        folder = self.query_one("#export-dir", Input).value.strip()
+        if not folder:
+            self.say("type the folder to export into (a new or empty folder)", error=True)
+            return
+        self.query_one("#export", Button).disabled = True
+        self.say(f"exporting to {folder} ...")
+        self.export_worker(Path(folder).expanduser())
+
+    @work(thread=True, exclusive=True, group="export")
+    def export_worker(self, folder: Path) -> None:
+        """Write the files in a thread."""
+        self.attempt(lambda: self.session.export(folder), self.exported)
+
+    def exported(self, paths: list[Path]) -> None:
+        """Say what was written."""
+        self.query_one("#export", Button).disabled = False
+        self.say(f"exported to {paths[0].parent}: {', '.join(p.name for p in paths)}")
+
+    def _draw_profile(self, results: Results | None) -> None:
+        plot = self.query_one("#profile", PlotextPlot)
+        plt = plot.plt
+        plt.clear_data()
+        plt.title("radius profile")
+        plt.xlabel("z mm")
+        if results is not None and results.rows:
+            z, radius = radius_profile(results.rows)
+            plt.plot(z, radius, marker="braille")
+        plot.refresh()
+
+    def refresh_from_session(self) -> None:
+        """Show the session's results."""
+        results = self.session.results
+        table = self.query_one("#sections", DataTable)
+        table.clear()
+        for r in results.rows if results else []:
+            table.add_row(
+                str(r.index),
+                f"{r.z_mm:.2f}",
+                str(r.points),
+                f"{r.perimeter_mm:.2f}",
+                f"{r.area_mm2:.1f}",
+                f"{r.roundness:.4f}",
+                str(r.harmonics),
+            )
+        self._draw_profile(results)
+        self.query_one("#summary", Static).update(summary_text(results))

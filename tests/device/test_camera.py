@@ -1,0 +1,108 @@
+"""The picamera2 backend against a fake picamera2 module with a real-time sensor timeline."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from gpiozero.pins.mock import MockFactory
+
+from lamina_device.acquisition import capture_pair
+from lamina_device.camera import CameraError, PiCamera, exposure_window_ns
+from lamina_device.hardware import HardwareError, open_hardware
+from lamina_device.laser import Laser
+
+
+@pytest.fixture
+def pi_camera(pi_kit, fake_picamera2):
+    factory = MockFactory()
+    laser = Laser(17, pin_factory=factory)
+    fake_picamera2.laser_pin = lambda: factory.pin(17)
+    camera = PiCamera(pi_kit.config.camera, laser)
+    yield camera, laser, fake_picamera2.cameras[0]
+    camera.close()
+    laser.close()
+
+
+def band(frame: np.ndarray) -> np.ndarray:
+    h = frame.shape[0]
+    return frame[h // 2 - 2 : h // 2 + 3]
+
+
+def test_camera_runs_at_fixed_exposure_and_gain_confirmed_from_metadata(pi_camera, pi_kit):
+    _, _, fake = pi_camera
+    cfg = pi_kit.config.camera
+    assert fake.config["main"] == {"format": "YUV420", "size": (cfg.width, cfg.height)}
+    assert fake.control_log[-1] == {
+        "AeEnable": False,
+        "AwbEnable": False,
+        "ExposureTime": 5000,
+        "AnalogueGain": 2.0,
+        "FrameDurationLimits": (10000, 10000),
+    }
+    # Controls lag three frames: start-up waited for the first frame that reports them.
+    assert [f.exposure_us for f in fake.frames] == [20000, 20000, 20000, 5000]
+    assert all(f.released for f in fake.frames)
+
+
+def test_frames_match_the_laser_state_and_straddling_frames_are_dropped(pi_camera, pi_kit):
+    camera, laser, fake = pi_camera
+    hardware = type("Rig", (), {"laser": laser, "camera": camera})()
+    before = len(fake.frames)
+    on, off = capture_pair(hardware)
+    assert on.shape == off.shape == (240, 320) and on.dtype == np.uint8
+    # Off frame: no stripe at all; on frame: every stripe row fully lit (no partial exposure).
+    assert np.all(off == pi_kit.BACKGROUND)
+    profile = np.round(pi_kit.STRIPE * np.array([0.3, 0.8, 1.0, 0.8, 0.3])).astype(int)
+    np.testing.assert_array_equal(band(on)[:, 0], pi_kit.BACKGROUND + profile)
+    handed_out = fake.frames[before:]
+    straddling = [f for f in handed_out if f.lit_max > 0.0 and f.lit_min < 1.0]
+    assert straddling, "the fake sensor must have exposed a frame across the switch-on"
+    assert camera.frames_dropped >= len(straddling)
+    assert all(f.released for f in fake.frames)
+    assert laser.pin_history() == [False, True, False]
+
+
+def test_frame_window_uses_the_end_of_the_first_rows_exposure():
+    start, end = exposure_window_ns(
+        {"SensorTimestamp": 1_000_000_000, "ExposureTime": 5000, "FrameDuration": 10000}
+    )
+    assert (start, end) == (995_000_000, 1_010_000_000)
+
+
+def test_resolution_is_configurable(pi_kit, fake_picamera2):
+    factory = MockFactory()
+    laser = Laser(17, pin_factory=factory)
+    fake_picamera2.laser_pin = lambda: factory.pin(17)
+    camera = PiCamera(replace(pi_kit.config.camera, width=640, height=480), laser)
+    try:
+        frame = camera.capture()
+        assert camera.size == (640, 480) and frame.shape == (480, 640)
+        # Only the Y plane within the row stride comes back, not the padding or chroma.
+        assert np.all(frame == pi_kit.BACKGROUND)
+    finally:
+        camera.close()
+        laser.close()
+
+
+def test_controls_that_never_apply_are_reported(pi_kit, fake_picamera2):
+    fake_picamera2.max_gain = 8.0  # the sensor clamps the gain
+    laser = Laser(17, pin_factory=MockFactory())
+    cfg = replace(pi_kit.config.camera, gain=12.0, timeout_s=0.2)
+    with pytest.raises(CameraError, match=r"did not apply exposure 5000 us and gain 12.*gain 8"):
+        PiCamera(cfg, laser)
+    assert fake_picamera2.cameras[0].closed
+    assert all(f.released for f in fake_picamera2.cameras[0].frames)
+
+
+def test_missing_picamera2_names_how_to_install_it(monkeypatch, pi_kit):
+    monkeypatch.setitem(sys.modules, "picamera2", None)  # import picamera2 raises ImportError
+    with pytest.raises(CameraError, match=r"python3-picamera2.*--system-site-packages"):
+        PiCamera(pi_kit.config.camera, Laser(17, pin_factory=MockFactory()))
+    factory = MockFactory()
+    with pytest.raises(HardwareError, match="python3-picamera2"):
+        open_hardware("pi", pin_factory=factory)
+    # Nothing stays claimed and the laser pin was left low (off).
+    assert factory.pin(17).state is False

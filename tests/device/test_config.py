@@ -1,0 +1,97 @@
+"""The TOML configuration: the packaged default is valid; every problem is listed at once."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from lamina_device.config import ConfigError, default_config_path, load_config, parse_config
+
+
+def default_data() -> dict:
+    return tomllib.loads(default_config_path().read_text())
+
+
+def test_packaged_default_loads_with_the_documented_values():
+    config = load_config()
+    assert config.laser.pin == 17 and config.laser.active_high
+    assert config.turntable.full_steps_per_rev * config.turntable.microsteps == 3200
+    assert config.lift.limit_pin == 6 and config.lift.home_mm <= config.lift.min_mm
+    assert (config.camera.width, config.camera.height) == (1536, 864)
+    assert config.safety.laser_max_on_s == 2.0
+    assert config.board.inner_corners == (9, 7) and config.board.origin_mm == (-12.0, -9.0)
+
+
+def test_every_problem_is_listed_at_once():
+    data = default_data()
+    data["lift"]["enable_pin"] = 16  # the turntable's enable pin
+    data["lift"]["speed"] = 3  # unknown key
+    del data["camera"]["gain"]  # missing value
+    data["turntable"]["microsteps"] = 3  # not a microstep setting
+    data["lift"]["lead_mm"] = "two"  # wrong type
+    data["safety"]["laser_max_on_s"] = 600.0  # out of range
+    data["board"]["inner_corners"] = [9]  # wrong shape
+    data["laser"]["pin"] = 40  # not a GPIO
+    data["extra"] = {}
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, "box.toml")
+    assert sorted(info.value.problems) == sorted(
+        [
+            "[extra]: unknown section",
+            "[laser] pin: 40 is not a GPIO pin number (BCM 0..27)",
+            "[turntable] microsteps: 3 is not one of 1, 2, 4, 8, 16, 32, 64, 128, 256",
+            "[lift] speed: unknown key",
+            "[lift] lead_mm: expected a number, got 'two'",
+            "[camera] gain: missing value (a number)",
+            "[safety] laser_max_on_s: 600.0 is outside 0.01..60",
+            "[board] inner_corners: expected a list of 2 integers, got [9]",
+            "GPIO16 is used twice: by [turntable] enable_pin and [lift] enable_pin",
+        ]
+    )
+    assert str(info.value).startswith("config box.toml: 9 problems: ")
+
+
+def test_values_that_disagree_are_reported():
+    data = default_data()
+    data["lift"]["min_mm"], data["lift"]["max_mm"] = 50.0, 40.0
+    data["camera"]["exposure_us"] = 20000
+    with pytest.raises(ConfigError) as info:
+        parse_config(data)
+    problems = " | ".join(info.value.problems)
+    assert "min_mm 50.0 must be below max_mm 40.0" in problems
+    assert "exposure_us 20000 must fit in frame_duration_us 8333" in problems
+    assert "outside the lift's 50..40 mm" in problems
+
+
+def check_config(path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "lamina_device", "check-config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_check_config_command(tmp_path):
+    good = check_config(default_config_path())
+    assert good.returncode == 0 and good.stdout.strip().endswith(": OK"), good.stderr
+    bad_file = tmp_path / "box.toml"
+    bad_file.write_text(
+        default_config_path().read_text().replace("pin = 17", "pin = 19").replace("gain = 2.0", "")
+    )
+    bad = check_config(bad_file)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert bad.stderr.splitlines() == [
+        f"lamina-device: config {bad_file} has 2 problems:",
+        "  - [camera] gain: missing value (a number)",
+        "  - GPIO19 is used twice: by [laser] pin and [lift] step_pin",
+    ]
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[laser\npin = 17\n")
+    result = check_config(broken)
+    assert result.returncode == 2 and "not valid TOML" in result.stderr
+    missing = check_config(tmp_path / "nope.toml")
+    assert missing.returncode == 2 and "cannot read it" in missing.stderr

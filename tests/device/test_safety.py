@@ -1,0 +1,179 @@
+"""Laser safety: the watchdog, signals and exit, each proven from the MockFactory pin history."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import serial
+from gpiozero.pins.mock import MockFactory
+
+from lamina_device.laser import Laser
+from lamina_device.safety import LaserShutdown, LaserWatchdog
+from lamina_host.link import DeviceClient, PtyBridge
+from lamina_shared.link import Channel
+
+
+class FakeClock:
+    """A monotonic clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def laser_levels(factory: MockFactory, pin: int = 17) -> list[bool]:
+    return [bool(s.state) for s in factory.pin(pin).states]
+
+
+@pytest.fixture
+def laser():
+    factory = MockFactory()
+    laser = Laser(17, pin_factory=factory)
+    yield laser, factory
+    laser.close()
+
+
+def test_watchdog_switches_off_after_the_maximum_on_time(laser, caplog):
+    laser, factory = laser
+    clock = FakeClock()
+    dog = LaserWatchdog(laser, max_on_s=2.0, clock=clock)
+    laser.on()
+    assert dog.check() is None  # first sight of this switch-on starts the count
+    clock.now_s += 1.9
+    assert dog.check() is None and laser.is_on
+    clock.now_s += 0.2
+    with caplog.at_level(logging.WARNING):
+        reason = dog.check()
+    assert reason is not None and "on for 2.10 s, longer than the 2 s limit" in reason
+    assert "laser switched off" in caplog.text
+    assert laser_levels(factory) == [False, True, False]
+
+
+def test_each_new_switch_on_restarts_the_count(laser):
+    laser, _ = laser
+    clock = FakeClock()
+    dog = LaserWatchdog(laser, max_on_s=2.0, clock=clock)
+    for _ in range(5):  # a scan: on for 1.5 s per frame, off in between, 7.5 s in all
+        laser.on()
+        dog.check()
+        clock.now_s += 1.5
+        assert dog.check() is None
+        laser.off()
+        dog.check()
+    assert dog.trips == []
+
+
+def test_watchdog_acts_on_its_own_thread_while_the_main_loop_is_stuck(laser):
+    laser, factory = laser
+    with LaserWatchdog(laser, max_on_s=0.2) as dog:
+        assert dog.running
+        laser.on()
+        time.sleep(1.0)  # the "main loop" hangs with the laser on
+        assert not laser.is_on
+    assert not dog.running
+    assert laser_levels(factory) == [False, True, False]
+    assert len(dog.trips) == 1
+
+
+def test_link_silence_switches_off_only_once_a_link_is_expected(laser):
+    laser, factory = laser
+    clock = FakeClock()
+    dog = LaserWatchdog(laser, max_on_s=1e6, link_silence_s=10.0, clock=clock)
+    laser.on()
+    clock.now_s += 60.0
+    assert dog.check() is None and laser.is_on  # recording: no host, no link watch
+    dog.link_alive()
+    clock.now_s += 9.0
+    assert dog.check() is None
+    dog.link_alive()
+    clock.now_s += 10.5
+    assert "host link has been silent for 10.5 s" in (dog.check() or "")
+    assert laser_levels(factory) == [False, True, False]
+    laser.on()
+    clock.now_s += 5.0
+    assert dog.check() is None  # one action per silence, not a stream of them
+    dog.link_alive()
+    clock.now_s += 11.0
+    assert dog.check() is not None and not laser.is_on
+
+
+def test_sigterm_switches_the_laser_off_before_exiting(laser):
+    laser, factory = laser
+    with LaserShutdown(laser):
+        laser.on()
+        with pytest.raises(SystemExit) as exit_info:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)  # the handler runs at the next bytecode boundary
+        assert exit_info.value.code == 128 + signal.SIGTERM
+        assert laser_levels(factory) == [False, True, False]
+        laser.on()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+        assert laser_levels(factory)[-2:] == [True, False]
+    assert signal.getsignal(signal.SIGTERM) is not LaserShutdown._handle
+
+
+def test_laser_is_off_at_interpreter_exit():
+    # An earlier atexit hook runs later (LIFO): it sees the state after LaserShutdown's hook.
+    script = """
+import atexit
+from gpiozero.pins.mock import MockFactory
+from lamina_device.laser import Laser
+from lamina_device.safety import LaserShutdown
+factory = MockFactory()
+laser = Laser(17, pin_factory=factory)
+atexit.register(lambda: print([s.state for s in factory.pin(17).states]))
+LaserShutdown(laser).install()
+laser.on()
+raise SystemExit(0)
+"""
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[False, True, False]"
+
+
+def test_sigterm_to_a_serving_device_leaves_its_laser_off():
+    bridge = PtyBridge()
+    command = [sys.executable, "-m", "lamina_device", "-v", "serve", "--port",
+               bridge.device_port, "--hardware", "sim"]  # fmt: skip
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    scanning = threading.Event()
+    try:
+        with serial.Serial(bridge.host_port, baudrate=115200, timeout=0.05) as port:
+            client = DeviceClient(Channel(port), process)
+            client.hello()
+
+            def scan() -> None:
+                # The device is about to be terminated mid-scan.
+                with contextlib.suppress(Exception):
+                    client.scan("object", on_segment=lambda seq, segment: scanning.set())
+
+            worker = threading.Thread(target=scan, daemon=True)
+            worker.start()
+            assert scanning.wait(60), "no segment from the device"
+            process.send_signal(signal.SIGTERM)
+            _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        bridge.close()
+    assert process.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err
+    history = [line for line in err.splitlines() if "states seen on its pin" in line]
+    assert len(history) == 1, err
+    states = history[0].split(":")[-1].split()
+    assert "on" in states and states[-1] == "off"

@@ -1,0 +1,160 @@
+"""The scan library: SQLite in WAL mode, owner-only, every segment exactly once."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import stat
+import subprocess
+import sys
+
+import numpy as np
+import pymeshlab
+import pytest
+
+from lamina_host.mesh import save_ply
+from lamina_host.store import Library, StoreError, default_library_path
+from lamina_shared.types import BoardSpec, ScanPlan, Segment
+
+PLANS = {"cylinder": ScanPlan.regular(1, 2.0, 4), "object": ScanPlan.regular(3, 2.0, 4)}
+BOARD = BoardSpec((9, 7), 3.0, (-12.0, -9.0))
+
+
+def segment(seq: int, target: str = "object", n: int = 50) -> Segment:
+    rng = np.random.default_rng(seq)
+    view = PLANS[target].views[seq]
+    return Segment(
+        target,
+        view.section,
+        seq % 4,
+        view.z_mm,
+        view.angle_deg,
+        np.sort(rng.choice(640, n, replace=False)).astype(np.uint16),
+        (rng.integers(0, 480 * 64, n) / 64).astype(np.float32),
+        rng.integers(0, 256, n).astype(np.uint8),
+        rng.integers(1, 20, n).astype(np.uint8),
+    )
+
+
+@pytest.fixture
+def library(tmp_path):
+    with Library(tmp_path / "lib" / "library.sqlite") as lib:
+        yield lib
+
+
+def test_file_is_private_and_in_wal_mode(library, tmp_path):
+    library.create_scan("S-01", PLANS)
+    path = tmp_path / "lib" / "library.sqlite"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    wal = path.with_name(path.name + "-wal")
+    assert wal.exists() and stat.S_IMODE(wal.stat().st_mode) == 0o600
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_default_path_follows_xdg(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
+    assert default_library_path() == tmp_path / "lamina" / "library.sqlite"
+    monkeypatch.delenv("XDG_DATA_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert default_library_path() == tmp_path / ".local/share/lamina/library.sqlite"
+
+
+def test_segments_are_stored_once_exactly_and_missing_ones_known(library):
+    scan_id = library.create_scan("S-01", PLANS, {"seed": 3})
+    for seq in (4, 0, 7):
+        assert library.add_segment(scan_id, seq, segment(seq))
+    assert not library.add_segment(scan_id, 4, segment(4))  # a retransmission
+    assert library.held(scan_id, "object") == {0, 4, 7}
+    assert library.missing(scan_id, "object") == [1, 2, 3, 5, 6, 8, 9, 10, 11]
+    got = library.segments(scan_id, "object")
+    assert [s.section for s in got] == [0, 1, 1]
+    for seq, s in zip((0, 4, 7), got, strict=True):
+        assert s.same_as(segment(seq))
+    assert library.scan(scan_id).options == {"seed": 3}
+    assert library.scan(scan_id).plans == PLANS
+
+
+def test_a_second_connection_sees_committed_segments(library):
+    scan_id = library.create_scan("S-01", PLANS)
+    library.add_segment(scan_id, 2, segment(2))
+    with Library(library.path) as other:
+        assert other.held(scan_id, "object") == {2}
+
+
+def test_listing_calibration_result_export_and_delete(library, tmp_path):
+    first = library.create_scan("S-01", PLANS)
+    second = library.create_scan("S-02", PLANS)
+    for seq in range(12):
+        library.add_segment(second, seq, segment(seq))
+    grid = np.random.default_rng(0).integers(0, 255, (48, 64)).astype(np.uint8)
+    library.save_calibration(second, grid, BOARD, 19.05)
+    calibration = library.calibration(second)
+    assert calibration is not None
+    assert np.array_equal(calibration.grid_image, grid) and calibration.board == BOARD
+    assert library.calibration(first) is None
+
+    out = tmp_path / "out"
+    out.mkdir()
+    vertices = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]], float)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    save_ply(out / "mesh.ply", vertices, faces)
+    (out / "report.json").write_text(json.dumps({"mesh": {"faces": 4}}))
+    files = {"mesh.ply": out / "mesh.ply", "report.json": out / "report.json"}
+    library.save_result(second, {"mesh": {"faces": 4}}, files)
+    summaries = library.scans()
+    assert [(s.id, s.subject, s.status, s.sections, s.views, s.received, s.has_result)
+            for s in summaries] == [
+        (first, "S-01", "acquiring", 3, 12, 0, False),
+        (second, "S-02", "processed", 3, 12, 12, True),
+    ]  # fmt: skip
+
+    for name in ("m.ply", "m.obj", "m.stl"):
+        library.export(second, tmp_path / name)
+        meshes = pymeshlab.MeshSet()
+        meshes.load_new_mesh(str(tmp_path / name))
+        assert meshes.current_mesh().face_number() == 4, name
+        assert np.allclose(np.sort(meshes.current_mesh().vertex_matrix(), 0), np.sort(vertices, 0))
+    library.export(second, tmp_path / "report.json")
+    assert json.loads((tmp_path / "report.json").read_text()) == {"mesh": {"faces": 4}}
+    with pytest.raises(StoreError, match="already exists"):
+        library.export(second, tmp_path / "m.ply")
+    with pytest.raises(StoreError, match=r"\.ply, \.obj, \.stl"):
+        library.export(second, tmp_path / "m.xyz")
+    with pytest.raises(StoreError, match="no result yet"):
+        library.export(first, tmp_path / "other.ply")
+
+    library.delete_scan(second)
+    assert [s.id for s in library.scans()] == [first]
+    assert library.segments(second, "object") == []
+    with pytest.raises(StoreError, match="no scan"):
+        library.scan(second)
+
+
+def test_newer_library_is_refused(tmp_path):
+    path = tmp_path / "library.sqlite"
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA user_version=99")
+    with pytest.raises(StoreError, match="newer Lamina"):
+        Library(path)
+
+
+def lamina(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "lamina_host", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_cli_lists_and_refuses_with_one_line(tmp_path):
+    path = tmp_path / "library.sqlite"
+    with Library(path) as library:
+        library.create_scan("S-07", PLANS)
+    listing = lamina("scans", "--library", str(path))
+    assert listing.returncode == 0
+    assert "S-07" in listing.stdout and "acquiring" in listing.stdout and "0/12" in listing.stdout
+    refused = lamina("export", "1", "-o", str(tmp_path / "x.ply"), "--library", str(path))
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert refused.stderr.strip().splitlines() == [
+        "lamina: scan 1 has no result yet: finish it with lamina scan --resume 1"
+    ]

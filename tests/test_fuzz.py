@@ -1,0 +1,311 @@
+"""Property-based fuzzing of the decoder and of message handling at both ends.
+
+Random and mutated frames must never raise anything but ProtocolError, never make
+the decoder hold more than the largest frame, and never hang; the device must answer
+every request it can parse and stay responsive, and the host must turn anything odd
+into a DeviceError. ``make fuzz`` runs many more examples (LAMINA_FUZZ_EXAMPLES).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import threading
+import time
+import tracemalloc
+from datetime import timedelta
+
+import numpy as np
+import pytest
+import serial
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from lamina_device.hardware import open_sim
+from lamina_device.server import DeviceServer
+from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
+from lamina_shared.link import Channel
+from lamina_shared.protocol import (
+    MAX_PAYLOAD_BYTES,
+    FrameDecoder,
+    Kind,
+    Message,
+    ProtocolError,
+    cobs_encode,
+    decode_frame,
+    decode_message,
+    encode_chunk,
+    encode_frame,
+    encode_json,
+    encode_segment,
+)
+from lamina_shared.types import ScanPlan, Segment
+
+EXAMPLES = int(os.environ.get("LAMINA_FUZZ_EXAMPLES", "150"))
+FUZZ = settings(
+    max_examples=EXAMPLES,
+    deadline=timedelta(seconds=5),  # "never hang": any example this slow is a failure
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+
+
+def _valid_payloads() -> list[bytes]:
+    n = 200
+    segment = Segment(
+        "object",
+        1,
+        2,
+        2.0,
+        45.0,
+        np.arange(100, 100 + n, dtype=np.uint16),
+        (np.arange(n) * 0.25 + 100).astype(np.float32),
+        np.full(n, 120, np.uint8),
+        np.full(n, 4, np.uint8),
+    )
+    frames = [
+        encode_segment(3, 4, segment),
+        encode_chunk(1, 2, 0, 600, b"x" * 512),
+        encode_json(Kind.REQUEST, {"id": 5, "op": "scan", "args": {"target": "object"}}),
+        encode_json(Kind.ACK, {"id": 5, "seqs": [1, 2], "lost": [0]}),
+    ]
+    return [decode_frame(f[1:-1]) for f in frames]
+
+
+VALID = _valid_payloads()
+
+
+@FUZZ
+@given(st.binary(max_size=4096))
+def test_random_payloads_raise_only_protocol_errors(payload):
+    with contextlib.suppress(ProtocolError):
+        decode_message(payload)
+
+
+@FUZZ
+@given(
+    st.sampled_from(VALID),
+    st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), min_size=1, max_size=8),
+    st.integers(0, 64),
+)
+def test_mutated_valid_messages_raise_only_protocol_errors(payload, edits, cut):
+    data = bytearray(payload)
+    for at, value in edits:
+        data[at % len(data)] = value
+    data = data[: max(1, len(data) - cut)]
+    tracemalloc.start()
+    try:
+        decode_message(bytes(data))
+    except ProtocolError:
+        pass
+    finally:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+    # Allocation stays within a small multiple of the largest frame, whatever the header says.
+    assert peak < 16 * MAX_PAYLOAD_BYTES
+
+
+@FUZZ
+@given(st.lists(st.binary(max_size=3000), max_size=20), st.sampled_from(VALID))
+def test_decoder_recovers_after_any_garbage(garbage, payload):
+    decoder = FrameDecoder()
+    for piece in garbage:
+        for found in decoder.feed(piece):
+            with contextlib.suppress(ProtocolError):
+                decode_message(found)
+        assert len(decoder._buffer) <= FrameDecoder.MAX_ENCODED
+    # Whatever came before, a fresh frame gets through (its leading delimiter resyncs).
+    assert payload in decoder.feed(encode_frame(payload))
+
+
+@FUZZ
+@given(st.binary(min_size=1, max_size=2000), st.binary(min_size=4, max_size=4))
+def test_frames_with_any_content_and_crc_raise_only_protocol_errors(data, crc):
+    frame = cobs_encode(data + crc)
+    assert b"\0" not in frame
+    with contextlib.suppress(ProtocolError):
+        decode_message(decode_frame(frame))
+
+
+JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+OPS = st.sampled_from(
+    ["scan", "fetch", "move", "pause", "resume", "abort", "status", "grab_grid", "nope", ""]
+)
+ARG_KEYS = st.sampled_from(
+    ["target", "plan", "have", "axis", "position", "transfer", "ranges", "laser"]
+)
+
+
+@pytest.fixture(scope="module")
+def device():
+    """A device server driven message by message, answering over a real pty link."""
+    bridge = PtyBridge()
+    hardware = open_sim(noise="none")
+    device_port = serial.Serial(bridge.device_port, timeout=0.02)
+    host_port = serial.Serial(bridge.host_port, timeout=0.02)
+    server = DeviceServer(Channel(device_port), hardware)
+    host = Channel(host_port)
+    inbox: queue.Queue[Message] = queue.Queue()
+    stop = threading.Event()
+
+    def drain() -> None:
+        # Read the host end all the time, as a host does, so the device never blocks.
+        while not stop.is_set():
+            message = host.receive(0.05)
+            if message is not None:
+                inbox.put(message)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    server.handle(Message(Kind.HELLO, {"protocol": 2, "session": "fuzz"}))
+    yield server, inbox
+    server._stop_worker()
+    stop.set()
+    reader.join(timeout=5)
+    host_port.close()
+    device_port.close()
+    hardware.close()
+    bridge.close()
+
+
+def _replies(inbox: queue.Queue[Message], request_id: int, timeout_s: float = 10.0) -> dict:
+    """Return the reply to ``request_id``, or a long request's "busy" status event."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            message = inbox.get(timeout=0.05)
+        except queue.Empty:
+            continue
+        if message.kind not in (Kind.REPLY, Kind.EVENT):
+            continue
+        if message.body.get("id") != request_id:
+            continue
+        if message.kind is Kind.REPLY:
+            return message.body
+        if message.body.get("event") == "status":
+            return {"ok": True, "result": message.body}
+    raise AssertionError(f"no reply to request {request_id}")
+
+
+@FUZZ
+@given(
+    st.integers(1, 2**31),
+    OPS,
+    st.dictionaries(ARG_KEYS, JSON, max_size=4),
+    st.sampled_from([Kind.REQUEST, Kind.ACK, Kind.HEARTBEAT, Kind.CHUNK, Kind.REPLY]),
+    JSON,
+)
+def test_device_answers_any_request_and_stays_responsive(device, request_id, op, args, kind, junk):
+    server, host = device
+    # A new session per example: request ids repeat across examples, and within one
+    # session the device rightly answers a repeated id from its reply cache.
+    server.handle(Message(Kind.HELLO, {"protocol": 2, "session": f"fuzz-{time.monotonic()}"}))
+    if isinstance(args.get("plan"), dict | list):
+        args["plan"] = {"views": [{"section": 0, "z_mm": 0.0, "angle_deg": 0.0}]}
+    # Unsolicited or malformed messages of other kinds are ignored without harm.
+    server.handle(Message(kind, junk if isinstance(junk, dict) else {"junk": junk}))
+    server.handle(Message(Kind.REQUEST, {"id": request_id, "op": op, "args": args}))
+    reply = _replies(host, request_id)
+    assert isinstance(reply["ok"], bool)
+    if not reply["ok"]:
+        assert set(reply["error"]) == {"code", "message"}
+    # Still responsive: a status request gets its answer.
+    server.handle(Message(Kind.REQUEST, {"id": request_id + 1, "op": "status"}))
+    status = _replies(host, request_id + 1)
+    assert status["ok"] and status["result"]["state"] in ("idle", "busy", "paused")
+    server._stop_worker()
+    server.hardware.laser.off()
+
+
+class _Silent:
+    """A ByteStream that never delivers anything (the host side's fuzz needs no peer)."""
+
+    timeout: float | None = 0.0
+    in_waiting = 0
+
+    def read(self, size: int = 1) -> bytes:
+        return b""
+
+    def write(self, data: bytes) -> int:
+        return len(data)
+
+
+@FUZZ
+@given(st.dictionaries(st.text(max_size=20), JSON, max_size=8), JSON, JSON, JSON)
+def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plans, protocol):
+    body = {**body, "image_size": image_size, "default_plans": plans, "protocol": protocol}
+    for candidate in (body, {**body, "protocol": 2, "hardware": "x"}):
+        try:
+            info = DeviceInfo.from_dict(candidate)
+        except DeviceError:
+            continue
+        if info.protocol == 2:
+            assert 0 < info.image_size[0] <= 16_384 and 0 < info.image_size[1] <= 16_384
+
+
+@FUZZ
+@given(JSON, st.integers(0, 2**32 - 1))
+def test_host_refuses_odd_replies_with_device_error(result, request_id):
+    client = DeviceClient(Channel(_Silent()))
+    from lamina_host.link import _result
+
+    for body in (
+        {"id": request_id, "ok": True, "result": result},
+        {"id": request_id, "ok": False, "error": result},
+        {"id": request_id, "ok": result},
+    ):
+        try:
+            value = _result("scan", body)
+        except DeviceError:
+            continue
+        assert isinstance(value, dict)
+    assert client.stats.request_retries == 0
+
+
+def test_a_frame_that_decodes_slowly_does_not_exist():
+    """The worst case the decoder can meet: a maximal frame of the costliest kind."""
+    worst = [
+        bytes([Kind.SEGMENT]) + b"\xff" * (MAX_PAYLOAD_BYTES - 1),
+        bytes([Kind.REQUEST]) + b"[" * (MAX_PAYLOAD_BYTES - 1),
+        bytes([Kind.SEGMENT]) + bytes(31) + b"\xff\xff" + b"\x80" * (MAX_PAYLOAD_BYTES - 40),
+    ]
+    for payload in worst:
+        start = time.perf_counter()
+        with pytest.raises(ProtocolError):
+            decode_message(payload)
+        assert time.perf_counter() - start < 1.0
+
+
+def test_fuzzing_a_live_scan_request_keeps_the_device_alive(device):
+    """A scan started by fuzzed arguments is stopped cleanly by the next session."""
+    server, host = device
+    plan = ScanPlan.regular(1, 2.0, 2)
+    server.handle(
+        Message(
+            Kind.REQUEST,
+            {"id": 7, "op": "scan", "args": {"target": "object", "plan": plan.to_dict()}},
+        )
+    )
+    done = threading.Event()
+
+    def ack_all() -> None:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not done.is_set():
+            try:
+                message = host.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            if message.kind is Kind.SEGMENT:
+                server.handle(Message(Kind.ACK, {"id": 7, "seqs": [message.body.seq]}))
+            if message.kind is Kind.REPLY and message.body.get("id") == 7:
+                assert message.body["ok"], message.body
+                done.set()
+
+    ack_all()
+    assert done.is_set()

@@ -1,0 +1,132 @@
+"""Every screen at 80 x 24, compared with the committed SVG snapshots.
+
+Deterministic by construction: the simulated device runs with seed 0, the port list
+is pinned (the machine's own serial ports would differ), the library's creation time
+is fixed (see conftest), and nothing on screen shows a clock. Update the snapshots
+with ``pytest tests/tui --snapshot-update`` after an intended change of layout.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from drive import calibrate, connect, fill_scan_form, wait_for
+from textual.pilot import Pilot
+from textual.widgets import DataTable
+
+from lamina_host.tui.app import LaminaApp
+
+SIZE = (80, 24)
+
+
+@pytest.fixture(autouse=True)
+def pinned_ports(monkeypatch: pytest.MonkeyPatch) -> None:
+    """List only the simulated device: real serial ports differ between machines."""
+    monkeypatch.setattr("lamina_host.tui.screens.connect.serial_ports", lambda: [])
+
+
+def test_connect_screen(snap_compare, tmp_path: Path) -> None:
+    """Connect, before connecting."""
+    assert snap_compare(LaminaApp("sim", tmp_path / "l.sqlite"), terminal_size=SIZE)
+
+
+def test_help_screen(snap_compare, tmp_path: Path) -> None:
+    """The help over the Connect screen."""
+    assert snap_compare(LaminaApp("sim", tmp_path / "l.sqlite"), press=["f1"], terminal_size=SIZE)
+
+
+def test_scan_screen_with_bad_input(snap_compare, tmp_path: Path) -> None:
+    """Scan, with the error line for a missing subject id."""
+
+    async def run_before(pilot: Pilot) -> None:
+        await fill_scan_form(pilot, "", "2", "2", "8")
+        await pilot.press("s")
+
+    app = LaminaApp("sim", tmp_path / "l.sqlite")
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_calibrate_screen(snap_compare, tmp_path: Path) -> None:
+    """Calibrate after the chessboard and the cylinder, on the simulated device."""
+
+    async def run_before(pilot: Pilot) -> None:
+        await connect(pilot)
+        await calibrate(pilot)
+        pilot.app.clear_notifications()
+
+    app = LaminaApp("sim", tmp_path / "l.sqlite")
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_live_screen(snap_compare, tmp_path: Path) -> None:
+    """Live: a preview frame with the last cylinder view's stripe over it."""
+
+    async def run_before(pilot: Pilot) -> None:
+        app = pilot.app
+        assert isinstance(app, LaminaApp)
+        await connect(pilot)
+        await calibrate(pilot)
+        await pilot.press("f3", "g")
+        await wait_for(pilot, lambda: "frame 640 x 480" in app.status[0], "the frame")
+
+    app = LaminaApp("sim", tmp_path / "l.sqlite")
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_scan_screen_after_scan(snap_compare, tmp_path: Path) -> None:
+    """Scan, complete: progress at the end and the last section's points."""
+
+    async def run_before(pilot: Pilot) -> None:
+        app = pilot.app
+        assert isinstance(app, LaminaApp)
+        await connect(pilot)
+        await calibrate(pilot)
+        await fill_scan_form(pilot, "P001", "2", "2", "8")
+        await pilot.press("s")
+        await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
+
+    app = LaminaApp("sim", tmp_path / "l.sqlite")
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_library_screen(snap_compare, scanned_library: Path) -> None:
+    """Library, with one processed scan."""
+
+    async def run_before(pilot: Pilot) -> None:
+        await pilot.press("f7")
+        table = pilot.app.screen.query_one("#scans", DataTable)
+        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+
+    app = LaminaApp("sim", scanned_library)
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_library_delete_asks_first(snap_compare, scanned_library: Path) -> None:
+    """Library, asking before deleting (answered no by the snapshot, so nothing is lost)."""
+
+    async def run_before(pilot: Pilot) -> None:
+        await pilot.press("f7")
+        table = pilot.app.screen.query_one("#scans", DataTable)
+        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await pilot.press("d")
+
+    app = LaminaApp("sim", scanned_library)
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+
+
+def test_results_screen(snap_compare, scanned_library: Path) -> None:
+    """Results of the library's scan, opened and processed again with 5 harmonics."""
+
+    async def run_before(pilot: Pilot) -> None:
+        app = pilot.app
+        assert isinstance(app, LaminaApp)
+        await pilot.press("f7")
+        table = app.screen.query_one("#scans", DataTable)
+        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await pilot.press("o")
+        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        await pilot.pause(0.2)
+
+    app = LaminaApp("sim", scanned_library)
+    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)

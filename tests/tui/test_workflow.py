@@ -1,0 +1,168 @@
+"""The whole workflow under Pilot: simulated device over a pseudo-terminal, real library."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import pymeshlab
+import pytest
+from drive import calibrate, connect, fill_scan_form, wait_for
+from textual import events
+from textual.pilot import Pilot
+from textual.widgets import DataTable, Input
+
+from lamina_host.store import Library
+from lamina_host.tui.app import LaminaApp
+from lamina_host.tui.widgets import HelpScreen
+
+DIAMETER_MM = 19.05
+"""The simulated device's default object: the thesis's calibration cylinder."""
+AREA_MM2 = math.pi * (DIAMETER_MM / 2) ** 2
+PERIMETER_MM = math.pi * DIAMETER_MM
+
+
+async def key_latency_s(pilot: Pilot) -> float:
+    """Send F1 as the terminal driver would; return the seconds until the help screen is up.
+
+    Pilot's own ``press`` waits for the whole process to go idle, which a scan in a
+    worker thread never is, so the key goes straight into the driver's queue instead.
+    """
+    app = pilot.app
+    assert app._driver is not None
+    start = time.perf_counter()
+    app._driver.send_message(events.Key("f1", None))
+    while not isinstance(app.screen, HelpScreen):
+        await asyncio.sleep(0.001)
+    latency = time.perf_counter() - start
+    app._driver.send_message(events.Key("escape", None))
+    while isinstance(app.screen, HelpScreen):
+        await asyncio.sleep(0.001)
+    return latency
+
+
+def table_rows(app: LaminaApp) -> list[list[str]]:
+    """Return the Results table's cells as text."""
+    table = app.screen.query_one("#sections", DataTable)
+    return [[str(c) for c in table.get_row_at(i)] for i in range(table.row_count)]
+
+
+async def test_whole_workflow(tmp_path: Path) -> None:
+    """Connect, calibrate, scan 2 x 8, process with 5 harmonics, export; check the files."""
+    library, out = tmp_path / "library.sqlite", tmp_path / "export"
+    app = LaminaApp("sim", library)
+    async with app.run_test(size=(80, 24)) as pilot:
+        await connect(pilot)
+        assert app.session.info is not None and app.session.info.cylinder_diameter_mm == 19.05
+        await calibrate(pilot)
+        assert app.session.grid is not None and app.session.grid.n_corners == 63
+        assert abs(app.session.axis.correction_factor - 1.0) < 0.01
+
+        await fill_scan_form(pilot, "P001", "2", "2", "8")
+        await pilot.press("s")
+        latencies = []
+        while not app.session.data.complete:
+            latencies.append(await key_latency_s(pilot))
+            await asyncio.sleep(0.05)
+        await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
+        # The median must meet the 100 ms requirement; single presses may wait for a
+        # busy shared machine, but none may look like a freeze.
+        assert latencies, "the scan ended before a key could be pressed during it"
+        assert statistics.median(latencies) < 0.1, f"key latency during the scan: {latencies}"
+        assert max(latencies) < 0.5, f"key latency during the scan: {latencies}"
+        assert len(app.session.data.segments) == 16
+
+        await pilot.press("f6")
+        harmonics = app.screen.query_one("#harmonics", Input)
+        harmonics.focus()
+        await pilot.press("5", "enter")
+        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        rows = table_rows(app)
+        assert [r[0] for r in rows] == ["0", "1"]
+        for _, _, _, perimeter, area, roundness, harm in rows:
+            assert abs(float(area) - AREA_MM2) / AREA_MM2 < 0.02
+            assert abs(float(perimeter) - PERIMETER_MM) / PERIMETER_MM < 0.02
+            assert float(roundness) > 0.98
+            assert harm == "5"
+        assert abs(app.session.results.volume_mm3 - 2.0 * AREA_MM2) / (2.0 * AREA_MM2) < 0.02
+
+        export = app.screen.query_one("#export-dir", Input)
+        export.focus()
+        await pilot.press(*str(out), "enter")
+        await wait_for(pilot, lambda: "exported" in app.status[0], "the export")
+
+    faces = set()
+    for name in ("mesh.ply", "mesh.obj", "mesh.stl"):
+        meshes = pymeshlab.MeshSet()
+        meshes.load_new_mesh(str(out / name))
+        faces.add(meshes.current_mesh().face_number())
+    assert len(faces) == 1 and faces.pop() > 100
+    report = json.loads((out / "report.json").read_text())
+    assert report["subject_id"] == "P001"
+    assert [s["harmonics"] for s in report["sections"]] == [5, 5]
+    with Library(library) as lib:
+        (summary,) = lib.scans()
+    assert (summary.subject, summary.received, summary.views) == ("P001", 16, 16)
+    assert summary.has_result
+
+
+async def test_abort_keeps_views_and_resume_finishes(tmp_path: Path) -> None:
+    """Abort mid-scan keeps what arrived; resume fetches only the missing views."""
+    app = LaminaApp("sim", tmp_path / "library.sqlite")
+    async with app.run_test(size=(80, 24)) as pilot:
+        await connect(pilot)
+        await calibrate(pilot)
+        await fill_scan_form(pilot, "P002", "2", "2", "8")
+        await pilot.press("s")
+        await wait_for(pilot, lambda: len(app.session.held) >= 3, "three views")
+        await pilot.press("b")
+        await wait_for(pilot, lambda: not app.screen.scanning, "the abort")
+        kept = len(app.session.held)
+        assert 3 <= kept < 16
+        assert "views received are kept" in app.status[0]
+        app.status = ("", False)
+        await pilot.press("p")
+        await wait_for(pilot, lambda: app.session.data.complete, "the resumed scan")
+        assert sorted(app.session.held) == list(range(16))
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        (("", "2", "2", "8"), "enter a subject id"),
+        (("P1", "0", "2", "8"), "sections 0 must be between 1 and 500"),
+        (("P1", "2", "-1", "8"), "pitch -1 mm must be above 0"),
+        (("P1", "2", "2", "2"), "views 2 must be between 3 and 360"),
+    ],
+)
+async def test_bad_scan_input_is_one_clear_line(
+    tmp_path: Path, fields: tuple[str, str, str, str], message: str
+) -> None:
+    """Bad plan input is refused with a message naming the field; nothing starts."""
+    app = LaminaApp("sim", tmp_path / "library.sqlite")
+    async with app.run_test(size=(80, 24)) as pilot:
+        await fill_scan_form(pilot, *fields)
+        await pilot.press("s")
+        await pilot.pause()
+        status, is_error = app.status
+        assert is_error and message in status
+        assert not app.screen.scanning
+
+
+async def test_missing_port_and_early_steps_explain_themselves(tmp_path: Path) -> None:
+    """A port that does not exist and steps out of order give one line each, no traceback."""
+    app = LaminaApp(str(tmp_path / "ttyNONE"), tmp_path / "library.sqlite")
+    async with app.run_test(size=(80, 24)) as pilot:
+        await pilot.press("c")
+        await wait_for(pilot, lambda: app.status[1], "the connection error")
+        assert app.status[0].startswith(f"serial port {tmp_path / 'ttyNONE'} does not exist")
+        await pilot.press("f4", "g")
+        await wait_for(pilot, lambda: "no device connected" in app.status[0], "the refusal")
+        await pilot.press("y")
+        await wait_for(pilot, lambda: "accept the chessboard first" in app.status[0], "refusal")
+        await pilot.press("f6", "p")
+        await wait_for(pilot, lambda: "nothing to process" in app.status[0], "the refusal")
