@@ -8,8 +8,8 @@ specification as the device configuration expects it (``[board]`` in the TOML fi
 
 Standard library only, so it runs anywhere Python 3.11 does:
 
-    python3 hardware/calibration_board.py -o board.svg                 # 9x7 corners, 3 mm
-    python3 hardware/calibration_board.py --preset limb -o limb.svg    # 9x7 corners, 18 mm
+    python3 hardware/calibration_board.py -o board.svg                 # 13x11 corners, 2 mm
+    python3 hardware/calibration_board.py --preset limb -o limb.svg    # 13x9 corners, 12 mm
     python3 hardware/calibration_board.py --inner-corners 11x8 --square-mm 5 -o b.svg
 
 Print at 100 % ("actual size", never "fit to page") on matte paper, check the 50 mm
@@ -26,9 +26,9 @@ from xml.sax.saxutils import escape
 
 PRESETS = {
     # The simulated rig and the thesis-scale scanner (19.05 mm calibration cylinder).
-    "sim": ((9, 7), 3.0),
-    # Limb-scale box: a 180 x 144 mm board covers a field of view about 200 mm wide.
-    "limb": ((9, 7), 18.0),
+    "sim": ((13, 11), 2.0),
+    # Limb-scale box (the simulator's Rig.limb()): a 168 x 120 mm board.
+    "limb": ((13, 9), 12.0),
 }
 PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
 CHECK_SQUARE_MM = 50.0

@@ -111,7 +111,7 @@ def test_simulated_cylinder_meets_the_accuracy_target(live_scan):
     for row in accuracy["rows"]:
         # Issue #5 target: at most 0.03 mm about the mean centroid on every section.
         assert row["rms_mean_mm"] <= 0.03, row
-    assert report["calibration"]["n_corners"] == 63
+    assert report["calibration"]["n_corners"] == 143
     assert report["calibration"]["rms_mm"] < 0.05
     assert abs(report["correction_factor"] - 1.0) < 0.05
     assert all(s["harmonics"] >= 1 for s in report["sections"])

@@ -151,7 +151,7 @@ def test_calibration_image_survives_a_cut_mid_transfer():
         assert faults.counts["cuts"] == 1 and faults.counts["cut_bytes"] > 0
         assert ends.client.stats.fetch_rounds >= 1
     assert (image == truth).all()
-    assert board.inner_corners == (9, 7)
+    assert board.inner_corners == (13, 11)
 
 
 def test_device_refuses_what_is_outside_its_limits_and_stays_responsive():

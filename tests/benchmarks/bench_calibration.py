@@ -2,13 +2,13 @@
 
 Protocol (thesis 4.3, as far as the text fixes it): a known, representative plane
 homography (here the simulated thesis-scale rig's), the four corners P1-P4 of a known
-square on the calibration grid (the 18 mm square of board corners centred on the board),
+square on the calibration grid (the 16 mm square of board corners centred on the board),
 16 further grid points for the DLT with 20 points (a 5 x 4 lattice over that square, with
 P1-P4 at its corners), zero-mean Gaussian noise of variance 0.140625 ... 18 px^2 added to
 the image points in x and y, 20 trials per level, and the error of a method = the radial
 distance between the true image points of P1-P4 mapped by the estimated H and their known
 grid positions, averaged over the four points and the 20 trials. The rig is in mm, so no
-rescaling is needed. "ml-63" is Lamina's default (all 63 board corners, RANSAC, then
+rescaling is needed. "ml-all" is Lamina's default (all 143 board corners, RANSAC, then
 Levenberg-Marquardt on reprojection error); "ml-20" isolates the estimator from the point
 count. Fig. 4.7 is the DLT (and ML) error against the number of points at 2.25 px^2.
 """
@@ -30,9 +30,9 @@ from lamina_host.calibration import (
 TITLE = "calibration noise study (thesis 4.3, figs. 4.4-4.7), average radial error at P1-P4"
 VARIANCES_PX2 = (0.140625, 0.28125, 0.5625, 1.125, 2.25, 4.5, 9.0, 18.0)
 TRIALS = 20
-SQUARE = np.array([[-9.0, -9.0], [9.0, -9.0], [9.0, 9.0], [-9.0, 9.0]])  # P1-P4, mm
-LATTICE_20 = np.array([[x, y] for y in (-9.0, -3.0, 3.0, 9.0) for x in (-9.0, -4.5, 0.0, 4.5, 9.0)])
-COUNTS_FIG_4_7 = (4, 8, 12, 16, 20, 24, 32, 40, 48, 63)
+SQUARE = np.array([[-8.0, -8.0], [8.0, -8.0], [8.0, 8.0], [-8.0, 8.0]])  # P1-P4, mm
+LATTICE_20 = np.array([[x, y] for y in (-8.0, -2.0, 2.0, 8.0) for x in (-8.0, -4.0, 0.0, 4.0, 8.0)])
+COUNTS_FIG_4_7 = (4, 8, 12, 16, 20, 24, 32, 40, 48, 63, 96, 143)
 
 
 def _project(matrix: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -47,7 +47,7 @@ def _methods(board_world: np.ndarray) -> dict[str, tuple[np.ndarray, Any]]:
         "dlt-4": (SQUARE, dlt_homography),
         "dlt-20": (LATTICE_20, dlt_homography),
         "ml-20": (LATTICE_20, lambda i, w: fit_plane_map(i, w, "ml")[0]),
-        "ml-63": (board_world, lambda i, w: fit_plane_map(i, w, "ml")[0]),
+        "ml-all": (board_world, lambda i, w: fit_plane_map(i, w, "ml")[0]),
     }
 
 
@@ -107,7 +107,7 @@ def paired_study(trials: int = 300, seed: int = 2) -> dict[str, float]:
     g = rig.plane_homography()
     rng = np.random.default_rng(seed)
     out = {}
-    for label, world in (("20", LATTICE_20), ("63", rig.board.world_corners())):
+    for label, world in (("20", LATTICE_20), ("all", rig.board.world_corners())):
         image = _project(g, world)
         dlt, ml = [], []
         for _ in range(trials):
@@ -124,7 +124,9 @@ def rendered_board() -> dict[str, float]:
     rig = Rig()
     image = SimScene(rig).render("grid", 0.0, 0.0, False)
     corners = find_corners(image, rig.board)
-    truth = rig.project(np.column_stack([rig.board.world_corners(), np.zeros(63)]))
+    truth = rig.project(
+        np.column_stack([rig.board.world_corners(), np.zeros(rig.board.corner_count)])
+    )
     out = {"corner_rms_px": float(np.sqrt(np.mean(np.sum((corners - truth) ** 2, axis=1))))}
     for method in ("dlt", "ml"):
         h, _ = fit_plane_map(corners, rig.board.world_corners(), method)
@@ -153,8 +155,10 @@ def report(results: dict[str, Any]) -> list[str]:
         row = "".join(f"{results['methods'][n]['mean_mm'][k]:12.4f}" for n in names)
         lines.append(f"  {var:13.6f} {row}")
     k = results["variances_px2"].index(2.25)
-    best = results["methods"]["ml-63"]["mean_mm"][k]
-    lines.append(f"  at 2.25 px^2: ml-63 {best:.4f} mm (target <= 0.05 mm; thesis DLT-20 < 0.2 mm)")
+    best = results["methods"]["ml-all"]["mean_mm"][k]
+    lines.append(
+        f"  at 2.25 px^2: ml-all {best:.4f} mm (target <= 0.05 mm; thesis DLT-20 < 0.2 mm)"
+    )
     lines.append(
         "  fig 4.7 (2.25 px^2), points: " + " ".join(f"{c:>6}" for c in results["counts_fig_4_7"])
     )
@@ -163,8 +167,8 @@ def report(results: dict[str, Any]) -> list[str]:
     p = results["paired_2_25_px2"]
     lines.append(
         f"  same points, 300 trials at 2.25 px^2: dlt-20 {p['dlt-20_mm']:.4f} vs ml-20 "
-        f"{p['ml-20_mm']:.4f} mm (ml better in {p['ml_better_share-20']:.0%}); dlt-63 "
-        f"{p['dlt-63_mm']:.4f} vs ml-63 {p['ml-63_mm']:.4f} mm ({p['ml_better_share-63']:.0%})"
+        f"{p['ml-20_mm']:.4f} mm (ml better in {p['ml_better_share-20']:.0%}); dlt-all "
+        f"{p['dlt-all_mm']:.4f} vs ml-all {p['ml-all_mm']:.4f} mm ({p['ml_better_share-all']:.0%})"
     )
     rb = results["rendered_board"]
     lines.append(

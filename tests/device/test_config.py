@@ -22,7 +22,7 @@ def test_packaged_default_loads_with_the_documented_values():
     assert config.lift.limit_pin == 6 and config.lift.home_mm <= config.lift.min_mm
     assert (config.camera.width, config.camera.height) == (1536, 864)
     assert config.safety.laser_max_on_s == 2.0
-    assert config.board.inner_corners == (9, 7) and config.board.origin_mm == (-12.0, -9.0)
+    assert config.board.inner_corners == (13, 11) and config.board.origin_mm == (-12.0, -10.0)
 
 
 def test_every_problem_is_listed_at_once():

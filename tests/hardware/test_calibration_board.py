@@ -49,7 +49,7 @@ def group(root, name):
 
 @pytest.mark.parametrize(
     ("args", "corners", "square_mm"),
-    [([], (9, 7), 3.0), (["--preset", "limb"], (9, 7), 18.0),
+    [([], (13, 11), 2.0), (["--preset", "limb"], (13, 9), 12.0),
      (["--inner-corners", "11x8", "--square-mm", "7.25"], (11, 8), 7.25)],
 )  # fmt: skip
 def test_page_is_at_exact_millimetre_scale_and_squares_sit_on_the_grid(
@@ -96,9 +96,9 @@ def test_check_square_measures_fifty_millimetres_and_the_ruler_one_hundred(tmp_p
 def test_the_specification_is_printed_on_the_sheet(tmp_path):
     root = write_sheet(tmp_path, "--preset", "limb")
     text = " ".join(t.text for t in group(root, "spec").iter(f"{SVG}text"))
-    assert "9 x 7 inner corners" in text and "18 mm squares" in text
-    assert "board 180 x 144 mm" in text
-    assert "inner_corners = [9, 7], square_mm = 18" in text
+    assert "13 x 9 inner corners" in text and "12 mm squares" in text
+    assert "board 168 x 120 mm" in text
+    assert "inner_corners = [13, 9], square_mm = 12" in text
     assert "100 %" in text and "50 mm" in text
 
 
@@ -117,11 +117,11 @@ def test_opencv_finds_every_inner_corner_at_the_square_pitch(tmp_path):
     root = write_sheet(tmp_path, "--preset", "limb")
     px_per_mm = 4.0
     image = rasterise(root, px_per_mm)
-    found, corners = cv2.findChessboardCorners(image, (9, 7))
+    found, corners = cv2.findChessboardCorners(image, (13, 9))
     assert found
-    corners = corners.reshape(7, 9, 2)
+    corners = corners.reshape(9, 13, 2)
     pitch_px = np.linalg.norm(np.diff(corners, axis=1), axis=2)
-    assert np.allclose(pitch_px, 18.0 * px_per_mm, atol=0.5)
+    assert np.allclose(pitch_px, 12.0 * px_per_mm, atol=0.5)
 
 
 def test_the_sim_board_matches_the_simulated_rig():

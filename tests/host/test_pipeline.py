@@ -16,13 +16,13 @@ import cv2
 import numpy as np
 import pytest
 
+from lamina_device.sim import Rig
 from lamina_host.expect import parse_expectation
 from lamina_host.measure import radial_error_table
 from lamina_host.pipeline import ProcessOptions, reconstruct
 from lamina_host.report import load_segments
-from lamina_shared.types import BoardSpec
 
-THESIS_BOARD = BoardSpec((9, 7), 3.0, (-12.0, -9.0))
+RIG_BOARD = Rig().board
 
 
 def lamina(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -63,7 +63,7 @@ def test_default_methods_meet_the_target_and_beat_the_thesis(cylinder_scan: Path
     grid = cv2.imread(str(cylinder_scan / "calibration-grid.png"), cv2.IMREAD_GRAYSCALE)
     cylinder = load_segments(cylinder_scan / "cylinder-segments.npz")
     segments = load_segments(cylinder_scan / "segments.npz")
-    thesis = reconstruct(grid, THESIS_BOARD, cylinder, 19.05, segments, ProcessOptions.thesis())
+    thesis = reconstruct(grid, RIG_BOARD, cylinder, 19.05, segments, ProcessOptions.thesis())
     table = radial_error_table(
         {s.index: s.contour for s in thesis.sections},
         {s.index: s.z_mm for s in thesis.sections},

@@ -79,7 +79,7 @@ def test_keys_drive_the_app_in_tmux(tmp_path: Path) -> None:
         term.keys("F4")
         term.wait_for("Chessboard")
         term.keys("g")
-        term.wait_for("corners        63")
+        term.wait_for("corners        143")
         term.keys("a", "y")
         screen = term.wait_for("correction     1.0")
         assert "within 5% of 1" in screen

@@ -59,7 +59,7 @@ async def test_whole_workflow(tmp_path: Path) -> None:
         await connect(pilot)
         assert app.session.info is not None and app.session.info.cylinder_diameter_mm == 19.05
         await calibrate(pilot)
-        assert app.session.grid is not None and app.session.grid.n_corners == 63
+        assert app.session.grid is not None and app.session.grid.n_corners == 143
         assert abs(app.session.axis.correction_factor - 1.0) < 0.01
 
         await fill_scan_form(pilot, "P001", "2", "2", "8")
