@@ -37,6 +37,16 @@ class CameraError(RuntimeError):
     """A frame could not be produced."""
 
 
+class ExposureRefused(CameraError):
+    """An exposure the camera does not accept; the text names what it accepts."""
+
+
+SIM_EXPOSURE_US = 4000
+"""The simulated camera's nominal exposure: frames at it are the simulator's reference."""
+SIM_EXPOSURE_RANGE_US = (100, 20_000)
+"""Exposures the simulated camera accepts (a Camera Module 3 in its 120 fps mode)."""
+
+
 class Camera(Protocol):
     """Anything that returns one luminance frame per call."""
 
@@ -49,9 +59,32 @@ class Camera(Protocol):
         """Expose and return one frame (H, W), uint8 or uint16."""
         ...  # pragma: no cover - protocol
 
+    @property
+    def exposure_us(self) -> int:
+        """Return the exposure time now in use, in microseconds."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def exposure_range_us(self) -> tuple[int, int]:
+        """Return the (min, max) exposure time this camera accepts, in microseconds."""
+        ...  # pragma: no cover - protocol
+
+    def set_exposure(self, exposure_us: int) -> None:
+        """Expose later frames for ``exposure_us``; ExposureRefused outside the range."""
+        ...  # pragma: no cover - protocol
+
     def close(self) -> None:
         """Release the camera."""
         ...  # pragma: no cover - protocol
+
+
+def check_exposure(exposure_us: int, range_us: tuple[int, int]) -> None:
+    """Raise CameraError naming the allowed range unless ``exposure_us`` lies within it."""
+    low, high = range_us
+    if not low <= exposure_us <= high:
+        raise ExposureRefused(
+            f"exposure {exposure_us} us is outside this camera's {low}..{high} us"
+        )
 
 
 @dataclass
@@ -71,11 +104,18 @@ class SimCamera:
     lift: SimLift
     laser: Laser
     frames_taken: int = field(default=0, init=False)
+    exposure_us: int = field(default=SIM_EXPOSURE_US, init=False)
+    exposure_range_us: tuple[int, int] = field(default=SIM_EXPOSURE_RANGE_US, init=False)
 
     @property
     def size(self) -> tuple[int, int]:
         """Return (width, height) in pixels."""
         return self.scene.rig.image_size
+
+    def set_exposure(self, exposure_us: int) -> None:
+        """Expose later frames for ``exposure_us``: the light scales with it, noise does not."""
+        check_exposure(exposure_us, self.exposure_range_us)
+        self.exposure_us = int(exposure_us)
 
     def capture(self) -> np.ndarray:
         """Render one frame of the current scene."""
@@ -85,6 +125,7 @@ class SimCamera:
             self.turntable.true_angle_deg,
             self.lift.true_z_mm,
             self.laser.is_on,
+            exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
         )
 
     def close(self) -> None:
@@ -105,6 +146,24 @@ class ReplayCamera:
     def size(self) -> tuple[int, int]:
         """Return (width, height) in pixels."""
         return self.capture_set.image_size
+
+    @property
+    def exposure_us(self) -> int:
+        """Return the nominal exposure (the recorded frames' own is not known here)."""
+        return SIM_EXPOSURE_US
+
+    @property
+    def exposure_range_us(self) -> tuple[int, int]:
+        """Return the one exposure a replay has: the one it was recorded with."""
+        return (SIM_EXPOSURE_US, SIM_EXPOSURE_US)
+
+    def set_exposure(self, exposure_us: int) -> None:
+        """Refuse any change: recorded frames cannot be exposed again."""
+        if exposure_us != self.exposure_us:
+            raise ExposureRefused(
+                "a replayed capture cannot change its exposure (the frames are recorded); "
+                "set the exposure on the live scanner or simulator instead"
+            )
 
     def capture(self) -> np.ndarray:
         """Return the recorded frame matching the stage, angle, height and laser state."""
@@ -174,6 +233,7 @@ class PiCamera:
         module = picamera2 if picamera2 is not None else import_picamera2()
         self._mapped_array = module.MappedArray
         self.frames_dropped = 0
+        self.exposure_us = config.exposure_us
         self._cam = module.Picamera2()
         try:
             self._start()
@@ -186,12 +246,29 @@ class PiCamera:
         """Return (width, height) in pixels."""
         return (self.config.width, self.config.height)
 
+    @property
+    def exposure_range_us(self) -> tuple[int, int]:
+        """Return the configured [camera] min_exposure_us..max_exposure_us."""
+        return (self.config.min_exposure_us, self.config.max_exposure_us)
+
+    def set_exposure(self, exposure_us: int) -> None:
+        """Set the exposure time and wait until frames report it (CameraError if they do not)."""
+        check_exposure(exposure_us, self.exposure_range_us)
+        previous, self.exposure_us = self.exposure_us, int(exposure_us)
+        self._cam.set_controls({"ExposureTime": self.exposure_us})
+        try:
+            self._confirm_controls()
+        except CameraError:
+            self.exposure_us = previous
+            self._cam.set_controls({"ExposureTime": previous})
+            raise
+
     def _controls(self) -> dict[str, Any]:
         cfg = self.config
         return {
             "AeEnable": False,
             "AwbEnable": False,
-            "ExposureTime": cfg.exposure_us,
+            "ExposureTime": self.exposure_us,
             "AnalogueGain": cfg.gain,
             "FrameDurationLimits": (cfg.frame_duration_us, cfg.frame_duration_us),
         }
@@ -214,7 +291,7 @@ class PiCamera:
         exposure = metadata.get("ExposureTime", 0)
         gain = metadata.get("AnalogueGain", 0.0)
         return (
-            abs(exposure - cfg.exposure_us) <= _EXPOSURE_TOLERANCE * cfg.exposure_us
+            abs(exposure - self.exposure_us) <= _EXPOSURE_TOLERANCE * self.exposure_us
             and abs(gain - cfg.gain) <= _GAIN_TOLERANCE * cfg.gain
         )
 
@@ -231,7 +308,7 @@ class PiCamera:
             if self._controls_applied(metadata):
                 return
         raise CameraError(
-            f"the camera did not apply exposure {self.config.exposure_us} us and gain "
+            f"the camera did not apply exposure {self.exposure_us} us and gain "
             f"{self.config.gain:g} within {self.config.timeout_s:g} s (it reports "
             f"{metadata.get('ExposureTime')} us, gain {metadata.get('AnalogueGain')}); "
             "check [camera] exposure_us, gain and frame_duration_us against the sensor's limits"

@@ -98,12 +98,14 @@ class LiftConfig(DriverConfig):
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Camera backend and fixed exposure."""
+    """Camera backend, exposure at start and the range the host may set it within."""
 
     backend: str = _spec(choices=("picamera2",))
     width: int = _spec(64, 4608)
     height: int = _spec(48, 3456)
     exposure_us: int = _spec(10, 1_000_000)
+    min_exposure_us: int = _spec(10, 1_000_000)
+    max_exposure_us: int = _spec(10, 1_000_000)
     gain: float = _spec(1.0, 16.0)
     frame_duration_us: int = _spec(1000, 1_000_000)
     buffer_count: int = _spec(2, 8)
@@ -272,6 +274,16 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
         problems.append("[lift] start_speed_mm_s must not exceed max_speed_mm_s")
     if table.start_speed_deg_s > table.max_speed_deg_s:
         problems.append("[turntable] start_speed_deg_s must not exceed max_speed_deg_s")
+    if not camera.min_exposure_us <= camera.exposure_us <= camera.max_exposure_us:
+        problems.append(
+            f"[camera] exposure_us {camera.exposure_us} must lie within min_exposure_us.."
+            f"max_exposure_us ({camera.min_exposure_us}..{camera.max_exposure_us})"
+        )
+    if camera.max_exposure_us > camera.frame_duration_us:
+        problems.append(
+            f"[camera] max_exposure_us {camera.max_exposure_us} must fit in frame_duration_us "
+            f"{camera.frame_duration_us}"
+        )
     if camera.exposure_us > camera.frame_duration_us:
         problems.append(
             f"[camera] exposure_us {camera.exposure_us} must fit in frame_duration_us "

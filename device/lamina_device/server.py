@@ -15,6 +15,7 @@ from a fixed table and carry plain numbers, each checked against the device's li
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import json
 import logging
@@ -39,7 +40,8 @@ from lamina_device.acquisition import (
     capture_pair,
     grab_grid,
 )
-from lamina_device.camera import CameraError
+from lamina_device.camera import CameraError, ExposureRefused
+from lamina_device.extract import extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_shared.link import Channel, LinkClosed, Ticker, error_body, is_count, ok_body
 from lamina_shared.protocol import (
@@ -53,6 +55,7 @@ from lamina_shared.protocol import (
     encode_chunk,
     encode_json,
     encode_segment,
+    encode_segment_body,
     quantise_segment,
 )
 from lamina_shared.types import ScanPlan, Segment
@@ -341,6 +344,7 @@ class DeviceServer:
             "pause": self._pause,
             "resume": self._resume,
             "abort": self._abort,
+            "exposure": self._exposure,
             "status": self._status,
             "shutdown": self._shutdown,
         }
@@ -619,13 +623,28 @@ class DeviceServer:
         return {**result, "board": board.to_dict() if board else None}
 
     def _preview(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
-        """Capture one frame where the axes stand (laser on only during its exposure)."""
-        check_keys(args, {"laser"}, "preview")
-        laser = args.get("laser", False)
-        if not isinstance(laser, bool):
-            raise RequestError("bad-args", "preview's laser must be true or false")
-        frame = capture_pair(self.hardware)[0] if laser else self.hardware.camera.capture()
-        return self._offer(request_id, _png(frame))
+        """Capture one frame where the axes stand (laser on only during its exposure).
+
+        With ``stripe`` the device takes the laser-off/laser-on pair a scan would, extracts
+        the stripe with the scan's own extraction and returns it as a SEGMENT body.
+        """
+        check_keys(args, {"laser", "stripe"}, "preview")
+        laser, stripe = args.get("laser", False), args.get("stripe", False)
+        if not isinstance(laser, bool) or not isinstance(stripe, bool):
+            raise RequestError("bad-args", "preview's laser and stripe must be true or false")
+        hw = self.hardware
+        if not stripe:
+            frame = capture_pair(hw)[0] if laser else hw.camera.capture()
+            return self._offer(request_id, _png(frame))
+        on, off = capture_pair(hw)
+        segment = quantise_segment(
+            to_segment(
+                extract(on, off), hw.stage.target, 0, 0, hw.lift.z_mm, hw.turntable.angle_deg
+            )
+        )
+        body = encode_segment_body(request_id, 0, segment)
+        result = self._offer(request_id, _png(on if laser else off))
+        return {**result, "stripe": base64.b64encode(body).decode("ascii")}
 
     # --- scanning --------------------------------------------------------------------
 
@@ -755,6 +774,24 @@ class DeviceServer:
         """End the running scan at the next view; what was sent stays valid."""
         self._scan_control("abort").abort()
         return {"state": "aborting"}
+
+    def _exposure(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+        """Set the camera's exposure (``exposure_us``) within its limits; report it and them."""
+        check_keys(args, {"exposure_us"}, "exposure")
+        camera = self.hardware.camera
+        low, high = camera.exposure_range_us
+        if "exposure_us" in args:
+            value = args["exposure_us"]
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise RequestError("bad-args", "exposure_us must be a whole number of us")
+            if self._running_id is not None:
+                # A scan's views must all share one exposure.
+                raise RequestError("busy", f"request {self._running_id} is using the camera")
+            try:
+                camera.set_exposure(value)
+            except ExposureRefused as exc:
+                raise RequestError("limit", str(exc)) from None
+        return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
 
     def _status(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
         return {**self._state(), "retransmissions": self.buffer.retransmissions}

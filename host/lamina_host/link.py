@@ -13,6 +13,9 @@ before it is acknowledged; transfers are fetched piece by piece until complete.
 
 from __future__ import annotations
 
+import base64
+import binascii
+import logging
 import os
 import secrets
 import select
@@ -40,7 +43,9 @@ from lamina_shared.protocol import (
     Chunk,
     Kind,
     Message,
+    ProtocolError,
     SegmentEvent,
+    decode_segment_body,
     encode_json,
 )
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
@@ -48,9 +53,39 @@ from lamina_shared.types import BoardSpec, ScanPlan, Segment
 MAX_IMAGE_SIDE = 16_384
 """Largest image side the host accepts from a device."""
 
+log = logging.getLogger(__name__)
+
 
 class DeviceError(RuntimeError):
     """The device is missing, incompatible or refused a request; the text says what to do."""
+
+
+class RequestRefused(DeviceError):
+    """The device answered a request with an error; ``code`` is its machine-readable reason."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class ScanStopped(DeviceError):
+    """The scan was aborted on the device; ``segments`` maps plan index to what arrived.
+
+    Every segment in it was handed to ``on_segment`` (stored) and acknowledged; the
+    scan resumes with ``have`` = what the caller holds.
+    """
+
+    def __init__(self, message: str, segments: dict[int, Segment]) -> None:
+        super().__init__(message)
+        self.segments = segments
+
+
+@dataclass(frozen=True)
+class Preview:
+    """One preview frame and, when asked for, the stripe the device extracted there."""
+
+    image: np.ndarray
+    stripe: Segment | None = None
 
 
 @dataclass(frozen=True)
@@ -280,6 +315,16 @@ class DeviceClient:
         self.stats = LinkStats()
         self._heartbeat = Ticker(0.5)
         self._next_id = 1
+        self._id_lock = threading.Lock()  # ids and pending controls, shared with control()
+        self._controls: dict[int, tuple[str, bytes, float]] = {}
+        self._scanning = False
+        self._on_notice: Callable[[str], object] | None = None
+
+    def _new_id(self) -> int:
+        with self._id_lock:
+            request_id = self._next_id
+            self._next_id += 1
+            return request_id
 
     def _device_exit_message(self) -> str | None:
         if self.process is None or self.process.poll() is None:
@@ -325,14 +370,14 @@ class DeviceClient:
         self, op: str, args: dict[str, Any] | None = None, on_event: EventHandler | None = None
     ) -> dict[str, Any]:
         """Send one request until answered; pass its events on; return the reply's result."""
-        request_id = self._next_id
-        self._next_id += 1
+        request_id = self._new_id()
         frame = encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": args or {}})
         self.channel.send(frame)
         last_related = time.monotonic()
         while True:
             message = self.poll()
             now = time.monotonic()
+            self._retry_controls(now)
             if message is None:
                 if now - self.channel.last_received_s > self.idle_timeout_s:
                     raise DeviceError(
@@ -347,6 +392,8 @@ class DeviceClient:
                     last_related = now
                 continue
             if _request_id(message) != request_id:
+                if message.kind is Kind.REPLY:
+                    self._control_reply(message.body)
                 if message.kind is Kind.HEARTBEAT and now - last_related > 0.3:
                     # The device says it is not working on our request: it never got it,
                     # or its reply was lost. Ask again now rather than after a timeout.
@@ -401,13 +448,96 @@ class DeviceClient:
             raise DeviceError("the device does not know its calibration board: configure it")
         return image, BoardSpec.from_dict(result["board"])
 
-    def preview(self, laser: bool = False) -> np.ndarray:
-        """Fetch one camera frame taken where the axes stand."""
-        data, _ = self._fetch("preview", {"laser": laser})
+    def preview(self, laser: bool = False, stripe: bool = True) -> Preview:
+        """Fetch one camera frame taken where the axes stand, and the stripe found there.
+
+        Args:
+            laser: show the laser-on frame rather than the laser-off one.
+            stripe: also have the device take a laser-off/on pair and extract the stripe
+                (the laser then flashes for one frame even when ``laser`` is False).
+        """
+        data, result = self._fetch("preview", {"laser": laser, "stripe": stripe})
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the preview frame could not be decoded")
-        return image
+        found = None
+        if stripe:
+            try:
+                found = decode_segment_body(base64.b64decode(result["stripe"], validate=True))
+            except (KeyError, TypeError, binascii.Error, ProtocolError) as exc:
+                raise DeviceError(f"the device's preview stripe is malformed ({exc})") from None
+            height, width = image.shape[:2]
+            if len(found.segment) and (
+                int(found.segment.cols[-1]) >= width or float(found.segment.rows.max()) >= height
+            ):
+                raise DeviceError("the device's preview stripe lies outside its frame")
+        return Preview(image, found.segment if found else None)
+
+    def set_exposure(self, exposure_us: int) -> int:
+        """Set the camera's exposure; return the exposure the device now uses.
+
+        Raises:
+            DeviceError: outside the camera's range (the message names it) or a scan runs.
+        """
+        return int(self.request("exposure", {"exposure_us": int(exposure_us)})["exposure_us"])
+
+    def exposure(self) -> tuple[int, int, int]:
+        """Return the camera's (exposure, min, max) in microseconds."""
+        result = self.request("exposure")
+        return int(result["exposure_us"]), int(result["min_us"]), int(result["max_us"])
+
+    def pause(self) -> None:
+        """Ask the device to hold the running scan after the current view (thread-safe)."""
+        self._control("pause")
+
+    def resume(self) -> None:
+        """Ask the device to go on with a paused scan (thread-safe)."""
+        self._control("resume")
+
+    def abort(self) -> None:
+        """Ask the device to end the running scan at the next view (thread-safe).
+
+        :meth:`scan` then raises :class:`ScanStopped` holding what arrived.
+        """
+        self._control("abort")
+
+    def _control(self, op: str) -> None:
+        """Send a control request; the running :meth:`scan` reads and retries its reply."""
+        if not self._scanning:
+            raise DeviceError(f"no scan is running to {op}")
+        request_id = self._new_id()
+        frame = encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": {}})
+        with self._id_lock:
+            self._controls[request_id] = (op, frame, time.monotonic())
+        self.channel.send(frame)
+
+    def _retry_controls(self, now: float) -> None:
+        """Send again the control requests unanswered for ``retry_s`` (same id)."""
+        with self._id_lock:
+            due = [
+                (request_id, op, frame)
+                for request_id, (op, frame, sent_s) in self._controls.items()
+                if now - sent_s > self.retry_s
+            ]
+            for request_id, op, frame in due:
+                self._controls[request_id] = (op, frame, now)
+        for _, _, frame in due:
+            self.channel.send(frame)
+            self.stats.request_retries += 1
+
+    def _control_reply(self, body: Any) -> None:
+        """Consume a control request's reply; pass a refusal on as a notice, never raise."""
+        request_id = body.get("id") if isinstance(body, dict) else None
+        with self._id_lock:
+            pending = self._controls.pop(request_id, None) if isinstance(request_id, int) else None
+        if pending is None:
+            return
+        try:
+            _result(pending[0], body)
+        except DeviceError as exc:
+            log.warning("%s", exc)
+            if self._on_notice is not None:
+                self._on_notice(str(exc))
 
     def plan_for(self, target: str, plan: ScanPlan | None) -> ScanPlan:
         """Return ``plan``, or the device's default plan for ``target``."""
@@ -426,8 +556,12 @@ class DeviceClient:
         *,
         have: Collection[int] = (),
         on_segment: SegmentHandler | None = None,
+        on_notice: Callable[[str], object] | None = None,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
+
+        While it runs, other threads may call :meth:`pause`, :meth:`resume` and
+        :meth:`abort`; this call reads their replies (a refusal goes to ``on_notice``).
 
         Args:
             target: ``cylinder`` or ``object``.
@@ -436,6 +570,10 @@ class DeviceClient:
             have: plan indices the caller already holds (a resumed scan).
             on_segment: receives (seq, segment) and must store it before returning;
                 only then is the segment acknowledged.
+            on_notice: receives the one-line text of a refused pause, resume or abort.
+
+        Raises:
+            ScanStopped: the scan was aborted; it holds the segments received.
         """
         plan = self.plan_for(target, plan)
         held = set(have)
@@ -462,7 +600,21 @@ class DeviceClient:
                 on_progress(message.body)
 
         args = {"target": target, "plan": plan.to_dict(), "have": sorted(held)}
-        self.request("scan", args, on_event=take)
+        self._scanning, self._on_notice = True, on_notice
+        try:
+            self.request("scan", args, on_event=take)
+        except RequestRefused as exc:
+            if exc.code != "aborted":
+                raise
+            raise ScanStopped(
+                f"{target} scan aborted with {len(held) + len(received)} of "
+                f"{len(plan.views)} views in; the views received are kept",
+                dict(sorted(received.items())),
+            ) from None
+        finally:
+            with self._id_lock:
+                self._scanning, self._on_notice = False, None
+                self._controls.clear()
         missing = set(range(len(plan.views))) - held - set(received)
         if missing:
             raise DeviceError(f"the device finished the scan but {len(missing)} views are missing")
@@ -487,7 +639,10 @@ def _result(op: str, body: dict[str, Any]) -> dict[str, Any]:
         return result if isinstance(result, dict) else {}
     error = body.get("error")
     reason = error.get("message") if isinstance(error, dict) else None
-    raise DeviceError(f"the device refused {op}: {reason or 'no reason given'}")
+    code = error.get("code") if isinstance(error, dict) else None
+    raise RequestRefused(
+        str(code or "unknown"), f"the device refused {op}: {reason or 'no reason given'}"
+    )
 
 
 def _check_segment(

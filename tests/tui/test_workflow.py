@@ -119,6 +119,14 @@ async def test_abort_keeps_views_and_resume_finishes(tmp_path: Path) -> None:
         await fill_scan_form(pilot, "P002", "2", "2", "8")
         await pilot.press("s")
         await wait_for(pilot, lambda: len(app.session.held) >= 3, "three views")
+        # Pause on the device: after the view in flight, no more views arrive.
+        await pilot.press("p")
+        await pilot.pause(1.5)
+        paused_at = len(app.session.held)
+        await pilot.pause(1.0)
+        assert app.screen.paused and len(app.session.held) == paused_at < 16
+        await pilot.press("p")
+        await wait_for(pilot, lambda: len(app.session.held) > paused_at, "the resumed views")
         await pilot.press("b")
         await wait_for(pilot, lambda: not app.screen.scanning, "the abort")
         kept = len(app.session.held)

@@ -229,8 +229,15 @@ class SimScene:
         z_mm: float,
         laser_on: bool,
         noise_key: tuple[object, ...] = (),
+        exposure_scale: float = 1.0,
     ) -> np.ndarray:
-        """Return one uint8 (H, W) frame of ``target`` at the true angle and section height."""
+        """Return one uint8 (H, W) frame of ``target`` at the true angle and section height.
+
+        ``exposure_scale`` (exposure time over the nominal one) multiplies the light that
+        reaches the sensor, ambient and laser alike, before noise and 8-bit clipping, so a
+        long exposure saturates the stripe as a real sensor does. At 1.0 the frame is
+        bit-identical to one rendered without it.
+        """
         key = (self.seed, target, float(angle_deg), float(z_mm), bool(laser_on), tuple(noise_key))
         rng = np.random.default_rng(_stable_seed(*key))
         if target == "grid":
@@ -241,6 +248,8 @@ class SimScene:
             n = self.noise
             speckle = speckle_field(rng, self._shape, n.speckle_contrast, n.speckle_grain_px)
             expected = expected + view.laser_dn * speckle
+        if exposure_scale != 1.0:
+            expected = expected * exposure_scale
         return _expose(rng, expected, self.noise)
 
     def _view(self, target: str, angle_deg: float, z_mm: float) -> _View:

@@ -25,7 +25,13 @@ import serial.tools.list_ports
 from lamina_host.assembly import to_object_frame
 from lamina_host.axis import AxisCalibration
 from lamina_host.calibration import CalibrationError, GridCalibration, calibrate_grid
-from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, open_device
+from lamina_host.link import (
+    DeviceClient,
+    DeviceError,
+    DeviceInfo,
+    Preview,
+    open_device,
+)
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.pipeline import (
@@ -53,14 +59,9 @@ class Busy(RuntimeError):
     """The device is already running a request."""
 
 
-class ScanAborted(RuntimeError):
-    """The user aborted a scan; the segments received so far are kept."""
-
-
 USER_ERRORS: tuple[type[Exception], ...] = (
     UserError,
     Busy,
-    ScanAborted,
     DeviceError,
     CalibrationError,
     LinkClosed,
@@ -322,14 +323,48 @@ class Session:
         self.data.grid_image, self.data.board = image, board
         return image, board
 
-    def preview(self, laser: bool) -> np.ndarray:
-        """Fetch one camera frame where the axes stand, with the laser on or off."""
+    def preview(self, laser: bool) -> Preview:
+        """Fetch one frame where the axes stand (laser on or off) and the stripe found there."""
         with self._busy():
             try:
                 return self._device().preview(laser)
             except LinkClosed:
                 self._link_failed()
                 raise
+
+    def exposure(self) -> tuple[int, int, int]:
+        """Return the camera's (exposure, min, max) in microseconds."""
+        with self._busy():
+            try:
+                return self._device().exposure()
+            except LinkClosed:
+                self._link_failed()
+                raise
+
+    def set_exposure(self, exposure_us: int) -> int:
+        """Set the camera's exposure; return the one the device now uses.
+
+        Raises:
+            DeviceError: outside the camera's range (the device names it).
+        """
+        with self._busy():
+            try:
+                return self._device().set_exposure(exposure_us)
+            except LinkClosed:
+                self._link_failed()
+                raise
+
+    def pause_scan(self) -> None:
+        """Hold the running scan on the device after its current view (any thread)."""
+        self._device().pause()
+
+    def resume_scan(self) -> None:
+        """Let the device go on with a paused scan (any thread)."""
+        self._device().resume()
+
+    def abort_scan(self) -> None:
+        """End the running scan on the device; the views received stay kept (any thread)."""
+        self._device().abort()
 
     def move(self, axis: str, position: float) -> float:
         """Move ``lift`` (mm) or ``turntable`` (deg) to ``position``; return where it went.
@@ -375,12 +410,15 @@ class Session:
         store: Callable[[int, Segment], object] | None,
         on_segment: Callable[[Segment], object] | None,
         on_progress: Callable[[Progress], object] | None,
-        cancelled: Callable[[], bool],
+        on_notice: Callable[[str], object] | None = None,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``held``; store each arrival in ``held``.
 
         ``held`` maps plan index to segment and survives an abort or a broken link, so the
         same call with the same ``held`` resumes the scan where it stopped.
+
+        Raises:
+            ScanStopped: the scan was aborted (:meth:`abort_scan`); ``held`` keeps its views.
         """
         client = self._device()
         start = time.monotonic()
@@ -394,11 +432,6 @@ class Session:
             self.latest_segment = segment
             if on_segment is not None:
                 on_segment(segment)
-            if cancelled():
-                raise ScanAborted(
-                    f"{target} scan stopped after {len(held)} of {len(plan.views)} views; "
-                    "the views received are kept"
-                )
 
         def progress(body: dict[str, Any]) -> None:
             if on_progress is not None and body.get("event") == "progress":
@@ -414,14 +447,11 @@ class Session:
                 )
 
         try:
-            client.scan(target, plan, progress, have=tuple(held), on_segment=take)
+            client.scan(
+                target, plan, progress, have=tuple(held), on_segment=take, on_notice=on_notice
+            )
         except LinkClosed:
             self._link_failed()
-            raise
-        except ScanAborted:
-            # The device is still running the request: a fresh handshake (a new link
-            # session) makes it abandon it, keeping unacknowledged views for a resume.
-            self._reopen()
             raise
         return [held[k] for k in sorted(held)]
 
@@ -442,7 +472,6 @@ class Session:
     def calibrate_axis(
         self,
         on_progress: Callable[[Progress], object] | None = None,
-        cancelled: Callable[[], bool] = lambda: False,
     ) -> AxisCalibration:
         """Scan the calibration cylinder and find the turntable axis and correction factor."""
         grid = self._accepted_grid()
@@ -453,7 +482,7 @@ class Session:
         with self._busy():
             plan = client.plan_for("cylinder", None)
             held: dict[int, Segment] = {}
-            cylinder = self._run_scan("cylinder", plan, held, None, None, on_progress, cancelled)
+            cylinder = self._run_scan("cylinder", plan, held, None, None, on_progress)
         self.cylinder_plan, self.cylinder_held = plan, held
         self.data.cylinder, self.data.cylinder_mm = cylinder, diameter
         self.axis = calibrate_axis(cylinder, grid, diameter, TRIM_FRACTION)
@@ -465,7 +494,7 @@ class Session:
         plan: ScanPlan,
         on_segment: Callable[[Segment], object] | None = None,
         on_progress: Callable[[Progress], object] | None = None,
-        cancelled: Callable[[], bool] = lambda: False,
+        on_notice: Callable[[str], object] | None = None,
     ) -> list[Segment]:
         """Start scanning the subject along ``plan``; every view received is kept."""
         subject = check_subject(subject_id)
@@ -475,7 +504,7 @@ class Session:
         with self._library() as library:
             self.scan_id = self._store_new_scan(library, subject, plan)
         self.plan, self.held = plan, {}
-        return self.resume_object(on_segment, on_progress, cancelled)
+        return self.resume_object(on_segment, on_progress, on_notice)
 
     @property
     def resumable(self) -> bool:
@@ -486,9 +515,9 @@ class Session:
         self,
         on_segment: Callable[[Segment], object] | None = None,
         on_progress: Callable[[Progress], object] | None = None,
-        cancelled: Callable[[], bool] = lambda: False,
+        on_notice: Callable[[str], object] | None = None,
     ) -> list[Segment]:
-        """Scan the views of the current plan not received yet (after a pause or a drop)."""
+        """Scan the views of the current plan not received yet (after an abort or a drop)."""
         if self.plan is None or self.scan_id is None:
             raise UserError("no scan to resume: start one (s)")
         scan_id, plan = self.scan_id, self.plan
@@ -503,7 +532,7 @@ class Session:
                     lambda seq, segment: library.add_segment(scan_id, seq, segment),
                     on_segment,
                     on_progress,
-                    cancelled,
+                    on_notice,
                 )
             finally:
                 self.data.segments = [self.held[k] for k in sorted(self.held)]

@@ -1,29 +1,31 @@
-"""Live view: a camera frame in the terminal with the latest detected stripe; jog and home."""
+"""Live view: a camera frame with the stripe the device detects there; jog, laser, exposure."""
 
 from __future__ import annotations
 
 from typing import ClassVar
 
-import numpy as np
 from textual import work
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Label, Static
 
+from lamina_host.link import Preview
 from lamina_host.tui.widgets import FrameView, LaminaScreen
 from lamina_shared.types import Segment
 
 JOG_DEG = 15.0
 JOG_MM = 1.0
-MISSING_CONTROLS = "Exposure: the device protocol has no request to set it yet."
+EXPOSURE_STEP = 1.25
+"""Each exposure key press multiplies or divides the exposure by this."""
 
 
 class LiveScreen(LaminaScreen):
-    """A preview frame, the stripe of the latest scanned view, and the axes."""
+    """A preview frame, the stripe the device extracts where the axes stand, and the axes."""
 
     MODE = "live"
     _shown: Segment | None = None
+    _followed: Segment | None = None
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("g", "grab", "Grab frame"),
         Binding("l", "laser", "Laser on/off"),
@@ -32,11 +34,14 @@ class LiveScreen(LaminaScreen):
         Binding("up", "jog('lift', 1)", "Lift"),
         Binding("down", "jog('lift', -1)", "Lift -1", show=False),
         Binding("h", "home", "Home"),
+        Binding("plus,equals_sign", "exposure(1)", "Exp +"),
+        Binding("minus", "exposure(-1)", "Exp -"),
     ]
 
     def __init__(self) -> None:
         super().__init__()
         self.laser = False
+        self.exposure_us: int | None = None
 
     def body(self) -> ComposeResult:
         """Frame on the left, what it shows on the right."""
@@ -47,7 +52,7 @@ class LiveScreen(LaminaScreen):
                 yield Static(id="axes")
                 yield Label("Stripe (red)", classes="panel-title")
                 yield Static("no view scanned yet", id="stripe-info")
-                yield Static(MISSING_CONTROLS, id="controls-note", classes="dim")
+                yield Static("exposure: grab a frame (g), then + / -", id="exposure")
 
     def on_mount(self) -> None:
         """Follow the stripe while a scan runs on another screen."""
@@ -55,7 +60,9 @@ class LiveScreen(LaminaScreen):
 
     def _follow(self) -> None:
         latest = self.session.latest_segment
-        if self.is_current and latest is not None and latest is not self._shown:
+        # Only a newly scanned view replaces what is shown (a preview's stripe stays).
+        if self.is_current and latest is not None and latest is not self._followed:
+            self._followed = latest
             self.show_segment(latest)
 
     def action_grab(self) -> None:
@@ -74,10 +81,38 @@ class LiveScreen(LaminaScreen):
         """Grab in a thread: the frame crosses the serial link in chunks."""
         self.attempt(lambda: self.session.preview(laser), self.grabbed)
 
-    def grabbed(self, image: np.ndarray) -> None:
-        """Show the new frame."""
+    def grabbed(self, preview: Preview) -> None:
+        """Show the new frame and the stripe the device found in it."""
+        image = preview.image
         self.query_one(FrameView).image = image
+        if preview.stripe is not None:
+            self.show_segment(preview.stripe, "live")
         self.say(f"frame {image.shape[1]} x {image.shape[0]} px")
+
+    def action_exposure(self, direction: int) -> None:
+        """Step the camera's exposure up or down, then grab a frame to show its effect."""
+        self.exposure_worker(direction)
+
+    @work(thread=True, exclusive=True, group="grab")
+    def exposure_worker(self, direction: int) -> None:
+        """Read the exposure if unknown, step it, then grab a frame (all in a thread)."""
+
+        def job() -> tuple[int, Preview]:
+            current = self.exposure_us or self.session.exposure()[0]
+            wanted = round(current * EXPOSURE_STEP**direction)
+            exposure_us = self.session.set_exposure(wanted)
+            return exposure_us, self.session.preview(self.laser)
+
+        def done(result: tuple[int, Preview]) -> None:
+            self.exposure_us = result[0]
+            self._show_exposure()
+            self.grabbed(result[1])
+
+        self.attempt(job, done)
+
+    def _show_exposure(self) -> None:
+        text = "unknown" if self.exposure_us is None else f"{self.exposure_us} us"
+        self.query_one("#exposure", Static).update(f"exposure {text} (+ / -)")
 
     def action_jog(self, axis: str, direction: int) -> None:
         """Move the turntable by 15 deg or the lift by 1 mm, then grab a frame."""
@@ -92,7 +127,7 @@ class LiveScreen(LaminaScreen):
     def move_worker(self, targets: dict[str, float]) -> None:
         """Move in a thread, then take a frame where the axes stand."""
 
-        def job() -> np.ndarray:
+        def job() -> Preview:
             for axis, position in targets.items():
                 self.session.move(axis, position)
             return self.session.preview(self.laser)
@@ -100,12 +135,17 @@ class LiveScreen(LaminaScreen):
         self.attempt(job, self.grabbed)
         self.app.call_from_thread(self._show_axes)
 
-    def show_segment(self, segment: Segment) -> None:
-        """Draw ``segment``'s stripe over the frame and describe it."""
+    def show_segment(self, segment: Segment, source: str = "scanned") -> None:
+        """Draw ``segment``'s stripe over the frame and say where it came from (live or scanned)."""
         self._shown = segment
         self.query_one(FrameView).stripe_uv = segment.uv
+        where = (
+            f"live {segment.target}"
+            if source == "live"
+            else f"{segment.target} section {segment.section}, view {segment.view}"
+        )
         self.query_one("#stripe-info", Static).update(
-            f"{segment.target} section {segment.section}, view {segment.view}: "
+            f"{where}: "
             f"{len(segment)} points at {segment.angle_deg:.0f} deg, z {segment.z_mm:.1f} mm"
         )
 
@@ -122,5 +162,7 @@ class LiveScreen(LaminaScreen):
         view = self.query_one(FrameView)
         if view.image is None and self.session.data.grid_image is not None:
             view.image = self.session.data.grid_image
-        if self.session.latest_segment is not None:
-            self.show_segment(self.session.latest_segment)
+        latest = self.session.latest_segment
+        if latest is not None and self._shown is None:
+            self._followed = latest
+            self.show_segment(latest)

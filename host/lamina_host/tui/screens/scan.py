@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import threading
+from collections.abc import Callable
 from typing import ClassVar
 
 import numpy as np
@@ -14,7 +14,14 @@ from textual.message import Message
 from textual.widgets import Button, Input, Label, ProgressBar, Static
 from textual_plotext import PlotextPlot
 
-from lamina_host.tui.adapter import Progress, UserError, check_subject, parse_plan
+from lamina_host.tui.adapter import (
+    USER_ERRORS,
+    Progress,
+    UserError,
+    check_subject,
+    parse_plan,
+    user_message,
+)
 from lamina_host.tui.widgets import LaminaScreen
 from lamina_shared.types import ScanPlan, Segment
 
@@ -50,7 +57,8 @@ class ScanScreen(LaminaScreen):
 
     def __init__(self) -> None:
         super().__init__()
-        self._abort = threading.Event()
+        self._aborting = False
+        self.paused = False
         self._section = -1
         self._points: list[np.ndarray] = []
         self.scanning = False
@@ -106,7 +114,7 @@ class ScanScreen(LaminaScreen):
         except UserError as exc:
             self.say(str(exc), error=True)
             return
-        self._abort.clear()
+        self._aborting, self.paused = False, False
         self._section, self._points = -1, []
         self._set_scanning(True)
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
@@ -123,10 +131,14 @@ class ScanScreen(LaminaScreen):
                 plan,
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
-                cancelled=self._abort.is_set,
+                on_notice=self._notice,
             ),
             self.finished,
         )
+
+    def _notice(self, text: str) -> None:
+        """Show a refused pause, resume or abort (called from the scan's thread)."""
+        self.app.call_from_thread(self.say, text, error=True)
 
     def on_scan_event(self, event: ScanEvent) -> None:
         """Show a new view: progress, time left, the section's points so far."""
@@ -162,8 +174,8 @@ class ScanScreen(LaminaScreen):
     def failed(self, message: str) -> None:
         """The scan stopped: keep what arrived and say what to do."""
         self._set_scanning(False)
-        if self._abort.is_set():
-            self.say(f"paused: {message}; p resumes")
+        if self._aborting:
+            self.say(f"{message}; p resumes")
         else:
             super().failed(
                 message + ("; r reconnects, p resumes" if self.session.resumable else "")
@@ -171,29 +183,36 @@ class ScanScreen(LaminaScreen):
 
     def _set_scanning(self, scanning: bool) -> None:
         self.scanning = scanning
+        self.paused = False
         self.query_one("#start", Button).disabled = scanning
         self.query_one("#abort", Button).disabled = not scanning
         self.refresh_from_session()
 
     @on(Button.Pressed, "#abort")
     def action_abort(self) -> None:
-        """Stop the scan after the view in flight; the views received are kept."""
+        """Abort the scan on the device after the view in flight; the views received are kept."""
         if not self.scanning:
             self.say("no scan is running", error=True)
             return
-        self._abort.set()
+        self._aborting = True
         self.say("aborting after the current view ...")
+        self.control_worker(self.session.abort_scan)
 
     def action_pause(self) -> None:
-        """Pause after the view in flight, or resume a paused (or dropped) scan."""
+        """Pause or resume the running scan on the device, or resume an aborted (dropped) one."""
         if self.scanning:
-            self._abort.set()
-            self.say("pausing after the current view ...")
+            self.paused = not self.paused
+            if self.paused:
+                self.say("paused after the current view, laser off; p resumes, b aborts")
+                self.control_worker(self.session.pause_scan)
+            else:
+                self.say("resuming the scan ...")
+                self.control_worker(self.session.resume_scan)
             return
         if not self.session.resumable:
             self.say("no scan to resume: start one (s)", error=True)
             return
-        self._abort.clear()
+        self._aborting = False
         self._set_scanning(True)
         self.say(f"resuming: {len(self.session.held)} views held, fetching the rest ...")
         self.resume_worker()
@@ -205,10 +224,19 @@ class ScanScreen(LaminaScreen):
             lambda: self.session.resume_object(
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
-                cancelled=self._abort.is_set,
+                on_notice=self._notice,
             ),
             self.finished,
         )
+
+    @work(thread=True, group="control")
+    def control_worker(self, send: Callable[[], None]) -> None:
+        """Send pause, resume or abort in a thread; the scan's thread reads the reply."""
+        try:
+            send()
+        except USER_ERRORS as exc:
+            # The scan itself goes on (or has just ended): only say why the key did nothing.
+            self.app.call_from_thread(self.say, user_message(exc), error=True)
 
     def action_reconnect(self) -> None:
         """Reconnect a dropped link; calibration and received views are kept."""
