@@ -679,6 +679,26 @@ def _request_id(message: Message) -> int | None:
     return body.get("id") if isinstance(body, dict) else None
 
 
+SINGLE_THREADED = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENCV_FOR_THREADS_NUM": "1",
+}
+"""Thread limits for a device program started on the host's own machine."""
+
+
+def device_environment() -> dict[str, str]:
+    """Return the environment for a simulated or replaying device started here.
+
+    The real device is a computer of its own. One started beside the host stands in
+    for it, so its numerical libraries get one thread each: left to themselves they
+    take every core while rendering, and the host (its terminal UI above all) then
+    answers keys late.
+    """
+    return {**os.environ, **SINGLE_THREADED}
+
+
 def device_command(
     hardware: str, port: str, object_spec: str | None, seed: int, noise: str, rig: str = "thesis"
 ) -> list[str]:
@@ -750,7 +770,11 @@ def _spawned_device(
     bridge = PtyBridge(transform)
     command = device_command(device, bridge.device_port, object_spec, seed, noise, rig)
     process = subprocess.Popen(
-        command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        command,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=device_environment(),
     )
     client: DeviceClient | None = None
     try:

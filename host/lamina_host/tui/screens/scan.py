@@ -33,6 +33,12 @@ def progress_text(p: Progress) -> str:
     return f"{p.target} view {p.done}/{p.total}, section {p.section}, {left_text}"
 
 
+PLOT_INTERVAL_S = 0.25
+"""How often the live section plot is redrawn while views arrive."""
+PLOT_MAX_POINTS = 800
+"""Points plotted at most; the section's points are thinned evenly beyond that."""
+
+
 class ScanEvent(Message):
     """A segment or a progress report arrived from the device."""
 
@@ -61,6 +67,7 @@ class ScanScreen(LaminaScreen):
         self.paused = False
         self._section = -1
         self._points: list[np.ndarray] = []
+        self._plot_stale = False
         self.scanning = False
 
     def body(self) -> ComposeResult:
@@ -87,8 +94,15 @@ class ScanScreen(LaminaScreen):
                 yield Static("not connected", id="link-state")
 
     def on_mount(self) -> None:
-        """Label the empty plot."""
+        """Label the empty plot and redraw it at a steady pace while views arrive."""
         self._draw_points()
+        # Plotting every view as it lands kept the event loop busy for tens of ms per
+        # view; a few redraws a second look the same and keep keys answered promptly.
+        self.set_interval(PLOT_INTERVAL_S, self._redraw_if_stale)
+
+    def _redraw_if_stale(self) -> None:
+        if self._plot_stale:
+            self._draw_points()
 
     def action_leave_field(self) -> None:
         """Leave the text field so the screen's keys work again."""
@@ -153,15 +167,18 @@ class ScanScreen(LaminaScreen):
         if segment.section != self._section:
             self._section, self._points = segment.section, []
         self._points.append(self.session.section_points(segment))
-        self._draw_points()
+        self._plot_stale = True
 
     def _draw_points(self) -> None:
+        self._plot_stale = False
         plot = self.query_one("#section-plot", PlotextPlot)
         plt = plot.plt
         plt.clear_data()
         plt.title("current section (mm)" if self._section < 0 else f"section {self._section} (mm)")
         if self._points:
             pts = np.vstack(self._points)
+            # A terminal plot cannot show more points than it has braille dots.
+            pts = pts[:: max(1, len(pts) // PLOT_MAX_POINTS)]
             if len(pts):
                 plt.scatter(pts[:, 0].tolist(), pts[:, 1].tolist(), marker="braille")
         plot.refresh()
