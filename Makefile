@@ -17,11 +17,16 @@ $(STAMP): shared/pyproject.toml device/pyproject.toml host/pyproject.toml requir
 
 install: $(STAMP)
 
+# Demo scans go to their own library under out/demo, never into the user's; a re-run
+# starts afresh (the scanner itself never overwrites an earlier scan).
+DEMO_LIBRARY := --library $(OUT)/demo/library.sqlite
 demo: install
+	rm -rf $(OUT)/demo
 	$(BIN)/lamina scan --device sim --object cylinder:d=19.05 --sections 4 --pitch 2 --views 8 \
-		--expect cylinder:d=19.05 -o $(OUT)/demo/cylinder
+		--expect cylinder:d=19.05 $(DEMO_LIBRARY) -o $(OUT)/demo/cylinder
 	$(BIN)/lamina scan --device sim --object ellipsoid:a=10,b=6.5,c=20,z=-1 --sections 10 \
-		--pitch 2 --views 8 --expect ellipsoid:a=10,b=6.5,c=20,z=-1 -o $(OUT)/demo/oval-cap
+		--pitch 2 --views 8 --expect ellipsoid:a=10,b=6.5,c=20,z=-1 $(DEMO_LIBRARY) \
+		-o $(OUT)/demo/oval-cap
 
 test: install
 	$(BIN)/python -m pytest -q

@@ -21,7 +21,7 @@ def run() -> dict[str, Any]:
         command = [
             sys.executable, "-m", "lamina_host", "scan", "--device", "sim", "-o", str(out),
             "--object", "cylinder:d=19.05", "--sections", "4", "--pitch", "2", "--views", "8",
-            "--expect", "cylinder:d=19.05",
+            "--expect", "cylinder:d=19.05", "--library", str(Path(tmp) / "library.sqlite"),
         ]  # fmt: skip
         subprocess.run(command, check=True, capture_output=True)
         wall_s = time.perf_counter() - start
