@@ -109,3 +109,36 @@ def test_subject_ids_are_safe_codes() -> None:
     for bad in ("", "a/b", "x" * 65, "Jane Doe"):
         with pytest.raises(UserError):
             check_subject(bad)
+
+
+def test_harmonics_field_takes_a_count_a_rule_or_nothing():
+    from lamina_host.tui.adapter import UserError
+    from lamina_host.tui.screens.results import parse_harmonics
+
+    assert parse_harmonics("") == (None, None)
+    assert parse_harmonics(" auto ") == (None, None)
+    assert parse_harmonics("7") == (7, None)
+    assert parse_harmonics("Thesis") == (None, "thesis")
+    with pytest.raises(UserError, match="noise, power, thesis, nyquist"):
+        parse_harmonics("lots")
+
+
+def test_processing_again_with_a_harmonic_rule(scanned_library, tmp_path):
+    import shutil
+
+    from lamina_host.tui.adapter import Session
+
+    # A copy: the shared library feeds the snapshots, and processing stores a new result.
+    library = tmp_path / "library.sqlite"
+    shutil.copy(scanned_library, library)
+    session = Session("sim", library)
+    try:
+        scan_id = session.scans()[0].id
+        session.open_scan(scan_id)
+        fixed = session.process(harmonics=9)
+        thesis = session.process(harmonic_rule="thesis")
+    finally:
+        session.close()
+    assert {s.harmonics for s in fixed.reconstruction.sections} == {9}
+    # The thesis HN formula gives perimeter / (4 pi) = 4.76 -> 5 for the 19.05 mm cylinder.
+    assert {s.harmonics for s in thesis.reconstruction.sections} == {5}

@@ -16,6 +16,7 @@ from textual.pilot import Pilot
 from textual.widgets import DataTable
 
 from lamina_host.tui.app import LaminaApp
+from lamina_host.tui.screens.scan import ScanScreen
 
 SIZE = (80, 24)
 
@@ -85,6 +86,9 @@ def test_scan_screen_after_scan(snap_compare, tmp_path: Path) -> None:
         await fill_scan_form(pilot, "P001", "2", "2", "8")
         await pilot.press("s")
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
+        screen = app.screen
+        assert isinstance(screen, ScanScreen)
+        await wait_for(pilot, lambda: not screen.plot_pending, "the section plot")
 
     app = LaminaApp("sim", tmp_path / "l.sqlite")
     assert snap_compare(app, run_before=run_before, terminal_size=SIZE)

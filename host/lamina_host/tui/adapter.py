@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager, suppress
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ import serial.tools.list_ports
 from lamina_host.assembly import to_object_frame
 from lamina_host.axis import AxisCalibration
 from lamina_host.calibration import CalibrationError, GridCalibration, calibrate_grid
+from lamina_host.efd import HARMONIC_RULES
 from lamina_host.link import (
     DeviceClient,
     DeviceError,
@@ -551,8 +552,19 @@ class Session:
             points, segment.angle_deg, self.axis.axis_xy_mm, self.axis.correction_factor
         )
 
-    def process(self, harmonics: int | None = None, mesh_method: str = MESH_METHODS[0]) -> Results:
-        """Reconstruct the scan held in :attr:`data` with the chosen harmonics and mesh method."""
+    def process(
+        self,
+        harmonics: int | None = None,
+        mesh_method: str = MESH_METHODS[0],
+        harmonic_rule: str | None = None,
+    ) -> Results:
+        """Reconstruct the scan held in :attr:`data` with the chosen harmonics and mesh method.
+
+        Args:
+            harmonics: a fixed EFD order for every section, or None to let the rule choose.
+            mesh_method: one of ``MESH_METHODS``.
+            harmonic_rule: one of ``HARMONIC_RULES``, or None for the pipeline's default.
+        """
         data = self.data
         if data.grid_image is None or data.board is None or data.cylinder_mm is None:
             raise UserError("nothing to process: calibrate and scan, or open a saved scan")
@@ -562,7 +574,12 @@ class Session:
             raise UserError(f"harmonics {harmonics} must be between 1 and 100, or blank for auto")
         if mesh_method not in MESH_METHODS:
             raise UserError(f"mesh method {mesh_method!r} is not one of {', '.join(MESH_METHODS)}")
+        if harmonic_rule is not None and harmonic_rule not in HARMONIC_RULES:
+            rules = ", ".join(HARMONIC_RULES)
+            raise UserError(f"harmonic rule {harmonic_rule!r} is not one of {rules}")
         options = ProcessOptions(harmonics=harmonics, mesh=mesh_method)
+        if harmonic_rule is not None:
+            options = replace(options, harmonic_rule=harmonic_rule)
         result = reconstruct(
             data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments, options
         )

@@ -12,6 +12,7 @@ from textual.containers import Horizontal
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 from textual_plotext import PlotextPlot
 
+from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
@@ -20,15 +21,24 @@ COLUMNS = ("sec", "z mm", "points", "perim mm", "area mm2", "round", "harm")
 """Per-section table; roundness is 4 pi A / P^2 (1 for a circle)."""
 
 
-def parse_harmonics(text: str) -> int | None:
-    """Return the harmonic count typed (None when blank: the thesis rule chooses)."""
-    text = text.strip()
-    if not text or text.lower() == "auto":
-        return None
+def parse_harmonics(text: str) -> tuple[int | None, str | None]:
+    """Return (fixed harmonic count, harmonic rule) typed in the harmonics field.
+
+    A number fixes the count; a rule name (``noise``, ``power``, ``thesis``, ``nyquist``)
+    lets that rule choose per section; blank or ``auto`` keeps the default rule.
+    """
+    text = text.strip().lower()
+    if not text or text == "auto":
+        return None, None
+    if text in HARMONIC_RULES:
+        return None, text
     try:
-        return int(text)
+        return int(text), None
     except ValueError:
-        raise UserError(f"harmonics {text!r} must be a whole number, or blank for auto") from None
+        rules = ", ".join(HARMONIC_RULES)
+        raise UserError(
+            f"harmonics {text!r} must be a whole number, a rule ({rules}) or blank for auto"
+        ) from None
 
 
 def summary_text(results: Results | None) -> str:
@@ -60,7 +70,7 @@ class ResultsScreen(LaminaScreen):
         """Options row, table and profile, summary, export row."""
         with Horizontal(classes="row"):
             yield Label("Harmonics ", classes="field-label")
-            yield Input(placeholder="auto", id="harmonics", type="integer", compact=True)
+            yield Input(placeholder="auto", id="harmonics", compact=True)
             yield Label(" Mesh ", classes="field-label")
             yield Select(
                 [(m, m) for m in MESH_METHODS],
@@ -93,19 +103,19 @@ class ResultsScreen(LaminaScreen):
     def action_process(self) -> None:
         """Process the scan again with the chosen harmonics and mesh method."""
         try:
-            harmonics = parse_harmonics(self.query_one("#harmonics", Input).value)
+            harmonics, rule = parse_harmonics(self.query_one("#harmonics", Input).value)
         except UserError as exc:
             self.say(str(exc), error=True)
             return
         method = str(self.query_one("#mesh-method", Select).value)
         self.query_one("#process", Button).disabled = True
         self.say("processing ...")
-        self.process_worker(harmonics, method)
+        self.process_worker(harmonics, method, rule)
 
     @work(thread=True, exclusive=True, group="process")
-    def process_worker(self, harmonics: int | None, method: str) -> None:
+    def process_worker(self, harmonics: int | None, method: str, rule: str | None) -> None:
         """Reconstruct in a thread (calibration, EFD, meshing)."""
-        self.attempt(lambda: self.session.process(harmonics, method), self.processed)
+        self.attempt(lambda: self.session.process(harmonics, method, rule), self.processed)
 
     def processed(self, results: Results) -> None:
         """Show the new results."""

@@ -104,6 +104,11 @@ class ScanScreen(LaminaScreen):
         if self._plot_stale:
             self._draw_points()
 
+    @property
+    def plot_pending(self) -> bool:
+        """Return True while views have arrived that the plot does not show yet."""
+        return self._plot_stale
+
     def action_leave_field(self) -> None:
         """Leave the text field so the screen's keys work again."""
         self.set_focus(None)
@@ -185,6 +190,7 @@ class ScanScreen(LaminaScreen):
 
     def finished(self, segments: list[Segment]) -> None:
         """The scan is complete: say so and offer processing."""
+        self._redraw_if_stale()
         self._set_scanning(False)
         self.say(f"scan complete: {len(segments)} views received; process it on Results (F6)")
 
