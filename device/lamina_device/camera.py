@@ -300,7 +300,7 @@ class PiCamera:
         deadline = time.monotonic() + self.config.timeout_s
         metadata: dict[str, Any] = {}
         while time.monotonic() < deadline:
-            request = self._cam.capture_request()
+            request = self._next_request(deadline)
             try:
                 metadata = request.get_metadata()
             finally:
@@ -314,6 +314,21 @@ class PiCamera:
             "check [camera] exposure_us, gain and frame_duration_us against the sensor's limits"
         )
 
+    def _next_request(self, deadline: float) -> Any:
+        """Return the camera's next completed request; CameraError if none comes by ``deadline``."""
+        job = self._cam.capture_request(wait=False)
+        try:
+            return job.get_result(timeout=max(deadline - time.monotonic(), 0.0))
+        except TimeoutError:
+            # A stalled sensor (a loose ribbon cable) must not hang the scan; cancelling
+            # the pending job leaves the camera usable once it recovers.
+            self._cam.cancel_all_and_flush()
+            raise CameraError(
+                f"the camera delivered no frame within {self.config.timeout_s:g} s "
+                "([camera] timeout_s): check its ribbon cable and that no other program "
+                "is using it"
+            ) from None
+
     def _luminance(self, request: Any) -> np.ndarray:
         width, height = self.size
         with self._mapped_array(request, "main") as mapped:
@@ -324,7 +339,7 @@ class PiCamera:
         state, changed_ns = self.laser.is_on, self.laser.changed_ns
         deadline = time.monotonic() + self.config.timeout_s
         while time.monotonic() < deadline:
-            request = self._cam.capture_request()
+            request = self._next_request(deadline)
             try:
                 start_ns, _ = exposure_window_ns(request.get_metadata())
                 if start_ns >= changed_ns + _LASER_LATENCY_NS:

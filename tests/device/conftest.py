@@ -173,6 +173,7 @@ class FakeCameraWorld:
     laser_active_high: bool = True
     max_gain: float = 16.0
     control_latency_frames: int = 3
+    stall_when_lit: bool = False  # no frame comes once the laser is on (a loose cable)
     cameras: list[Any] = field(default_factory=list)
 
     def lit_fraction(self, start_ns: np.ndarray, end_ns: np.ndarray) -> np.ndarray:
@@ -218,6 +219,22 @@ class FakeRequest:
         self.frame.released = True
 
 
+class FakeJob:
+    """What ``capture_request(wait=False)`` returns: the request, once it completes."""
+
+    def __init__(self, camera: FakePicamera2) -> None:
+        self._camera = camera
+
+    def get_result(self, timeout: float | None = None) -> FakeRequest:
+        """Return the request, or raise TimeoutError as a Future does when none comes."""
+        world = self._camera.world
+        lit = world.laser_pin is not None and world.laser_pin().state == world.laser_active_high
+        if world.stall_when_lit and lit:
+            time.sleep(timeout or 0.0)
+            raise TimeoutError
+        return self._camera.next_request()
+
+
 class FakeMappedArray:
     """``with MappedArray(request, "main") as m: m.array`` over the request's buffer."""
 
@@ -248,6 +265,7 @@ class FakePicamera2:
         self._pending: tuple[int, dict[str, Any]] | None = None
         self._start_ns = 0
         self._next = 0
+        self.cancellations = 0
         self.started = self.closed = False
 
     def create_video_configuration(
@@ -279,7 +297,16 @@ class FakePicamera2:
     def _end_ns(self, index: int) -> int:
         return self._start_ns + (index + 1) * self.frame_us * 1000
 
-    def capture_request(self) -> FakeRequest:
+    def capture_request(self, wait: bool | None = None) -> FakeRequest | FakeJob:
+        """Return the next completed request, or with ``wait=False`` a job that will."""
+        job = FakeJob(self)
+        return job if wait is False else job.get_result()
+
+    def cancel_all_and_flush(self) -> None:
+        self.cancellations += 1
+
+    def next_request(self) -> FakeRequest:
+        """Block until the next frame is read out and return it (one frame per call)."""
         assert self.started and self.config is not None
         buffers = self.config["buffer_count"]
         frame_ns = self.frame_us * 1000

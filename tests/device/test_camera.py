@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -63,6 +64,27 @@ def test_frames_match_the_laser_state_and_straddling_frames_are_dropped(pi_camer
     assert camera.frames_dropped >= len(straddling)
     assert all(f.released for f in fake.frames)
     assert laser.pin_history() == [False, True, False]
+
+
+def test_a_stalled_camera_ends_the_capture_in_time_with_the_laser_off(pi_kit, fake_picamera2):
+    factory = MockFactory()
+    laser = Laser(17, pin_factory=factory)
+    fake_picamera2.laser_pin = lambda: factory.pin(17)
+    camera = PiCamera(replace(pi_kit.config.camera, timeout_s=0.3), laser)
+    hardware = type("Rig", (), {"laser": laser, "camera": camera})()
+    fake_picamera2.stall_when_lit = True
+    started = time.monotonic()
+    try:
+        with pytest.raises(CameraError, match=r"no frame within 0.3 s .*ribbon cable"):
+            capture_pair(hardware)
+        assert time.monotonic() - started < 1.5  # bounded by timeout_s, not hung
+        assert fake_picamera2.cameras[0].cancellations == 1
+        assert laser.pin_history() == [False, True, False]
+        fake_picamera2.stall_when_lit = False  # the cable is reseated: frames come again
+        assert camera.capture().shape == (240, 320)
+    finally:
+        camera.close()
+        laser.close()
 
 
 def test_frame_window_uses_the_end_of_the_first_rows_exposure():
