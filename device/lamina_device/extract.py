@@ -352,7 +352,7 @@ def _weights(
     """Return the eq. 5.1 weight ``I**p`` (or ``(I - threshold)**p``) of each pixel."""
     if not subtract_threshold and power == 1.0:
         return values  # int64 levels: the sums stay exact
-    weights = values - threshold if subtract_threshold else values.astype(np.float64)
+    weights = np.subtract(values, threshold if subtract_threshold else 0.0, dtype=np.float64)
     if power != 1.0:
         weights **= power
     return weights
@@ -570,7 +570,7 @@ def extract(
         total = float(cv2.sumElems(diff)[0])
         threshold = float(otsu_level(_histogram(bright.pixels), diff.size, total, floor))
     else:
-        threshold = max(settings.threshold, floor)
+        threshold = float(max(settings.threshold, floor))
         bright = None
     if settings.method == "thinning":
         return thinning_centres(diff, threshold, settings.run_choice)

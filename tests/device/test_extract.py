@@ -199,7 +199,14 @@ def cluttered_frames(seed, height=90, width=160, bits=8):
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize(
     "options",
-    [{}, {"subtract": True}, {"power": 2.0}, {"power": 0.5, "subtract": True}, {"threshold": 20.5}],
+    [
+        {},
+        {"subtract": True},
+        {"power": 2.0},
+        {"power": 0.5, "subtract": True},
+        {"threshold": 20.5},
+        {"threshold": 5, "power": 2.0, "subtract": True},  # below min_peak: the floor rules
+    ],
 )
 def test_default_and_options_match_the_reference_implementation(seed, options):
     on, off = cluttered_frames(seed)
