@@ -179,8 +179,10 @@ def _histogram(image: np.ndarray) -> np.ndarray:
 
 @cache
 def _count_and_level(levels: int) -> np.ndarray:
-    """Return ``1 + 1j * level`` for levels ``levels - 1`` down to 0."""
-    return 1 + 1j * np.arange(levels - 1, -1, -1)
+    """Return ``1 + 1j * level`` for levels ``levels - 1`` down to 0 (read-only, shared)."""
+    weights = 1 + 1j * np.arange(levels - 1, -1, -1)
+    weights.flags.writeable = False
+    return weights
 
 
 def otsu_level(hist: np.ndarray, pixels: int, total: float, floor: int = 0) -> int:
