@@ -280,7 +280,6 @@ class _Runs:
     point_index: np.ndarray
     start: np.ndarray
     col: np.ndarray
-    row0: np.ndarray
     length: np.ndarray
     peak: np.ndarray
     weight: np.ndarray
@@ -307,14 +306,21 @@ class _Runs:
         return np.diff(np.append(self.col_start, self.col.size))
 
 
-def _run_starts(index: np.ndarray, height: int, split_columns: bool) -> np.ndarray:
-    """Return where runs start among column-major pixel indices (a gap starts one)."""
+def _run_bounds(
+    index: np.ndarray, height: int, split_columns: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return each run's first pixel, length, column and first row (a gap starts a run)."""
     starts = np.empty(index.size, bool)
     starts[0] = True
     np.not_equal(index[1:] - index[:-1], 1, out=starts[1:])
     if split_columns:  # a run reaching the bottom row must not continue at the next top
         starts[index % height == 0] = True
-    return np.flatnonzero(starts)
+    start = np.flatnonzero(starts)
+    length = np.empty_like(start)
+    length[:-1] = start[1:] - start[:-1]
+    length[-1] = index.size - start[-1]
+    col, row0 = np.divmod(index[start], height)
+    return start, length, col, row0
 
 
 def _find_runs(
@@ -325,22 +331,15 @@ def _find_runs(
     if index.size == 0:
         return None
     height = bright.height
-    start = _run_starts(index, height, split_columns=False)
-    length = np.empty_like(start)
-    length[:-1] = start[1:] - start[:-1]
-    length[-1] = index.size - start[-1]
-    col, row0 = np.divmod(index[start], height)
+    start, length, col, row0 = _run_bounds(index, height, split_columns=False)
     if (row0 + length).max() > height:  # rare: a stripe touching both image edges
-        start = _run_starts(index, height, split_columns=True)
-        length = np.diff(np.append(start, index.size))
-        col, row0 = np.divmod(index[start], height)
+        start, length, col, _ = _run_bounds(index, height, split_columns=True)
     weights = _weights(values, threshold, power, subtract_threshold)
     return _Runs(
         height=height,
         point_index=index,
         start=start,
         col=col,
-        row0=row0,
         length=length,
         peak=np.maximum.reduceat(values, start),
         weight=np.add.reduceat(weights, start),
@@ -418,12 +417,14 @@ def _points(
     )
 
 
-def _centres(bright: _Bright, threshold: float, settings: ExtractSettings) -> StripePoints:
+def _centres(
+    bright: _Bright, threshold: float, power: float, subtract_threshold: bool, run_choice: str
+) -> StripePoints:
     """Return the eq. 5.1 centre of the kept run of every column with one."""
-    runs = _find_runs(bright, threshold, settings.power, settings.subtract_threshold)
+    runs = _find_runs(bright, threshold, power, subtract_threshold)
     if runs is None:
         return _empty_points()
-    chosen, flags = _choose_runs(runs, settings.run_choice)
+    chosen, flags = _choose_runs(runs, run_choice)
     return _points(runs, chosen, runs.centre[chosen], flags)
 
 
@@ -447,11 +448,8 @@ def centre_of_gravity(
         The columns with a stripe, their centre rows (pixel centres at integers), the
         run's peak intensity and its width in pixels, and the ``FLAG_*`` bits.
     """
-    settings = ExtractSettings(
-        threshold=threshold, power=power, subtract_threshold=subtract_threshold,
-        run_choice=run_choice, min_peak=1,
-    )  # fmt: skip
-    return _centres(_Bright.find(diff, math.floor(threshold)), threshold, settings)
+    bright = _Bright.find(diff, math.floor(threshold))
+    return _centres(bright, threshold, power, subtract_threshold, run_choice)
 
 
 def _empty_points() -> StripePoints:
@@ -524,7 +522,12 @@ def thinning_centres(diff: np.ndarray, threshold: float, run_choice: str = "peak
     pixel inside the chosen run is the stripe point, the upper one when there are two,
     as the thesis observed (fig. 5.4). Rows are whole pixels.
     """
-    runs = _find_runs(_Bright.find(diff, math.floor(threshold)), threshold, 1.0, False)
+    return _thinning(diff, _Bright.find(diff, math.floor(threshold)), threshold, run_choice)
+
+
+def _thinning(diff: np.ndarray, bright: _Bright, threshold: float, run_choice: str) -> StripePoints:
+    """Return :func:`thinning_centres` from the bright words already found in ``diff``."""
+    runs = _find_runs(bright, threshold, 1.0, False)
     if runs is None:
         return _empty_points()
     chosen, flags = _choose_runs(runs, run_choice)
@@ -573,10 +576,12 @@ def extract(
         threshold = float(otsu_level(_histogram(bright.pixels), diff.size, total, floor))
     else:
         threshold = float(max(settings.threshold, floor))
-        bright = None
+        bright = _Bright.find(diff, math.floor(threshold))
     if settings.method == "thinning":
-        return thinning_centres(diff, threshold, settings.run_choice)
-    return _centres(bright or _Bright.find(diff, math.floor(threshold)), threshold, settings)
+        return _thinning(diff, bright, threshold, settings.run_choice)
+    return _centres(
+        bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
+    )
 
 
 def to_segment(
