@@ -3,7 +3,7 @@
 Image coordinates follow one convention everywhere in Lamina: ``(u, v)`` is
 (column, row), ``v`` grows downwards, and the centre of pixel ``(i, j)`` sits at
 exactly ``u = i, v = j`` (the same convention as OpenCV's corner detectors).
-World and object coordinates follow ``../shared/specs/capture-format.md``.
+World and object coordinates follow ``docs/capture-format.md`` (in the repository).
 """
 
 from __future__ import annotations

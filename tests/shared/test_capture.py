@@ -1,4 +1,4 @@
-"""Reading, validating and writing the raw capture format (shared/specs)."""
+"""Reading, validating and writing the raw capture format (docs/capture-format.md)."""
 
 import json
 
