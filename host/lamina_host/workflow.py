@@ -204,7 +204,8 @@ def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any])
     differs = [k for k in sorted(keys) if recorded.get(k) != current_plain.get(k)]
     if not differs:
         return None
-    return "; ".join(
+    details = "; ".join(
         f"{k} was {_shown(recorded.get(k))}, now {_shown(current_plain.get(k))}"
-        for k in differs[:3]
-    ) + ("; ..." if len(differs) > 3 else "")
+        for k in differs[:2]
+    )
+    return f"{', '.join(differs)} {'differs' if len(differs) == 1 else 'differ'}: {details}"
