@@ -450,15 +450,15 @@ BAD_OPTIONS = [
     (["--views", "0"], "views 0"),
     (["--views", "-8"], "views -8"),
     (["--views", "2"], "views 2"),
-    (["--pitch", "0"], "pitch 0.0 mm"),
-    (["--pitch", "-2"], "pitch -2.0 mm"),
+    (["--pitch", "0"], "pitch 0 mm"),
+    (["--pitch", "-2"], "pitch -2 mm"),
     (["--pitch", "nan"], "pitch nan mm"),
     (["--pitch", "inf"], "pitch inf mm"),
     (["--pitch=-inf"], "pitch -inf mm"),
     (["--cylinder-mm", "nan"], "--cylinder-mm nan"),
     (["--cylinder-mm", "inf"], "--cylinder-mm inf"),
-    (["--cylinder-mm", "0"], "--cylinder-mm 0.0"),
-    (["--cylinder-mm", "-19"], "--cylinder-mm -19.0"),
+    (["--cylinder-mm", "0"], "--cylinder-mm 0 mm"),
+    (["--cylinder-mm", "-19"], "--cylinder-mm -19 mm"),
     (["--trim", "nan"], "--trim nan"),
     (["--trim", "-0.1"], "--trim -0.1"),
     (["--trim", "0.5"], "--trim 0.5"),
@@ -546,7 +546,7 @@ def test_scans_listing_escapes_whatever_an_older_library_holds(capsys, tmp_path)
     assert len(out.splitlines()) == 5  # header and four scans, one line each
     assert "\x1b" not in out and "\x07" not in out and "\u202e" not in out
     assert "evil\\x1b[2J" in out and "two\\nlines" in out and "rtl\\u202egnp" in out
-    assert printable("a\tb\\") == "a\\tb\\\\"
+    assert printable("a\tb") == "a\\tb" == printable(printable("a\tb"))
 
 
 # --- 4. files: one line, never outside the user's intent --------------------------------

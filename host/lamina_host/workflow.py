@@ -55,7 +55,7 @@ def check_subject(code: str) -> str:
     """Return ``code`` if it is a valid subject code, else raise :class:`InputError`."""
     if not isinstance(code, str) or SUBJECT_PATTERN.fullmatch(code) is None:
         shown = printable(str(code))[:40]
-        raise InputError(f"subject code {shown!r} is not allowed: use {SUBJECT_RULE}")
+        raise InputError(f"subject code '{shown}' is not allowed: use {SUBJECT_RULE}")
     return code
 
 
@@ -76,7 +76,8 @@ def check_positive_mm(name: str, value: float, high_mm: float = math.inf) -> flo
     """Return ``value`` if it is a finite number of mm above 0 (and at most ``high_mm``)."""
     if not (_is_number(value) and math.isfinite(value) and 0 < value <= high_mm):
         limit = f" and at most {high_mm:g} mm" if math.isfinite(high_mm) else ""
-        raise InputError(f"{name} {value} mm must be above 0{limit}")
+        shown = f"{value:g}" if _is_number(value) else str(value)
+        raise InputError(f"{name} {shown} mm must be above 0{limit}")
     return float(value)
 
 
@@ -122,11 +123,12 @@ def check_plan_limits(target: str, plan: ScanPlan, limits: Mapping[str, Any]) ->
 
 
 def printable(text: str) -> str:
-    """Return ``text`` with control and format characters (escapes, newlines) shown escaped."""
+    """Return ``text`` with control and format characters (escapes, newlines) shown escaped.
+
+    Idempotent: text already printable is returned unchanged.
+    """
     return "".join(
-        ch.encode("unicode_escape").decode("ascii")
-        if unicodedata.category(ch)[0] == "C" or ch == "\\"
-        else ch
+        ch.encode("unicode_escape").decode("ascii") if unicodedata.category(ch)[0] == "C" else ch
         for ch in text
     )
 

@@ -47,7 +47,6 @@ from lamina_host.pipeline import (
 from lamina_host.report import build_report, write_outputs
 from lamina_host.store import Library, ScanSummary, StoreError
 from lamina_host.workflow import (
-    SUBJECT_RULE,
     InputError,
     check_plan,
     check_plan_limits,
@@ -132,7 +131,7 @@ def check_subject(subject_id: str) -> str:
     """Return the typed subject code (spaces around it dropped) or raise :class:`UserError`."""
     text = subject_id.strip()
     if not text:
-        raise UserError(f"enter a subject id before scanning: {SUBJECT_RULE}")
+        raise UserError("enter a subject id before scanning (letters, digits, - and _)")
     return check_subject_code(text)
 
 
