@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import signal
@@ -844,23 +845,47 @@ def test_a_starting_device_is_waited_for_while_it_runs_then_named(silent_device,
     assert time.monotonic() - start < 5.0
 
 
-def test_no_pseudo_terminal_is_one_line(capsys, tmp_path, monkeypatch):
-    def no_pty() -> tuple[int, int]:
-        raise FileNotFoundError(2, "No such file or directory", "/dev/ptmx")
+@pytest.mark.parametrize("failure", ["no pseudo-terminal", "unknown object", "damaged capture"])
+def test_a_device_that_cannot_start_is_one_line_and_leaves_nothing(
+    capsys, tmp_path, monkeypatch, failure
+):
+    path, out = tmp_path / "l.sqlite", tmp_path / "out"
+    argv = ["scan", "--device", "sim", "--library", str(path), "-o", str(out)]
+    if failure == "no pseudo-terminal":
 
-    monkeypatch.setattr(os, "openpty", no_pty)
-    line = refused(
-        capsys,
-        "scan",
-        "--device",
-        "sim",
-        "--library",
-        str(tmp_path / "l.sqlite"),
-        "-o",
-        str(tmp_path / "out"),
-    )
-    assert "cannot open a pseudo-terminal" in line
-    assert scan_count(tmp_path / "l.sqlite") == 0
+        def no_pty() -> tuple[int, int]:
+            raise FileNotFoundError(2, "No such file or directory", "/dev/ptmx")
+
+        monkeypatch.setattr(os, "openpty", no_pty)
+        expected = "cannot open a pseudo-terminal"
+    elif failure == "unknown object":
+        argv += ["--object", "blob:d=3"]
+        expected = "the device program exited (status 2): lamina-device: object 'blob:d=3'"
+    else:
+        capture = tmp_path / "capture"
+        capture.mkdir()
+        (capture / "capture.json").write_text('{"format": ')
+        argv[2] = f"replay:{capture}"
+        expected = "the device program exited"
+    line = refused(capsys, *argv)
+    assert expected in line, line
+    assert scan_count(path) == 0
+    assert not out.exists()
+
+
+def test_a_scan_stored_with_a_nan_cylinder_by_an_older_lamina_resumes(capsys, library_copy):
+    path, out = library_copy
+    with sqlite3.connect(path) as db:
+        options = {"device": "sim", "out": str(out), "object": OBJECT, "cylinder_mm": math.nan}
+        db.execute("UPDATE scans SET options = ?", (json.dumps(options),))
+        db.execute("UPDATE calibrations SET cylinder_mm = NULL")
+    status, _, err = run(capsys, "scan", "--device", "sim", "--library", str(path), "--resume", "1")
+    assert status == 0, err
+    with Library(path) as library:
+        report = library.result(1)
+        assert library.scans()[0].received == 16
+    assert report is not None and report["calibration"]["n_corners"] == 143
+    assert abs(report["correction_factor"] - 1.0) < 0.05  # the device's 19.05 mm was used
 
 
 # --- helpers -------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ import sqlite3
 import sys
 import time
 from collections.abc import Sequence
+from contextlib import suppress
 from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
@@ -489,24 +490,38 @@ def scan(args: argparse.Namespace) -> int:
         _apply_defaults(args)
         plan, expect = _check_args(args, record)
         own_out = record is not None and str(args.out.resolve()) == record.options.get("out")
+        created = not args.out.exists()
         prepare_output_folder(args.out, allow_files=own_out)
-        scan_id: int | None = None
         try:
-            with open_device(
-                args.device, args.object, args.seed, args.noise, rig=args.rig, on_notice=_notice
-            ) as client:
-                scan_id = _open_scan(client, args, library, plan)
-                print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
-                data, timings = acquire(client, args, library, scan_id, args.out)
-                device = _device_summary(client)
-        except (DeviceError, LinkClosed, ProtocolError) as exc:
-            if scan_id is None:
-                raise
-            raise DeviceError(
-                f"{exc}; what arrived is kept: finish with lamina scan --resume {scan_id} "
-                f"--device {args.device}"
-            ) from None
+            scan_id, data, timings, device = _acquire_scan(args, library, plan)
+        except BaseException:
+            if created:
+                with suppress(OSError):
+                    args.out.rmdir()  # only while empty: nothing was received into it
+            raise
         return _process(args, library, scan_id, data, timings, device, expect)
+
+
+def _acquire_scan(
+    args: argparse.Namespace, library: Library, plan: ScanPlan | None
+) -> tuple[int, dict[str, Any], dict[str, float], dict[str, Any]]:
+    """Connect, open (or resume) the scan and acquire it; return the scan id and its data."""
+    scan_id: int | None = None
+    try:
+        with open_device(
+            args.device, args.object, args.seed, args.noise, rig=args.rig, on_notice=_notice
+        ) as client:
+            scan_id = _open_scan(client, args, library, plan)
+            print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
+            data, timings = acquire(client, args, library, scan_id, args.out)
+            return scan_id, data, timings, _device_summary(client)
+    except (DeviceError, LinkClosed, ProtocolError) as exc:
+        if scan_id is None:
+            raise
+        raise DeviceError(
+            f"{exc}; what arrived is kept: finish with lamina scan --resume {scan_id} "
+            f"--device {args.device}"
+        ) from None
 
 
 def _process(
