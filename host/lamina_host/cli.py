@@ -473,12 +473,13 @@ def _open_library(path: Path | None) -> Library:
     """Open the scan library, saying once on stderr what it had to put right."""
     library = Library(path)
     for notice in library.notices:
-        print(f"lamina: note: {notice}", file=sys.stderr)
+        print(f"note: {notice}", file=sys.stderr)
     return library
 
 
 def _notice(text: str) -> None:
-    print(f"lamina: {text}", file=sys.stderr)
+    """Say on stderr what the device is doing (not an error: no ``lamina:`` prefix)."""
+    print(f"  {text}", file=sys.stderr)
 
 
 def scan(args: argparse.Namespace) -> int:
