@@ -287,6 +287,13 @@ def test_library_adds_segments_only_under_the_scans_identity_and_plan(tmp_path):
             with pytest.raises(StoreError, match="not a view scan 1 planned"):
                 library.add_segment(scan_id, seq, bad, identity)
         assert dump(path) == before
+        # A later scan given the deleted one's id is guarded by its own identity.
+        library.delete_scan(scan_id)
+        again = library.create_scan("P-01", {"object": PLAN}, {}, {}, {"serial": "C-3"})
+        assert again == scan_id
+        with pytest.raises(StoreError, match="serial"):
+            library.add_segment(again, 0, segment, identity)
+        assert library.add_segment(again, 0, segment, {"serial": "C-3"})
 
 
 def test_identity_prefers_what_the_device_reports_and_records_only_what_exists():

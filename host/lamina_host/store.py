@@ -403,6 +403,7 @@ class Library:
         self.scan(scan_id)
         with self._db:
             self._db.execute("DELETE FROM scans WHERE id = ?", (scan_id,))
+        self._guards.pop(scan_id, None)  # SQLite may give a later scan the same id
 
     # --- segments --------------------------------------------------------------------
 
