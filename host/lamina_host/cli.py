@@ -2,14 +2,21 @@
 
 Every user mistake ends in one line on stderr naming the problem and what to do,
 with a non-zero exit status; data already received is written before processing.
+Everything that can be checked (options, plan, subject code, output folder, library,
+the device's limits) is checked before a scan is created or acquisition starts, and a
+resume is refused unless the device, its setup and the options are those the scan
+began with.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import sqlite3
 import sys
 import time
 from collections.abc import Sequence
+from contextlib import suppress
 from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
@@ -22,12 +29,24 @@ from lamina_host.axis import AXIS_METHODS
 from lamina_host.calibration import CALIBRATION_METHODS, CalibrationError
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
+from lamina_host.files import OutputError, prepare_output_folder, replace_file
 from lamina_host.link import DeviceClient, DeviceError, open_device
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_host.report import build_report, save_segments, write_outputs
-from lamina_host.store import Library, StoreError
+from lamina_host.store import Library, ScanRecord, StoreError, default_library_path
+from lamina_host.workflow import (
+    SUBJECT_RULE,
+    InputError,
+    check_count,
+    check_plan,
+    check_plan_limits,
+    check_positive_mm,
+    check_subject,
+    printable,
+)
 from lamina_shared.link import LinkClosed
+from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
@@ -36,8 +55,18 @@ RIG_PRESETS = ("thesis", "limb")
 host must run without the device package)."""
 
 
-class UsageError(ValueError):
+class UsageError(InputError):
     """A mistake in how the command was called."""
+
+
+SCAN_DEFAULTS: dict[str, Any] = {
+    "subject": "anonymous",
+    "trim": 0.10,
+    "seed": 0,
+    "noise": "thesis",
+    "rig": "thesis",
+}
+"""Defaults of scan options a resume must be able to tell from values given (so None)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "-o", "--out", type=Path, help="new output folder (when resuming: the scan's own)"
     )
-    scan.add_argument("--subject", default="anonymous", help="pseudonymous subject code")
+    scan.add_argument(
+        "--subject",
+        help=f"pseudonymous subject code (default anonymous): {SUBJECT_RULE}".replace("%", "%%"),
+    )
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
@@ -71,15 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--trim",
         type=float,
-        default=0.10,
         help="fraction dropped from each segment end (default 0.10)",
     )
-    scan.add_argument("--seed", type=int, default=0, help="simulation seed (sim only)")
+    scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
         "--noise",
         choices=("thesis", "none"),
-        default="thesis",
-        help="simulated noise level (sim only)",
+        help="simulated noise level (sim only, default thesis)",
     )
     _add_processing_options(scan)
     scans = sub.add_parser("scans", help="list the scans in the library")
@@ -102,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_processing_options(parser: argparse.ArgumentParser) -> None:
     """Add the rig choice and the method of each reconstruction stage."""
     parser.add_argument(
-        "--rig", choices=RIG_PRESETS, default="thesis", help="simulated rig geometry (sim only)"
+        "--rig", choices=RIG_PRESETS, help="simulated rig geometry (sim only, default thesis)"
     )
     parser.add_argument(
         "--pipeline",
@@ -143,7 +173,7 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
     elif changes.get("axis") == "centroid":
         changes["angle_correction"] = False  # only the joint fit can estimate it
     if args.split_gap is not None:
-        if args.split_gap < 0:
+        if not (math.isfinite(args.split_gap) and args.split_gap >= 0):
             raise UsageError("--split-gap must be 0 (never split) or a positive number of mm")
         changes["split_gap_mm"] = args.split_gap or None
     options = replace(base, **changes)
@@ -171,46 +201,82 @@ def _scan_options(args: argparse.Namespace) -> dict[str, Any]:
     return {**options, "device": args.device, "out": str(args.out.resolve())}
 
 
-def _apply_resume(args: argparse.Namespace, library: Library) -> None:
-    """Take a resumed scan's options (and output folder, unless given) from the library."""
-    record = library.scan(args.resume)
+def _apply_resume(args: argparse.Namespace, record: ScanRecord) -> None:
+    """Take a resumed scan's options (and output folder, unless given) from its record.
+
+    An option given on the command line that differs from the record is refused, never
+    silently replaced: the scan goes on exactly as it began.
+    """
+    recorded = dict(record.options)
+    if not _finite_or_none(recorded.get("cylinder_mm")):
+        recorded.pop("cylinder_mm")  # an older Lamina stored NaN: take what is given now
     for name in RESUMED_OPTIONS:
-        setattr(args, name, record.options.get(name, getattr(args, name)))
+        if name not in recorded:
+            continue  # recorded by an older Lamina or the terminal UI: keep what is given
+        given, stored = getattr(args, name), recorded[name]
+        if given is not None and given != stored:
+            flag = "--" + name.replace("_", "-")
+            raise UsageError(
+                f"scan {record.id} was started with {flag} {stored}; resume it without {flag} "
+                "or with the same value"
+            )
+        setattr(args, name, stored)
+    if args.subject is not None and args.subject != record.subject:
+        raise UsageError(
+            f"scan {record.id} belongs to another subject code; resume it without --subject"
+        )
     args.subject = record.subject
     if args.out is None:
         args.out = Path(record.options["out"])
 
 
+def _finite_or_none(value: object) -> bool:
+    return value is None or (isinstance(value, int | float) and math.isfinite(value))
+
+
+def _apply_defaults(args: argparse.Namespace) -> None:
+    """Fill the options left unset (after a resume took its record's)."""
+    for name, default in SCAN_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+
+
 def _plan(args: argparse.Namespace) -> ScanPlan | None:
+    """Return the plan the numbers given ask for, or None for the device's default plan."""
     if args.sections is None and args.pitch is None and args.views is None:
         return None
-    try:
-        return ScanPlan.regular(args.sections or 4, args.pitch or 2.0, args.views or 8)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    return check_plan(args.sections, args.pitch, args.views)
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Refuse any numeric option that is zero where it cannot be, negative or not finite."""
+    if not (math.isfinite(args.trim) and 0.0 <= args.trim < 0.5):
+        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
+    if args.harmonics is not None:
+        check_count("--harmonics", args.harmonics, 1, 100)
+    if args.cylinder_mm is not None:
+        check_positive_mm("--cylinder-mm", args.cylinder_mm, 1000.0)
+    check_count("--seed", args.seed, 0, 2**32 - 1)
 
 
 def _check_args(
-    args: argparse.Namespace, own_out: str | None = None
+    args: argparse.Namespace, record: ScanRecord | None = None
 ) -> tuple[ScanPlan | None, Expectation | None]:
+    """Check every option before anything is created; return the plan and expectation."""
     if args.out is None:
         raise UsageError("name an output folder with -o OUT")
-    resuming_into_own = own_out is not None and str(args.out.resolve()) == own_out
-    if args.out.exists() and any(args.out.iterdir()) and not resuming_into_own:
-        raise UsageError(
-            f"output folder {args.out} is not empty; choose a new folder so "
-            "no earlier scan is overwritten"
-        )
-    if not 0.0 <= args.trim < 0.5:
-        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
-    if args.harmonics is not None and args.harmonics < 1:
-        raise UsageError("--harmonics must be 1 or more")
+    check_subject(args.subject)
+    _check_numbers(args)
     spawns_device = args.device == "sim" or args.device.startswith("replay:")
     if spawns_device and find_spec("lamina_device") is None:
         raise UsageError(
             f"--device {args.device} runs the device program here, but "
             "lamina-device is not installed: pip install -e device"
         )
+    if args.device.startswith("replay:"):
+        capture = Path(args.device.removeprefix("replay:"))
+        if not (capture / "capture.json").is_file():
+            raise UsageError(f"{capture} holds no capture.json: name a capture folder")
     if args.object and args.device != "sim":
         raise UsageError("--object only applies to --device sim")
     if args.rig != "thesis" and args.device != "sim":
@@ -220,7 +286,13 @@ def _check_args(
         expect = parse_expectation(args.expect) if args.expect else None
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    return _plan(args), expect
+    plan = _plan(args)
+    if record is not None and plan is not None and record.plans.get("object") != plan:
+        raise UsageError(
+            f"scan {record.id} was planned differently; resume it without "
+            "--sections, --pitch and --views"
+        )
+    return plan, expect
 
 
 def _progress(event: dict[str, Any]) -> None:
@@ -235,7 +307,13 @@ def _progress(event: dict[str, Any]) -> None:
         print(f"  {event.get('target')}: {total} views", file=sys.stderr)
 
 
-def _fetch_views(client: DeviceClient, library: Library, scan_id: int, target: str) -> None:
+def _fetch_views(
+    client: DeviceClient,
+    library: Library,
+    scan_id: int,
+    target: str,
+    identity: dict[str, Any] | None = None,
+) -> None:
     """Fetch the views of ``target`` the library lacks; each is committed before its ack."""
     plan = library.scan(scan_id).plans[target]
     held = library.held(scan_id, target)
@@ -252,41 +330,47 @@ def _fetch_views(client: DeviceClient, library: Library, scan_id: int, target: s
         plan,
         _progress,
         have=held,
-        on_segment=lambda seq, segment: library.add_segment(scan_id, seq, segment),
+        on_segment=lambda seq, segment: library.add_segment(scan_id, seq, segment, identity),
     )
 
 
 def acquire(
     client: DeviceClient, args: argparse.Namespace, library: Library, scan_id: int, out: Path
 ) -> tuple[dict[str, Any], dict[str, float]]:
-    """Fetch what the library lacks of the scan, then write the received data to ``out``."""
+    """Fetch what the library lacks of the scan, then write the received data to ``out``.
+
+    The segments held are written to ``out`` also when acquisition stops early.
+    """
+    identity = client.identity()
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if library.calibration(scan_id) is None:
         grid, board = client.grab_grid()
-        assert client.info is not None
-        library.save_calibration(
-            scan_id, grid, board, args.cylinder_mm or client.info.cylinder_diameter_mm
-        )
+        library.save_calibration(scan_id, grid, board, _cylinder_mm(args, client), identity)
     calibration = library.calibration(scan_id)
     assert calibration is not None
     grid_image, board = calibration.grid_image, calibration.board
-    cv2.imwrite(str(out / "calibration-grid.png"), grid_image)
-    _fetch_views(client, library, scan_id, "cylinder")
-    cylinder = library.segments(scan_id, "cylinder")
-    save_segments(out / "cylinder-segments.npz", cylinder)
-    timings["acquire_calibration"] = time.perf_counter() - start
-    start = time.perf_counter()
-    _fetch_views(client, library, scan_id, "object")
-    segments = library.segments(scan_id, "object")
-    save_segments(out / "segments.npz", segments)
-    library.set_status(scan_id, "acquired")
-    timings["acquire_object"] = time.perf_counter() - start
-    if sys.stderr.isatty():
-        print(file=sys.stderr)
     diameter = calibration.cylinder_mm
     if diameter is None:
+        diameter = _cylinder_mm(args, client)
+    if diameter is None:
         raise UsageError("the device does not know its calibration cylinder: pass --cylinder-mm")
+    replace_file(out / "calibration-grid.png", lambda path: _write_image(path, grid_image))
+    try:
+        _fetch_views(client, library, scan_id, "cylinder", identity)
+        timings["acquire_calibration"] = time.perf_counter() - start
+        start = time.perf_counter()
+        _fetch_views(client, library, scan_id, "object", identity)
+        timings["acquire_object"] = time.perf_counter() - start
+    finally:
+        # What arrived is kept in the output folder too, also when the scan stops here.
+        cylinder = library.segments(scan_id, "cylinder")
+        segments = library.segments(scan_id, "object")
+        save_segments(out / "cylinder-segments.npz", cylinder)
+        save_segments(out / "segments.npz", segments)
+    library.set_status(scan_id, "acquired")
+    if sys.stderr.isatty():
+        print(file=sys.stderr)
     data = {
         "grid_image": grid_image,
         "board": board,
@@ -295,6 +379,18 @@ def acquire(
         "segments": segments,
     }
     return data, timings
+
+
+def _cylinder_mm(args: argparse.Namespace, client: DeviceClient) -> float | None:
+    """Return the calibration cylinder's diameter: the one given, else the device's."""
+    if args.cylinder_mm is not None:
+        return float(args.cylinder_mm)
+    return client.info.cylinder_diameter_mm if client.info else None
+
+
+def _write_image(path: Path, image: Any) -> None:
+    if not cv2.imwrite(str(path), image):
+        raise OutputError(f"the calibration image could not be written to {path}")
 
 
 def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
@@ -334,52 +430,99 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
 def _open_scan(
     client: DeviceClient, args: argparse.Namespace, library: Library, plan: ScanPlan | None
 ) -> int:
-    """Return the scan to fill: the resumed one, or a new one with the device's plans."""
+    """Return the scan to fill: the resumed one, or a new one with the device's plans.
+
+    Raises:
+        StoreError: the resumed scan was acquired by another device or setup.
+        InputError: a plan beyond the device's limits, or no cylinder diameter known.
+    """
+    identity = client.identity()
+    limits = client.info.limits if client.info else {}
     if args.resume is not None:
-        return int(args.resume)
+        scan_id = int(args.resume)
+        library.check_identity(scan_id, identity)
+        for target, stored in library.scan(scan_id).plans.items():
+            check_plan_limits(target, stored, limits)
+        return scan_id
     plans = {
         "cylinder": client.plan_for("cylinder", None),
         "object": client.plan_for("object", plan),
     }
+    for target, wanted in plans.items():
+        check_plan_limits(target, wanted, limits)
+    if _cylinder_mm(args, client) is None:
+        raise UsageError("the device does not know its calibration cylinder: pass --cylinder-mm")
     info = client.info
     device = {"software": info.software, "hardware": info.hardware} if info else {}
-    return library.create_scan(args.subject, plans, _scan_options(args), device)
+    return library.create_scan(args.subject, plans, _scan_options(args), device, identity)
+
+
+def _device_summary(client: DeviceClient) -> dict[str, Any]:
+    """Return what the report says about the device that acquired the scan."""
+    if client.info is None:
+        return {}
+    return {
+        "software": client.info.software,
+        "hardware": client.info.hardware,
+        "description": client.info.description,
+        "identity": client.identity(),
+    }
+
+
+def _open_library(path: Path | None) -> Library:
+    """Open the scan library, saying once on stderr what it had to put right."""
+    library = Library(path)
+    for notice in library.notices:
+        print(f"note: {notice}", file=sys.stderr)
+    return library
+
+
+def _notice(text: str) -> None:
+    """Say on stderr what the device is doing (not an error: no ``lamina:`` prefix)."""
+    print(f"  {text}", file=sys.stderr)
 
 
 def scan(args: argparse.Namespace) -> int:
     """Run ``lamina scan``: store into the library, resume what it holds, reconstruct."""
-    with Library(args.library) as library:
-        own_out = None
-        if args.resume is not None:
-            _apply_resume(args, library)
-            own_out = library.scan(args.resume).options.get("out")
-        plan, expect = _check_args(args, own_out)
-        args.out.mkdir(parents=True, exist_ok=True)
-        scan_id: int | None = None
+    with _open_library(args.library) as library:
+        record = library.scan(args.resume) if args.resume is not None else None
+        if record is not None:
+            _apply_resume(args, record)
+        _apply_defaults(args)
+        plan, expect = _check_args(args, record)
+        own_out = record is not None and str(args.out.resolve()) == record.options.get("out")
+        created = not args.out.exists()
+        prepare_output_folder(args.out, allow_files=own_out)
         try:
-            with open_device(
-                args.device, args.object, args.seed, args.noise, rig=args.rig
-            ) as client:
-                scan_id = _open_scan(client, args, library, plan)
-                print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
-                data, timings = acquire(client, args, library, scan_id, args.out)
-                device = (
-                    {
-                        "software": client.info.software,
-                        "hardware": client.info.hardware,
-                        "description": client.info.description,
-                    }
-                    if client.info
-                    else {}
-                )
-        except (DeviceError, LinkClosed) as exc:
-            if scan_id is None:
-                raise
-            raise DeviceError(
-                f"{exc}; what arrived is kept: finish with lamina scan --resume {scan_id} "
-                f"--device {args.device}"
-            ) from None
+            scan_id, data, timings, device = _acquire_scan(args, library, plan)
+        except BaseException:
+            if created:
+                with suppress(OSError):
+                    args.out.rmdir()  # only while empty: nothing was received into it
+            raise
         return _process(args, library, scan_id, data, timings, device, expect)
+
+
+def _acquire_scan(
+    args: argparse.Namespace, library: Library, plan: ScanPlan | None
+) -> tuple[int, dict[str, Any], dict[str, float], dict[str, Any]]:
+    """Connect, open (or resume) the scan and acquire it; return the scan id and its data."""
+    scan_id: int | None = None
+    try:
+        with open_device(
+            args.device, args.object, args.seed, args.noise, rig=args.rig, on_notice=_notice
+        ) as client:
+            scan_id = _open_scan(client, args, library, plan)
+            print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
+            data, timings = acquire(client, args, library, scan_id, args.out)
+            return scan_id, data, timings, _device_summary(client)
+    except (DeviceError, LinkClosed, ProtocolError) as exc:
+        if scan_id is None:
+            raise
+        raise DeviceError(
+            f"{exc}; what arrived is kept: finish with lamina scan --resume {scan_id} "
+            f"--device {args.device}"
+        ) from None
 
 
 def _process(
@@ -410,7 +553,7 @@ def _process(
 
 def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
-    with Library(args.library) as library:
+    with _open_library(args.library) as library:
         summaries = library.scans()
         if not summaries:
             print(f"no scans in {library.path}")
@@ -420,8 +563,10 @@ def list_scans(args: argparse.Namespace) -> int:
         )
         for s in summaries:
             views = f"{s.received}/{s.views}"
+            # Codes stored by an older Lamina may hold anything: never print it raw.
+            subject, created, status = (printable(t) for t in (s.subject, s.created, s.status))
             print(
-                f"{s.id:>5}  {s.subject:<12} {s.created:<25} {s.status:<10} {s.sections:>8}  "
+                f"{s.id:>5}  {subject:<12} {created:<25} {status:<10} {s.sections:>8}  "
                 f"{views:>5}  {'yes' if s.has_result else 'no'}"
             )
     return 0
@@ -429,7 +574,7 @@ def list_scans(args: argparse.Namespace) -> int:
 
 def export(args: argparse.Namespace) -> int:
     """Run ``lamina export SCAN -o FILE``."""
-    with Library(args.library) as library:
+    with _open_library(args.library) as library:
         path = library.export(args.scan, args.out)
     print(f"wrote {path}")
     return 0
@@ -453,15 +598,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return COMMANDS[args.command](args)
-    except (UsageError, DeviceError, CalibrationError, StoreError) as exc:
-        print(f"lamina: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    except (
+        InputError,
+        DeviceError,
+        CalibrationError,
+        StoreError,
+        OutputError,
+        ProtocolError,
+    ) as exc:
+        print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except LinkClosed as exc:
         print(
             f"lamina: the link to the device broke ({exc}); check the cable and try again",
             file=sys.stderr,
         )
-        return EXIT_USAGE
+    except sqlite3.Error as exc:
+        library = getattr(args, "library", None) or default_library_path()
+        print(
+            f"lamina: the scan library {library} cannot be used ({exc}): if it is damaged, "
+            "restore it from a backup",
+            file=sys.stderr,
+        )
+    except OSError as exc:
+        print(f"lamina: {exc.strerror or exc} ({exc.filename or 'no file'})", file=sys.stderr)
     except KeyboardInterrupt:
         print("lamina: interrupted; data received so far is in the output folder", file=sys.stderr)
         return 130
+    return EXIT_USAGE

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import serial
 
+from lamina_host.workflow import scan_identity, spawned_source
 from lamina_shared.link import Channel, LinkClosed, Ticker
 from lamina_shared.protocol import (
     CHUNK_BYTES,
@@ -52,6 +53,13 @@ from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 MAX_IMAGE_SIDE = 16_384
 """Largest image side the host accepts from a device."""
+SPAWNED_STARTUP_S = 120.0
+"""How long a device program started here may take to answer (a replay validating a big
+capture), as long as it is running."""
+STARTUP_NOTICE_S = 5.0
+"""After this long without an answer, say that the device program is still starting."""
+PROCESS_CHECK_S = 0.25
+"""How often a request checks that a device program started here is still running."""
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +111,8 @@ class DeviceInfo:
     axes: dict[str, Any] = field(default_factory=dict)
     limits: dict[str, Any] = field(default_factory=dict)
     operations: tuple[str, ...] = ()
+    welcome: dict[str, Any] = field(default_factory=dict)
+    """The WELCOME body as received (for :func:`lamina_host.workflow.scan_identity`)."""
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
@@ -134,6 +144,7 @@ class DeviceInfo:
                 dict(data.get("axes") or {}),
                 dict(data.get("limits") or {}),
                 tuple(str(op) for op in data.get("operations") or ()),
+                dict(data),
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DeviceError(f"the device's handshake is malformed ({exc})") from None
@@ -172,6 +183,7 @@ class PtyBridge:
                 try:
                     data = os.read(fd, 65536)
                 except OSError:
+                    time.sleep(0.01)  # the other end closed (EIO): do not spin
                     continue
                 out, direction = route[fd]
                 if self._transform is not None:
@@ -319,6 +331,9 @@ class DeviceClient:
         self._controls: dict[int, tuple[str, bytes, float]] = {}
         self._scanning = False
         self._on_notice: Callable[[str], object] | None = None
+        self.spawned: str | None = None
+        """What a device program started here was asked to acquire (``workflow.spawned_source``)."""
+        self._process_checked_s = 0.0
 
     def _new_id(self) -> int:
         with self._id_lock:
@@ -326,18 +341,48 @@ class DeviceClient:
             self._next_id += 1
             return request_id
 
+    def identity(self) -> dict[str, Any]:
+        """Return the identity of what this device acquires (see ``workflow.scan_identity``)."""
+        return scan_identity(self.info.welcome if self.info else {}, self.spawned)
+
     def _device_exit_message(self) -> str | None:
+        """Return one line on a device program started here that has exited, else None."""
         if self.process is None or self.process.poll() is None:
             return None
         err = self.process.stderr.read().decode(errors="replace") if self.process.stderr else ""
-        lines = [line for line in err.strip().splitlines() if line.strip()]
-        return lines[-1] if lines else f"the device program exited ({self.process.returncode})"
+        lines = [line.strip() for line in err.strip().splitlines() if line.strip()]
+        code = self.process.returncode
+        how = f"was killed (signal {-code})" if code < 0 else f"exited (status {code})"
+        return f"the device program {how}" + (f": {lines[-1]}" if lines else "")
 
-    def hello(self, timeout_s: float = 20.0) -> DeviceInfo:
-        """Handshake; return the device's information or raise :class:`DeviceError`."""
-        deadline = time.monotonic() + timeout_s
+    def _check_process(self, now: float) -> None:
+        """Raise DeviceError soon after a device program started here has exited."""
+        if self.process is None or now - self._process_checked_s < PROCESS_CHECK_S:
+            return
+        self._process_checked_s = now
+        if (exit_message := self._device_exit_message()) is not None:
+            raise DeviceError(exit_message)
+
+    def hello(
+        self, timeout_s: float = 20.0, on_notice: Callable[[str], object] | None = None
+    ) -> DeviceInfo:
+        """Handshake; return the device's information or raise :class:`DeviceError`.
+
+        A device program started here is waited for while it runs, up to
+        :data:`SPAWNED_STARTUP_S` (it may be validating a big capture); ``on_notice``
+        hears once that it is still starting.
+        """
+        start = time.monotonic()
+        if self.process is not None:
+            timeout_s = max(timeout_s, SPAWNED_STARTUP_S)
+        deadline = start + timeout_s
+        noticed = False
         hello = {"protocol": PROTOCOL_VERSION, "software": "lamina-host", "session": self.session}
         while time.monotonic() < deadline:
+            slow = time.monotonic() - start > STARTUP_NOTICE_S
+            if slow and self.process is not None and not noticed and on_notice is not None:
+                on_notice(f"waiting for the device program to start (up to {timeout_s:.0f} s)")
+                noticed = True
             # Repeat HELLO: a device that opened its port late flushed the earlier ones.
             self.channel.send(encode_json(Kind.HELLO, hello))
             until = time.monotonic() + 0.5
@@ -346,6 +391,11 @@ class DeviceClient:
                     return self._welcome(message.body)
             if (exit_message := self._device_exit_message()) is not None:
                 raise DeviceError(exit_message)
+        if self.process is not None:
+            raise DeviceError(
+                f"the device program started here has not answered in {timeout_s:.0f} s: "
+                "check its capture or configuration with lamina-device serve, then try again"
+            )
         raise DeviceError(
             "no answer from the device: check the cable and that lamina-device serve is running"
         )
@@ -362,6 +412,7 @@ class DeviceClient:
 
     def poll(self, timeout_s: float = 0.05) -> Message | None:
         """Receive one message (or none), sending our heartbeat when it is due."""
+        self._check_process(time.monotonic())
         if self._heartbeat.due():
             self.channel.send(encode_json(Kind.HEARTBEAT, {"session": self.session}))
         return self.channel.receive(timeout_s)
@@ -732,13 +783,15 @@ def open_device(
     noise: str = "thesis",
     transform: Callable[[bytes, str], bytes] | None = None,
     rig: str = "thesis",
+    on_notice: Callable[[str], object] | None = None,
 ) -> Iterator[DeviceClient]:
     """Connect to DEVICE (a port path, ``sim`` or ``replay:DIR``) and handshake.
 
     ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
+    ``on_notice`` hears about a slow start of a device program started here.
     """
     if device == "sim" or device.startswith("replay:"):
-        with _spawned_device(device, object_spec, seed, noise, transform, rig) as client:
+        with _spawned_device(device, object_spec, seed, noise, transform, rig, on_notice) as client:
             yield client
         return
     if object_spec:
@@ -766,8 +819,15 @@ def _spawned_device(
     noise: str,
     transform: Callable[[bytes, str], bytes] | None,
     rig: str = "thesis",
+    on_notice: Callable[[str], object] | None = None,
 ) -> Iterator[DeviceClient]:
-    bridge = PtyBridge(transform)
+    try:
+        bridge = PtyBridge(transform)
+    except OSError as exc:
+        raise DeviceError(
+            f"cannot open a pseudo-terminal to run the device program here "
+            f"({exc.strerror or exc}): mount /dev/pts, or connect a scanner by its serial port"
+        ) from None
     command = device_command(device, bridge.device_port, object_spec, seed, noise, rig)
     process = subprocess.Popen(
         command,
@@ -781,7 +841,8 @@ def _spawned_device(
         port = serial.Serial(bridge.host_port, baudrate=115200, timeout=0.05)
         with port:
             client = DeviceClient(Channel(port), process)
-            client.hello()
+            client.spawned = spawned_source(device, object_spec, seed, noise, rig)
+            client.hello(on_notice=on_notice)
             yield client
             client.close()
     finally:

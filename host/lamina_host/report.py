@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.expect import Expectation
+from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import save_ply
 from lamina_host.pipeline import Reconstruction, stack, stacked_normals
@@ -18,7 +19,10 @@ SEGMENT_FIELDS = ("cols", "rows", "peak", "width")
 
 
 def save_segments(path: Path, segments: list[Segment]) -> None:
-    """Write segments losslessly to one ``.npz`` file (kept so a scan can be reprocessed)."""
+    """Write segments losslessly to one ``.npz`` file (kept so a scan can be reprocessed).
+
+    The file is private and replaced whole (see :func:`lamina_host.files.replace_file`).
+    """
     arrays: dict[str, Any] = {}
     for k, s in enumerate(segments):
         head = np.array([s.section, s.view, s.z_mm, s.angle_deg], dtype=np.float64)
@@ -26,7 +30,12 @@ def save_segments(path: Path, segments: list[Segment]) -> None:
         arrays[f"{k:05d}_target"] = np.array(s.target)
         for name in SEGMENT_FIELDS:
             arrays[f"{k:05d}_{name}"] = getattr(s, name)
-    np.savez_compressed(path, **arrays)
+
+    def write(temporary: Path) -> None:
+        with temporary.open("wb") as out:  # a file object: numpy adds no .npz of its own
+            np.savez_compressed(out, **arrays)
+
+    replace_file(path, write)
 
 
 def load_segments(path: Path) -> list[Segment]:
@@ -113,17 +122,27 @@ def _points3d(sections: list[Any], raw: bool) -> np.ndarray:
 
 
 def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> dict[str, Path]:
-    """Write the point clouds, the mesh and the report into ``out``; return their paths."""
+    """Write the point clouds, the mesh and the report into ``out``; return their paths.
+
+    Each file is private and replaced whole, never written through a link.
+    """
     paths = {
         name: out / name for name in ("raw_points.ply", "points.ply", "mesh.ply", "report.json")
     }
     heights = [s.z_mm for s in result.sections]
     contours = [s.contour for s in result.sections]
-    save_ply(paths["raw_points.ply"], stack([s.raw for s in result.sections], heights))
-    save_ply(paths["points.ply"], stack(contours, heights), normals=stacked_normals(contours))
+    raw = stack([s.raw for s in result.sections], heights)
+    replace_file(paths["raw_points.ply"], lambda temporary: save_ply(temporary, raw))
+    points, normals = stack(contours, heights), stacked_normals(contours)
+    replace_file(
+        paths["points.ply"], lambda temporary: save_ply(temporary, points, normals=normals)
+    )
     if len(result.faces):
-        save_ply(paths["mesh.ply"], result.vertices, result.faces)
+        replace_file(
+            paths["mesh.ply"], lambda temporary: save_ply(temporary, result.vertices, result.faces)
+        )
     else:
         del paths["mesh.ply"]
-    paths["report.json"].write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    text = json.dumps(report, indent=2) + "\n"
+    replace_file(paths["report.json"], lambda temporary: temporary.write_text(text, "utf-8"))
     return paths

@@ -9,14 +9,21 @@ A segment is committed (``synchronous=FULL``) before :meth:`Library.add_segment`
 returns, and the link acknowledges it only after that, so a host killed at any moment
 holds every segment the device believes delivered. The file is created readable by
 its owner only (mode 0600; SQLite gives its ``-wal`` and ``-shm`` files the same mode).
-Use one :class:`Library` per thread; WAL lets several read while one writes.
+Use one :class:`Library` per thread; WAL lets several read while one writes. A library
+file found readable by others is made owner-only (:attr:`Library.notices` says so).
+
+Each scan records the identity of what acquired it (device serial, software, hardware,
+source object or capture, calibration, extraction settings; see
+:func:`lamina_host.workflow.scan_identity`). Segments and calibration are only added
+under that identity (:meth:`Library.add_segment`), so one scan never mixes two
+acquisitions. Schema 2 added the identity; a schema-1 library is migrated on opening,
+its scans given a ``legacy`` identity rebuilt from what they recorded.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 import sqlite3
 import tempfile
 from dataclasses import dataclass
@@ -28,9 +35,17 @@ from typing import Any
 import cv2
 import numpy as np
 
+from lamina_host.files import OutputError, tighten, write_new_file
+from lamina_host.workflow import (
+    InputError,
+    check_subject,
+    identity_difference,
+    scan_identity,
+    spawned_source,
+)
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 STATUSES = ("acquiring", "acquired", "processed")
 """A scan is ``acquiring`` until every planned view is held, ``processed`` once it has a result."""
 
@@ -47,7 +62,8 @@ CREATE TABLE IF NOT EXISTS scans (
     status TEXT NOT NULL CHECK (status IN ('acquiring', 'acquired', 'processed')),
     device TEXT NOT NULL,
     options TEXT NOT NULL,
-    plans TEXT NOT NULL
+    plans TEXT NOT NULL,
+    identity TEXT NOT NULL DEFAULT '{}'
 );
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,
@@ -112,7 +128,7 @@ class ScanSummary:
 
 @dataclass(frozen=True)
 class ScanRecord:
-    """What a scan was asked to be: subject, plans per target, options, device."""
+    """What a scan was asked to be: subject, plans per target, options, device, identity."""
 
     id: int
     subject: str
@@ -121,6 +137,7 @@ class ScanRecord:
     plans: dict[str, ScanPlan]
     options: dict[str, Any]
     device: dict[str, Any]
+    identity: dict[str, Any]
 
 
 @dataclass(frozen=True)
@@ -171,11 +188,32 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
     )
 
 
-def _create_private(path: Path) -> None:
-    """Create ``path`` (and its folder) readable by the owner only, if it does not exist."""
+def _create_private(path: Path) -> bool:
+    """Create ``path`` (and its folder) owner-only; return True if an existing one was widened.
+
+    An existing file (and its ``-wal``/``-shm`` companions) readable by others is made
+    owner-only.
+    """
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
     os.close(fd)
+    widened = [tighten(path.with_name(path.name + end)) for end in ("", "-wal", "-shm")]
+    return any(widened)
+
+
+def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+    """Return the identity a schema-1 scan can be given from what it recorded."""
+    spawned = None
+    if isinstance(options.get("device"), str):
+        spawned = spawned_source(
+            options["device"],
+            options.get("object"),
+            options.get("seed"),
+            options.get("noise"),
+            options.get("rig"),
+        )
+    welcome: dict[str, Any] = {k: device[k] for k in ("software", "hardware") if k in device}
+    return {"legacy": True, **scan_identity(welcome, spawned)}
 
 
 class Library:
@@ -183,8 +221,15 @@ class Library:
 
     def __init__(self, path: Path | None = None) -> None:
         self.path = Path(path) if path is not None else default_library_path()
+        self.notices: list[str] = []
+        """Things the user should know once (a library made owner-only)."""
+        self._guards: dict[int, tuple[dict[str, Any], dict[str, ScanPlan]]] = {}
         try:
-            _create_private(self.path)
+            if _create_private(self.path):
+                self.notices.append(
+                    f"the scan library {self.path} was readable by other users; "
+                    "it is now readable by its owner only"
+                )
             self._db = sqlite3.connect(self.path, timeout=30.0)
             self._db.row_factory = sqlite3.Row
             version = self._db.execute("PRAGMA user_version").fetchone()[0]
@@ -197,10 +242,22 @@ class Library:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             with self._db:
+                if version == 1:
+                    self._migrate_from_1()
                 self._db.executescript(_SCHEMA)
                 self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
         except (sqlite3.Error, OSError) as exc:
             raise StoreError(f"cannot open the scan library {self.path}: {exc}") from None
+
+    def _migrate_from_1(self) -> None:
+        """Add the scans' identity column, with legacy identities from what they recorded."""
+        self._db.execute("ALTER TABLE scans ADD COLUMN identity TEXT NOT NULL DEFAULT '{}'")
+        rows = self._db.execute("SELECT id, device, options FROM scans").fetchall()
+        for row in rows:
+            identity = _legacy_identity(json.loads(row["device"]), json.loads(row["options"]))
+            self._db.execute(
+                "UPDATE scans SET identity = ? WHERE id = ?", (json.dumps(identity), row["id"])
+            )
 
     def __enter__(self) -> Library:
         return self
@@ -225,10 +282,17 @@ class Library:
         plans: dict[str, ScanPlan],
         options: dict[str, Any] | None = None,
         device: dict[str, Any] | None = None,
+        identity: dict[str, Any] | None = None,
     ) -> int:
-        """Record a new scan of ``subject`` (a pseudonymous code); return its id."""
-        if not subject or len(subject) > 64:
-            raise StoreError("a subject code needs 1 to 64 characters")
+        """Record a new scan of ``subject`` (a pseudonymous code); return its id.
+
+        ``identity`` (:func:`lamina_host.workflow.scan_identity`) is what acquires it;
+        segments are then only accepted under the same identity.
+        """
+        try:
+            check_subject(subject)
+        except InputError as exc:
+            raise StoreError(str(exc)) from None
         with self._db:
             self._db.execute(
                 "INSERT OR IGNORE INTO subjects (code, created) VALUES (?, ?)", (subject, _now())
@@ -237,14 +301,15 @@ class Library:
                 "SELECT id FROM subjects WHERE code = ?", (subject,)
             ).fetchone()
             cursor = self._db.execute(
-                "INSERT INTO scans (subject_id, created, status, device, options, plans) "
-                "VALUES (?, ?, 'acquiring', ?, ?, ?)",
+                "INSERT INTO scans (subject_id, created, status, device, options, plans, identity) "
+                "VALUES (?, ?, 'acquiring', ?, ?, ?, ?)",
                 (
                     subject_id,
                     _now(),
                     json.dumps(device or {}),
                     json.dumps(options or {}),
                     json.dumps({t: p.to_dict() for t, p in plans.items()}),
+                    json.dumps(identity or {}, sort_keys=True),
                 ),
             )
         assert cursor.lastrowid is not None
@@ -268,7 +333,36 @@ class Library:
             plans,
             json.loads(row["options"]),
             json.loads(row["device"]),
+            json.loads(row["identity"]),
         )
+
+    def check_identity(self, scan_id: int, identity: dict[str, Any] | None) -> None:
+        """Refuse (StoreError, one line) unless ``identity`` is the one scan ``scan_id`` records.
+
+        A scan recorded without an identity accepts only a caller without one.
+        """
+        recorded = self._guard(scan_id)[0]
+        if not recorded and not identity:
+            return
+        if identity is None:
+            raise StoreError(
+                f"scan {scan_id} records the device that acquired it: "
+                "add to it only through a connected device"
+            )
+        difference = identity_difference(recorded, identity)
+        if difference is not None:
+            raise StoreError(
+                f"scan {scan_id} was acquired by another device or setup ({difference}): "
+                "resume it with the device, object and settings it began with, "
+                "or start a new scan"
+            )
+
+    def _guard(self, scan_id: int) -> tuple[dict[str, Any], dict[str, ScanPlan]]:
+        """Return the scan's recorded identity and plans (they never change; kept)."""
+        if scan_id not in self._guards:
+            record = self.scan(scan_id)
+            self._guards[scan_id] = (record.identity, record.plans)
+        return self._guards[scan_id]
 
     def scans(self) -> list[ScanSummary]:
         """Return every scan, oldest first."""
@@ -309,11 +403,31 @@ class Library:
         self.scan(scan_id)
         with self._db:
             self._db.execute("DELETE FROM scans WHERE id = ?", (scan_id,))
+        self._guards.pop(scan_id, None)  # SQLite may give a later scan the same id
 
     # --- segments --------------------------------------------------------------------
 
-    def add_segment(self, scan_id: int, seq: int, segment: Segment) -> bool:
-        """Commit segment ``seq`` (its plan index) of ``segment.target``; False if already held."""
+    def add_segment(
+        self, scan_id: int, seq: int, segment: Segment, identity: dict[str, Any] | None = None
+    ) -> bool:
+        """Commit segment ``seq`` (its plan index) of ``segment.target``; False if already held.
+
+        Raises:
+            StoreError: ``identity`` is not the scan's, or the segment is not view ``seq``
+                of the scan's plan for its target.
+        """
+        self.check_identity(scan_id, identity)
+        plan = self._guard(scan_id)[1].get(segment.target)
+        view = plan.views[seq] if plan is not None and 0 <= seq < len(plan.views) else None
+        if view is None or (view.section, view.z_mm, view.angle_deg) != (
+            segment.section,
+            segment.z_mm,
+            segment.angle_deg,
+        ):
+            raise StoreError(
+                f"segment {seq} of {segment.target} is not a view scan {scan_id} planned: "
+                "it is not stored"
+            )
         with self._db:
             cursor = self._db.execute(
                 "INSERT OR IGNORE INTO segments (scan_id, target, seq, section, view, z_mm, "
@@ -356,9 +470,15 @@ class Library:
     # --- calibration and results -----------------------------------------------------
 
     def save_calibration(
-        self, scan_id: int, grid_image: np.ndarray, board: BoardSpec, cylinder_mm: float | None
+        self,
+        scan_id: int,
+        grid_image: np.ndarray,
+        board: BoardSpec,
+        cylinder_mm: float | None,
+        identity: dict[str, Any] | None = None,
     ) -> None:
-        """Store the calibration board image and geometry the scan uses."""
+        """Store the calibration board image and geometry the scan uses (under its identity)."""
+        self.check_identity(scan_id, identity)
         ok, png = cv2.imencode(".png", grid_image)
         if not ok:
             raise StoreError("the calibration image could not be encoded")
@@ -422,8 +542,12 @@ class Library:
                 f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh) "
                 "or .json (report)"
             )
-        if path.exists():
+        if path.exists() or path.is_symlink():
             raise StoreError(f"{path} already exists: choose a new file name")
+        if not path.parent.is_dir():
+            raise StoreError(
+                f"folder {path.parent} does not exist: create it first or name a file in another"
+            )
         self.scan(scan_id)
         report = self.result(scan_id)
         if report is None:
@@ -431,12 +555,16 @@ class Library:
                 f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
             )
         if suffix == ".json":
-            path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+            data = (json.dumps(report, indent=2) + "\n").encode()
         else:
             mesh = self._result_file(scan_id, "mesh.ply")
             if mesh is None:
                 raise StoreError(f"scan {scan_id} produced no mesh to export")
-            _write_mesh(mesh, path)
+            data = _convert_mesh(mesh, suffix)
+        try:
+            write_new_file(path, data)
+        except OutputError as exc:
+            raise StoreError(str(exc)) from None
         with self._db:
             self._db.execute(
                 "INSERT INTO exports (scan_id, created, format, path) VALUES (?, ?, ?, ?)",
@@ -445,18 +573,17 @@ class Library:
         return path
 
 
-def _write_mesh(ply: bytes, path: Path) -> None:
-    """Write a stored PLY mesh to ``path`` in the format its extension names."""
-    if path.suffix.lower() == ".ply":
-        path.write_bytes(ply)
-        return
+def _convert_mesh(ply: bytes, suffix: str) -> bytes:
+    """Return a stored PLY mesh in the format ``suffix`` names (.ply, .obj or .stl)."""
+    if suffix == ".ply":
+        return ply
     import pymeshlab  # deferred: heavy import, only needed for format conversion
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp:  # private (0700): the mesh never lies open
         source = Path(tmp) / "mesh.ply"
         source.write_bytes(ply)
         meshes = pymeshlab.MeshSet()
         meshes.load_new_mesh(str(source))
-        target = Path(tmp) / f"out{path.suffix.lower()}"
+        target = Path(tmp) / f"out{suffix}"
         meshes.save_current_mesh(str(target))
-        shutil.move(str(target), path)
+        return target.read_bytes()

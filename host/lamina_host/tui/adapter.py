@@ -9,6 +9,7 @@ APIs touches this file and none of the screens. Errors a user can act on leave a
 from __future__ import annotations
 
 import math
+import sqlite3
 import tempfile
 import threading
 import time
@@ -26,6 +27,7 @@ from lamina_host.assembly import to_object_frame
 from lamina_host.axis import AxisCalibration
 from lamina_host.calibration import CalibrationError, GridCalibration, calibrate_grid
 from lamina_host.efd import HARMONIC_RULES
+from lamina_host.files import PRIVATE_FOLDER, OutputError
 from lamina_host.link import (
     DeviceClient,
     DeviceError,
@@ -44,7 +46,14 @@ from lamina_host.pipeline import (
 )
 from lamina_host.report import build_report, write_outputs
 from lamina_host.store import Library, ScanSummary, StoreError
+from lamina_host.workflow import (
+    InputError,
+    check_plan,
+    check_plan_limits,
+)
+from lamina_host.workflow import check_subject as check_subject_code
 from lamina_shared.link import LinkClosed
+from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 # pymeshlab must be first imported on the main thread: when its first import happens in a
@@ -52,8 +61,9 @@ from lamina_shared.types import BoardSpec, ScanPlan, Segment
 # ("malloc_consolidate(): unaligned fastbin chunk detected"), seen with pymeshlab 2025.7.
 
 
-class UserError(ValueError):
-    """Bad input typed into the UI; the text names the field and what to enter."""
+UserError = InputError
+"""Bad input typed into the UI; the text names the field and what to enter (the same
+refusals as the command line's, from :mod:`lamina_host.workflow`)."""
 
 
 class Busy(RuntimeError):
@@ -67,6 +77,9 @@ USER_ERRORS: tuple[type[Exception], ...] = (
     CalibrationError,
     LinkClosed,
     StoreError,
+    OutputError,
+    ProtocolError,
+    sqlite3.Error,
     OSError,
 )
 """What a worker reports as a one-line message instead of failing."""
@@ -83,6 +96,8 @@ def user_message(exc: BaseException) -> str:
         return f"the link to the device broke ({exc}); check the cable, then reconnect (c)"
     if isinstance(exc, OSError) and not isinstance(exc, DeviceError):
         return f"file error: {exc.strerror or exc} ({exc.filename or 'no file'})"
+    if isinstance(exc, sqlite3.Error):
+        return f"the scan library cannot be used ({exc}): if it is damaged, restore a backup"
     return str(exc)
 
 
@@ -96,7 +111,7 @@ def parse_plan(sections: str, pitch_mm: str, views: str) -> ScanPlan:
     """Build a regular scan plan from three typed fields.
 
     Raises:
-        UserError: a field is not a number or out of range.
+        UserError: a field is not a number or out of range (the command line's ranges).
     """
     try:
         n_sections = int(sections)
@@ -109,23 +124,15 @@ def parse_plan(sections: str, pitch_mm: str, views: str) -> ScanPlan:
         pitch = float(pitch_mm)
     except ValueError:
         raise UserError(f"pitch {pitch_mm!r} must be a number of mm, e.g. 2") from None
-    if not 1 <= n_sections <= 500:
-        raise UserError(f"sections {n_sections} must be between 1 and 500")
-    if not 3 <= n_views <= 360:
-        raise UserError(f"views {n_views} must be between 3 and 360 (the thesis uses 8)")
-    if not (math.isfinite(pitch) and 0 < pitch <= 50):
-        raise UserError(f"pitch {pitch_mm} mm must be above 0 and at most 50 mm")
-    return ScanPlan.regular(n_sections, pitch, n_views)
+    return check_plan(n_sections, pitch, n_views)
 
 
 def check_subject(subject_id: str) -> str:
-    """Return a valid subject id (used as a folder name) or raise :class:`UserError`."""
+    """Return the typed subject code (spaces around it dropped) or raise :class:`UserError`."""
     text = subject_id.strip()
     if not text:
         raise UserError("enter a subject id before scanning (letters, digits, - and _)")
-    if not all(ch.isalnum() or ch in "-_" for ch in text) or len(text) > 64:
-        raise UserError(f"subject id {text!r} may hold only letters, digits, - and _ (64 at most)")
-    return text
+    return check_subject_code(text)
 
 
 @dataclass(frozen=True)
@@ -253,6 +260,8 @@ class Session:
         self.cylinder_held: dict[int, Segment] = {}
         self.scan_id: int | None = None
         self.pose: dict[str, float] = {"lift": 0.0, "turntable": 0.0}
+        self.calibrated_by: dict[str, Any] | None = None
+        """The identity of the device the chessboard and cylinder were captured with."""
         self._client: DeviceClient | None = None
         self._stack: ExitStack | None = None
         self._lock = threading.Lock()
@@ -316,13 +325,25 @@ class Session:
     def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
         """Fetch the calibration image and board from the device."""
         with self._busy():
+            client = self._device()
             try:
-                image, board = self._device().grab_grid()
+                image, board = client.grab_grid()
             except LinkClosed:
                 self._link_failed()
                 raise
         self.data.grid_image, self.data.board = image, board
+        self.calibrated_by = client.identity()
         return image, board
+
+    def _check_calibrated_here(self, client: DeviceClient) -> dict[str, Any]:
+        """Return the device's identity; refuse if calibration came from another device."""
+        identity = client.identity()
+        if self.calibrated_by is not None and identity != self.calibrated_by:
+            raise UserError(
+                "the connected device is not the one calibrated: calibrate again (F4) "
+                "before scanning with it"
+            )
+        return identity
 
     def preview(self, laser: bool) -> Preview:
         """Fetch one frame where the axes stand (laser on or off) and the stripe found there."""
@@ -480,6 +501,7 @@ class Session:
         diameter = client.info.cylinder_diameter_mm if client.info else None
         if diameter is None:
             raise UserError("the device does not report its calibration cylinder's diameter")
+        self._check_calibrated_here(client)
         with self._busy():
             plan = client.plan_for("cylinder", None)
             held: dict[int, Segment] = {}
@@ -501,9 +523,15 @@ class Session:
         subject = check_subject(subject_id)
         if self.axis is None:
             raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
+        client = self._device()
+        identity = self._check_calibrated_here(client)
+        limits = client.info.limits if client.info else {}
+        check_plan_limits("object", plan, limits)
+        if self.cylinder_plan is not None:
+            check_plan_limits("cylinder", self.cylinder_plan, limits)
         self.data.subject_id = subject
         with self._library() as library:
-            self.scan_id = self._store_new_scan(library, subject, plan)
+            self.scan_id = self._store_new_scan(library, subject, plan, identity)
         self.plan, self.held = plan, {}
         return self.resume_object(on_segment, on_progress, on_notice)
 
@@ -522,6 +550,11 @@ class Session:
         if self.plan is None or self.scan_id is None:
             raise UserError("no scan to resume: start one (s)")
         scan_id, plan = self.scan_id, self.plan
+        identity = self._device().identity()
+        with self._library() as library:
+            # Before anything changes: a scan is only ever continued by what began it.
+            library.check_identity(scan_id, identity)
+            check_plan_limits("object", plan, self.info.limits if self.info else {})
         self.data.complete = False
         self.results = None
         with self._busy(), self._library() as library:
@@ -530,7 +563,7 @@ class Session:
                     "object",
                     plan,
                     self.held,
-                    lambda seq, segment: library.add_segment(scan_id, seq, segment),
+                    lambda seq, segment: library.add_segment(scan_id, seq, segment, identity),
                     on_segment,
                     on_progress,
                     on_notice,
@@ -597,7 +630,9 @@ class Session:
         """Open the scan library (one connection per call: each worker is its own thread)."""
         return Library(self.library_path)
 
-    def _store_new_scan(self, library: Library, subject: str, plan: ScanPlan) -> int:
+    def _store_new_scan(
+        self, library: Library, subject: str, plan: ScanPlan, identity: dict[str, Any]
+    ) -> int:
         """Record a new scan with the calibration it uses; return its id."""
         data = self.data
         assert data.grid_image is not None and data.board is not None
@@ -605,11 +640,15 @@ class Session:
         if self.cylinder_plan is not None:
             plans["cylinder"] = self.cylinder_plan
         scan_id = library.create_scan(
-            subject, plans, {"device": self.device, "object": self.object_spec}, data.device
+            subject,
+            plans,
+            {"device": self.device, "object": self.object_spec},
+            data.device,
+            identity,
         )
-        library.save_calibration(scan_id, data.grid_image, data.board, data.cylinder_mm)
+        library.save_calibration(scan_id, data.grid_image, data.board, data.cylinder_mm, identity)
         for seq, segment in self.cylinder_held.items():
-            library.add_segment(scan_id, seq, segment)
+            library.add_segment(scan_id, seq, segment, identity)
         return scan_id
 
     def export(self, folder: Path) -> list[Path]:
@@ -622,7 +661,7 @@ class Session:
         """Export a processed library scan into ``folder`` (new or empty)."""
         if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
             raise UserError(f"{folder} is not an empty folder; choose a new one")
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True, mode=PRIVATE_FOLDER)
         with self._library() as library:
             return [library.export(scan_id, folder / name) for name in EXPORT_NAMES]
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import ClassVar
 
+from rich.text import Text
 from textual import work
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
@@ -13,6 +14,7 @@ from textual.widgets import DataTable, Static
 from lamina_host.store import ScanSummary
 from lamina_host.tui.adapter import Results
 from lamina_host.tui.widgets import AskScreen, ConfirmScreen, LaminaScreen
+from lamina_host.workflow import printable
 
 COLUMNS = ("scan", "subject", "created", "status", "sections", "views", "result")
 
@@ -58,7 +60,7 @@ class LibraryScreen(LaminaScreen):
         for s in scans:
             table.add_row(
                 str(s.id),
-                s.subject,
+                Text(printable(s.subject)),  # plain text: an old code may hold markup or escapes
                 s.created.replace("T", " ")[:16],
                 s.status,
                 str(s.sections),

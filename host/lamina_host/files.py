@@ -1,0 +1,127 @@
+"""Writing patient-derived files: owner-only, never through a link, never over another file.
+
+Folders Lamina creates are 0700 and files 0600. A file the user named by its folder
+(a scan's outputs) is written to a temporary file in the same folder and renamed over
+the name (:func:`replace_file`): a symbolic link planted there is replaced, its target
+never touched. A file the user named to be new (an export) is created exclusively
+without following links (:func:`write_new_file`), so an existing file or link is
+refused rather than overwritten.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import tempfile
+from collections.abc import Callable
+from contextlib import suppress
+from pathlib import Path
+
+PRIVATE_FILE = 0o600
+PRIVATE_FOLDER = 0o700
+
+
+class OutputError(RuntimeError):
+    """An output cannot be written where asked; the text names the path and what to do."""
+
+
+def _reason(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+def prepare_output_folder(folder: Path, allow_files: bool = False) -> Path:
+    """Create ``folder`` (0700) or check an existing one; prove it is writable.
+
+    Args:
+        folder: the output folder the user named.
+        allow_files: an existing folder may hold files (resuming into a scan's own folder).
+
+    Raises:
+        OutputError: it is a file, lies under a file, is not empty, or cannot be written.
+    """
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"output folder {folder} is a file: name a new folder")
+    if folder.is_dir() and not allow_files and any(folder.iterdir()):
+        raise OutputError(
+            f"output folder {folder} is not empty; choose a new folder so "
+            "no earlier scan is overwritten"
+        )
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=PRIVATE_FOLDER)
+        if folder.stat().st_uid == os.getuid():
+            folder.chmod(PRIVATE_FOLDER)
+        fd, probe = tempfile.mkstemp(prefix=".lamina-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot write into output folder {folder} ({_reason(exc)}): "
+            "name a folder you can write"
+        ) from None
+    return folder
+
+
+def replace_file(path: Path, write: Callable[[Path], object]) -> Path:
+    """Have ``write`` fill a private temporary file beside ``path``, then rename it to ``path``.
+
+    The rename replaces whatever entry ``path`` is (a planted link included) and never
+    writes through it.
+
+    Raises:
+        OutputError: the folder cannot be written or ``path`` is a folder.
+    """
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+    os.close(fd)
+    temporary = Path(name)
+    try:
+        write(temporary)
+        os.chmod(temporary, PRIVATE_FILE)
+        os.replace(temporary, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+    finally:
+        with suppress(FileNotFoundError):
+            temporary.unlink()
+    return path
+
+
+def write_new_file(path: Path, data: bytes) -> Path:
+    """Create ``path`` (0600) holding ``data``; refuse an existing file or link, never follow one.
+
+    Raises:
+        OutputError: the file exists, its folder does not, or it cannot be written.
+    """
+    if not path.parent.is_dir():
+        raise OutputError(
+            f"folder {path.parent} does not exist: create it first or name a file in another"
+        )
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(path, flags, PRIVATE_FILE)
+    except FileExistsError:
+        raise OutputError(f"{path} already exists: choose a new file name") from None
+    except OSError as exc:
+        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+    except OSError as exc:
+        with suppress(OSError):
+            path.unlink()
+        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+    return path
+
+
+def tighten(path: Path) -> bool:
+    """Make an existing file owner-only; return True if it was readable by others before."""
+    try:
+        mode = stat.S_IMODE(os.lstat(path).st_mode)
+    except FileNotFoundError:
+        return False
+    if not mode & 0o077 or stat.S_ISLNK(os.lstat(path).st_mode):
+        return False
+    os.chmod(path, PRIVATE_FILE)
+    return True
