@@ -28,6 +28,7 @@ from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_host.report import build_report, save_segments, write_outputs
 from lamina_host.store import Library, StoreError
 from lamina_shared.link import LinkClosed
+from lamina_shared.presets import NOISE_PRESETS
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
@@ -77,9 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--seed", type=int, default=0, help="simulation seed (sim only)")
     scan.add_argument(
         "--noise",
-        choices=("thesis", "none"),
+        choices=NOISE_PRESETS,
         default="thesis",
-        help="simulated noise level (sim only)",
+        help="simulated noise level: thesis, harsh or none (sim only)",
     )
     _add_processing_options(scan)
     scans = sub.add_parser("scans", help="list the scans in the library")
