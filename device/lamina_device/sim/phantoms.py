@@ -7,8 +7,8 @@ limb``). What each one makes hard for the scanner:
 
 - ``hand``: a palm and four fingers with rounded tips: four separate outlines per
   section above the palm, narrow gaps that shadow one another;
-- ``foot``: an ankle above a foot whose rounded sole overhangs (faces down: lit by the
-  horizontal sheet, hidden from the camera above);
+- ``foot``: an ankle above a foot whose rounded sole (z -2..0.5) overhangs: it faces
+  down, so the horizontal sheet lights it and the camera above cannot see it;
 - ``bust``: a head with eye sockets, a nose and a mouth: concavities in the outline;
 - ``bone``: a shaft flaring into two condyles with a notch between them (a concave
   waist in every section) and rounded ends;
@@ -131,7 +131,7 @@ def _hand() -> np.ndarray:
 
 
 def _foot() -> np.ndarray:
-    """An ankle (z 6..24) over a foot reaching 22 mm forward, its rounded sole overhanging."""
+    """An ankle (z 8..26) over a foot reaching 21 mm forward, its rounded sole overhanging."""
 
     def half_length(z: float) -> float:
         # Long at the sole, narrowing over the instep into the round ankle.
@@ -144,8 +144,8 @@ def _foot() -> np.ndarray:
     def centre(z: float) -> tuple[float, float]:
         return (0.0, half_length(z) - 5.0)  # the heel stays put, the toes reach +y
 
-    sole = -5.0
-    z, s = _profile(_sole(sole), _straight(sole + 2.5, 24.0))
+    sole = -2.0  # the overhanging edge reaches above z = 0, where scans start
+    z, s = _profile(_sole(sole), _straight(sole + 2.5, 26.0))
     return _loft(z, s, radius, centre)
 
 
