@@ -163,7 +163,7 @@ def _bust() -> np.ndarray:
         base = 11.0 * 12.5 / np.hypot(12.5 * np.cos(phi), 11.0 * np.sin(phi))
         eyes = -1.8 * _gauss(z, 11.0, 1.3) * (_bump(phi, -62.0, 9.0) + _bump(phi, -118.0, 9.0))
         nose = 2.8 * max(0.0, 1.0 - abs(z - 7.5) / 3.5) * _bump(phi, -90.0, 6.0)
-        mouth = -0.9 * _gauss(z, 2.5, 0.7) * _bump(phi, -90.0, 14.0)
+        mouth = -1.6 * _gauss(z, 2.5, 0.7) * _bump(phi, -90.0, 9.0)
         chin = -1.5 * (1.0 - min(1.0, max(0.0, (z + 5.0) / 6.0)))  # a narrower neck below
         return base + eyes + nose + mouth + chin
 
@@ -177,7 +177,7 @@ def _bone() -> np.ndarray:
 
     def radius(phi: np.ndarray, z: float) -> np.ndarray:
         flare = 1.0 / (1.0 + math.exp(-(z - 9.0) / 1.5))  # 0 on the shaft, 1 at the condyles
-        waist = 0.36 * flare  # above 0.2 the outline's waist turns concave
+        waist = 0.45 * flare  # above 0.2 the outline's waist turns concave
         return (4.0 + 4.5 * flare) * (1.0 + waist * np.cos(2.0 * phi)) / (1.0 + waist)
 
     top = 17.0

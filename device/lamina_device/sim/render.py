@@ -94,13 +94,13 @@ class NoiseModel:
 
         - read noise 2.5 DN (range 1.5-3) and shot variance 0.45 x signal (0.3-0.6): the
           per-channel noise of analog gain ~6;
-        - ambient: a white surface facing the lamp reads 100 DN; at the object's albedo and
-          shading and over the box (60 DN) the laser-off luma lies at 45-90 DN, and gradient,
-          vignette and a soft shadow make it ~50 % non-uniform (range 30-70 %);
+        - ambient: a white surface facing the lamp reads 115 DN, the box beyond 75 DN: the
+          laser-off luma averages ~55 DN (range 45-90), and gradient, vignette and a soft
+          shadow make it ~60 % non-uniform (range 30-70 %);
         - log-normal speckle of contrast 0.45 (0.3-0.6), grains of 1.2 px: partially
           developed speckle seen through a lens that averages a few grains per pixel;
-        - 30 % of the stripe's light scattered into a halo of 12 px sigma: a few % of the
-          stripe's peak, spread over tens of pixels (sub-surface and lens scatter);
+        - 40 % of the stripe's light scattered into a halo of 20 px sigma: ~4 % of the
+          stripe's peak at its centre, ~2 % at 15-40 px (sub-surface and lens scatter);
         - barrel distortion k = -0.02 of the division model at the half diagonal (~4 px
           at the image corners), which ``lamina scan --distortion`` can estimate;
         - the red laser reaches green and blue pixels at 10 % and 3 % (Bayer filter
@@ -114,13 +114,13 @@ class NoiseModel:
             speckle_grain_px=1.2,
             speckle_lognormal=True,
             laser_peak_dn=150.0,
-            ambient_dn=100.0,
-            background_dn=60.0,
+            ambient_dn=115.0,
+            background_dn=75.0,
             ambient_gradient=(0.35, -0.25),
             vignette=0.3,
             shadow_depth=0.3,
-            halo_fraction=0.3,
-            halo_sigma_px=12.0,
+            halo_fraction=0.4,
+            halo_sigma_px=20.0,
             lens_division_k=-0.02,
             laser_rgb=(1.0, 0.1, 0.03),
             ambient_rgb=(1.0, 0.95, 0.8),
