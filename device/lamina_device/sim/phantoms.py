@@ -106,6 +106,16 @@ def _bump(phi: np.ndarray, phi0_deg: float, width_deg: float) -> np.ndarray:
     return np.exp(-0.5 * (d / math.radians(width_deg)) ** 2)
 
 
+def _round(radius_mm: float) -> RadiusFn:
+    """Return the radius function of a circle."""
+    return lambda phi, z: np.full_like(phi, radius_mm)
+
+
+def _fixed_centre(x_mm: float, y_mm: float) -> Callable[[float], tuple[float, float]]:
+    """Return a centre function that stays at ``(x_mm, y_mm)`` at every height."""
+    return lambda z: (x_mm, y_mm)
+
+
 def _gauss(z: float, z0: float, width: float) -> float:
     """Return a bump of height 1 at ``z0`` along z."""
     return math.exp(-0.5 * ((z - z0) / width) ** 2)
@@ -123,10 +133,7 @@ def _hand() -> np.ndarray:
     for x, length in ((-9.75, 9.0), (-3.25, 12.5), (3.25, 13.5), (9.75, 11.0)):
         top = palm_top + length - finger_r
         z, s = _profile(_straight(palm_top, top), _dome(top, finger_r))
-        finger = _loft(
-            z, s, lambda phi, z: np.full_like(phi, finger_r), lambda z, x=x: (x, 0.0), n_phi=24
-        )
-        parts.append(finger)
+        parts.append(_loft(z, s, _round(finger_r), _fixed_centre(x, 0.0), n_phi=24))
     return np.concatenate(parts)
 
 

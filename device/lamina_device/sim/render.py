@@ -190,8 +190,8 @@ def _lognormal_speckle(
     """Return unit-mean log-normal speckle of the given contrast and grain size."""
     ksize = 2 * math.ceil(3.0 * grain_px) + 1
     k1 = cv2.getGaussianKernel(ksize, grain_px)
-    g = cv2.GaussianBlur(rng.standard_normal(shape), (ksize, ksize), grain_px)
-    g /= float(np.sum(k1**2))  # blurred unit white noise has variance (sum k1^2)^2
+    blurred = cv2.GaussianBlur(rng.standard_normal(shape), (ksize, ksize), grain_px)
+    g = np.asarray(blurred) / float(np.sum(k1**2))  # blurred unit noise: variance (sum k1^2)^2
     s2 = math.log1p(contrast * contrast)
     return np.asarray(np.exp(math.sqrt(s2) * g - 0.5 * s2))
 

@@ -276,8 +276,9 @@ def align_about_axis(
 ) -> Alignment:
     """Fit the rotation about z and the x, y shift that best lay ``points`` on the surface.
 
-    Point-to-point ICP on the points within ``inlier_mm`` of the surface (noise points
-    would pull the fit), linearised in the small angle and repeated to convergence.
+    Point-to-plane ICP (the plane through each point's closest surface point, normal
+    to the offset) on the points within ``inlier_mm`` of the surface (noise points would
+    pull the fit), linearised in the small angle and repeated to convergence.
     The z shift is left out: the frames' z origins differ by the lift's error at the
     first section (micrometres), while a z shift of noisy points along near-vertical
     walls is barely constrained and would slide into a false optimum.
@@ -287,13 +288,15 @@ def align_about_axis(
     for _ in range(iterations):
         moved = _rotate_z(p, angle) + shift
         target = surface.closest_points(moved)
-        keep = np.linalg.norm(target - moved, axis=1) < inlier_mm
+        offset = target - moved
+        dist = np.linalg.norm(offset, axis=1)
+        keep = (dist < inlier_mm) & (dist > 1e-9)
         if keep.sum() < 3:
             break
-        m, r = moved[keep], (target - moved)[keep]
-        jac = np.column_stack([np.concatenate([-m[:, 1], m[:, 0]]), np.zeros((2 * len(m), 2))])
-        jac[: len(m), 1] = jac[len(m) :, 2] = 1.0
-        step = np.linalg.lstsq(jac, np.concatenate([r[:, 0], r[:, 1]]), rcond=None)[0]
+        m, r = moved[keep], offset[keep]
+        n = r / dist[keep, None]
+        jac = np.column_stack([n[:, 1] * m[:, 0] - n[:, 0] * m[:, 1], n[:, 0], n[:, 1]])
+        step = np.linalg.lstsq(jac, dist[keep], rcond=None)[0]
         angle += float(step[0])
         shift = _rotate_z(shift[None], float(step[0]))[0] + np.array([step[1], step[2], 0.0])
         if abs(step[0]) < 1e-8 and np.abs(step[1:]).max() < 1e-6:
