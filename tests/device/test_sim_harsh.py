@@ -221,3 +221,19 @@ def test_harsh_mechanics_add_a_once_per_turn_error_no_scale_absorbs():
     true = np.array([harsh.true_angle_deg(a) for a in views])
     fit = np.polyfit(views, true, 1)  # the best angle scale and offset the host could fit
     assert np.sqrt(np.mean((np.polyval(fit, views) - true) ** 2)) > 0.05
+
+
+def test_the_simulated_device_opens_with_the_harsh_preset():
+    """open_sim wires the harsh camera (luma frames) and the eccentric mechanics together."""
+    from lamina_device.hardware import HardwareError, open_sim
+
+    hardware = open_sim("stump", noise="harsh")
+    try:
+        assert hardware.turntable.mechanics == Mechanics.harsh()
+        frame = hardware.camera.capture()
+        assert frame.shape == (480, 640) and frame.dtype == np.uint8
+        assert "noise harsh" in hardware.description
+    finally:
+        hardware.close()
+    with pytest.raises(HardwareError, match="thesis, harsh, none"):
+        open_sim("stump", noise="bright")
