@@ -17,7 +17,9 @@ limb``). What each one makes hard for the scanner:
 
 Parts are built as lofts of closed outlines (rings of vertices joined by strips), and
 parts of one phantom touch but do not overlap (the hand's fingers stand on the palm's
-top face), so ray casts, sections and the laser-shadow test see one solid.
+top face), so ray casts, sections and the laser-shadow test see one solid. The faces
+where parts touch lie inside the solid; the ground truth (``sim.truth``) counts them as
+surface, which changes only distances of points inside the hand, near the knuckles.
 """
 
 from __future__ import annotations
