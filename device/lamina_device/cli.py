@@ -26,6 +26,7 @@ from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer
 from lamina_shared.capture import CaptureError, CaptureWriter
 from lamina_shared.link import Channel
+from lamina_shared.presets import NOISE_PRESETS
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
@@ -48,9 +49,10 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="simulation noise seed")
     parser.add_argument(
         "--noise",
-        choices=("thesis", "none"),
+        choices=NOISE_PRESETS,
         default="thesis",
-        help="simulated noise and mechanical error (default: thesis-like)",
+        help="simulated noise and mechanical error: thesis-like (default), harsh (Pi camera "
+        "at high gain in a lit room, real lens, eccentric gear) or none",
     )
     parser.add_argument(
         "--rig",

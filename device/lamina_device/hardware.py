@@ -99,9 +99,9 @@ def open_sim(
         obj = parse_object(spec)
     except ValueError as exc:
         raise HardwareError(f"object {spec!r}: {exc}") from None
-    noise_model = NoiseModel.thesis() if noise == "thesis" else NoiseModel.none()
-    mechanics = Mechanics() if noise == "thesis" else Mechanics.ideal()
     try:
+        noise_model = NoiseModel.preset(noise)
+        mechanics = Mechanics.preset(noise)
         rig = Rig.preset(rig_name)
     except ValueError as exc:
         raise HardwareError(str(exc)) from None
@@ -206,7 +206,7 @@ def open_hardware(
         spec: which hardware.
         object_spec: the simulated object (sim only).
         seed: simulation noise seed (sim only).
-        noise: ``thesis`` or ``none`` (sim only).
+        noise: one of ``NOISE_PRESETS``: ``thesis``, ``harsh`` or ``none`` (sim only).
         config_path: the TOML configuration (pi only; the packaged default if None).
         pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
         rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).

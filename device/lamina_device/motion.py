@@ -8,7 +8,8 @@ and backlash take-up on the turntable. The simulated axes carry a mechanical err
 model, so the simulated scanner puts objects where real mechanics would, not where
 they were asked to go: a gear-ratio error (the thesis measured about 0.2 degrees
 undershoot per 45 degree step, section 8.3), a once-per-revolution runout, and a
-small repeatable jitter per position.
+small repeatable jitter per position. :meth:`Mechanics.harsh` adds an eccentric gear:
+a once-per-turn angle error of 0.15 degrees that no angle scale can absorb.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from gpiozero import DigitalInputDevice, DigitalOutputDevice
 from gpiozero.pins import Factory
 
 from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig
+from lamina_shared.presets import NOISE_PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -88,17 +90,47 @@ class Mechanics:
     angle_jitter_deg: float = 0.01
     lift_scale_error: float = 0.002
     lift_jitter_mm: float = 0.005
+    # A gear mounted off-centre: the angle error goes round once per turn with its own
+    # amplitude and phase, ``eccentric * sin(commanded + phase)``.
+    angle_eccentric_deg: float = 0.0
+    angle_eccentric_phase_deg: float = 0.0
 
     @classmethod
     def ideal(cls) -> Mechanics:
         """Return perfect mechanics (for tests that isolate other error sources)."""
         return cls(0.0, 0.0, 0.0, 0.0, 0.0)
 
+    @classmethod
+    def harsh(cls) -> Mechanics:
+        """Return the thesis mechanics plus a 0.15 degree eccentric gear error (phase 40 deg).
+
+        The undershoot per step (a scale error the host's angle correction can fit), the
+        runout and the jitter stay as measured in the thesis (8.3); the eccentric term is
+        mid-range of the 0.1-0.2 degrees a cheap printed or cast gear shows. Its phase
+        makes the error non-zero at the home angle, so the host's frame starts turned.
+        """
+        return cls(angle_eccentric_deg=0.15, angle_eccentric_phase_deg=40.0)
+
+    @classmethod
+    def preset(cls, noise: str) -> Mechanics:
+        """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
+        if noise == "thesis":
+            return cls()
+        if noise == "harsh":
+            return cls.harsh()
+        if noise == "none":
+            return cls.ideal()
+        raise ValueError(f"unknown noise {noise!r}; use one of {', '.join(NOISE_PRESETS)}")
+
     def true_angle_deg(self, commanded_deg: float) -> float:
         """Return where the turntable really is when told ``commanded_deg``."""
         runout = self.angle_runout_deg * math.sin(math.radians(commanded_deg))
         jitter = self.angle_jitter_deg * _repeatable_unit_noise(1.0, commanded_deg)
-        return commanded_deg * (1.0 + self.angle_scale_error) + runout + jitter
+        angle = commanded_deg * (1.0 + self.angle_scale_error) + runout + jitter
+        if self.angle_eccentric_deg:
+            phase = math.radians(commanded_deg + self.angle_eccentric_phase_deg)
+            angle += self.angle_eccentric_deg * math.sin(phase)
+        return angle
 
     def true_z_mm(self, commanded_mm: float) -> float:
         """Return where the lift really is when told ``commanded_mm``."""

@@ -46,6 +46,7 @@ from lamina_host.workflow import (
     printable,
 )
 from lamina_shared.link import LinkClosed
+from lamina_shared.presets import NOISE_PRESETS
 from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
 
@@ -108,8 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
         "--noise",
-        choices=("thesis", "none"),
-        help="simulated noise level (sim only, default thesis)",
+        choices=NOISE_PRESETS,
+        help="simulated noise level: thesis, harsh or none (sim only, default thesis)",
     )
     _add_processing_options(scan)
     scans = sub.add_parser("scans", help="list the scans in the library")

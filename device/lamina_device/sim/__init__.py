@@ -11,10 +11,12 @@ from lamina_device.sim.objects import (
     parse_object,
     sphere,
 )
-from lamina_device.sim.render import NoiseModel, SimScene
-from lamina_device.sim.rig import Rig
+from lamina_device.sim.render import NOISE_PRESETS, NoiseModel, SimScene
+from lamina_device.sim.rig import RIG_PRESETS, Rig
 
 __all__ = [
+    "NOISE_PRESETS",
+    "RIG_PRESETS",
     "Cylinder",
     "Ellipsoid",
     "NoiseModel",

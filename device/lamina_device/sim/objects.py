@@ -29,6 +29,7 @@ __all__ = [
 ]
 
 OUTLINE_VERTICES = 4096
+_PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump")  # sim.phantoms.PHANTOMS
 _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
 
 
@@ -569,6 +570,7 @@ _FORMS = {
     "sphere": ("sphere:d=25", {"d"}, set()),
     "ellipsoid": ("ellipsoid:a=10,b=6.5,c=20", {"a", "b", "c"}, set()),
     "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
+    **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
 _POSITIVE = {"d", "h", "a", "b", "c", "scale"}
@@ -613,7 +615,11 @@ def _number(kind: str, key: str, value: str, form: str) -> float:
 
 
 def parse_object(spec: str) -> SceneObject:
-    """Build a scene object from ``kind:key=value,...`` (cylinder, sphere, ellipsoid, mesh)."""
+    """Build a scene object from ``kind:key=value,...``: a solid, a mesh file or a phantom.
+
+    Kinds: cylinder, sphere, ellipsoid, mesh and the phantoms of
+    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``).
+    """
     kind, colon, body = spec.strip().partition(":")
     kind = kind.strip().lower()
     if kind not in _FORMS:
@@ -629,4 +635,8 @@ def parse_object(spec: str) -> SceneObject:
         return sphere(num["d"], x, y, num.get("z", 0.0))
     if kind == "ellipsoid":
         return ellipsoid(num["a"], num["b"], num["c"], x, y, num.get("z", 0.0), yaw)
+    if kind in _PHANTOM_NAMES:
+        from lamina_device.sim.phantoms import phantom  # phantoms build on this module
+
+        return phantom(kind, num.get("scale", 1.0), x, y, num.get("z", 0.0), yaw)
     return load_mesh(fields["path"], num.get("scale", 1.0), x, y, num.get("z", 0.0), yaw)

@@ -41,6 +41,11 @@ class Rig:
     board: BoardSpec = BoardSpec((13, 11), 2.0, (-12.0, -10.0))  # noqa: RUF009 (frozen)
     cylinder_diameter_mm: float = 19.05
     cylinder_offset_mm: tuple[float, float] = (1.5, -0.8)
+    # Radial lens distortion, the division model the host calibration fits (Fitzgibbon):
+    # a pixel at distorted offset d from the image centre sees the undistorted pinhole
+    # pixel centre + d / (1 + k (|d| / R)^2), R the half diagonal. 0 is a pinhole; k < 0
+    # is barrel distortion, as on the Pi camera's stock lenses.
+    division_k: float = 0.0
 
     @classmethod
     def limb(cls) -> Rig:
@@ -84,6 +89,33 @@ class Rig:
         return np.array([[self.focal_px, 0.0, cx], [0.0, self.focal_px, cy], [0.0, 0.0, 1.0]])
 
     @property
+    def distortion_radius_px(self) -> float:
+        """Return R, the radius that normalises ``division_k``: the image's half diagonal."""
+        w, h = self.image_size
+        return math.hypot(w - 1, h - 1) / 2.0
+
+    def undistort_px(self, uv: np.ndarray) -> np.ndarray:
+        """Map observed (distorted) pixel coordinates (..., 2) to ideal pinhole ones."""
+        uv = np.asarray(uv, dtype=float)
+        if self.division_k == 0.0:
+            return uv
+        c = np.asarray(self.principal_point_px)
+        d = uv - c
+        r2 = np.sum(d * d, axis=-1, keepdims=True) / self.distortion_radius_px**2
+        return c + d / (1.0 + self.division_k * r2)
+
+    def distort_px(self, uv: np.ndarray) -> np.ndarray:
+        """Map ideal pinhole pixel coordinates (..., 2) to where the lens images them."""
+        uv = np.asarray(uv, dtype=float)
+        if self.division_k == 0.0:
+            return uv
+        c = np.asarray(self.principal_point_px)
+        d = uv - c
+        ru2 = np.sum(d * d, axis=-1, keepdims=True) / self.distortion_radius_px**2
+        # r_u = r_d / (1 + k r_d^2) solved for the root that tends to r_u as k -> 0.
+        return c + d * (2.0 / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * self.division_k * ru2, 0.0))))
+
+    @property
     def camera_centre_mm(self) -> np.ndarray:
         """Return the camera centre in world coordinates (above the plane, on the -y side)."""
         t = math.radians(self.tilt_deg)
@@ -106,7 +138,7 @@ class Rig:
         return np.array([*self.laser_source_xy_mm, 0.0])
 
     def plane_homography(self) -> np.ndarray:
-        """Return H mapping homogeneous plane points ``(x, y, 1)`` (z = 0) to ``(u, v, 1)``."""
+        """Return H mapping plane points ``(x, y, 1)`` (z = 0) to ideal pinhole ``(u, v, 1)``."""
         r = self.rotation
         t = -r @ self.camera_centre_mm
         return self.camera_matrix @ np.column_stack([r[:, 0], r[:, 1], t])
@@ -118,11 +150,11 @@ class Rig:
         cx, cy = self.principal_point_px
         u = cx + self.focal_px * cam[..., 0] / cam[..., 2]
         v = cy + self.focal_px * cam[..., 1] / cam[..., 2]
-        return np.stack([u, v], axis=-1)
+        return self.distort_px(np.stack([u, v], axis=-1))
 
     def backproject_to_plane(self, uv: np.ndarray) -> np.ndarray:
         """Return the (N, 2) world ``(x, y)`` where pixel rays through ``uv`` meet z = 0."""
-        uv = np.asarray(uv, dtype=float)
+        uv = self.undistort_px(uv)
         hom = np.concatenate([uv, np.ones((*uv.shape[:-1], 1))], axis=-1)
         xyw = hom @ np.linalg.inv(self.plane_homography()).T
         return xyw[..., :2] / xyw[..., 2:3]
@@ -142,6 +174,9 @@ class Rig:
         w, h = self.image_size
         cx, cy = self.principal_point_px
         vv, uu = np.mgrid[0:h, 0:w].astype(float)
+        if self.division_k != 0.0:
+            ideal = self.undistort_px(np.stack([uu, vv], axis=-1))
+            uu, vv = ideal[..., 0], ideal[..., 1]
         cam = np.stack([(uu - cx) / self.focal_px, (vv - cy) / self.focal_px, np.ones_like(uu)], -1)
         dirs = cam @ self.rotation  # camera -> world is R^T, applied to row vectors
         dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)

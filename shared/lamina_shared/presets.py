@@ -1,0 +1,14 @@
+"""Names of the simulated scanner's presets, shared by the device and host command lines.
+
+The host spawns the simulated device and must offer the same choices without importing
+the device package, so the names live here, once.
+"""
+
+from __future__ import annotations
+
+__all__ = ["NOISE_PRESETS"]
+
+NOISE_PRESETS = ("thesis", "harsh", "none")
+"""Simulated camera noise and mechanical error: ``thesis`` (the thesis-like rig, default),
+``harsh`` (a Pi camera at raised analog gain in a lit room, a real lens, an eccentric
+turntable gear) and ``none`` (noise-free camera, perfect mechanics)."""

@@ -1,0 +1,85 @@
+"""Anatomy-like phantoms: closed meshes of the promised shape, sized for the thesis rig."""
+
+from __future__ import annotations
+
+import itertools
+
+import cv2
+import numpy as np
+import pytest
+
+from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
+from lamina_device.sim.phantoms import PHANTOMS, phantom
+
+
+def _area(poly: np.ndarray) -> float:
+    """Return the signed area of a closed polygon."""
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _concavity_mm(poly: np.ndarray) -> float:
+    """Return how far the outline dips inside its convex hull at its deepest, in mm."""
+    pts = np.rint(poly * 1000.0).astype(np.int32)  # micrometres: cv2 wants integers
+    hull = cv2.convexHull(pts, returnPoints=False)[:, 0]
+    defects = cv2.convexityDefects(pts, np.sort(hull)[:, None].astype(np.int32))
+    return 0.0 if defects is None else float(defects.reshape(-1, 4)[:, 3].max()) / 256.0 / 1000.0
+
+
+@pytest.mark.parametrize("name", PHANTOMS)
+def test_phantoms_are_closed_small_meshes_that_fit_the_thesis_field(name):
+    """Every edge is shared by exactly two faces; a few thousand faces; 20-30 mm across."""
+    mesh = phantom(name)
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(uses == 2), f"{name}: {np.sum(uses != 2)} open or non-manifold edges"
+    assert 2000 <= len(mesh.faces) <= 10_000
+    span = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
+    assert 15.0 <= max(span[:2]) <= 30.0
+    assert mesh.vertices[:, 2].min() < 0.0 < 15.0 < mesh.vertices[:, 2].max()
+    # The thesis camera sees the whole section at z = 0 (inside 45 mm of the axis).
+    for poly in mesh.section_outline(0.5):
+        uv = Rig().project(Rig().object_to_world(poly, 0.0, 0.5))
+        assert np.all((uv >= 0) & (uv <= np.array(Rig().image_size) - 1))
+
+
+def test_each_phantom_has_its_difficulty():
+    """Hand: 4 outlines; ring: 2; bust and bone: concave outlines; foot: overhang; stump: dome."""
+    assert len(phantom("hand").section_outline(12.0)) == 4
+    assert len(phantom("hand").section_outline(3.0)) == 1
+    assert len(phantom("ring").section_outline(6.0)) == 2
+    for name, z in (("bust", 11.0), ("bust", 7.5), ("bust", 2.5), ("bone", 15.0)):
+        (poly,) = phantom(name).section_outline(z)
+        assert _concavity_mm(poly) > 0.3, f"{name} at z={z} is (nearly) convex"
+    (stump_mid,) = phantom("stump").section_outline(5.0)
+    assert _concavity_mm(stump_mid) < 0.05
+    foot = phantom("foot")
+    assert abs(_area(foot.section_outline(-1.0)[0])) < 0.8 * abs(
+        _area(foot.section_outline(0.5)[0])
+    )
+    stump = phantom("stump")
+    areas = [abs(_area(stump.section_outline(z)[0])) for z in (12.0, 16.0, 19.0, 20.5)]
+    assert all(a > b for a, b in itertools.pairwise(areas))
+    assert stump.section_outline(21.5) == []
+
+
+def test_object_specs_name_scale_and_place_phantoms():
+    """--object hand:scale=5,x=1 gives the hand five times larger, moved by 1 mm in x."""
+    base = phantom("hand")
+    big = parse_object("hand:scale=5,x=1,z=2")
+    np.testing.assert_allclose(
+        big.vertices.max(axis=0), 5.0 * base.vertices.max(axis=0) + [1, 0, 2]
+    )
+    assert parse_object("ring").name == "ring"
+    with pytest.raises(ValueError, match="unknown key 'd'"):
+        parse_object("bone:d=3")
+    with pytest.raises(ValueError, match="stump"):
+        parse_object("knee")
+
+
+def test_a_phantom_renders_a_stripe_on_the_limb_rig_when_scaled():
+    """Scaled five times, the stump stands in the limb rig's sheet and shows a stripe."""
+    scene = SimScene(Rig.limb(), parse_object("stump:scale=5"), NoiseModel.none())
+    on = scene.render("object", 0.0, 20.0, True).astype(int)
+    off = scene.render("object", 0.0, 20.0, False)
+    assert np.sum((on - off).max(axis=0) > 50) > 300  # hundreds of columns hold the stripe
