@@ -194,9 +194,6 @@ def _listed_plan(data: Any, limits: DeviceLimits, problems: Problems) -> ScanPla
     keys = {"section", "z_mm", "angle_deg"}
     start = len(problems.items)
     for k, item in enumerate(items):
-        if len(problems.items) - start > MAX_SHOWN_PROBLEMS:
-            problems.add("plan.views: more problems not listed")
-            return None
         where = f"plan.views[{k}]"
         if not isinstance(item, dict):
             problems.add(f"{where}: a view object is required, found {show(item)}")
