@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lamina_shared.limits import DeviceLimits, plan_problems
+from lamina_shared.ops import show
 from lamina_shared.types import BoardSpec, ScanPlan, ViewSpec
 
 FORMAT_NAME = "lightsection-capture"
@@ -154,6 +155,7 @@ class _Checker:
     def __init__(self, root: Path, decode: bool, limits: DeviceLimits) -> None:
         self.root = root
         self.real_root = os.path.realpath(root)
+        self._folders: dict[str, str] = {}
         self.decode = decode
         self.limits = limits
         self.problems: list[str] = []
@@ -164,11 +166,11 @@ class _Checker:
     def number(self, data: dict[str, Any], key: str, where: str, positive: bool = False) -> float:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, int | float):
-            self.problems.append(f"{where}.{key}: a number is required, found {value!r}")
+            self.problems.append(f"{where}.{key}: a number is required, found {show(value)}")
             return math.nan
         if not _finite(value) or (positive and value <= 0):
             kind = "a positive finite" if positive else "a finite"
-            self.problems.append(f"{where}.{key}: {kind} number is required, found {value!r}")
+            self.problems.append(f"{where}.{key}: {kind} number is required, found {show(value)}")
             return math.nan
         return float(value)
 
@@ -209,8 +211,17 @@ class _Checker:
 
     def inside(self, path: Path) -> bool:
         """Return True if ``path``, links resolved, lies inside the capture folder."""
-        real = os.path.realpath(path)
-        return os.path.commonpath([self.real_root, real]) == self.real_root
+        folder = str(path.parent)
+        real_folder = self._folders.get(folder)
+        if real_folder is None:
+            # Frames share a few folders: resolve each once, not once per frame.
+            real_folder = self._folders[folder] = os.path.realpath(folder)
+        if not self._contains(real_folder):
+            return False
+        return not path.is_symlink() or self._contains(os.path.realpath(path))
+
+    def _contains(self, real: str) -> bool:
+        return real == self.real_root or real.startswith(self.real_root.rstrip(os.sep) + os.sep)
 
     def check_header(self, header: PngHeader, rel: str, where: str) -> None:
         """Record what is wrong with a frame's declared size, bit depth and colour type."""
@@ -314,13 +325,12 @@ def _load_manifest(root: Path, limits: DeviceLimits) -> dict[str, Any]:
     real_root = os.path.realpath(root)
     if os.path.dirname(os.path.realpath(path)) != real_root:
         raise CaptureError(root, [f"{MANIFEST} is a link to a file outside the capture folder"])
+    size = path.stat().st_size
+    if size > limits.max_manifest_bytes:
+        raise CaptureError(
+            root, [f"{path} is {size} bytes, more than {limits.max_manifest_bytes}: not a manifest"]
+        )
     try:
-        size = path.stat().st_size
-        if size > limits.max_manifest_bytes:
-            raise CaptureError(
-                root,
-                [f"{path} is {size} bytes, more than {limits.max_manifest_bytes}: not a manifest"],
-            )
         data = json.loads(path.read_bytes().decode("utf-8"))
     except (OSError, UnicodeError, ValueError, RecursionError) as exc:
         # ValueError covers malformed JSON and integers too long to convert;
