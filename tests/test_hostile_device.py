@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,7 @@ from lamina_device.camera import CameraError
 from lamina_device.hardware import Hardware, open_sim
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_host.link import DeviceClient, PtyBridge, RequestRefused
+from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import OPS, plan_fits
@@ -573,3 +575,110 @@ def test_welcome_reports_the_extraction_settings():
     finally:
         hardware.close()
     assert ExtractSettings(**info["extract"]) == ExtractSettings()
+
+
+# --- C. lamina-device record -----------------------------------------------------------------
+
+
+def _record(capsys: pytest.CaptureFixture[str], out: Path, *args: str) -> tuple[int, list[str]]:
+    from lamina_device.cli import main
+
+    status = main(["record", "--hardware", "sim", "--noise", "none", "--out", str(out), *args])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return status, err.splitlines()
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--sections", "1000", "--views", "100"], ["100000 views, at most 10000 allowed"]),
+        (["--sections", "1001", "--pitch", "0.1"], ["--sections: 1001 is outside 1..1000"]),
+        (["--views", "361"], ["--views: 361 is outside 1..360"]),
+        (["--pitch", "nan"], ["object --pitch: nan is not a finite number"]),
+        (["--pitch", "-2"], ["object --pitch: -2.0 is outside 0..10000"]),
+        (["--pitch", "0"], ["object --pitch: a positive number of mm is required"]),
+        (
+            ["--sections", "0", "--views", "0", "--cylinder-views", "400"],
+            [
+                "object --sections: 0 is outside",
+                "object --views: 0 is outside",
+                "cylinder --cylinder-views: 400 is outside 1..360",
+            ],
+        ),
+    ],
+)
+def test_record_refuses_plans_beyond_the_limits_up_front(capsys, tmp_path, args, expected):
+    out = tmp_path / "capture"
+    status, lines = _record(capsys, out, *args)
+    assert status == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("lamina-device: record refused:")
+    for text in expected:
+        assert text in lines[0], lines[0]
+    assert not out.exists()  # nothing written
+
+
+def test_record_refuses_an_occupied_folder_and_deletes_nothing(capsys, tmp_path):
+    out = tmp_path / "capture"
+    out.mkdir()
+    (out / "notes.txt").write_text("the operator's notes")
+    status, lines = _record(capsys, out, "--sections", "1", "--views", "2")
+    assert (
+        status == 2
+        and len(lines) == 1
+        and "is not empty" in lines[0]
+        and "--into-nonempty" in lines[0]
+    )
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    file_out = tmp_path / "a-file"
+    file_out.write_text("x")
+    status, lines = _record(capsys, file_out, "--sections", "1", "--views", "2")
+    assert status == 2 and "is a file" in lines[0] and file_out.read_text() == "x"
+    status, lines = _record(
+        capsys, out, "--sections", "2", "--views", "2", "--cylinder-views", "2", "--into-nonempty"
+    )
+    assert status == 0
+    assert (out / "notes.txt").read_text() == "the operator's notes"
+    assert load_capture(out).plan("object") == ScanPlan.regular(2, 2.0, 2)
+    status, lines = _record(capsys, out, "--sections", "1", "--views", "2", "--into-nonempty")
+    assert status == 2 and "already holds a capture" in lines[0]
+
+
+def test_record_reports_progress_per_section(capsys, tmp_path):
+    status, lines = _record(
+        capsys, tmp_path / "capture", "--sections", "3", "--views", "2", "--cylinder-views", "2"
+    )
+    assert status == 0
+    assert lines == [
+        "recording cylinder: section 0 done, 2/2 views",
+        "recording object: section 0 done, 2/6 views",
+        "recording object: section 1 done, 4/6 views",
+        "recording object: section 2 done, 6/6 views",
+    ]
+
+
+def test_a_hostile_capture_is_refused_by_the_device_with_every_problem(capsys, tmp_path):
+    from lamina_device.cli import main
+
+    out = tmp_path / "capture"
+    status, _ = _record(capsys, out, "--sections", "2", "--views", "2", "--cylinder-views", "2")
+    assert status == 0
+    manifest = json.loads((out / "capture.json").read_text())
+    manifest["scan"]["views"][0]["z_mm"] = -1.0
+    manifest["scan"]["views"][1]["angle_deg"] = 360.0
+    manifest["scan"]["views"][2]["section"] = 10**400
+    (out / "capture.json").write_text(json.dumps(manifest))
+    status = main(["serve", "--port", "/dev/null", "--hardware", f"replay:{out}"])
+    err = capsys.readouterr().err.splitlines()
+    assert status == 2 and "Traceback" not in "\n".join(err)
+    assert err[0] == f"lamina-device: capture {out} is not usable (4 problem(s)):"
+    assert err[1:] == [
+        "  - scan.views[0].z_mm: -1.0 is outside 0..10000",
+        "  - scan.views[1]: duplicate (section 0, angle 360.0 deg), the same view as scan.views[0]",
+        "  - scan.views[2].section: a huge integer is outside 0..999",
+        "  - scan.views[3]: section 1 is at z_mm 2.0, the height of section a huge integer",
+    ]
+    (out / "capture.json").write_text("[" * 100_000)
+    status = main(["serve", "--port", "/dev/null", "--hardware", f"replay:{out}"])
+    err = capsys.readouterr().err.splitlines()
+    assert status == 2 and len(err) == 2 and "nested too deeply" in err[1]

@@ -136,16 +136,20 @@ def record_plans(args: argparse.Namespace, limits: DeviceLimits) -> tuple[ScanPl
     """Return the object and cylinder plans ``record`` asks for; ArgsError if beyond limits."""
     problems = Problems()
     plans = []
-    for name, sections, views in (
-        ("object", args.sections, args.views),
-        ("cylinder", 1, args.cylinder_views),
+    for name, sections, views, option in (
+        ("object", args.sections, args.views, "--views"),
+        ("cylinder", 1, args.cylinder_views, "--cylinder-views"),
     ):
         regular = {"sections": sections, "pitch_mm": args.pitch, "views": views}
-        before = len(problems.items)
-        plan = check_plan({"regular": regular}, limits, problems)
-        for k in range(before, len(problems.items)):
-            problems.items[k] = f"{name} " + problems.items[k].replace("plan.regular.", "--")
-        plans.append(plan)
+        found = Problems()
+        plans.append(check_plan({"regular": regular}, limits, found))
+        options = {"sections": "--sections", "pitch_mm": "--pitch", "views": option}
+        for text in found.items:
+            for key, flag in options.items():
+                text = text.replace(f"plan.regular.{key}", flag)
+            text = f"{name} {text.replace('plan.regular', 'plan')}"
+            if text.partition(" ")[2] not in [p.partition(" ")[2] for p in problems.items]:
+                problems.add(text)  # the pitch is shared: say its problem once
     if problems.items or plans[0] is None or plans[1] is None:
         raise ArgsError("record", problems.items)
     return plans[0], plans[1]

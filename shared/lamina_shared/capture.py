@@ -25,8 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from lamina_shared.limits import DeviceLimits, plan_problems
-from lamina_shared.ops import show
+from lamina_shared.limits import DeviceLimits, plan_problems, show
 from lamina_shared.types import BoardSpec, ScanPlan, ViewSpec
 
 FORMAT_NAME = "lightsection-capture"

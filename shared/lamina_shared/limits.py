@@ -59,6 +59,15 @@ class DeviceLimits:
         return asdict(self)
 
 
+_SHOWN_CHARS = 40
+
+
+def show(value: Any) -> str:
+    """Return a short printable form of a received value (a huge one is cut)."""
+    text = repr(value) if not isinstance(value, int) or abs(value) < 10**30 else "a huge integer"
+    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
+
+
 def _angle_key(angle_deg: float) -> float:
     """Return the turntable position an angle names: 0 and 360 deg are the same view."""
     return round(angle_deg % 360.0, 6) % 360.0
@@ -84,18 +93,21 @@ def plan_problems(
     for where, view in views:
         if not 0 <= view.section < limits.max_sections:
             problems.append(
-                f"{where}.section: {view.section} is outside 0..{limits.max_sections - 1}"
+                f"{where}.section: {show(view.section)} is outside 0..{limits.max_sections - 1}"
             )
         if not low_z <= view.z_mm <= limits.max_z_mm:
-            problems.append(f"{where}.z_mm: {view.z_mm} is outside {low_z:g}..{limits.max_z_mm:g}")
+            problems.append(
+                f"{where}.z_mm: {show(view.z_mm)} is outside {low_z:g}..{limits.max_z_mm:g}"
+            )
         if abs(view.angle_deg) > limits.max_abs_angle_deg:
             problems.append(
-                f"{where}.angle_deg: {view.angle_deg} is beyond +-{limits.max_abs_angle_deg:g}"
+                f"{where}.angle_deg: {show(view.angle_deg)} is beyond "
+                f"+-{limits.max_abs_angle_deg:g}"
             )
         key = (view.section, _angle_key(view.angle_deg))
         if key in first:
             problems.append(
-                f"{where}: duplicate (section {view.section}, angle {view.angle_deg} deg), "
+                f"{where}: duplicate (section {show(view.section)}, angle {view.angle_deg} deg), "
                 f"the same view as {first[key]}"
             )
         first.setdefault(key, where)
@@ -110,8 +122,8 @@ def plan_problems(
     for section, (z_mm, where) in heights.items():
         if z_mm in at_height:
             problems.append(
-                f"{where}: section {section} is at z_mm {z_mm}, the height of section "
-                f"{at_height[z_mm]}"
+                f"{where}: section {show(section)} is at z_mm {z_mm}, the height of section "
+                f"{show(at_height[z_mm])}"
             )
         at_height.setdefault(z_mm, section)
     return problems

@@ -16,14 +16,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
-from lamina_shared.limits import DeviceLimits, plan_problems
+from lamina_shared.limits import DeviceLimits, plan_problems, show
 from lamina_shared.types import ScanPlan, ViewSpec
 
 TARGETS = ("cylinder", "object")
 AXES = ("lift", "turntable")
 MAX_SHOWN_PROBLEMS = 12
 """Problems named in one error reply; the rest are counted (a reply must fit one frame)."""
-_SHOWN_CHARS = 40
 MISSING: Any = object()
 """What a parser passes for an absent key: no check reports it twice (check_keys did)."""
 
@@ -45,12 +44,6 @@ class ArgsError(ValueError):
         more = len(problems) - len(shown)
         text = "; ".join(shown) + (f"; and {more} more" if more else "")
         super().__init__(text)
-
-
-def show(value: Any) -> str:
-    """Return a short printable form of a received value (a huge one is cut)."""
-    text = repr(value) if not isinstance(value, int) or abs(value) < 10**30 else "a huge integer"
-    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
 
 
 class Problems:
@@ -99,8 +92,11 @@ def check_number(
         problems.add(f"{where}: a number is required, found {show(value)}")
         return None
     # Comparing before converting: float() of a 400-digit integer raises OverflowError.
-    if not (low <= value <= high) or (isinstance(value, float) and not math.isfinite(value)):
-        problems.add(f"{where}: {show(value)} is not a finite number in {low:g}..{high:g}")
+    if isinstance(value, float) and not math.isfinite(value):
+        problems.add(f"{where}: {show(value)} is not a finite number")
+        return None
+    if not low <= value <= high:
+        problems.add(f"{where}: {show(value)} is outside {low:g}..{high:g}")
         return None
     return float(value)
 
