@@ -48,6 +48,11 @@ class ScanPlan:
         if not math.isfinite(pitch_mm) or pitch_mm <= 0:
             raise ValueError(f"section pitch must be a positive number of mm, not {pitch_mm}")
         step = 360.0 / views
+        # The pitch on the 1e-9 mm grid first, so the plan's second height is its pitch
+        # exactly and the compact wire form (regular_form) reproduces every height.
+        pitch_mm = round(pitch_mm, 9)
+        if pitch_mm <= 0:
+            raise ValueError("section pitch must be at least 1e-9 mm")
         return cls(
             tuple(
                 ViewSpec(s, round(s * pitch_mm, 9), round(v * step, 9))
