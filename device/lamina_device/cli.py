@@ -258,12 +258,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
         )
     except CaptureError as exc:
-        print(
-            f"lamina-device: capture {exc.root} is not usable ({len(exc.problems)} problem(s)):",
-            file=sys.stderr,
-        )
+        # One line per problem, then the summary last: a host that started this program
+        # shows its last line, which names the first problems and counts the rest.
         for problem in exc.problems:
             print(f"  - {problem}", file=sys.stderr)
+        print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except HardwareError as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
