@@ -701,3 +701,23 @@ def test_a_hostile_capture_is_refused_by_the_device_with_every_problem(capsys, t
     err = capsys.readouterr().err.splitlines()
     assert status == 2 and len(err) == 2 and "nested too deeply" in err[1]
     assert err[1].startswith("lamina-device: capture ")
+
+
+def test_a_configured_device_id_and_default_plans_within_the_limits():
+    import tomllib
+
+    from lamina_device.config import ConfigError, default_config_path, parse_config
+
+    data = tomllib.loads(default_config_path().read_text())
+    assert parse_config(data).device_id is None
+    assert parse_config({**data, "device": {"id": "box-7"}}).device_id == "box-7"
+    for bad in ({"id": "no spaces"}, {"id": 7}, {"id": "x" * 65}, {"id": "a", "b": 1}, "box"):
+        with pytest.raises(ConfigError, match=r"\[device\]"):
+            parse_config({**data, "device": bad})
+    for plan, expected in (
+        ({"sections": 5000, "pitch_mm": 0.01}, "[plan] sections: 5000 is outside 1..1000"),
+        ({"sections": 1000, "pitch_mm": 0.1, "views": 20}, "20000 views, at most 10000"),
+    ):
+        with pytest.raises(ConfigError) as info:
+            parse_config({**data, "plan": {**data["plan"], **plan}})
+        assert any(expected in p for p in info.value.problems), info.value.problems

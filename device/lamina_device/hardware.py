@@ -227,7 +227,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         },
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
-        identity={"serial": pi_serial(), "source": "camera"},
+        identity={"serial": config.device_id or pi_serial(), "source": "camera"},
     )
     return _watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
 
