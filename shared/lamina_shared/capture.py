@@ -230,10 +230,13 @@ class _Checker:
                 f"{where}: {rel} is {header.width}x{header.height}, image_size says "
                 f"{self.image_size[0]}x{self.image_size[1]}"
             )
-        elif max(header.width, header.height) > side:
+        elif (
+            max(header.width, header.height) > side
+            or header.width * header.height > self.limits.max_image_pixels
+        ):
             self.problems.append(
                 f"{where}: {rel} declares {header.width}x{header.height} pixels, more than "
-                f"{side} a side"
+                f"{side} a side or {self.limits.max_image_pixels} in all"
             )
         if header.colour_type not in _COLOUR_TYPES:
             name = _OTHER_COLOUR_TYPES.get(header.colour_type, f"unknown ({header.colour_type})")
@@ -375,11 +378,13 @@ def load_capture(
         isinstance(size, list)
         and len(size) == 2
         and all(isinstance(s, int) and not isinstance(s, bool) and 0 < s <= side for s in size)
+        and size[0] * size[1] <= limits.max_image_pixels
     ):
         check.image_size = (size[0], size[1])
     else:
         check.problems.append(
-            f"image_size: two whole numbers in 1..{side} are required, found {str(size)[:40]}"
+            f"image_size: two whole numbers in 1..{side}, at most {limits.max_image_pixels} "
+            f"pixels in all, are required, found {str(size)[:40]}"
         )
     channel = data.get("laser_channel", "red")
     if channel not in LASER_CHANNELS:

@@ -45,6 +45,9 @@ class DeviceLimits:
     max_exposure_us: int = 10_000_000
     max_image_side_px: int = 16_384
     """Largest frame side a capture may declare (frames are refused from their header)."""
+    max_image_pixels: int = 20_000_000
+    """Most pixels a frame may declare: above the 16 MP sensors, so a decoded 16-bit RGB
+    frame stays near 120 MB."""
     max_manifest_bytes: int = 64 * 1024 * 1024
     """Largest ``capture.json`` read (10,000 views take about 2 MB)."""
 

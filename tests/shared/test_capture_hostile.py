@@ -125,7 +125,14 @@ def test_a_declared_size_beyond_the_limit_is_refused_even_if_image_size_says_so(
     (root / "capture.json").write_text(json.dumps({**manifest, "scan": {"views": [view]}}))
     problems = problems_of(root)
     assert any(p.startswith("image_size: two whole numbers in 1..16384") for p in problems)
-    limits = DeviceLimits(max_image_side_px=40_000)
+    (root / "f.png").write_bytes(png_header_only(16_000, 16_000))
+    data = json.loads((root / "capture.json").read_text())
+    (root / "capture.json").write_text(json.dumps({**data, "image_size": [16_000, 16_000]}))
+    problems = problems_of(root)  # each side allowed, but 256 MP in all
+    assert any("at most 20000000 pixels in all" in p for p in problems), problems
+    (root / "capture.json").write_text(json.dumps({**data, "image_size": [30_000, 30_000]}))
+    (root / "f.png").write_bytes(png_header_only(30_000, 30_000))
+    limits = DeviceLimits(max_image_side_px=40_000, max_image_pixels=10**9)
     assert load_capture(root, limits=limits).image_size == (30_000, 30_000)
 
 
