@@ -14,6 +14,7 @@ import queue
 import threading
 import time
 import tracemalloc
+from dataclasses import fields as dataclass_fields
 from datetime import timedelta
 
 import numpy as np
@@ -25,7 +26,17 @@ from hypothesis import strategies as st
 from lamina_device.hardware import open_sim
 from lamina_device.server import DeviceServer
 from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
+from lamina_shared.ops import OPS as SCHEMAS
+from lamina_shared.ops import (
+    ArgsError,
+    MoveArgs,
+    ScanArgs,
+    UnknownOp,
+    parse_args,
+    request_args,
+)
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
     FrameDecoder,
@@ -40,7 +51,9 @@ from lamina_shared.protocol import (
     encode_json,
     encode_segment,
 )
-from lamina_shared.types import ScanPlan, Segment
+from lamina_shared.types import ScanPlan, Segment, ViewSpec
+
+LIMITS = DeviceLimits()
 
 EXAMPLES = int(os.environ.get("LAMINA_FUZZ_EXAMPLES", "150"))
 FUZZ = settings(
@@ -309,3 +322,91 @@ def test_fuzzing_a_live_scan_request_keeps_the_device_alive(device):
 
     ack_all()
     assert done.is_set()
+
+
+# --- the typed operation schemas (lamina_shared.ops) -----------------------------------
+
+HOSTILE = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.integers(min_value=10**300, max_value=10**400)
+    | st.floats()  # NaN and infinities included
+    | st.text(max_size=20)
+    | st.sampled_from(["lift", "turntable", "object", "cylinder"]),
+    lambda inner: (
+        st.lists(inner, max_size=6) | st.dictionaries(st.text(max_size=10), inner, max_size=5)
+    ),
+    max_leaves=20,
+)
+OP_NAMES = st.sampled_from([*SCHEMAS, "nope", ""]) | HOSTILE
+ARG_NAMES = st.sampled_from(
+    [
+        *sorted({f.name for spec in SCHEMAS.values() for f in dataclass_fields(spec.args_type)}),
+        "regular",
+        "views",
+        "x",
+    ]
+)
+
+
+@FUZZ
+@given(OP_NAMES, st.dictionaries(ARG_NAMES, HOSTILE, max_size=4) | HOSTILE)
+def test_op_schemas_return_typed_args_or_list_problems(op, args):
+    """Any op name and arguments: the op's dataclass, or ArgsError/UnknownOp, nothing else."""
+    try:
+        parsed = parse_args(op, args, LIMITS)
+    except UnknownOp as exc:
+        assert not (isinstance(op, str) and op in SCHEMAS)
+        assert len(str(exc)) < 400
+        return
+    except ArgsError as exc:
+        assert exc.problems and exc.code in ("bad-args", "limit")
+        # The refusal always fits one REPLY, however many problems there were.
+        reply = encode_json(Kind.REPLY, {"id": 1, "ok": False, "error": {"message": str(exc)}})
+        assert len(reply) < MAX_PAYLOAD_BYTES
+        return
+    assert isinstance(parsed, SCHEMAS[op].args_type)
+    # What was accepted is plain and within the limits: it travels back unchanged.
+    assert parse_args(op, request_args(parsed), LIMITS) == parsed
+
+
+@FUZZ
+@given(
+    st.sampled_from(["lift", "turntable"]),
+    st.floats(-200.0, 200.0),
+    st.integers(1, 60),  # plans of the advertised maximum: tests/test_hostile_device.py
+    st.floats(0.001, 3.0),
+    st.integers(1, 36),
+)
+def test_typed_requests_round_trip(axis, position, sections, pitch_mm, views):
+    move = MoveArgs(axis, position)
+    assert parse_args("move", request_args(move), LIMITS) == move
+    plan = ScanPlan.regular(sections, pitch_mm, views)
+    wire = plan.to_wire()
+    assert "regular" in wire and len(str(wire)) < 200
+    assert ScanPlan.from_dict(wire) == plan
+    if len(plan.views) <= LIMITS.max_views:
+        scan = ScanArgs("object", plan, (0,))
+        assert parse_args("scan", request_args(scan), LIMITS) == scan
+
+
+@FUZZ
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 999), st.floats(0.0, 200.0), st.floats(-720.0, 720.0)),
+        min_size=1,
+        max_size=40,
+    )
+)
+def test_listed_plans_are_accepted_or_every_problem_named(items):
+    plan = ScanPlan(tuple(ViewSpec(s, z, a) for s, z, a in items))
+    wire = plan.to_wire()
+    try:
+        args = parse_args("scan", {"target": "object", "plan": wire}, LIMITS)
+    except ArgsError as exc:
+        assert all("duplicate" in p or "the height of section" in p for p in exc.problems), (
+            exc.problems
+        )
+        return
+    assert args.plan == plan

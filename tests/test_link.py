@@ -18,6 +18,7 @@ from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.hardware import Hardware, open_sim
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_host.link import DeviceClient, DeviceError, LineFaults, PtyBridge
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.protocol import Kind, encode_json, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
@@ -89,7 +90,7 @@ def test_handshake_reports_capabilities():
         assert {"scan", "grab_grid", "fetch", "move", "pause", "resume", "abort"} <= set(
             info.operations
         )
-        assert info.limits["window_segments"] == ServerSettings().window_segments
+        assert info.limits["window_segments"] == DeviceLimits().window_segments
 
 
 def test_clean_scan_delivers_exactly_what_the_rig_produced(expected):
@@ -117,7 +118,7 @@ def test_a_new_host_gets_buffered_segments_resent_not_reacquired(expected):
     class HostDied(Exception):
         pass
 
-    with link(settings=ServerSettings(window_segments=32)) as ends:
+    with link(settings=ServerSettings(limits=DeviceLimits(window_segments=32))) as ends:
         stored: dict[int, Segment] = {}
 
         def store_then_die(seq: int, segment: Segment) -> None:

@@ -1,7 +1,9 @@
 """``lamina-device``: serve a host over a serial port, record a raw capture, check a config.
 
 Every user mistake ends in one line on stderr naming the problem and a non-zero
-exit status, never a traceback.
+exit status, never a traceback. ``serve`` outlives its hosts: it ends with status 0
+only when a host asks it to shut down, and with status 1 when its serial port stays
+unusable (the systemd unit restarts it either way).
 """
 
 from __future__ import annotations
@@ -11,25 +13,28 @@ import contextlib
 import logging
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
 
 import serial
 
 from lamina_device import __version__
-from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.acquisition import Progress, acquire, grab_grid
 from lamina_device.camera import CameraError
 from lamina_device.config import check_config
 from lamina_device.hardware import Hardware, HardwareError, open_hardware
 from lamina_device.safety import LaserShutdown
-from lamina_device.server import DeviceServer
+from lamina_device.server import DeviceServer, PortLost
 from lamina_shared.capture import CaptureError, CaptureWriter
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
+from lamina_shared.ops import ArgsError, Problems, check_plan
 from lamina_shared.presets import NOISE_PRESETS
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
+EXIT_PORT_LOST = 1
 
 
 def _terminate(signum: int, frame: FrameType | None) -> None:
@@ -74,7 +79,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_hardware_options(serve)
     record = sub.add_parser("record", help="record a raw capture (grid, cylinder, object)")
     _add_hardware_options(record)
-    record.add_argument("--out", required=True, type=Path, help="new capture folder")
+    record.add_argument(
+        "--out", required=True, type=Path, help="new capture folder (absent or empty)"
+    )
+    record.add_argument(
+        "--into-nonempty",
+        action="store_true",
+        help="record into an existing folder that holds other files (nothing is deleted)",
+    )
     record.add_argument("--sections", type=int, default=4)
     record.add_argument("--pitch", type=float, default=2.0, help="section pitch in mm")
     record.add_argument("--views", type=int, default=8, help="views per section")
@@ -114,15 +126,82 @@ def serve(args: argparse.Namespace, hardware: Hardware) -> int:
         print(f"lamina-device: cannot open serial port {args.port}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     with port:
-        DeviceServer(Channel(port), hardware).serve()
+        try:
+            DeviceServer(Channel(port), hardware).serve()
+        except PortLost as exc:
+            print(f"lamina-device: {exc}; exiting so the service restarts", file=sys.stderr)
+            return EXIT_PORT_LOST
     return 0
+
+
+def record_plans(args: argparse.Namespace, limits: DeviceLimits) -> tuple[ScanPlan, ScanPlan]:
+    """Return the object and cylinder plans ``record`` asks for; ArgsError if beyond limits."""
+    problems = Problems()
+    plans = []
+    for name, sections, views, option in (
+        ("object", args.sections, args.views, "--views"),
+        ("cylinder", 1, args.cylinder_views, "--cylinder-views"),
+    ):
+        regular = {"sections": sections, "pitch_mm": args.pitch, "views": views}
+        found = Problems()
+        plans.append(check_plan({"regular": regular}, limits, found))
+        options = {"sections": "--sections", "pitch_mm": "--pitch", "views": option}
+        for text in found.items:
+            for key, flag in options.items():
+                text = text.replace(f"plan.regular.{key}", flag)
+            text = f"{name} {text.replace('plan.regular', 'plan')}"
+            if text.partition(" ")[2] not in [p.partition(" ")[2] for p in problems.items]:
+                problems.add(text)  # the pitch is shared: say its problem once
+    if problems.items or plans[0] is None or plans[1] is None:
+        raise ArgsError("record", problems.items)
+    return plans[0], plans[1]
+
+
+def out_folder_problem(out: Path, into_nonempty: bool) -> str | None:
+    """Return why ``out`` cannot take a new capture, or None if it can."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file; name a new folder"
+    if (out / "capture.json").exists():
+        return f"--out {out} already holds a capture; name a new folder"
+    if out.is_dir() and not into_nonempty and any(out.iterdir()):
+        return (
+            f"--out {out} is not empty; name a new folder, or add --into-nonempty to record "
+            "beside its files (nothing is deleted)"
+        )
+    return None
+
+
+def _progress_printer(what: str, plan: ScanPlan) -> Callable[[Progress], None]:
+    """Return a progress callback printing one line on stderr per finished section."""
+    ends, done = set(), 0
+    for section in plan.sections:
+        done += sum(1 for view in plan.views if view.section == section)
+        ends.add(done)
+
+    def show(progress: Progress) -> None:
+        if progress.done in ends:
+            print(
+                f"recording {what}: section {progress.section} done, "
+                f"{progress.done}/{progress.total} views",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    return show
 
 
 def record(args: argparse.Namespace, hardware: Hardware) -> int:
     """Record the grid image, the cylinder views and the object views into a capture."""
     try:
-        plan = ScanPlan.regular(args.sections, args.pitch, args.views)
-        cylinder_plan = ScanPlan.regular(1, args.pitch, args.cylinder_views)
+        plan, cylinder_plan = record_plans(args, DeviceLimits())
+    except ArgsError as exc:
+        print(f"lamina-device: record refused: {'; '.join(exc.problems)}", file=sys.stderr)
+        return EXIT_USAGE
+    problem = out_folder_problem(args.out, args.into_nonempty)
+    if problem is not None:
+        print(f"lamina-device: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
         writer = CaptureWriter(
             args.out,
             hardware.camera.size,
@@ -138,9 +217,23 @@ def record(args: argparse.Namespace, hardware: Hardware) -> int:
         if hardware.cylinder_diameter_mm is not None:
             _ask_operator(hardware, "calibration cylinder")
             writer.set_cylinder(hardware.cylinder_diameter_mm)
-            acquire(hardware, "cylinder", cylinder_plan, lambda s: None, sink=writer.add_view)
+            acquire(
+                hardware,
+                "cylinder",
+                cylinder_plan,
+                lambda s: None,
+                _progress_printer("cylinder", cylinder_plan),
+                sink=writer.add_view,
+            )
         _ask_operator(hardware, "object")
-        acquire(hardware, "object", plan, lambda s: None, sink=writer.add_view)
+        acquire(
+            hardware,
+            "object",
+            plan,
+            lambda s: None,
+            _progress_printer("object", plan),
+            sink=writer.add_view,
+        )
     except (CameraError, ValueError, OSError) as exc:
         print(
             f"lamina-device: recording stopped: {exc} (the frames recorded so far stay in "
@@ -166,7 +259,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         hardware = open_hardware(
             args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
         )
-    except (HardwareError, CaptureError) as exc:
+    except CaptureError as exc:
+        # One line per problem, then the summary last: a host that started this program
+        # shows its last line, which names the first problems and counts the rest.
+        for problem in exc.problems:
+            print(f"  - {problem}", file=sys.stderr)
+        print(f"lamina-device: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except HardwareError as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:

@@ -10,12 +10,16 @@ type annotation is the expected TOML type and its metadata the allowed range.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 import typing
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
+
+from lamina_shared.limits import DeviceLimits
+from lamina_shared.ops import Problems, check_plan
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
 BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
@@ -158,6 +162,12 @@ class DeviceConfig:
     board: BoardConfig
     cylinder: CylinderConfig
     plan: PlanConfig
+    device_id: str | None = None
+    """Optional ``[device] id``: names this box in the WELCOME instead of the Pi's serial."""
+
+
+DEVICE_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
+OPTIONAL_TABLES = ("device",)
 
 
 def default_config_path() -> Path:
@@ -244,6 +254,20 @@ def _build_table(cls: type, name: str, table: Any, problems: list[str]) -> Any:
     return cls(**values) if len(values) == len(known) else None
 
 
+def _device_id(table: Any, problems: list[str]) -> str | None:
+    """Return the optional ``[device] id``, appending what is wrong with the table."""
+    if table is None:
+        return None
+    if not isinstance(table, dict) or set(table) - {"id"}:
+        problems.append("[device]: only the key id is allowed")
+        return None
+    value = table.get("id")
+    if not isinstance(value, str) or not DEVICE_ID.fullmatch(value):
+        problems.append("[device] id: 1 to 64 letters, digits, '.', '_' or '-' are required")
+        return None
+    return value
+
+
 def _pin_problems(data: dict[str, Any]) -> list[str]:
     """Return one problem per GPIO pin claimed by more than one setting."""
     owners: dict[int, list[str]] = {}
@@ -289,6 +313,16 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
             f"[camera] exposure_us {camera.exposure_us} must fit in frame_duration_us "
             f"{camera.frame_duration_us}"
         )
+    plan = config.plan
+    found = Problems()
+    for sections, views in ((plan.sections, plan.views), (1, plan.cylinder_views)):
+        regular = {"sections": sections, "pitch_mm": plan.pitch_mm, "views": views}
+        check_plan({"regular": regular}, DeviceLimits(), found)
+    # The device's limits hold for its default scans too (the WELCOME advertises both).
+    problems.extend(
+        f"[plan] {text.replace('plan.regular.', '').replace('plan.regular', 'default scan')}"
+        for text in dict.fromkeys(found.items)
+    )
     top_mm = (config.plan.sections - 1) * config.plan.pitch_mm
     if not (lift.min_mm <= 0.0 and top_mm <= lift.max_mm):
         problems.append(
@@ -305,8 +339,17 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
         ConfigError: listing every problem found.
     """
     problems: list[str] = []
-    tables = {f.name: typing.get_type_hints(DeviceConfig)[f.name] for f in fields(DeviceConfig)}
-    problems.extend(f"[{key}]: unknown section" for key in data if key not in tables)
+    tables = {
+        f.name: typing.get_type_hints(DeviceConfig)[f.name]
+        for f in fields(DeviceConfig)
+        if f.name != "device_id"
+    }
+    problems.extend(
+        f"[{key}]: unknown section"
+        for key in data
+        if key not in tables and key not in OPTIONAL_TABLES
+    )
+    device_id = _device_id(data.get("device"), problems)
     built: dict[str, Any] = {}
     for name, cls in tables.items():
         if name not in data:
@@ -315,7 +358,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
         built[name] = _build_table(cls, name, data[name], problems)
     problems.extend(_pin_problems(data))
     if not problems:
-        config = DeviceConfig(**built)
+        config = DeviceConfig(**built, device_id=device_id)
         problems.extend(_consistency_problems(config))
         if not problems:
             return config

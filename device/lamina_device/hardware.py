@@ -9,6 +9,7 @@ simulated axes for motion. Every kind comes with its laser watchdog running.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +32,7 @@ from lamina_device.motion import (
 )
 from lamina_device.safety import LaserWatchdog
 from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
-from lamina_shared.capture import load_capture
+from lamina_shared.capture import MANIFEST, load_capture
 from lamina_shared.types import BoardSpec, ScanPlan
 
 LASER_PIN = 17
@@ -60,6 +61,9 @@ class Hardware:
     description: str = ""
     settle_s: float = 0.0
     watchdog: LaserWatchdog | None = None
+    identity: dict[str, str] = field(default_factory=lambda: {"serial": "", "source": ""})
+    """What the host stores with a scan and checks at resume: ``serial`` names the
+    device, ``source`` what it images (WELCOME ``identity``)."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
@@ -81,6 +85,38 @@ class Hardware:
             self.lift.close()
         finally:
             self.laser.close()
+
+
+def pi_serial(
+    paths: tuple[Path, ...] = (Path("/proc/device-tree/serial-number"), Path("/proc/cpuinfo")),
+) -> str:
+    """Return the Raspberry Pi's serial number, or ``"unknown"`` where none can be read."""
+    for path in paths:
+        try:
+            text = path.read_text(encoding="ascii", errors="replace")[:65536]
+        except OSError:
+            continue
+        if path.name == "cpuinfo":
+            for line in text.splitlines():
+                key, _, value = line.partition(":")
+                if key.strip() == "Serial" and value.strip():
+                    return value.strip()
+        elif text.strip("\0 \n"):
+            return text.strip("\0 \n")
+    return "unknown"
+
+
+def sim_source(
+    object_spec: str, obj: object, rig: Rig, noise: NoiseModel, mechanics: Mechanics, seed: int
+) -> str:
+    """Return the canonical text of what a simulated device images.
+
+    The same configuration gives the same text; a different object, rig, noise model,
+    mechanics or seed a different one (the parameters' full values are hashed in).
+    """
+    detail = repr((object_spec, obj, rig, noise, mechanics, seed))
+    digest = hashlib.sha256(detail.encode()).hexdigest()[:16]
+    return f"sim object={object_spec} seed={seed} params={digest}"
 
 
 def _watched(hardware: Hardware, max_on_s: float = 2.0, link_silence_s: float = 10.0) -> Hardware:
@@ -105,6 +141,7 @@ def open_sim(
         rig = Rig.preset(rig_name)
     except ValueError as exc:
         raise HardwareError(str(exc)) from None
+    source = sim_source(spec, obj, rig, noise_model, mechanics, seed)
     scene = SimScene(rig, obj, noise_model, seed)
     factory = MockFactory()
     laser = Laser(LASER_PIN, pin_factory=factory)
@@ -121,6 +158,7 @@ def open_sim(
         rig.cylinder_diameter_mm,
         {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
         f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
+        identity={"serial": "sim", "source": source},
     )
     return _watched(hardware)
 
@@ -128,6 +166,7 @@ def open_sim(
 def open_replay(folder: Path) -> Hardware:
     """Return a device whose camera replays the capture in ``folder`` (validated first)."""
     capture = load_capture(folder)
+    manifest_sha = hashlib.sha256((capture.root / MANIFEST).read_bytes()).hexdigest()
     laser = Laser(LASER_PIN, pin_factory=MockFactory())
     mechanics = Mechanics.ideal()
     turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics, 10_000.0), Stage()
@@ -144,6 +183,7 @@ def open_replay(folder: Path) -> Hardware:
         capture.cylinder_diameter_mm,
         plans,
         f"replay of {folder}",
+        identity={"serial": "replay", "source": f"{folder.resolve().name} sha256={manifest_sha}"},
     )
     return _watched(hardware)
 
@@ -187,6 +227,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         },
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
+        identity={"serial": config.device_id or pi_serial(), "source": "camera"},
     )
     return _watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
 

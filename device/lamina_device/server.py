@@ -10,12 +10,18 @@ segments it already holds; the device resends the rest from its buffer and acqui
 only what it never had.
 
 Nothing received is ever evaluated or used as a file path: requests name an operation
-from a fixed table and carry plain numbers, each checked against the device's limits.
+from a fixed table (``lamina_shared.ops``) whose typed arguments are validated, every
+problem at once, against the device's limits before anything acts. A request never
+ends the program: a refused one gets an error reply, and a fault inside an operation
+(a bug) is logged with its traceback and answered ``internal``. A host that goes
+away is not an exit either: the device switches the laser off and waits for the
+next HELLO; only a port that stays unusable ends the program, with a non-zero status.
 """
 
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 import json
 import logging
@@ -41,17 +47,33 @@ from lamina_device.acquisition import (
     grab_grid,
 )
 from lamina_device.camera import CameraError, ExposureRefused
-from lamina_device.extract import extract, to_segment
+from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
+from lamina_device.motion import MotionError
+from lamina_shared.capture import FrameError
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker, error_body, is_count, ok_body
+from lamina_shared.ops import (
+    OPS,
+    ArgsError,
+    ExposureArgs,
+    FetchArgs,
+    MoveArgs,
+    NoArgs,
+    PreviewArgs,
+    Problems,
+    ScanArgs,
+    UnknownOp,
+    check_plan,
+    parse_args,
+)
 from lamina_shared.protocol import (
     CHUNK_BYTES,
-    MAX_ACK_SEQS,
-    MAX_PAYLOAD_BYTES,
     PROTOCOL_VERSION,
     ROW_SCALE,
     Kind,
     Message,
+    ProtocolError,
     encode_chunk,
     encode_json,
     encode_segment,
@@ -78,19 +100,27 @@ class Abandoned(Exception):
     """The host that asked for the running request has gone (a new session began)."""
 
 
+class PortLost(ConnectionError):
+    """The serial port stayed unusable: the program must end (non-zero) to be restarted."""
+
+
+HARDWARE_FAULTS = (CameraError, MotionError, FrameError, OSError)
+"""What an operation may meet on a working device (answered ``failed``); anything else
+raised inside an operation is a bug (logged with its traceback, answered ``internal``)."""
+
+
 @dataclass(frozen=True)
 class ServerSettings:
-    """Tunable limits of the device end; the host learns them from WELCOME."""
+    """Tunables of the device end; ``limits`` are the sizes the host learns from WELCOME."""
 
-    window_segments: int = 16
-    heartbeat_s: float = 0.3
+    limits: DeviceLimits = field(default_factory=DeviceLimits)
     rto_min_s: float = 0.25
     rto_max_s: float = 2.0
     ack_timeout_s: float = 60.0
-    max_views: int = 10_000
-    max_fetch_bytes: int = 256 * 1024
     kept_transfers: int = 2
     kept_replies: int = 32
+    link_retries: int = 3
+    """Consecutive link failures, each 0.5 s apart, before the port counts as lost."""
 
 
 @dataclass(frozen=True)
@@ -300,11 +330,7 @@ def views_in_section(plan: ScanPlan) -> list[int]:
     return out
 
 
-def check_keys(args: dict[str, Any], allowed: set[str], op: str) -> None:
-    """Refuse arguments an operation does not know (they may be a newer host's idea)."""
-    unknown = sorted(set(args) - allowed)
-    if unknown:
-        raise RequestError("bad-args", f"{op} takes no argument {unknown[0]!r}")
+Handler = Callable[[int, Any], dict[str, Any]]
 
 
 class DeviceServer:
@@ -321,7 +347,7 @@ class DeviceServer:
         self.running = True
         self.session: str | None = None
         self.buffer = SegmentBuffer(
-            self.settings.window_segments, self.settings.rto_min_s, self.settings.rto_max_s
+            self.settings.limits.window_segments, self.settings.rto_min_s, self.settings.rto_max_s
         )
         self._abandon = threading.Event()
         self._worker: threading.Thread | None = None
@@ -330,15 +356,13 @@ class DeviceServer:
         self._replies: OrderedDict[int, dict[str, Any]] = OrderedDict()
         self._transfers: OrderedDict[int, bytes] = OrderedDict()
         self._next_transfer = 1
-        self._heartbeat = Ticker(self.settings.heartbeat_s)
+        self._heartbeat = Ticker(self.settings.limits.heartbeat_s)
         self._started_s = self._heard_s = time.monotonic()
         self._lock = threading.Lock()  # the reply cache and the running id, between threads
-        self._long_ops: dict[str, Callable[[int, dict[str, Any]], dict[str, Any]]] = {
+        self._handlers: dict[str, Handler] = {
             "grab_grid": self._grab_grid,
             "preview": self._preview,
             "scan": self._scan,
-        }
-        self._quick_ops: dict[str, Callable[[int, dict[str, Any]], dict[str, Any]]] = {
             "fetch": self._fetch,
             "move": self._move,
             "pause": self._pause,
@@ -348,6 +372,7 @@ class DeviceServer:
             "status": self._status,
             "shutdown": self._shutdown,
         }
+        assert set(self._handlers) == set(OPS), "every operation of lamina_shared.ops is served"
 
     # --- the handshake ---------------------------------------------------------------
 
@@ -355,7 +380,6 @@ class DeviceServer:
         """Return what the device tells the host about itself at the handshake."""
         hw = self.hardware
         width, height = hw.camera.size
-        s = self.settings
         return {
             "protocol": PROTOCOL_VERSION,
             "software": f"lamina-device {__version__}",
@@ -364,38 +388,77 @@ class DeviceServer:
             "image_size": [width, height],
             "board": hw.board.to_dict() if hw.board else None,
             "cylinder_diameter_mm": hw.cylinder_diameter_mm,
-            "default_plans": {t: p.to_dict() for t, p in hw.default_plans.items()},
+            "default_plans": self._welcome_plans(),
             "axes": self.limits.to_dict(),
-            "operations": sorted({*self._long_ops, *self._quick_ops}),
-            "limits": {
-                "max_payload_bytes": MAX_PAYLOAD_BYTES,
-                "chunk_bytes": CHUNK_BYTES,
-                "window_segments": s.window_segments,
-                "max_views": s.max_views,
-                "max_fetch_bytes": s.max_fetch_bytes,
-                "heartbeat_s": s.heartbeat_s,
-            },
+            "operations": sorted(OPS),
+            "limits": self.settings.limits.to_dict(),
             "segment_encoding": {"row_scale": ROW_SCALE},
+            "identity": dict(hw.identity),
+            "extract": dataclasses.asdict(ExtractSettings()),
         }
+
+    def _welcome_plans(self) -> dict[str, Any]:
+        """Return the default plans in wire form, leaving out one too long for the WELCOME.
+
+        A regular plan takes a few bytes; a replayed capture's irregular plan is listed
+        and may not fit one message: the host then passes a plan, or asks ``scan`` with
+        none (the device's default).
+        """
+        plans = {}
+        budget = self.settings.limits.max_payload_bytes // 4
+        for target, plan in self.hardware.default_plans.items():
+            wire = plan.to_wire()
+            if len(json.dumps(wire)) <= budget:
+                plans[target] = wire
+            else:
+                log.warning("the default %s plan is too long for the WELCOME", target)
+        return plans
 
     # --- the loop --------------------------------------------------------------------
 
     def serve(self) -> None:
-        """Handle messages until shutdown or until the link closes."""
+        """Handle messages until asked to shut down.
+
+        A host that goes away (its end stops reading, the cable is pulled) is not the
+        end: the device stops what that host asked for, switches the laser off and
+        waits for the next HELLO. Only a port that fails ``link_retries`` times in a
+        row, with nothing received in between, raises :class:`PortLost`.
+        """
+        failures = 0
         try:
             while self.running:
-                message = self.channel.receive(timeout_s=0.02)
-                if message is not None:
-                    self.handle(message)
-                self._tick()
-        except LinkClosed as exc:
-            log.info("host went away: %s", exc)
+                try:
+                    message = self.channel.receive(timeout_s=0.02)
+                    if message is not None:
+                        failures = 0
+                        self.handle(message)
+                    self._tick()
+                except LinkClosed as exc:
+                    failures += 1
+                    log.warning("host went away: %s; waiting for a new HELLO", exc)
+                    self._host_lost()
+                    if failures >= self.settings.link_retries:
+                        raise PortLost(f"the serial port stays unusable: {exc}") from exc
+                    time.sleep(0.5)
         finally:
             self._stop_worker()
             self.hardware.laser.off()
 
+    def _host_lost(self) -> None:
+        """Forget the host: stop its request, laser off, wait for a HELLO (buffer kept)."""
+        self._stop_worker()
+        self.hardware.laser.off()
+        with self._lock:
+            self._replies.clear()
+            self._running_id = None
+        self.greeted = False
+        self.session = None
+
     def _tick(self) -> None:
-        """Do what is due: a heartbeat, retransmissions."""
+        """Do what is due: a heartbeat, retransmissions (only to a greeted host)."""
+        if not self.greeted:
+            # Nobody listens: writing would only fill the line's buffer and block.
+            return
         if self._heartbeat.due():
             self.channel.send(encode_json(Kind.HEARTBEAT, self._state()))
         resend = self.buffer.overdue()
@@ -455,7 +518,7 @@ class DeviceServer:
             is_count(request_id)
             and isinstance(seqs, list)
             and isinstance(lost, list)
-            and len(seqs) + len(lost) <= MAX_ACK_SEQS
+            and len(seqs) + len(lost) <= self.settings.limits.max_ack_seqs
         ):
             log.warning("ignoring a malformed acknowledgement")
             return
@@ -486,41 +549,53 @@ class DeviceServer:
                 raise RequestError(
                     "handshake", f"say HELLO with protocol {PROTOCOL_VERSION} before any request"
                 )
-            name = str(body.get("op"))
-            args = body.get("args", {})
-            if not isinstance(args, dict):
-                raise RequestError("bad-args", "request args must be an object")
-            if name in self._long_ops:
-                self._start(request_id, name, self._long_ops[name], args)
+            name = body.get("op")
+            args = parse_args(name, body.get("args", {}), self.settings.limits)
+            assert isinstance(name, str)
+            handler = self._handlers[name]
+            if OPS[name].long:
+                self._start(request_id, name, handler, args)
                 return
-            op = self._quick_ops.get(name)
-            if op is None:
-                raise RequestError("unknown-op", f"unknown operation {body.get('op')!r}")
-            reply = ok_body(request_id, op(request_id, args))
-        except RequestError as exc:
+            reply = ok_body(request_id, handler(request_id, args))
+        except UnknownOp as exc:
+            reply = error_body(request_id, "unknown-op", str(exc))
+        except (RequestError, ArgsError) as exc:
             reply = error_body(request_id, exc.code, str(exc))
-        except (CameraError, ValueError, OSError) as exc:
+        except HARDWARE_FAULTS as exc:
             self.hardware.laser.off()
             reply = error_body(request_id, "failed", str(exc))
+        except Exception as exc:
+            reply = self._internal_error(request_id, body.get("op"), exc)
         self._finish(request_id, reply)
+
+    def _internal_error(self, request_id: int, op: Any, exc: Exception) -> dict[str, Any]:
+        """Log a fault inside an operation with its traceback; return the ``internal`` reply."""
+        self.hardware.laser.off()
+        log.error("internal error in request %d (%s)", request_id, str(op)[:40], exc_info=exc)
+        return error_body(
+            request_id,
+            "internal",
+            f"internal error in the device ({type(exc).__name__}): see the device log; "
+            "the device stays up and the laser is off",
+        )
 
     def _finish(self, request_id: int, reply: dict[str, Any]) -> None:
         """Keep the reply for repeated requests, mark the request done, send the reply."""
+        try:
+            frame = encode_json(Kind.REPLY, reply)
+        except (ProtocolError, ValueError, TypeError) as exc:
+            # A result that cannot travel is a bug here, not the host's doing.
+            reply = self._internal_error(request_id, "reply", exc)
+            frame = encode_json(Kind.REPLY, reply)
         with self._lock:
             self._replies[request_id] = reply
             while len(self._replies) > self.settings.kept_replies:
                 self._replies.popitem(last=False)
             if self._running_id == request_id:
                 self._running_id = None
-        self.channel.send(encode_json(Kind.REPLY, reply))
+        self.channel.send(frame)
 
-    def _start(
-        self,
-        request_id: int,
-        name: str,
-        op: Callable[[int, dict[str, Any]], dict[str, Any]],
-        args: dict[str, Any],
-    ) -> None:
+    def _start(self, request_id: int, name: str, op: Handler, args: Any) -> None:
         with self._lock:
             if self._running_id is not None:
                 raise RequestError(
@@ -535,12 +610,7 @@ class DeviceServer:
         )
         self._worker.start()
 
-    def _work(
-        self,
-        request_id: int,
-        op: Callable[[int, dict[str, Any]], dict[str, Any]],
-        args: dict[str, Any],
-    ) -> None:
+    def _work(self, request_id: int, op: Handler, args: Any) -> None:
         try:
             reply = ok_body(request_id, op(request_id, args))
         except (Abandoned, ScanAborted) as exc:
@@ -552,10 +622,12 @@ class DeviceServer:
             with self._lock:
                 self._running_id = None
             return
-        except RequestError as exc:
+        except (RequestError, ArgsError) as exc:
             reply = error_body(request_id, exc.code, str(exc))
-        except (CameraError, ValueError, OSError) as exc:
+        except HARDWARE_FAULTS as exc:
             reply = error_body(request_id, "failed", str(exc))
+        except Exception as exc:
+            reply = self._internal_error(request_id, "long request", exc)
         finally:
             self.hardware.laser.off()
         try:
@@ -593,45 +665,31 @@ class DeviceServer:
             piece = data[at : min(at + CHUNK_BYTES, offset + length)]
             self.channel.send(encode_chunk(request_id, transfer, at, len(data), piece))
 
-    def _fetch(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _fetch(self, request_id: int, args: FetchArgs) -> dict[str, Any]:
         """Send pieces of a kept transfer again (the host asks for what it lacks)."""
-        check_keys(args, {"transfer", "ranges"}, "fetch")
-        transfer, ranges = args.get("transfer"), args.get("ranges")
-        if not is_count(transfer) or transfer not in self._transfers:
-            raise RequestError("gone", f"transfer {transfer!r} is not kept any more: ask again")
-        if not isinstance(ranges, list) or len(ranges) > 1024:
-            raise RequestError("bad-args", "fetch ranges must be a list of [offset, length]")
+        transfer = args.transfer
+        if transfer not in self._transfers:
+            raise RequestError("gone", f"transfer {transfer} is not kept any more: ask again")
         total = len(self._transfers[transfer])
-        checked = []
-        for item in ranges:
-            if not (isinstance(item, list) and len(item) == 2 and all(is_count(v) for v in item)):
-                raise RequestError("bad-args", "each fetch range must be [offset, length]")
-            offset, length = item
-            if offset + length > total:
-                raise RequestError("bad-args", f"range {item} runs past the {total} bytes")
-            checked.append((offset, length))
-        if sum(length for _, length in checked) > self.settings.max_fetch_bytes:
-            raise RequestError("bad-args", f"fetch at most {self.settings.max_fetch_bytes} bytes")
-        for offset, length in checked:
+        past = [list(r) for r in args.ranges if r[0] + r[1] > total]
+        if past:
+            raise RequestError("bad-args", f"range {past[0]} runs past the {total} bytes")
+        for offset, length in args.ranges:
             self._send_range(request_id, transfer, offset, length)
-        return {"sent": sum(length for _, length in checked)}
+        return {"sent": sum(length for _, length in args.ranges)}
 
-    def _grab_grid(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
-        check_keys(args, set(), "grab_grid")
+    def _grab_grid(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         result = self._offer(request_id, _png(grab_grid(self.hardware)))
         board = self.hardware.board
         return {**result, "board": board.to_dict() if board else None}
 
-    def _preview(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _preview(self, request_id: int, args: PreviewArgs) -> dict[str, Any]:
         """Capture one frame where the axes stand (laser on only during its exposure).
 
         With ``stripe`` the device takes the laser-off/laser-on pair a scan would, extracts
         the stripe with the scan's own extraction and returns it as a SEGMENT body.
         """
-        check_keys(args, {"laser", "stripe"}, "preview")
-        laser, stripe = args.get("laser", False), args.get("stripe", False)
-        if not isinstance(laser, bool) or not isinstance(stripe, bool):
-            raise RequestError("bad-args", "preview's laser and stripe must be true or false")
+        laser, stripe = args.laser, args.stripe
         hw = self.hardware
         if not stripe:
             frame = capture_pair(hw)[0] if laser else hw.camera.capture()
@@ -648,43 +706,38 @@ class DeviceServer:
 
     # --- scanning --------------------------------------------------------------------
 
-    def _plan(self, target: str, args: dict[str, Any]) -> ScanPlan:
-        if args.get("plan") is not None:
-            try:
-                if not isinstance(args["plan"], dict):
-                    raise TypeError("plan must be an object")
-                plan = ScanPlan.from_dict(args["plan"])
-            except (KeyError, TypeError, ValueError, OverflowError) as exc:
-                raise RequestError("bad-args", f"invalid scan plan: {exc}") from None
-        else:
-            default = self.hardware.default_plans.get(target)
-            if default is None:
-                raise RequestError("bad-args", f"no {target} views to scan on this device")
-            plan = default
-        if len(plan.views) > self.settings.max_views:
-            raise RequestError("limit", f"a scan has at most {self.settings.max_views} views")
-        for view in plan.views:
-            if not 0 <= view.section <= 65_535:
-                raise RequestError("bad-args", f"section {view.section} is outside 0..65535")
-            self.limits.check("lift", view.z_mm)
-            self.limits.check("turntable", view.angle_deg)
+    def _plan(self, args: ScanArgs) -> ScanPlan:
+        """Return the plan to scan (the request's, or the default), within the axes' limits."""
+        plan = args.plan
+        if plan is None:
+            plan = self.hardware.default_plans.get(args.target)
+            if plan is None:
+                raise RequestError("bad-args", f"no {args.target} views to scan on this device")
+            problems = Problems()
+            check_plan(plan.to_wire(), self.settings.limits, problems)
+            if problems.items:
+                # A configured or replayed default beyond the limits is refused like any plan.
+                raise ArgsError("scan", problems.items, "limit")
+        lifts = sorted({view.z_mm for view in plan.views})
+        angles = sorted({view.angle_deg for view in plan.views})
+        # The extremes decide: every height and angle between them is within limits too.
+        for axis, values in (("lift", lifts), ("turntable", angles)):
+            self.limits.check(axis, values[0])
+            self.limits.check(axis, values[-1])
         return plan
 
-    def _scan(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _scan(self, request_id: int, args: ScanArgs) -> dict[str, Any]:
         """Send every view of the plan the host does not hold: from the buffer or acquired."""
-        check_keys(args, {"target", "plan", "have"}, "scan")
-        target = args.get("target")
-        if target not in ("cylinder", "object"):
+        target = args.target
+        plan = self._plan(args)
+        outside = [s for s in args.have if s >= len(plan.views)]
+        if outside:
             raise RequestError(
-                "bad-args", f"scan target must be cylinder or object, not {target!r}"
+                "bad-args",
+                f"have must list view indices of the plan: {outside[0]} is beyond its "
+                f"{len(plan.views)} views",
             )
-        plan = self._plan(target, args)
-        have_list = args.get("have") or []
-        if not isinstance(have_list, list) or not all(
-            is_count(s, len(plan.views)) for s in have_list
-        ):
-            raise RequestError("bad-args", "have must list view indices of the plan")
-        have = set(have_list)
+        have = set(args.have)
         kept = self.buffer.adopt(plan_key(target, plan), request_id)
         self.buffer.ack(request_id, have & set(kept))
         resend = sorted(set(kept) - have)
@@ -738,19 +791,14 @@ class DeviceServer:
 
     # --- quick operations ------------------------------------------------------------
 
-    def _move(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _move(self, request_id: int, args: MoveArgs) -> dict[str, Any]:
         """Move one axis within its soft limits (positioning before a preview)."""
-        check_keys(args, {"axis", "position"}, "move")
-        axis, position = args.get("axis"), args.get("position")
-        if axis not in ("lift", "turntable"):
-            raise RequestError("bad-args", f"axis must be lift or turntable, not {axis!r}")
-        if isinstance(position, bool) or not isinstance(position, int | float):
-            raise RequestError("bad-args", "position must be a number")
+        axis, position = args.axis, args.position
         if self._running_id is not None:
             raise RequestError("busy", f"request {self._running_id} is moving the axes")
-        self.limits.check(axis, float(position))
-        (self.hardware.lift if axis == "lift" else self.hardware.turntable).move_to(float(position))
-        return {"axis": axis, "position": float(position)}
+        self.limits.check(axis, position)
+        (self.hardware.lift if axis == "lift" else self.hardware.turntable).move_to(position)
+        return {"axis": axis, "position": position}
 
     def _scan_control(self, op: str) -> ScanControl:
         control = self._control
@@ -758,32 +806,29 @@ class DeviceServer:
             raise RequestError("idle", f"no scan is running to {op}")
         return control
 
-    def _pause(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _pause(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """Hold the running scan after the current view, laser off."""
         self._scan_control("pause").pause()
         self._event(self._running_id or 0, "status", state="paused")
         return {"state": "paused"}
 
-    def _resume(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _resume(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """Let a paused scan go on."""
         self._scan_control("resume").resume()
         self._event(self._running_id or 0, "status", state="busy")
         return {"state": "busy"}
 
-    def _abort(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _abort(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """End the running scan at the next view; what was sent stays valid."""
         self._scan_control("abort").abort()
         return {"state": "aborting"}
 
-    def _exposure(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _exposure(self, request_id: int, args: ExposureArgs) -> dict[str, Any]:
         """Set the camera's exposure (``exposure_us``) within its limits; report it and them."""
-        check_keys(args, {"exposure_us"}, "exposure")
         camera = self.hardware.camera
         low, high = camera.exposure_range_us
-        if "exposure_us" in args:
-            value = args["exposure_us"]
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise RequestError("bad-args", "exposure_us must be a whole number of us")
+        value = args.exposure_us
+        if value is not None:
             if self._running_id is not None:
                 # A scan's views must all share one exposure.
                 raise RequestError("busy", f"request {self._running_id} is using the camera")
@@ -793,10 +838,10 @@ class DeviceServer:
                 raise RequestError("limit", str(exc)) from None
         return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
 
-    def _status(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _status(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         return {**self._state(), "retransmissions": self.buffer.retransmissions}
 
-    def _shutdown(self, request_id: int, args: dict[str, Any]) -> dict[str, Any]:
+    def _shutdown(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         self.running = False
         return {}
 

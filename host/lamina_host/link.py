@@ -650,7 +650,7 @@ class DeviceClient:
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = {"target": target, "plan": plan.to_dict(), "have": sorted(held)}
+        args = {"target": target, "plan": plan.to_wire(), "have": sorted(held)}
         self._scanning, self._on_notice = True, on_notice
         try:
             self.request("scan", args, on_event=take)

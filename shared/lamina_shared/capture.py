@@ -1,15 +1,21 @@
 """Raw captures: read, validate and write the format of ``../shared/specs/capture-format.md``.
 
 A reader validates the whole capture before any work starts and reports every
-problem at once, each naming the offending key. Frame pixels are decoded with
-OpenCV, which both the device and the host distributions install; the manifest
-checks need only the standard library.
+problem at once, each naming the offending key. Validation reads only each frame's
+PNG header (size, bit depth, colour type) and its last chunk, never the pixels, so a
+10,000-view capture is checked in seconds and a frame declaring 30000x30000 pixels is
+refused without being decoded. Frames must lie inside the capture folder (symbolic
+links are resolved first); counts, sections, heights and angles are checked against
+:class:`~lamina_shared.limits.DeviceLimits`. Frame pixels are decoded with OpenCV,
+which both the device and the host distributions install; the manifest checks need
+only the standard library.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -19,6 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from lamina_shared.limits import DeviceLimits, plan_problems, show
 from lamina_shared.types import BoardSpec, ScanPlan, ViewSpec
 
 FORMAT_NAME = "lightsection-capture"
@@ -26,14 +33,27 @@ FORMAT_VERSION = 1
 MANIFEST = "capture.json"
 LASER_CHANNELS = {"red": 2, "green": 1, "blue": 0}  # index into OpenCV's BGR order
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+_COLOUR_TYPES = {0: "grayscale", 2: "RGB"}
+_OTHER_COLOUR_TYPES = {3: "palette", 4: "grayscale with alpha", 6: "RGB with alpha"}
+
+
+class FrameError(ValueError):
+    """A frame file that cannot be decoded as the capture format says."""
 
 
 class CaptureError(ValueError):
     """A capture that cannot be used; ``problems`` lists every reason found."""
 
+    SHOWN = 20
+    """Problems the message names; ``problems`` holds all of them."""
+
     def __init__(self, root: Path, problems: list[str]) -> None:
+        self.root = root
         self.problems = problems
-        listing = "; ".join(problems)
+        listing = "; ".join(problems[: self.SHOWN])
+        if len(problems) > self.SHOWN:
+            listing += f"; and {len(problems) - self.SHOWN} more"
         super().__init__(f"capture {root} is not usable ({len(problems)} problem(s)): {listing}")
 
 
@@ -73,48 +93,83 @@ class Capture:
 # --- reading --------------------------------------------------------------------------
 
 
-def _png_size(path: Path) -> tuple[int, int, int]:
-    """Return (width, height, bit depth) from a PNG header; raise ValueError if not a PNG."""
+@dataclass(frozen=True)
+class PngHeader:
+    """What a PNG's IHDR chunk declares, read without decoding any pixel."""
+
+    width: int
+    height: int
+    bit_depth: int
+    colour_type: int
+
+
+def read_png_header(path: Path) -> PngHeader:
+    """Return the IHDR fields of a PNG; raise FrameError if it is not a whole PNG file.
+
+    Only the first 33 bytes and the last 12 are read: a file that does not end with
+    the IEND chunk was cut short.
+    """
     with path.open("rb") as fh:
         head = fh.read(33)
-    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
-        raise ValueError("not a PNG file")
-    width, height, depth = struct.unpack(">IIB", head[16:25])
-    return width, height, depth
+        if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+            raise FrameError("not a PNG file")
+        fh.seek(-len(_PNG_END), os.SEEK_END)
+        if fh.read(len(_PNG_END)) != _PNG_END:
+            raise FrameError("truncated PNG: it does not end with its IEND chunk")
+    width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
+    return PngHeader(width, height, depth, colour)
 
 
 def read_frame(path: Path, laser_channel: str = "red") -> np.ndarray:
-    """Return a frame as a 2-D uint8 or uint16 array, the laser's channel for colour PNGs."""
+    """Return a frame as a 2-D uint8 or uint16 array, the laser's channel for colour PNGs.
+
+    Raises:
+        FrameError: the file is not a PNG OpenCV can decode (damaged, unsupported).
+    """
     import cv2  # the device and host distributions both install opencv
 
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise FrameError(f"{path} cannot be decoded as an image ({exc})") from None
     if image is None:
-        raise ValueError(f"{path} cannot be decoded as an image")
+        raise FrameError(f"{path} cannot be decoded as an image")
     if image.ndim == 3:
         image = image[:, :, LASER_CHANNELS[laser_channel]]
     if image.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"{path} has pixel type {image.dtype}; 8- or 16-bit expected")
+        raise FrameError(f"{path} has pixel type {image.dtype}; 8- or 16-bit expected")
     return np.ascontiguousarray(image)
+
+
+def _finite(value: float) -> bool:
+    """Return True for a finite number that converts to a float (no 400-digit integer)."""
+    if isinstance(value, int):
+        return abs(value) <= 2**53
+    return math.isfinite(value)
 
 
 class _Checker:
     """Collects problems while walking a manifest, so all of them are reported at once."""
 
-    def __init__(self, root: Path, decode: bool) -> None:
+    def __init__(self, root: Path, decode: bool, limits: DeviceLimits) -> None:
         self.root = root
+        self.real_root = os.path.realpath(root)
+        self._folders: dict[str, str] = {}
         self.decode = decode
+        self.limits = limits
         self.problems: list[str] = []
         self.image_size: tuple[int, int] | None = None
         self.laser_channel = "red"
+        self.bit_depth: tuple[int, str] | None = None  # the first frame's, and its key
 
     def number(self, data: dict[str, Any], key: str, where: str, positive: bool = False) -> float:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, int | float):
-            self.problems.append(f"{where}.{key}: a number is required, found {value!r}")
+            self.problems.append(f"{where}.{key}: a number is required, found {show(value)}")
             return math.nan
-        if not math.isfinite(value) or (positive and value <= 0):
+        if not _finite(value) or (positive and value <= 0):
             kind = "a positive finite" if positive else "a finite"
-            self.problems.append(f"{where}.{key}: {kind} number is required, found {value!r}")
+            self.problems.append(f"{where}.{key}: {kind} number is required, found {show(value)}")
             return math.nan
         return float(value)
 
@@ -122,38 +177,94 @@ class _Checker:
         if not isinstance(rel, str) or not rel:
             self.problems.append(f"{where}: a relative file path is required, found {rel!r}")
             return None
+        if len(rel) > 4096 or "\0" in rel:
+            self.problems.append(f"{where}: {rel[:40]!r}... is not a usable file path")
+            return None
         pure = PurePosixPath(rel)
         if pure.is_absolute() or ".." in pure.parts:
             self.problems.append(f"{where}: {rel!r} must stay inside the capture folder")
             return None
         path = self.root / pure
+        if not self.inside(path):
+            self.problems.append(
+                f"{where}: {rel!r} is a link to a file outside the capture folder; "
+                "copy the file into the capture instead"
+            )
+            return None
         if not path.is_file():
             self.problems.append(f"{where}: file {rel} is missing")
             return None
         try:
-            width, height, depth = _png_size(path)
-        except (OSError, ValueError) as exc:
+            header = read_png_header(path)
+        except (OSError, FrameError) as exc:
             self.problems.append(f"{where}: {rel} is unreadable ({exc})")
             return None
-        if depth not in (8, 16):
-            self.problems.append(f"{where}: {rel} has bit depth {depth}; 8 or 16 is required")
-        if self.image_size and (width, height) != self.image_size:
-            self.problems.append(
-                f"{where}: {rel} is {width}x{height}, image_size says "
-                f"{self.image_size[0]}x{self.image_size[1]}"
-            )
-        if self.decode:
+        before = len(self.problems)
+        self.check_header(header, rel, where)
+        if self.decode and len(self.problems) == before:
             try:
                 read_frame(path, self.laser_channel)
-            except ValueError:
+            except FrameError:
                 self.problems.append(f"{where}: {rel} is unreadable (damaged or truncated PNG)")
         return path
+
+    def inside(self, path: Path) -> bool:
+        """Return True if ``path``, links resolved, lies inside the capture folder."""
+        folder = str(path.parent)
+        real_folder = self._folders.get(folder)
+        if real_folder is None:
+            # Frames share a few folders: resolve each once, not once per frame.
+            real_folder = self._folders[folder] = os.path.realpath(folder)
+        if not self._contains(real_folder):
+            return False
+        return not path.is_symlink() or self._contains(os.path.realpath(path))
+
+    def _contains(self, real: str) -> bool:
+        return real == self.real_root or real.startswith(self.real_root.rstrip(os.sep) + os.sep)
+
+    def check_header(self, header: PngHeader, rel: str, where: str) -> None:
+        """Record what is wrong with a frame's declared size, bit depth and colour type."""
+        side = self.limits.max_image_side_px
+        if self.image_size and (header.width, header.height) != self.image_size:
+            self.problems.append(
+                f"{where}: {rel} is {header.width}x{header.height}, image_size says "
+                f"{self.image_size[0]}x{self.image_size[1]}"
+            )
+        elif (
+            max(header.width, header.height) > side
+            or header.width * header.height > self.limits.max_image_pixels
+        ):
+            self.problems.append(
+                f"{where}: {rel} declares {header.width}x{header.height} pixels, more than "
+                f"{side} a side or {self.limits.max_image_pixels} in all"
+            )
+        if header.colour_type not in _COLOUR_TYPES:
+            name = _OTHER_COLOUR_TYPES.get(header.colour_type, f"unknown ({header.colour_type})")
+            self.problems.append(f"{where}: {rel} is a {name} PNG; grayscale or RGB is required")
+        if header.bit_depth not in (8, 16):
+            self.problems.append(
+                f"{where}: {rel} has bit depth {header.bit_depth}; 8 or 16 is required"
+            )
+        elif self.bit_depth is None:
+            self.bit_depth = (header.bit_depth, where)
+        elif header.bit_depth != self.bit_depth[0]:
+            self.problems.append(
+                f"{where}: {rel} has bit depth {header.bit_depth}, {self.bit_depth[1]} has "
+                f"{self.bit_depth[0]}: all frames of a capture share one bit depth"
+            )
 
     def views(self, data: Any, where: str) -> list[CaptureView]:
         if not isinstance(data, list):
             self.problems.append(f"{where}: a list of views is required")
             return []
-        views, seen = [], set()
+        if len(data) > self.limits.max_views:
+            # Refused before any frame is looked at: the count alone rules it out.
+            self.problems.append(
+                f"{where}: {len(data)} views, at most {self.limits.max_views} allowed"
+            )
+            return []
+        views: list[CaptureView] = []
+        specs: list[tuple[str, ViewSpec]] = []
         for k, item in enumerate(data):
             at = f"{where}[{k}]"
             if not isinstance(item, dict):
@@ -165,15 +276,15 @@ class _Checker:
                 section = -1
             z_mm = self.number(item, "z_mm", at)
             angle = self.number(item, "angle_deg", at)
-            if (section, angle) in seen:
-                self.problems.append(f"{at}: duplicate (section {section}, angle {angle} deg)")
-            seen.add((section, angle))
+            if section >= 0 and math.isfinite(z_mm + angle):
+                specs.append((at, ViewSpec(section, z_mm, angle)))
             on = self.frame(item.get("laser_on"), f"{at}.laser_on")
             off = None
             if item.get("laser_off") is not None:
                 off = self.frame(item.get("laser_off"), f"{at}.laser_off")
             if on is not None and section >= 0 and math.isfinite(z_mm + angle):
                 views.append(CaptureView(ViewSpec(section, z_mm, angle), on, off))
+        self.problems.extend(plan_problems(specs, self.limits, min_z_mm=0.0))
         return views
 
     def board(self, data: dict[str, Any]) -> tuple[BoardSpec | None, Path | None]:
@@ -184,16 +295,20 @@ class _Checker:
         if not (
             isinstance(corners, list)
             and len(corners) == 2
-            and all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in corners)
+            and all(
+                isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 1000 for c in corners
+            )
         ):
-            self.problems.append(f"{where}.inner_corners: two whole numbers >= 1 are required")
+            self.problems.append(
+                f"{where}.inner_corners: two whole numbers in 1..1000 are required"
+            )
             corners = None
         square = self.number(data, "square_mm", where, positive=True)
         origin = data.get("origin_mm", [0.0, 0.0])
         if not (
             isinstance(origin, list)
             and len(origin) == 2
-            and all(isinstance(o, int | float) and math.isfinite(o) for o in origin)
+            and all(isinstance(o, int | float) and _finite(o) for o in origin)
         ):
             self.problems.append(f"{where}.origin_mm: two finite numbers are required")
             origin = None
@@ -203,16 +318,27 @@ class _Checker:
         return BoardSpec((corners[0], corners[1]), square, (origin[0], origin[1])), image
 
 
-def _load_manifest(root: Path) -> dict[str, Any]:
+def _load_manifest(root: Path, limits: DeviceLimits) -> dict[str, Any]:
     path = root / MANIFEST
     if not root.is_dir():
         raise CaptureError(root, [f"folder {root} does not exist"])
     if not path.is_file():
         raise CaptureError(root, [f"{MANIFEST} is missing"])
+    real_root = os.path.realpath(root)
+    if os.path.dirname(os.path.realpath(path)) != real_root:
+        raise CaptureError(root, [f"{MANIFEST} is a link to a file outside the capture folder"])
+    size = path.stat().st_size
+    if size > limits.max_manifest_bytes:
+        raise CaptureError(
+            root, [f"{path} is {size} bytes, more than {limits.max_manifest_bytes}: not a manifest"]
+        )
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CaptureError(root, [f"{MANIFEST} is not valid JSON ({exc})"]) from None
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, UnicodeError, ValueError, RecursionError) as exc:
+        # ValueError covers malformed JSON and integers too long to convert;
+        # RecursionError a file nested deeper than any manifest.
+        reason = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)[:200]
+        raise CaptureError(root, [f"{path} is not valid JSON ({reason})"]) from None
     if not isinstance(data, dict):
         raise CaptureError(root, [f"{MANIFEST} must hold a JSON object"])
     if data.get("format") != FORMAT_NAME:
@@ -228,29 +354,37 @@ def _load_manifest(root: Path) -> dict[str, Any]:
     return data
 
 
-def load_capture(root: Path | str, decode_frames: bool = True) -> Capture:
+def load_capture(
+    root: Path | str, decode_frames: bool = False, limits: DeviceLimits | None = None
+) -> Capture:
     """Read and validate a capture folder; raise :class:`CaptureError` listing every problem.
 
     Args:
         root: the capture folder (holding ``capture.json``).
-        decode_frames: also decode every frame, catching damaged files (slower).
+        decode_frames: also decode every frame, catching damage inside a file (slow:
+            the headers and the end of each file are always checked).
+        limits: the sizes allowed (views, sections, heights, frame sides).
 
     Returns:
-        The validated capture, with absolute frame paths.
+        The validated capture, with frame paths inside ``root``.
     """
     root = Path(root)
-    data = _load_manifest(root)
-    check = _Checker(root, decode_frames)
+    limits = limits or DeviceLimits()
+    data = _load_manifest(root, limits)
+    check = _Checker(root, decode_frames, limits)
     size = data.get("image_size")
+    side = limits.max_image_side_px
     if (
         isinstance(size, list)
         and len(size) == 2
-        and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+        and all(isinstance(s, int) and not isinstance(s, bool) and 0 < s <= side for s in size)
+        and size[0] * size[1] <= limits.max_image_pixels
     ):
         check.image_size = (size[0], size[1])
     else:
         check.problems.append(
-            f"image_size: two positive whole numbers are required, found {size!r}"
+            f"image_size: two whole numbers in 1..{side}, at most {limits.max_image_pixels} "
+            f"pixels in all, are required, found {str(size)[:40]}"
         )
     channel = data.get("laser_channel", "red")
     if channel not in LASER_CHANNELS:

@@ -14,6 +14,9 @@ from typing import Any
 
 import numpy as np
 
+MAX_DECODED_VIEWS = 2**20
+"""Most views any plan form decodes to; devices advertise their own, lower limit."""
+
 TARGETS = ("grid", "cylinder", "object")
 """What can sit on the turntable: the calibration board, the calibration cylinder, the subject."""
 
@@ -45,6 +48,11 @@ class ScanPlan:
         if not math.isfinite(pitch_mm) or pitch_mm <= 0:
             raise ValueError(f"section pitch must be a positive number of mm, not {pitch_mm}")
         step = 360.0 / views
+        # The pitch on the 1e-9 mm grid first, so the plan's second height is its pitch
+        # exactly and the compact wire form (regular_form) reproduces every height.
+        pitch_mm = round(pitch_mm, 9)
+        if pitch_mm <= 0:
+            raise ValueError("section pitch must be at least 1e-9 mm")
         return cls(
             tuple(
                 ViewSpec(s, round(s * pitch_mm, 9), round(v * step, 9))
@@ -59,12 +67,47 @@ class ScanPlan:
         return list(dict.fromkeys(v.section for v in self.views))
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the JSON form used by the wire protocol."""
+        """Return the explicit JSON form: every view listed (stored plans, fingerprints)."""
         return {"views": [v.to_dict() for v in self.views]}
+
+    def regular_form(self) -> dict[str, Any] | None:
+        """Return ``{"sections", "pitch_mm", "views"}`` if :meth:`regular` of them is this plan."""
+        sections = len(self.sections)
+        if not self.views or len(self.views) % sections:
+            return None
+        per_section = len(self.views) // sections
+        pitch_mm = self.views[per_section].z_mm if sections > 1 else 1.0
+        try:
+            candidate = ScanPlan.regular(sections, pitch_mm, per_section)
+        except ValueError:
+            return None
+        if candidate != self:
+            return None
+        return {"sections": sections, "pitch_mm": pitch_mm, "views": per_section}
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the form a REQUEST or WELCOME carries: compact when the plan is regular.
+
+        A regular plan of any size travels in a few bytes (``{"regular": {...}}``); any
+        other plan lists its views and must fit one message (``shared/PROTOCOL.md``).
+        """
+        regular = self.regular_form()
+        return {"regular": regular} if regular is not None else self.to_dict()
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ScanPlan:
-        """Build a plan from its JSON form, checking every number is finite."""
+        """Build a plan from its explicit or regular JSON form, checking every number is finite.
+
+        Whatever the data claim, at most :data:`MAX_DECODED_VIEWS` views are built.
+        """
+        if "regular" in data:
+            form = data["regular"]
+            sections, views_per_section = int(form["sections"]), int(form["views"])
+            if sections * views_per_section > MAX_DECODED_VIEWS:
+                raise ValueError(f"a plan of more than {MAX_DECODED_VIEWS} views")
+            return cls.regular(sections, float(form["pitch_mm"]), views_per_section)
+        if len(data["views"]) > MAX_DECODED_VIEWS:
+            raise ValueError(f"a plan of more than {MAX_DECODED_VIEWS} views")
         views = []
         for item in data["views"]:
             view = ViewSpec(int(item["section"]), float(item["z_mm"]), float(item["angle_deg"]))

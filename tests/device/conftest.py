@@ -74,6 +74,10 @@ def config_toml(config: DeviceConfig) -> str:
     """Return ``config`` as TOML text (for the command-line tests)."""
     lines = []
     for table, values in config.__dict__.items():
+        if table == "device_id":  # the optional [device] table, not a table field
+            if values is not None:
+                lines.append(f'[device]\nid = "{values}"')
+            continue
         lines.append(f"[{table}]")
         for key, value in values.__dict__.items():
             if isinstance(value, bool):
