@@ -46,6 +46,7 @@ from lamina_host.workflow import (
     printable,
     scan_identity,
 )
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan, Segment
 
@@ -398,15 +399,6 @@ def test_plan_beyond_the_devices_view_limit_creates_no_scan(capsys, tmp_path):
     assert scan_count(path) == 0
 
 
-class LimitedServer(DeviceServer):
-    """A device advertising the limits the devtrust branch adds to WELCOME."""
-
-    def info(self) -> dict[str, Any]:
-        info = super().info()
-        info["limits"] = {**info["limits"], "max_sections": 3, "max_views_per_section": 8}
-        return info
-
-
 @pytest.mark.parametrize(
     ("plan", "limit"),
     [
@@ -417,7 +409,12 @@ class LimitedServer(DeviceServer):
 )
 def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan, limit):
     with (
-        served(LimitedServer, ServerSettings(max_views=12)) as client,
+        served(
+            DeviceServer,
+            ServerSettings(
+                limits=DeviceLimits(max_views=12, max_sections=3, max_views_per_section=8)
+            ),
+        ) as client,
         Library(tmp_path / "library.sqlite") as library,
     ):
         args = argparse.Namespace(

@@ -26,6 +26,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from lamina_shared.limits import DeviceLimits
+from lamina_shared.ops import plan_fits
 from lamina_shared.types import ScanPlan
 
 SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,31}")
@@ -120,6 +122,11 @@ def check_plan_limits(target: str, plan: ScanPlan, limits: Mapping[str, Any]) ->
                 f"the {target} plan has {figure} {what}, beyond the device's limit of {limit} "
                 f"({key}): plan a smaller scan"
             )
+    # The counts above name the limit; the shared check adds what only the wire knows
+    # (an irregular plan too long for one request, heights and angles out of range).
+    problems = plan_fits(plan, DeviceLimits.from_welcome(dict(limits)))
+    if problems:
+        raise InputError(f"the {target} plan cannot be sent to the device: {problems[0]}")
 
 
 def printable(text: str) -> str:

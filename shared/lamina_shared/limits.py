@@ -11,7 +11,7 @@ list of a resumed scan of that size.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from lamina_shared.protocol import CHUNK_BYTES, MAX_ACK_SEQS, MAX_PAYLOAD_BYTES, MAX_TRANSFER_BYTES
@@ -60,6 +60,30 @@ class DeviceLimits:
     def to_dict(self) -> dict[str, Any]:
         """Return the WELCOME form: every field under its own name."""
         return asdict(self)
+
+    @classmethod
+    def from_welcome(cls, limits: Any) -> DeviceLimits:
+        """Return the limits a WELCOME advertised; absent or malformed fields keep defaults.
+
+        An older device advertises fewer fields: what it does not say is taken as this
+        version's default rather than refused, since the device checks every request
+        again itself.
+        """
+        if not isinstance(limits, dict):
+            return cls()
+        known = {f.name: type(f.default) for f in fields(cls)}
+        given = {
+            key: value
+            for key, value in limits.items()
+            if key in known
+            and not isinstance(value, bool)
+            and isinstance(value, int | float)
+            and (known[key] is float or isinstance(value, int))
+        }
+        try:
+            return cls(**given)  # type: ignore[arg-type]  # types checked above
+        except ValueError:
+            return cls()
 
 
 _SHOWN_CHARS = 40

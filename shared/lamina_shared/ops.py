@@ -11,6 +11,7 @@ from the same dataclasses, so both ends agree on every name.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -244,8 +245,6 @@ def plan_fits(plan: ScanPlan, limits: DeviceLimits) -> list[str]:
 
 
 def _json(data: Any) -> bytes:
-    import json
-
     return json.dumps(data, separators=(",", ":")).encode()
 
 
