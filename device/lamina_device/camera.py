@@ -23,6 +23,7 @@ from lamina_device.laser import Laser
 from lamina_device.motion import SimLift, SimTurntable
 from lamina_device.sim import SimScene
 from lamina_shared.capture import Capture, read_frame
+from lamina_shared.errors import LaminaError
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +34,7 @@ PICAMERA2_HELP = (
 )
 
 
-class CameraError(RuntimeError):
+class CameraError(LaminaError, RuntimeError):
     """A frame could not be produced."""
 
 

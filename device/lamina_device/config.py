@@ -18,6 +18,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import Problems, check_plan
 
@@ -26,7 +27,7 @@ BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
 MICROSTEPS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 
 
-class ConfigError(ValueError):
+class ConfigError(LaminaError, ValueError):
     """The configuration file is unusable; ``problems`` lists everything wrong with it."""
 
     def __init__(self, source: str, problems: list[str]) -> None:

@@ -33,6 +33,7 @@ from lamina_device.motion import (
 from lamina_device.safety import LaserWatchdog
 from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
 from lamina_shared.capture import MANIFEST, load_capture
+from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, ScanPlan
 
 LASER_PIN = 17
@@ -41,7 +42,7 @@ DEFAULT_PLAN = ScanPlan.regular(sections=4, pitch_mm=2.0, views=8)
 DEFAULT_CYLINDER_PLAN = ScanPlan.regular(sections=1, pitch_mm=2.0, views=8)
 
 
-class HardwareError(ValueError):
+class HardwareError(LaminaError, ValueError):
     """The requested hardware cannot be set up; the message says why and what to do."""
 
 

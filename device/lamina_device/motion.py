@@ -28,12 +28,13 @@ from gpiozero import DigitalInputDevice, DigitalOutputDevice
 from gpiozero.pins import Factory
 
 from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig
+from lamina_shared.errors import LaminaError
 from lamina_shared.presets import NOISE_PRESETS
 
 log = logging.getLogger(__name__)
 
 
-class MotionError(ValueError):
+class MotionError(LaminaError, ValueError):
     """A move was refused or failed; the message says why and what to do."""
 
 

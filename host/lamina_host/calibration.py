@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec
 
 MIN_CORNERS_THESIS = 20
@@ -56,7 +57,7 @@ MIN_GATE_PX = 1.0
 unmodelled lens distortion can leave sub-pixel systematic residuals."""
 
 
-class CalibrationError(ValueError):
+class CalibrationError(LaminaError, ValueError):
     """A problem the user can fix (board not found, too few points, bad cylinder data)."""
 
 

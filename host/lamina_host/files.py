@@ -17,11 +17,13 @@ from collections.abc import Callable
 from contextlib import suppress
 from pathlib import Path
 
+from lamina_shared.errors import LaminaError
+
 PRIVATE_FILE = 0o600
 PRIVATE_FOLDER = 0o700
 
 
-class OutputError(RuntimeError):
+class OutputError(LaminaError, RuntimeError):
     """An output cannot be written where asked; the text names the path and what to do."""
 
 

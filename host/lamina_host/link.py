@@ -35,6 +35,7 @@ import numpy as np
 import serial
 
 from lamina_host.workflow import scan_identity, spawned_source
+from lamina_shared.errors import LaminaError
 from lamina_shared.link import Channel, LinkClosed, Ticker
 from lamina_shared.protocol import (
     CHUNK_BYTES,
@@ -64,7 +65,7 @@ PROCESS_CHECK_S = 0.25
 log = logging.getLogger(__name__)
 
 
-class DeviceError(RuntimeError):
+class DeviceError(LaminaError, RuntimeError):
     """The device is missing, incompatible or refused a request; the text says what to do."""
 
 

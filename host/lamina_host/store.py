@@ -43,6 +43,7 @@ from lamina_host.workflow import (
     scan_identity,
     spawned_source,
 )
+from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 SCHEMA_VERSION = 2
@@ -108,7 +109,7 @@ CREATE TABLE IF NOT EXISTS exports (
 EXPORT_FORMATS = (".ply", ".obj", ".stl", ".json")
 
 
-class StoreError(Exception):
+class StoreError(LaminaError):
     """The library cannot do what was asked; the message says why and what to do."""
 
 

@@ -26,6 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import plan_fits
 from lamina_shared.types import ScanPlan
@@ -49,7 +50,7 @@ IDENTITY_KEYS = (
 """What a scan's identity may hold (only what the device and host know is recorded)."""
 
 
-class InputError(ValueError):
+class InputError(LaminaError, ValueError):
     """A value typed by the user is refused; the text names it and what to enter."""
 
 

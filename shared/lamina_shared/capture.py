@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits, plan_problems, show
 from lamina_shared.types import BoardSpec, ScanPlan, ViewSpec
 
@@ -42,7 +43,7 @@ class FrameError(ValueError):
     """A frame file that cannot be decoded as the capture format says."""
 
 
-class CaptureError(ValueError):
+class CaptureError(LaminaError, ValueError):
     """A capture that cannot be used; ``problems`` lists every reason found."""
 
     SHOWN = 20

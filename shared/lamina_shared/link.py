@@ -13,6 +13,7 @@ import time
 from collections import deque
 from typing import Any, Protocol
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.protocol import FrameDecoder, Kind, Message, ProtocolError, decode_message
 
 
@@ -29,7 +30,7 @@ class ByteStream(Protocol):
     def in_waiting(self) -> int: ...  # pragma: no cover - protocol
 
 
-class LinkClosed(ConnectionError):
+class LinkClosed(LaminaError, ConnectionError):
     """The other end went away (cable pulled, process ended)."""
 
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from lamina_shared.errors import LaminaError
 from lamina_shared.types import TARGETS, Segment
 
 PROTOCOL_VERSION = 2
@@ -47,7 +48,7 @@ _RICE_MAX_K = 15  # k travels as a 4-bit nibble
 _ROW_LIMIT_Q = 65_536 * ROW_SCALE  # rows stay below 65,536 px
 
 
-class ProtocolError(Exception):
+class ProtocolError(LaminaError):
     """A frame or message that does not follow the protocol."""
 
 
