@@ -30,11 +30,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cache, cached_property
+from statistics import NormalDist
 
 import cv2
 import numpy as np
 
-from lamina_shared.types import Segment
+from lamina_shared.types import CONFIDENCE_SCALE, Segment
 
 METHODS = ("cog", "thinning")
 RUN_CHOICES = ("peak", "continuity")
@@ -47,6 +48,11 @@ FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
 _FULL_SCALE = 255
+_NOISE_SAMPLES = 4096  # pixels the noise is estimated from, whatever the frame size
+_MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
+_PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
+_MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
+_UPPER_QUARTILE_SIGMAS = 0.6744897501960817  # Phi^-1(3/4): a Gaussian's upper quartile
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,16 @@ class ExtractSettings:
     nearest the stripe through the neighbouring columns). ``background_opening_px`` > 0
     removes what survives a vertical opening of that many rows (thesis 5.2.1; the
     stripe, thinner than the element, is kept, broad background is removed).
+
+    Trusting a point (issue 10): with ``noise_gate`` the frame's noise is estimated and
+    a point is kept only if its peak clears the multiple of the local noise sigma that
+    lets at most ``false_points_per_frame`` noise points through (:func:`gate_sigmas`);
+    ``min_peak`` stays a floor. A stripe is a curve: points are kept only in chains of
+    at least ``min_chain_px`` columns whose runs lie within ``max_row_jump_px`` rows of
+    each other from column to column (1 keeps isolated columns), and only runs between
+    ``min_width_px`` and ``max_width_px`` rows long, as a laser profile is.
+    ``smooth_sigma_px`` > 0 smooths the centres along each chain (a Gaussian of that
+    many columns). :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -73,11 +89,26 @@ class ExtractSettings:
     method: str = "cog"
     run_choice: str = "peak"
     background_opening_px: int = 0
+    noise_gate: bool = True
+    false_points_per_frame: float = 1e-4
+    min_chain_px: int = 8
+    max_row_jump_px: float = 2.0
+    min_width_px: int = 1
+    max_width_px: int = 64
+    smooth_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
         problems = settings_problems(self)
         if problems:
             raise ValueError("bad extraction settings: " + "; ".join(problems))
+
+    @classmethod
+    def thesis(cls, **changes: object) -> ExtractSettings:
+        """Return the thesis's method alone: no noise gate, no chains, any run width."""
+        plain: dict[str, object] = {
+            "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
+        }  # fmt: skip
+        return cls(**{**plain, **changes})  # type: ignore[arg-type]
 
 
 def settings_problems(settings: ExtractSettings) -> list[str]:
@@ -97,10 +128,25 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         )
     if settings.background_opening_px < 0:
         problems.append(f"background_opening_px {settings.background_opening_px} is negative")
+    if not 1e-12 <= settings.false_points_per_frame <= 1:
+        problems.append(
+            f"false_points_per_frame {settings.false_points_per_frame} is not in 1e-12..1"
+        )
+    if not 1 <= settings.min_chain_px <= 1000:
+        problems.append(f"min_chain_px {settings.min_chain_px} is not in 1..1000")
+    if not 0 <= settings.max_row_jump_px <= 100:
+        problems.append(f"max_row_jump_px {settings.max_row_jump_px} is not in 0..100")
+    if not 1 <= settings.min_width_px <= settings.max_width_px <= _FULL_SCALE:
+        problems.append(
+            f"min_width_px {settings.min_width_px} and max_width_px {settings.max_width_px}"
+            " do not satisfy 1 <= min_width_px <= max_width_px <= 255"
+        )
+    if not 0 <= settings.smooth_sigma_px <= 50:
+        problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
     return problems
 
 
-_THESIS = ExtractSettings()
+_DEFAULT = ExtractSettings()
 
 
 def _no_flags() -> np.ndarray:
@@ -112,7 +158,9 @@ class StripePoints:
     """Per-column stripe centres of one view, before they are labelled as a segment.
 
     ``flags`` (uint8 per point, ``FLAG_*`` bits) stays on the device: the wire segment
-    carries only ``cols``, ``rows``, ``peak`` and ``width``. Left out, it is all zeros.
+    carries ``cols``, ``rows``, ``peak``, ``width`` and ``confidence`` (the peak over
+    the local noise sigma, times ``CONFIDENCE_SCALE``, capped at 255; 0 when unknown).
+    Left out, flags and confidence are all zeros.
     """
 
     cols: np.ndarray
@@ -120,13 +168,137 @@ class StripePoints:
     peak: np.ndarray
     width: np.ndarray
     flags: np.ndarray = field(default_factory=_no_flags)
+    confidence: np.ndarray = field(default_factory=_no_flags)
 
     def __post_init__(self) -> None:
-        if self.flags.size == 0 and self.cols.size:
-            object.__setattr__(self, "flags", np.zeros(self.cols.size, np.uint8))
-        sizes = {a.size for a in (self.cols, self.rows, self.peak, self.width, self.flags)}
-        if len(sizes) > 1:
+        for name in ("flags", "confidence"):
+            if getattr(self, name).size == 0 and self.cols.size:
+                object.__setattr__(self, name, np.zeros(self.cols.size, np.uint8))
+        arrays = (self.cols, self.rows, self.peak, self.width, self.flags, self.confidence)
+        if len({a.size for a in arrays}) > 1:
             raise ValueError("stripe point arrays differ in length")
+
+    def subset(self, keep: np.ndarray) -> StripePoints:
+        """Return the points selected by ``keep`` (a mask or indices)."""
+        return StripePoints(
+            self.cols[keep], self.rows[keep], self.peak[keep], self.width[keep],
+            self.flags[keep], self.confidence[keep],
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """The noise of laser-on minus laser-off, in 8-bit DN, as the laser-off level sets it.
+
+    Read noise is the same everywhere, shot noise grows with the light, so the variance
+    is modelled as ``base_var_dn2 + var_per_dn * off`` (``off`` the laser-off level).
+    ``sigma_dn`` is the whole frame's robust sigma.
+    """
+
+    sigma_dn: float
+    base_var_dn2: float
+    var_per_dn: float
+
+    def sigma_at(self, off_dn: np.ndarray) -> np.ndarray:
+        """Return the noise sigma (DN) where the laser-off frame reads ``off_dn``."""
+        var = off_dn * self.var_per_dn
+        var += max(self.base_var_dn2, _MIN_NOISE_DN**2)
+        return np.sqrt(var)
+
+
+def _quantile(counts: np.ndarray, fraction: float) -> float:
+    """Return the level below which ``fraction`` of the values counted by level lie.
+
+    Level ``v`` is taken to spread evenly over ``[v - 0.5, v + 0.5)``, so the quantile
+    moves smoothly rather than by whole steps, as a few DN of noise need.
+    """
+    cdf = np.cumsum(counts)
+    target = float(cdf[-1]) * fraction
+    level = int(np.searchsorted(cdf, target))
+    below = float(cdf[level - 1]) if level else 0.0
+    return level - 0.5 + (target - below) / max(float(counts[level]), 1.0)
+
+
+def _sigma_from_quartile(counts: np.ndarray) -> float:
+    """Return the sigma of noise about zero from the counts of its saturated (>= 0) values.
+
+    Stripe pixels among them only raise it (a conservative noise).
+    """
+    return max(_quantile(counts, 0.75) / _UPPER_QUARTILE_SIGMAS, _MIN_NOISE_DN)
+
+
+def estimate_noise(diff8: np.ndarray, on: np.ndarray, off: np.ndarray | None) -> NoiseEstimate:
+    """Return the noise of laser-on minus laser-off from a strided subsample of the frame.
+
+    Args:
+        diff8: the saturating difference in 8-bit units, as extraction sees it.
+        on, off: the frames it came from (``off`` None: the laser-on frame alone).
+
+    The difference is saturated, so its negative half is lost; but noise about zero is
+    symmetric, so the level three quarters of the pixels lie below is still its upper
+    quartile, 0.6745 sigma, and the few percent of stripe pixels barely move it. The
+    subsample is split at its mean light level, read one row lower in the laser-off
+    frame (the same light, independent noise: the pixel's own level would select its
+    own noise), and the two halves' sigmas give the shot-noise slope. Without a
+    laser-off frame, neighbouring columns of the laser-on frame are differenced
+    instead (the same two-pixel noise, no slope).
+    """
+    height, width = diff8.shape
+    step = max(1, int(math.sqrt(height * width / _NOISE_SAMPLES)))
+    rows, cols = slice(step // 2, height - 1, step), slice(step // 2, width - 1, step)
+    shift = 8 if on.dtype == np.uint16 else 0
+    if off is None:
+        pairs = np.subtract(on[rows, cols] >> shift, on[rows, 1:][:, cols] >> shift, dtype=np.int16)
+        # Half of |difference| lies below the level three quarters of the signed one do.
+        counts = np.bincount(np.abs(pairs).ravel(), minlength=256)[:256]
+        sigma = max(_quantile(counts, 0.5) / _UPPER_QUARTILE_SIGMAS, _MIN_NOISE_DN)
+        return NoiseEstimate(sigma, sigma * sigma, 0.0)
+    below = slice(step // 2 + 1, height, step)
+    level = np.ascontiguousarray(off[below, cols] >> shift if shift else off[below, cols], np.uint8)
+    sample = np.ascontiguousarray(diff8[rows, cols])
+    mean_level = cv2.mean(level)[0]
+    bright = (level > mean_level).view(np.uint8)
+    every = cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel()
+    lit = cv2.calcHist([sample], [0], bright, [256], [0, 256]).ravel()
+    sizes = (float(every.sum()), float(lit.sum()))
+    sigma = _sigma_from_quartile(every)
+    if sizes[1] == 0 or sizes[1] == sizes[0]:
+        return NoiseEstimate(sigma, sigma * sigma, 0.0)
+    var = (_sigma_from_quartile(every - lit) ** 2, _sigma_from_quartile(lit) ** 2)
+    lit_level = cv2.mean(level, bright)[0]
+    dark_level = (mean_level * sizes[0] - lit_level * sizes[1]) / (sizes[0] - sizes[1])
+    if lit_level <= dark_level:
+        return NoiseEstimate(sigma, sigma * sigma, 0.0)
+    slope = max((var[1] - var[0]) / (lit_level - dark_level), 0.0)
+    return NoiseEstimate(sigma, max(var[0] - slope * dark_level, 0.0), slope)
+
+
+@cache
+def gate_sigmas(
+    width_px: int, height_px: int, min_chain_px: int, max_row_jump_px: float,
+    min_width_px: int, false_points_per_frame: float,
+) -> float:  # fmt: skip
+    """Return the noise multiple a point's peak must clear for the false-point rate asked.
+
+    In a frame without a stripe each column's kept run is its noise maximum. A false
+    point needs ``L = min_chain_px`` columns in a row (one may be skipped) whose maxima
+    each clear ``k`` sigmas and lie within the row jump of the previous one. With
+    Gaussian noise of upper tail ``q = Q(k)`` per pixel, a column's maximum clears it
+    with probability ``H q``, and the next column continues the chain with probability
+    about ``n q``, ``n`` = the pixels it may sit at (two columns times the rows a run
+    of ``min_width_px`` can overlap within the jump). The expected false points are
+    then ``W L H q (n q)**(L - 1)``; this returns the ``k`` that makes it
+    ``false_points_per_frame``, never below the stripe-pixel level.
+    """
+    chain = min_chain_px
+    reach = (1 + _MAX_COL_GAP) * (2 * math.floor(max_row_jump_px) + 2 * min_width_px + 1)
+    log_q = (
+        math.log(false_points_per_frame)
+        - math.log(width_px * height_px * chain)
+        - (chain - 1) * math.log(reach)
+    ) / chain
+    q = min(math.exp(log_q), 0.5)
+    return max(-NormalDist().inv_cdf(q), _PIXEL_SIGMAS)
 
 
 def difference(on: np.ndarray, off: np.ndarray | None) -> np.ndarray:
@@ -558,16 +730,19 @@ def extract(
     Args:
         on: laser-on frame (H, W), uint8 or uint16 (16-bit is worked in 8-bit units).
         off: laser-off frame like ``on``, or None to use the laser-on frame alone.
-        settings: how to find the stripe; the thesis's method when None.
+        settings: how to find the stripe; :class:`ExtractSettings` defaults when None.
 
     Returns:
-        One point per column where a stripe was found.
+        One point per column where a stripe was found, with its confidence.
     """
-    settings = settings or _THESIS
+    settings = settings or _DEFAULT
     diff = _to_8bit(difference(on, off))
+    noise = estimate_noise(diff, on, off)
     if settings.background_opening_px > 0:
         diff = remove_background(diff, settings.background_opening_px)
     floor = math.ceil(settings.min_peak - 1)  # the lowest level a stripe pixel may have
+    if settings.noise_gate:  # below a couple of sigmas a pixel is as likely noise as stripe
+        floor = max(floor, min(math.floor(_PIXEL_SIGMAS * noise.sigma_dn), _FULL_SCALE - 1))
     if settings.threshold is None:
         bright = _Bright.find(diff, floor)
         # Otsu's criterion needs the counts above each candidate level only, which the
@@ -578,10 +753,99 @@ def extract(
         threshold = float(max(settings.threshold, floor))
         bright = _Bright.find(diff, math.floor(threshold))
     if settings.method == "thinning":
-        return _thinning(diff, bright, threshold, settings.run_choice)
-    return _centres(
-        bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
-    )
+        points = _thinning(diff, bright, threshold, settings.run_choice)
+    else:
+        points = _centres(
+            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
+        )
+    return _trust(points, off, noise, settings, diff.shape)
+
+
+def _trust(
+    points: StripePoints,
+    off: np.ndarray | None,
+    noise: NoiseEstimate,
+    settings: ExtractSettings,
+    shape: tuple[int, ...],
+) -> StripePoints:
+    """Return the points with their confidence, less those noise, width or chains reject."""
+    if points.cols.size == 0:
+        return points
+    if off is None:
+        sigma: np.ndarray | float = noise.sigma_dn
+    else:  # rows are never negative, so + 0.5 and truncation round them
+        level = off[(points.rows + 0.5).astype(np.intp), points.cols]
+        sigma = noise.sigma_at(level >> 8 if off.dtype == np.uint16 else level)
+    ratio = points.peak / sigma
+    confidence = np.minimum(ratio * CONFIDENCE_SCALE + 0.5, _FULL_SCALE).astype(np.uint8)
+    keep = None
+    if settings.noise_gate:
+        keep = ratio >= gate_sigmas(
+            shape[1], shape[0], settings.min_chain_px, settings.max_row_jump_px,
+            settings.min_width_px, settings.false_points_per_frame,
+        )  # fmt: skip
+    if settings.min_width_px > 1 or settings.max_width_px < _FULL_SCALE:
+        fits = (points.width >= settings.min_width_px) & (points.width <= settings.max_width_px)
+        keep = fits if keep is None else keep & fits
+    index = np.arange(points.cols.size) if keep is None else np.flatnonzero(keep)
+    if settings.min_chain_px > 1 or settings.smooth_sigma_px > 0:
+        chain = _chains(points.cols[index], points.rows[index], points.width[index], settings)
+        if settings.min_chain_px > 1:
+            long = np.bincount(chain)[chain] >= settings.min_chain_px
+            index, chain = index[long], chain[long]
+    rows = points.rows[index]
+    if settings.smooth_sigma_px > 0 and index.size:
+        rows = _smoothed(points.cols[index], rows, chain, settings.smooth_sigma_px)
+    return StripePoints(
+        points.cols[index], rows, points.peak[index], points.width[index], points.flags[index],
+        confidence[index],
+    )  # fmt: skip
+
+
+def _chains(
+    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, settings: ExtractSettings
+) -> np.ndarray:
+    """Return each point's chain number: neighbouring points (one column may be skipped)
+    whose runs come within ``max_row_jump_px`` rows of each other share a chain."""
+    if cols.size == 0:
+        return np.zeros(0, np.intp)
+    # A run of w rows spans its centre +- (w - 1) / 2.
+    reach = np.add(width[1:], width[:-1], dtype=np.float32)
+    reach *= 0.5
+    reach += settings.max_row_jump_px - 1
+    link = np.abs(np.diff(rows)) <= reach
+    link &= np.diff(cols) <= 1 + _MAX_COL_GAP
+    chain = np.zeros(cols.size, np.intp)
+    np.cumsum(~link, out=chain[1:])
+    return chain
+
+
+def _smoothed(cols: np.ndarray, rows: np.ndarray, chain: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Return each centre replaced by a local line fit along its chain (Gaussian weights).
+
+    Fitting a line rather than averaging keeps a sloping stripe unbiased up to the
+    chain's ends; a curving one is biased by about curvature x sigma**2 / 2.
+    """
+    n = cols.size
+    radius = math.ceil(3 * sigma_px)
+    x = cols.astype(np.float64)
+    y = rows.astype(np.float64)
+    sums = np.zeros((5, n))  # sum of w, w dx, w dx^2, w y, w dx y
+    for step in range(-radius, radius + 1):
+        if step == 0 or abs(step) >= n:
+            continue
+        here = slice(max(0, -step), n - max(0, step))
+        there = slice(max(0, step), n - max(0, -step))
+        dx = x[there] - x[here]
+        w = np.exp(-0.5 * (dx / sigma_px) ** 2) * (chain[there] == chain[here])
+        wy = w * y[there]
+        sums[:, here] += (w, w * dx, w * dx * dx, wy, wy * dx)
+    s0, s1, s2, t0, t1 = sums
+    s0 += 1.0
+    t0 += y
+    det = s0 * s2 - s1 * s1
+    fitted = np.where(det > 1e-9, (s2 * t0 - s1 * t1) / np.where(det > 1e-9, det, 1.0), t0 / s0)
+    return fitted.astype(np.float32)
 
 
 def to_segment(
@@ -589,5 +853,6 @@ def to_segment(
 ) -> Segment:
     """Label one view's stripe points with where they were taken (flags stay on-device)."""
     return Segment(
-        target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak, points.width
-    )
+        target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak,
+        points.width, points.confidence,
+    )  # fmt: skip
