@@ -52,7 +52,10 @@ _NOISE_SAMPLES = 4096  # pixels the noise is estimated from, whatever the frame 
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
 _MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
-_UPPER_QUARTILE_SIGMAS = 0.6744897501960817  # Phi^-1(3/4): a Gaussian's upper quartile
+# The noise estimate of one frame scatters by ~3 % (a few thousand samples); the gate
+# allows for two of those, else an underestimated frame lets several times the rate in.
+_NOISE_MARGIN = 1.06
+_IQR_SIGMAS = 1.3489795003921634  # 2 Phi^-1(3/4): a Gaussian's interquartile range in sigmas
 
 
 @dataclass(frozen=True)
@@ -206,67 +209,67 @@ class NoiseEstimate:
         return np.sqrt(var)
 
 
-def _quantile(counts: np.ndarray, fraction: float) -> float:
-    """Return the level below which ``fraction`` of the values counted by level lie.
+def _quantiles(counts: np.ndarray, fractions: tuple[float, ...]) -> list[float]:
+    """Return the levels below which ``fractions`` of the values counted by level lie.
 
-    Level ``v`` is taken to spread evenly over ``[v - 0.5, v + 0.5)``, so the quantile
+    Level ``v`` is taken to spread evenly over ``[v - 0.5, v + 0.5)``, so a quantile
     moves smoothly rather than by whole steps, as a few DN of noise need.
     """
     cdf = np.cumsum(counts)
-    target = float(cdf[-1]) * fraction
-    level = int(np.searchsorted(cdf, target))
-    below = float(cdf[level - 1]) if level else 0.0
-    return level - 0.5 + (target - below) / max(float(counts[level]), 1.0)
+    targets = float(cdf[-1]) * np.asarray(fractions)
+    levels = np.searchsorted(cdf, targets).tolist()
+    result = []
+    for level, target in zip(levels, targets.tolist(), strict=True):
+        below = float(cdf[level - 1]) if level else 0.0
+        result.append(level - 0.5 + (target - below) / max(float(counts[level]), 1.0))
+    return result
 
 
-def _sigma_from_quartile(counts: np.ndarray) -> float:
-    """Return the sigma of noise about zero from the counts of its saturated (>= 0) values.
+def _iqr_sigma(counts: np.ndarray) -> float:
+    """Return the sigma of Gaussian noise from its counts by level (interquartile range).
 
-    Stripe pixels among them only raise it (a conservative noise).
+    Whatever its offset; the few percent of stripe pixels among them only widen it.
     """
-    return max(_quantile(counts, 0.75) / _UPPER_QUARTILE_SIGMAS, _MIN_NOISE_DN)
+    low, high = _quantiles(counts, (0.25, 0.75))
+    return max((high - low) / _IQR_SIGMAS, _MIN_NOISE_DN)
 
 
-def estimate_noise(diff8: np.ndarray, on: np.ndarray, off: np.ndarray | None) -> NoiseEstimate:
-    """Return the noise of laser-on minus laser-off from a strided subsample of the frame.
+def estimate_noise(on: np.ndarray, off: np.ndarray | None) -> NoiseEstimate:
+    """Return the noise of laser-on minus laser-off, in 8-bit DN, from a strided subsample.
 
-    Args:
-        diff8: the saturating difference in 8-bit units, as extraction sees it.
-        on, off: the frames it came from (``off`` None: the laser-on frame alone).
-
-    The difference is saturated, so its negative half is lost; but noise about zero is
-    symmetric, so the level three quarters of the pixels lie below is still its upper
-    quartile, 0.6745 sigma, and the few percent of stripe pixels barely move it. The
-    subsample is split at its mean light level, read one row lower in the laser-off
-    frame (the same light, independent noise: the pixel's own level would select its
-    own noise), and the two halves' sigmas give the shot-noise slope. Without a
-    laser-off frame, neighbouring columns of the laser-on frame are differenced
-    instead (the same two-pixel noise, no slope).
+    The saturating difference hides half the noise, so the signed difference is taken
+    on a subsample of a few thousand pixels; its interquartile range ignores the few
+    percent of stripe pixels and any offset between the frames. The subsample is split
+    at its mean light level, read one row lower in the laser-off frame (the same light,
+    independent noise: a pixel's own level would select its own noise), and the two
+    halves' sigmas give the shot-noise slope. Without a laser-off frame, neighbouring
+    columns of the laser-on frame are differenced instead (the same two-pixel noise).
     """
-    height, width = diff8.shape
+    height, width = on.shape
     step = max(1, int(math.sqrt(height * width / _NOISE_SAMPLES)))
     rows, cols = slice(step // 2, height - 1, step), slice(step // 2, width - 1, step)
     shift = 8 if on.dtype == np.uint16 else 0
+    first = on[rows, cols] >> shift if off is None else off[rows, cols] >> shift
+    second = on[rows, step // 2 + 1 :: step] >> shift if off is None else on[rows, cols] >> shift
+    key = np.subtract(second[:, : first.shape[1]], first, dtype=np.int16)
+    key += 256
     if off is None:
-        pairs = np.subtract(on[rows, cols] >> shift, on[rows, 1:][:, cols] >> shift, dtype=np.int16)
-        # Half of |difference| lies below the level three quarters of the signed one do.
-        counts = np.bincount(np.abs(pairs).ravel(), minlength=256)[:256]
-        sigma = max(_quantile(counts, 0.5) / _UPPER_QUARTILE_SIGMAS, _MIN_NOISE_DN)
+        sigma = _iqr_sigma(np.bincount(key.ravel(), minlength=512))
         return NoiseEstimate(sigma, sigma * sigma, 0.0)
-    below = slice(step // 2 + 1, height, step)
-    level = np.ascontiguousarray(off[below, cols] >> shift if shift else off[below, cols], np.uint8)
-    sample = np.ascontiguousarray(diff8[rows, cols])
+    level = np.ascontiguousarray(off[step // 2 + 1 :: step, cols] >> shift, np.uint8)
     mean_level = cv2.mean(level)[0]
     bright = (level > mean_level).view(np.uint8)
-    every = cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel()
-    lit = cv2.calcHist([sample], [0], bright, [256], [0, 256]).ravel()
-    sizes = (float(every.sum()), float(lit.sum()))
-    sigma = _sigma_from_quartile(every)
-    if sizes[1] == 0 or sizes[1] == sizes[0]:
+    key[bright.view(bool)] += 512
+    counts = np.bincount(key.ravel(), minlength=1024)
+    halves = (counts[:512], counts[512:])
+    sizes = (float(halves[0].sum()), float(halves[1].sum()))
+    if min(sizes) == 0:
+        sigma = _iqr_sigma(halves[0] + halves[1])
         return NoiseEstimate(sigma, sigma * sigma, 0.0)
-    var = (_sigma_from_quartile(every - lit) ** 2, _sigma_from_quartile(lit) ** 2)
+    var = (_iqr_sigma(halves[0]) ** 2, _iqr_sigma(halves[1]) ** 2)
+    sigma = math.sqrt((var[0] * sizes[0] + var[1] * sizes[1]) / (sizes[0] + sizes[1]))
     lit_level = cv2.mean(level, bright)[0]
-    dark_level = (mean_level * sizes[0] - lit_level * sizes[1]) / (sizes[0] - sizes[1])
+    dark_level = (mean_level * (sizes[0] + sizes[1]) - lit_level * sizes[1]) / sizes[0]
     if lit_level <= dark_level:
         return NoiseEstimate(sigma, sigma * sigma, 0.0)
     slope = max((var[1] - var[0]) / (lit_level - dark_level), 0.0)
@@ -275,30 +278,23 @@ def estimate_noise(diff8: np.ndarray, on: np.ndarray, off: np.ndarray | None) ->
 
 @cache
 def gate_sigmas(
-    width_px: int, height_px: int, min_chain_px: int, max_row_jump_px: float,
-    min_width_px: int, false_points_per_frame: float,
-) -> float:  # fmt: skip
-    """Return the noise multiple a point's peak must clear for the false-point rate asked.
+    width_px: int, height_px: int, min_chain_px: int, false_points_per_frame: float
+) -> float:
+    """Return the noise multiple ``k`` a point's peak must clear for the false-point rate asked.
 
-    In a frame without a stripe each column's kept run is its noise maximum. A false
-    point needs ``L = min_chain_px`` columns in a row (one may be skipped) whose maxima
-    each clear ``k`` sigmas and lie within the row jump of the previous one. With
-    Gaussian noise of upper tail ``q = Q(k)`` per pixel, a column's maximum clears it
-    with probability ``H q``, and the next column continues the chain with probability
-    about ``n q``, ``n`` = the pixels it may sit at (two columns times the rows a run
-    of ``min_width_px`` can overlap within the jump). The expected false points are
-    then ``W L H q (n q)**(L - 1)``; this returns the ``k`` that makes it
-    ``false_points_per_frame``, never below the stripe-pixel level.
+    In a frame without a stripe each column keeps its noise maximum, which clears
+    ``k`` sigmas with probability ``p = 1 - (1 - Q(k))**H`` (``Q`` the Gaussian upper
+    tail, ``H`` rows). A false point needs ``L = min_chain_px`` neighbouring columns
+    that all do, so the expected false points are at most ``W L p**L`` (``W``
+    columns); this returns the ``k`` that makes that ``false_points_per_frame``, never
+    below the stripe-pixel level. It takes no credit for the maxima having to line up
+    within the row jump (with white noise they seldom do), so it holds for noise that
+    is correlated along the columns as well.
     """
     chain = min_chain_px
-    reach = (1 + _MAX_COL_GAP) * (2 * math.floor(max_row_jump_px) + 2 * min_width_px + 1)
-    log_q = (
-        math.log(false_points_per_frame)
-        - math.log(width_px * height_px * chain)
-        - (chain - 1) * math.log(reach)
-    ) / chain
-    q = min(math.exp(log_q), 0.5)
-    return max(-NormalDist().inv_cdf(q), _PIXEL_SIGMAS)
+    per_column = min((false_points_per_frame / (width_px * chain)) ** (1.0 / chain), 0.5)
+    per_pixel = -math.expm1(math.log1p(-per_column) / height_px)
+    return max(-NormalDist().inv_cdf(per_pixel), _PIXEL_SIGMAS)
 
 
 def difference(on: np.ndarray, off: np.ndarray | None) -> np.ndarray:
@@ -737,7 +733,7 @@ def extract(
     """
     settings = settings or _DEFAULT
     diff = _to_8bit(difference(on, off))
-    noise = estimate_noise(diff, on, off)
+    noise = estimate_noise(on, off)
     if settings.background_opening_px > 0:
         diff = remove_background(diff, settings.background_opening_px)
     floor = math.ceil(settings.min_peak - 1)  # the lowest level a stripe pixel may have
@@ -780,10 +776,8 @@ def _trust(
     confidence = np.minimum(ratio * CONFIDENCE_SCALE + 0.5, _FULL_SCALE).astype(np.uint8)
     keep = None
     if settings.noise_gate:
-        keep = ratio >= gate_sigmas(
-            shape[1], shape[0], settings.min_chain_px, settings.max_row_jump_px,
-            settings.min_width_px, settings.false_points_per_frame,
-        )  # fmt: skip
+        k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)
+        keep = ratio >= k * _NOISE_MARGIN
     if settings.min_width_px > 1 or settings.max_width_px < _FULL_SCALE:
         fits = (points.width >= settings.min_width_px) & (points.width <= settings.max_width_px)
         keep = fits if keep is None else keep & fits
@@ -820,31 +814,40 @@ def _chains(
     return chain
 
 
+@cache
+def _line_fit_kernels(sigma_px: float) -> np.ndarray:
+    """Return the Gaussian weights ``w``, ``w dx`` and ``w dx**2`` of a local line fit (3, K)."""
+    radius = math.ceil(3 * sigma_px)
+    dx = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (dx / sigma_px) ** 2)
+    kernels = np.stack([w, w * dx, w * dx * dx])
+    kernels.flags.writeable = False
+    return kernels
+
+
 def _smoothed(cols: np.ndarray, rows: np.ndarray, chain: np.ndarray, sigma_px: float) -> np.ndarray:
     """Return each centre replaced by a local line fit along its chain (Gaussian weights).
 
     Fitting a line rather than averaging keeps a sloping stripe unbiased up to the
-    chain's ends; a curving one is biased by about curvature x sigma**2 / 2.
+    chain's ends; a curving one is biased by about curvature x sigma**2 / 2. Points are
+    laid out by column with each chain moved past the reach of the previous one, so
+    three correlations over the whole view fit every chain at once and none mixes.
     """
-    n = cols.size
-    radius = math.ceil(3 * sigma_px)
-    x = cols.astype(np.float64)
-    y = rows.astype(np.float64)
-    sums = np.zeros((5, n))  # sum of w, w dx, w dx^2, w y, w dx y
-    for step in range(-radius, radius + 1):
-        if step == 0 or abs(step) >= n:
-            continue
-        here = slice(max(0, -step), n - max(0, step))
-        there = slice(max(0, step), n - max(0, -step))
-        dx = x[there] - x[here]
-        w = np.exp(-0.5 * (dx / sigma_px) ** 2) * (chain[there] == chain[here])
-        wy = w * y[there]
-        sums[:, here] += (w, w * dx, w * dx * dx, wy, wy * dx)
-    s0, s1, s2, t0, t1 = sums
-    s0 += 1.0
-    t0 += y
+    kernels = _line_fit_kernels(sigma_px)
+    radius = kernels.shape[1] // 2
+    place = cols.astype(np.intp) + chain * (radius + 1) - int(cols[0])
+    lanes = np.zeros((2, int(place[-1]) + 1))
+    lanes[0, place] = 1.0
+    lanes[1, place] = rows
+    # cv2.filter2D correlates: lane[i + dx] * kernel[dx], zero beyond the ends.
+    sums = [
+        cv2.filter2D(lanes, -1, k[None, :], borderType=cv2.BORDER_CONSTANT)[:, place]
+        for k in kernels
+    ]
+    (s0, t0), (s1, t1), (s2, _) = sums
     det = s0 * s2 - s1 * s1
-    fitted = np.where(det > 1e-9, (s2 * t0 - s1 * t1) / np.where(det > 1e-9, det, 1.0), t0 / s0)
+    usable = det > 1e-6 * s0 * s0  # a single point (or one column) has no slope
+    fitted = np.where(usable, (s2 * t0 - s1 * t1) / np.where(usable, det, 1.0), t0 / s0)
     return fitted.astype(np.float32)
 
 

@@ -69,8 +69,9 @@ class View:
     """One rendered view: its frames, the true stripe rows and the rig that made them.
 
     ``truth_rows`` is (K, W): up to K true stripe rows per column (NaN where fewer);
-    ``truth_top`` and ``truth_bottom`` bound each true stripe's band (its half-maximum
-    rows); ``truth_peak_dn`` is each column's noise-free laser peak in the frame's DN.
+    ``truth_top`` and ``truth_bottom`` bound each true stripe's band (the rows where
+    it exceeds 10 % of its column's peak); ``truth_peak_dn`` is each column's
+    noise-free laser peak in the frame's DN.
     """
 
     name: str
@@ -103,9 +104,9 @@ def _scene(spec: str, preset: str, rig: Rig, seed: int, truth: bool) -> SimScene
 def _column_truth(laser: np.ndarray, min_dn: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (3, K, W) centre, top and bottom rows of every true stripe run, and the peaks.
 
-    A run is where the noise-free laser exceeds 10 % of its column's peak; its centre
-    is the intensity-weighted one, its top and bottom bound where it exceeds half of
-    its own peak (the band a point on the stripe may fall in).
+    A run is where the noise-free laser exceeds 10 % of its column's peak: the band a
+    point on the stripe may fall in, however speckle scatters it; its centre is the
+    intensity-weighted one.
     """
     height, width = laser.shape
     peak = laser.max(axis=0)
@@ -117,9 +118,8 @@ def _column_truth(laser: np.ndarray, min_dn: float) -> tuple[np.ndarray, np.ndar
         edges = np.flatnonzero(np.diff(np.concatenate([[0], above.view(np.int8), [0]])))
         for start, stop in zip(edges[0::2], edges[1::2], strict=True):
             w = column[start:stop]
-            half = np.flatnonzero(w >= 0.5 * w.max()) + start
             centre = float((rows[start:stop] * w).sum() / w.sum())
-            found[col].append((centre, float(half[0]), float(half[-1])))
+            found[col].append((centre, float(start), float(stop - 1)))
     depth = max(1, max(len(c) for c in found))
     truth = np.full((3, depth, width), np.nan)
     for col, runs in enumerate(found):
@@ -179,7 +179,8 @@ class Score:
     outliers: int
     """Points more than ``tolerance_px`` from every true stripe row of their column."""
     off_stripe: int
-    """Points more than ``tolerance_px`` outside every true stripe band: noise, not scatter."""
+    """Points more than ``tolerance_px`` outside every true stripe's band: noise points,
+    not the scatter speckle gives points on the stripe."""
     truth_columns: int
     rms_px: float
     """RMS error of the points that are not outliers, px."""
