@@ -35,7 +35,8 @@ from statistics import NormalDist
 import cv2
 import numpy as np
 
-from lamina_shared.types import CONFIDENCE_SCALE, Segment
+from lamina_shared.protocol import confidence_bytes
+from lamina_shared.types import Segment
 
 METHODS = ("cog", "thinning")
 RUN_CHOICES = ("peak", "continuity")
@@ -162,7 +163,7 @@ class StripePoints:
 
     ``flags`` (uint8 per point, ``FLAG_*`` bits) stays on the device: the wire segment
     carries ``cols``, ``rows``, ``peak``, ``width`` and ``confidence`` (the peak over
-    the local noise sigma, times ``CONFIDENCE_SCALE``, capped at 255; 0 when unknown).
+    the view's noise sigma, times ``CONFIDENCE_SCALE``, capped at 255; 0 when unknown).
     Left out, flags and confidence are all zeros.
     """
 
@@ -773,7 +774,9 @@ def _trust(
         level = off[(points.rows + 0.5).astype(np.intp), points.cols]
         sigma = noise.sigma_at(level >> 8 if off.dtype == np.uint16 else level)
     ratio = points.peak / sigma
-    confidence = np.minimum(ratio * CONFIDENCE_SCALE + 0.5, _FULL_SCALE).astype(np.uint8)
+    # The confidence divides by the frame's sigma, not the local one: one scale a view
+    # keeps it within the link budget (a per-pixel level would change it every column).
+    confidence = confidence_bytes(points.peak, noise.sigma_dn)
     keep = None
     if settings.noise_gate:
         k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from lamina_shared.types import TARGETS, Segment
+from lamina_shared.types import CONFIDENCE_SCALE, TARGETS, Segment
 
 PROTOCOL_VERSION = 3
 MAX_PAYLOAD_BYTES = 64 * 1024
@@ -326,9 +326,20 @@ def _scale_bounds(peak: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray,
     return np.where(free, 0, lo), np.where(free, _SCALE_LIMIT, hi)
 
 
-def _confidence(peak: np.ndarray, scale: np.ndarray) -> np.ndarray:
+def _confidence(peak: np.ndarray, scale: np.ndarray | int) -> np.ndarray:
     """Return ``round(peak * scale / 256)`` capped at 255: the decoder's confidence."""
     return np.minimum((peak * scale + (1 << (_SCALE_BITS - 1))) >> _SCALE_BITS, 255)
+
+
+def confidence_bytes(peak: np.ndarray, noise_sigma_dn: float) -> np.ndarray:
+    """Return each point's confidence byte: peak over ``noise_sigma_dn`` (see ``Segment``).
+
+    Computed as the decoder does, through one integer scale, so a segment whose points
+    share one noise travels with a single scale run.
+    """
+    scale = round((CONFIDENCE_SCALE << _SCALE_BITS) / max(noise_sigma_dn, 1e-3))
+    scale = min(scale, _SCALE_LIMIT - 1)
+    return _confidence(np.asarray(peak, np.int64), scale).astype(np.uint8)
 
 
 def _scale_runs(peak: np.ndarray, confidence: np.ndarray) -> list[tuple[int, int]]:

@@ -127,9 +127,9 @@ class Segment:
     ``cols`` are image columns (integers), ``rows`` the sub-pixel stripe centre in
     each column, ``peak`` the highest difference intensity of the run used and
     ``width`` its length in pixels: per-point quality for the host to judge.
-    ``confidence`` (uint8) is the peak over the frame's noise sigma at that point, times
-    :data:`CONFIDENCE_SCALE` and capped at 255; 0 means unknown (segments recorded
-    before the device measured its noise).
+    ``confidence`` (uint8) is the peak over the noise sigma of the view's difference
+    image, times :data:`CONFIDENCE_SCALE` and capped at 255; 0 means unknown (segments
+    recorded before the device measured its noise).
     """
 
     target: str
