@@ -49,7 +49,7 @@ FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
 _FULL_SCALE = 255
-_NOISE_SAMPLES = 4096  # pixels the noise is estimated from, whatever the frame size
+_NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
 _MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
@@ -190,91 +190,43 @@ class StripePoints:
         )  # fmt: skip
 
 
-@dataclass(frozen=True)
-class NoiseEstimate:
-    """The noise of laser-on minus laser-off, in 8-bit DN, as the laser-off level sets it.
+def _iqr_sigma(counts: np.ndarray) -> float:
+    """Return the sigma of Gaussian noise from its values counted by level.
 
-    Read noise is the same everywhere, shot noise grows with the light, so the variance
-    is modelled as ``base_var_dn2 + var_per_dn * off`` (``off`` the laser-off level).
-    ``sigma_dn`` is the whole frame's robust sigma.
-    """
-
-    sigma_dn: float
-    base_var_dn2: float
-    var_per_dn: float
-
-    def sigma_at(self, off_dn: np.ndarray) -> np.ndarray:
-        """Return the noise sigma (DN) where the laser-off frame reads ``off_dn``."""
-        var = off_dn * self.var_per_dn
-        var += max(self.base_var_dn2, _MIN_NOISE_DN**2)
-        return np.sqrt(var)
-
-
-def _quantiles(counts: np.ndarray, fractions: tuple[float, ...]) -> list[float]:
-    """Return the levels below which ``fractions`` of the values counted by level lie.
-
-    Level ``v`` is taken to spread evenly over ``[v - 0.5, v + 0.5)``, so a quantile
-    moves smoothly rather than by whole steps, as a few DN of noise need.
+    From the interquartile range, which ignores any offset and which the few percent of
+    stripe pixels among the values only widen. Level ``v`` is taken to spread evenly
+    over ``[v - 0.5, v + 0.5)``, so the quartiles move smoothly rather than by whole
+    steps, as a few DN of noise need.
     """
     cdf = np.cumsum(counts)
-    targets = float(cdf[-1]) * np.asarray(fractions)
-    levels = np.searchsorted(cdf, targets).tolist()
-    result = []
-    for level, target in zip(levels, targets.tolist(), strict=True):
-        below = float(cdf[level - 1]) if level else 0.0
-        result.append(level - 0.5 + (target - below) / max(float(counts[level]), 1.0))
-    return result
+    targets = (0.25 * float(cdf[-1]), 0.75 * float(cdf[-1]))
+    quartiles = []
+    for target, index in zip(targets, np.searchsorted(cdf, targets).tolist(), strict=True):
+        below = float(cdf[index - 1]) if index else 0.0
+        quartiles.append(index - 0.5 + (target - below) / max(float(counts[index]), 1.0))
+    return max((quartiles[1] - quartiles[0]) / _IQR_SIGMAS, _MIN_NOISE_DN)
 
 
-def _iqr_sigma(counts: np.ndarray) -> float:
-    """Return the sigma of Gaussian noise from its counts by level (interquartile range).
-
-    Whatever its offset; the few percent of stripe pixels among them only widen it.
-    """
-    low, high = _quantiles(counts, (0.25, 0.75))
-    return max((high - low) / _IQR_SIGMAS, _MIN_NOISE_DN)
-
-
-def estimate_noise(on: np.ndarray, off: np.ndarray | None) -> NoiseEstimate:
-    """Return the noise of laser-on minus laser-off, in 8-bit DN, from a strided subsample.
+def estimate_noise(on: np.ndarray, off: np.ndarray | None) -> float:
+    """Return the noise sigma of laser-on minus laser-off, in 8-bit DN, from a subsample.
 
     The saturating difference hides half the noise, so the signed difference is taken
-    on a subsample of a few thousand pixels; its interquartile range ignores the few
-    percent of stripe pixels and any offset between the frames. The subsample is split
-    at its mean light level, read one row lower in the laser-off frame (the same light,
-    independent noise: a pixel's own level would select its own noise), and the two
-    halves' sigmas give the shot-noise slope. Without a laser-off frame, neighbouring
-    columns of the laser-on frame are differenced instead (the same two-pixel noise).
+    on a strided subsample of a couple of thousand pixels; its interquartile range
+    ignores the few percent of stripe pixels and any offset between the frames. Without
+    a laser-off frame, neighbouring columns of the laser-on frame are differenced
+    instead (the same noise of two pixels). One sigma serves the whole frame: shot noise
+    makes bright parts noisier, which the gate's chains and margin absorb.
     """
     height, width = on.shape
     step = max(1, int(math.sqrt(height * width / _NOISE_SAMPLES)))
-    rows, cols = slice(step // 2, height - 1, step), slice(step // 2, width - 1, step)
-    shift = 8 if on.dtype == np.uint16 else 0
-    first = on[rows, cols] >> shift if off is None else off[rows, cols] >> shift
-    second = on[rows, step // 2 + 1 :: step] >> shift if off is None else on[rows, cols] >> shift
+    rows, cols = slice(step // 2, height, step), slice(step // 2, width - 1, step)
+    first = on[rows, cols] if off is None else off[rows, cols]
+    second = on[rows, step // 2 + 1 :: step] if off is None else on[rows, cols]
+    if on.dtype == np.uint16:
+        first, second = first >> 8, second >> 8
     key = np.subtract(second[:, : first.shape[1]], first, dtype=np.int16)
     key += 256
-    if off is None:
-        sigma = _iqr_sigma(np.bincount(key.ravel(), minlength=512))
-        return NoiseEstimate(sigma, sigma * sigma, 0.0)
-    level = np.ascontiguousarray(off[step // 2 + 1 :: step, cols] >> shift, np.uint8)
-    mean_level = cv2.mean(level)[0]
-    bright = (level > mean_level).view(np.uint8)
-    key[bright.view(bool)] += 512
-    counts = np.bincount(key.ravel(), minlength=1024)
-    halves = (counts[:512], counts[512:])
-    sizes = (float(halves[0].sum()), float(halves[1].sum()))
-    if min(sizes) == 0:
-        sigma = _iqr_sigma(halves[0] + halves[1])
-        return NoiseEstimate(sigma, sigma * sigma, 0.0)
-    var = (_iqr_sigma(halves[0]) ** 2, _iqr_sigma(halves[1]) ** 2)
-    sigma = math.sqrt((var[0] * sizes[0] + var[1] * sizes[1]) / (sizes[0] + sizes[1]))
-    lit_level = cv2.mean(level, bright)[0]
-    dark_level = (mean_level * (sizes[0] + sizes[1]) - lit_level * sizes[1]) / sizes[0]
-    if lit_level <= dark_level:
-        return NoiseEstimate(sigma, sigma * sigma, 0.0)
-    slope = max((var[1] - var[0]) / (lit_level - dark_level), 0.0)
-    return NoiseEstimate(sigma, max(var[0] - slope * dark_level, 0.0), slope)
+    return _iqr_sigma(np.bincount(key.ravel(), minlength=512))
 
 
 @cache
@@ -734,12 +686,12 @@ def extract(
     """
     settings = settings or _DEFAULT
     diff = _to_8bit(difference(on, off))
-    noise = estimate_noise(on, off)
+    noise_dn = estimate_noise(on, off)
     if settings.background_opening_px > 0:
         diff = remove_background(diff, settings.background_opening_px)
     floor = math.ceil(settings.min_peak - 1)  # the lowest level a stripe pixel may have
     if settings.noise_gate:  # below a couple of sigmas a pixel is as likely noise as stripe
-        floor = max(floor, min(math.floor(_PIXEL_SIGMAS * noise.sigma_dn), _FULL_SCALE - 1))
+        floor = max(floor, min(math.floor(_PIXEL_SIGMAS * noise_dn), _FULL_SCALE - 1))
     if settings.threshold is None:
         bright = _Bright.find(diff, floor)
         # Otsu's criterion needs the counts above each candidate level only, which the
@@ -755,66 +707,74 @@ def extract(
         points = _centres(
             bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
         )
-    return _trust(points, off, noise, settings, diff.shape)
+    return _trust(points, noise_dn, settings, diff.shape)
 
 
 def _trust(
-    points: StripePoints,
-    off: np.ndarray | None,
-    noise: NoiseEstimate,
-    settings: ExtractSettings,
-    shape: tuple[int, ...],
+    points: StripePoints, noise_dn: float, settings: ExtractSettings, shape: tuple[int, ...]
 ) -> StripePoints:
     """Return the points with their confidence, less those noise, width or chains reject."""
     if points.cols.size == 0:
         return points
-    if off is None:
-        sigma: np.ndarray | float = noise.sigma_dn
-    else:  # rows are never negative, so + 0.5 and truncation round them
-        level = off[(points.rows + 0.5).astype(np.intp), points.cols]
-        sigma = noise.sigma_at(level >> 8 if off.dtype == np.uint16 else level)
-    ratio = points.peak / sigma
-    # The confidence divides by the frame's sigma, not the local one: one scale a view
-    # keeps it within the link budget (a per-pixel level would change it every column).
-    confidence = confidence_bytes(points.peak, noise.sigma_dn)
+    # One noise for the view: one confidence scale on the wire, a few bytes a segment.
+    confidence = confidence_bytes(points.peak, noise_dn)
     keep = None
     if settings.noise_gate:
         k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)
-        keep = ratio >= k * _NOISE_MARGIN
-    if settings.min_width_px > 1 or settings.max_width_px < _FULL_SCALE:
-        fits = (points.width >= settings.min_width_px) & (points.width <= settings.max_width_px)
-        keep = fits if keep is None else keep & fits
-    index = np.arange(points.cols.size) if keep is None else np.flatnonzero(keep)
-    if settings.min_chain_px > 1 or settings.smooth_sigma_px > 0:
-        chain = _chains(points.cols[index], points.rows[index], points.width[index], settings)
-        if settings.min_chain_px > 1:
-            long = np.bincount(chain)[chain] >= settings.min_chain_px
-            index, chain = index[long], chain[long]
-    rows = points.rows[index]
-    if settings.smooth_sigma_px > 0 and index.size:
-        rows = _smoothed(points.cols[index], rows, chain, settings.smooth_sigma_px)
+        keep = points.peak >= noise_dn * k * _NOISE_MARGIN
+    if settings.min_width_px > 1:
+        keep = _both(keep, points.width >= settings.min_width_px)
+    if settings.max_width_px < _FULL_SCALE:
+        keep = _both(keep, points.width <= settings.max_width_px)
+    index: np.ndarray | slice = slice(None)
+    if keep is not None and not keep.all():
+        index = np.flatnonzero(keep)
+    cols, rows, width = points.cols[index], points.rows[index], points.width[index]
+    if cols.size and (settings.min_chain_px > 1 or settings.smooth_sigma_px > 0):
+        starts = _chain_starts(cols, rows, width, settings.max_row_jump_px)
+        lengths = np.empty_like(starts)
+        lengths[:-1] = starts[1:] - starts[:-1]
+        lengths[-1] = cols.size - starts[-1]
+        chain = np.repeat(np.arange(lengths.size), lengths) if settings.smooth_sigma_px else None
+        # Usually one chain holds every point: nothing to drop.
+        short = lengths.size > 1 or cols.size < settings.min_chain_px
+        if short and settings.min_chain_px > 1 and lengths.min() < settings.min_chain_px:
+            kept = np.flatnonzero(np.repeat(lengths >= settings.min_chain_px, lengths))
+            index = kept if isinstance(index, slice) else index[kept]
+            cols, rows, width = cols[kept], rows[kept], width[kept]
+            chain = None if chain is None else chain[kept]
+        if chain is not None and cols.size:
+            rows = _smoothed(cols, rows, chain, settings.smooth_sigma_px)
     return StripePoints(
-        points.cols[index], rows, points.peak[index], points.width[index], points.flags[index],
-        confidence[index],
-    )  # fmt: skip
+        cols, rows, points.peak[index], width, points.flags[index], confidence[index]
+    )
 
 
-def _chains(
-    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, settings: ExtractSettings
+def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:
+    """Return ``first & second``, or ``second`` when there is no first condition yet."""
+    return second if first is None else first & second
+
+
+def _chain_starts(
+    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, max_row_jump_px: float
 ) -> np.ndarray:
-    """Return each point's chain number: neighbouring points (one column may be skipped)
-    whose runs come within ``max_row_jump_px`` rows of each other share a chain."""
-    if cols.size == 0:
-        return np.zeros(0, np.intp)
-    # A run of w rows spans its centre +- (w - 1) / 2.
-    reach = np.add(width[1:], width[:-1], dtype=np.float32)
-    reach *= 0.5
-    reach += settings.max_row_jump_px - 1
-    link = np.abs(np.diff(rows)) <= reach
-    link &= np.diff(cols) <= 1 + _MAX_COL_GAP
-    chain = np.zeros(cols.size, np.intp)
-    np.cumsum(~link, out=chain[1:])
-    return chain
+    """Return the index of each chain's first point (0 first).
+
+    Neighbouring points (one column may be skipped) whose runs come within
+    ``max_row_jump_px`` rows of each other share a chain; a run of ``w`` rows spans its
+    centre +- (w - 1) / 2, so a steep stripe, whose runs are long, stays one chain.
+    """
+    twice_apart = rows[1:] - rows[:-1]
+    np.abs(twice_apart, out=twice_apart)
+    twice_apart += twice_apart
+    twice_reach = np.add(width[1:], width[:-1], dtype=np.float32)
+    twice_reach += 2 * max_row_jump_px - 2
+    broken = twice_apart > twice_reach
+    if int(cols[-1]) - int(cols[0]) != cols.size - 1:  # not every column: look for gaps
+        broken |= (cols[1:] - cols[:-1]) > 1 + _MAX_COL_GAP
+    starts = np.flatnonzero(broken)
+    starts += 1
+    return np.concatenate(([0], starts))
 
 
 @cache
