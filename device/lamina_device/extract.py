@@ -1,10 +1,11 @@
 """Stripe extraction on the device: difference image, threshold, per-column stripe centre.
 
-The default is the thesis's method (section 5.2): a global Otsu threshold and, per image
+The core is the thesis's method (section 5.2): a global Otsu threshold and, per image
 column, the intensity-weighted centre of the pixels above it (eq. 5.1, power factor
-``p`` = 1). Two things go beyond it: the laser-off frame is subtracted first (the
-thesis's own recommendation, 9.2), and only one above-threshold run per column is used,
-so a stray reflection elsewhere in the column cannot drag the centre away. By default
+``p`` = 1). Three things go beyond it: the laser-off frame is subtracted first (the
+thesis's own recommendation, 9.2); only one above-threshold run per column is used, so
+a stray reflection elsewhere in the column cannot drag the centre away; and points the
+noise could have made are dropped (below). By default
 that is the run holding the column's peak; ``run_choice="continuity"`` keeps instead
 the run that best continues the stripe from the neighbouring columns.
 
@@ -14,6 +15,20 @@ two are the same level. Only when the whole-frame optimum falls into the noise b
 ``min_peak`` (no stripe in view) does this keep the best level above it, where the
 thesis's threshold, clipped to ``min_peak``, would let the noise through.
 
+Trusting a point (issue 10). A weak stripe (grazing views, the top and base of an
+object, thin parts, a red laser seen in the luma frame) leaves most columns to the
+noise, whose column maxima an Otsu level near the floor lets through. So the noise of
+each view is measured (the interquartile range of the signed laser-on minus laser-off
+difference on a strided subsample of ~2000 pixels, a few tens of microseconds), stripe
+pixels must rise a couple of sigmas above it, and a point is kept only if its peak
+clears the multiple of sigma derived for at most ``false_points_per_frame`` noise
+points (:func:`gate_sigmas`), the run is no longer than a laser profile can be, and it
+belongs to a chain of at least ``min_chain_px`` neighbouring columns whose runs meet
+within ``max_row_jump_px`` rows: a stripe is a curve, noise is not. Each point carries
+its peak over that noise as a confidence byte for the host. The thesis's method alone
+is :meth:`ExtractSettings.thesis`. Optionally the centres are smoothed along each
+chain by a local line fit (fewer speckle errors, a small bias on tight curves).
+
 Selectable as well: background removal by morphological opening (thesis 5.2.1), a fixed
 threshold, weights above the threshold, and the thesis's first method, Otsu
 binarisation then line thinning with whole-pixel output (5.2.3, figs. 5.4-5.6), kept so
@@ -22,7 +37,8 @@ that its bias can be measured.
 Speed: the whole frame is touched three times, by cheap vectorised passes: one
 saturating subtraction, one comparison and one test of 8 pixels per machine word (plus
 a sum). Otsu's counts, the runs and their sums then come from the few words that hold
-a bright pixel, ordered column by column with a single sort.
+a bright pixel, ordered column by column with a single sort; the noise comes from a
+subsample and the gate and chains work on the points alone.
 """
 
 from __future__ import annotations
@@ -76,14 +92,15 @@ class ExtractSettings:
     stripe, thinner than the element, is kept, broad background is removed).
 
     Trusting a point (issue 10): with ``noise_gate`` the frame's noise is estimated and
-    a point is kept only if its peak clears the multiple of the local noise sigma that
-    lets at most ``false_points_per_frame`` noise points through (:func:`gate_sigmas`);
-    ``min_peak`` stays a floor. A stripe is a curve: points are kept only in chains of
-    at least ``min_chain_px`` columns whose runs lie within ``max_row_jump_px`` rows of
-    each other from column to column (1 keeps isolated columns), and only runs between
-    ``min_width_px`` and ``max_width_px`` rows long, as a laser profile is.
-    ``smooth_sigma_px`` > 0 smooths the centres along each chain (a Gaussian of that
-    many columns). :meth:`thesis` turns all of this off.
+    a point is strong if its peak clears the multiple of the noise sigma that lets at
+    most ``false_points_per_frame`` noise points through (:func:`gate_sigmas`);
+    ``min_peak`` stays a floor. A stripe is a curve: points form chains of neighbouring
+    columns (one may be skipped) whose runs come within ``max_row_jump_px`` rows of each
+    other, and a chain is kept only if ``min_chain_px`` of its points in a row are strong
+    (1 keeps isolated columns), its fainter points with it; runs longer than
+    ``max_width_px`` rows (or shorter than ``min_width_px``) are no laser profile.
+    ``smooth_sigma_px`` > 0 smooths the centres along each chain (a local line fit with
+    Gaussian weights of that many columns). :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -96,7 +113,7 @@ class ExtractSettings:
     noise_gate: bool = True
     false_points_per_frame: float = 1e-4
     min_chain_px: int = 8
-    max_row_jump_px: float = 2.0
+    max_row_jump_px: float = 4.0
     min_width_px: int = 1
     max_width_px: int = 64
     smooth_sigma_px: float = 0.0
@@ -713,41 +730,74 @@ def extract(
 def _trust(
     points: StripePoints, noise_dn: float, settings: ExtractSettings, shape: tuple[int, ...]
 ) -> StripePoints:
-    """Return the points with their confidence, less those noise, width or chains reject."""
+    """Return the points with their confidence, less those noise, width or chains reject.
+
+    Chains are traced through every point; a chain is kept if ``min_chain_px`` of its
+    points in a row clear the noise gate (then none of it is noise but with the rate
+    :func:`gate_sigmas` allows), and with it its fainter points, which continue the
+    stripe (hysteresis, as Canny's edges): the stripe's fading ends stay.
+    """
     if points.cols.size == 0:
         return points
     # One noise for the view: one confidence scale on the wire, a few bytes a segment.
     confidence = confidence_bytes(points.peak, noise_dn)
-    keep = None
+    fits = None
+    if settings.min_width_px > 1:
+        fits = points.width >= settings.min_width_px
+    if settings.max_width_px < _FULL_SCALE:
+        fits = _both(fits, points.width <= settings.max_width_px)
+    index: np.ndarray | slice = slice(None)
+    if fits is not None and not fits.all():
+        index = np.flatnonzero(fits)
+    cols, rows, width, peak = (
+        a[index] for a in (points.cols, points.rows, points.width, points.peak)
+    )
+    strong = None
     if settings.noise_gate:
         k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)
-        keep = points.peak >= noise_dn * k * _NOISE_MARGIN
-    if settings.min_width_px > 1:
-        keep = _both(keep, points.width >= settings.min_width_px)
-    if settings.max_width_px < _FULL_SCALE:
-        keep = _both(keep, points.width <= settings.max_width_px)
-    index: np.ndarray | slice = slice(None)
-    if keep is not None and not keep.all():
-        index = np.flatnonzero(keep)
-    cols, rows, width = points.cols[index], points.rows[index], points.width[index]
-    if cols.size and (settings.min_chain_px > 1 or settings.smooth_sigma_px > 0):
+        strong = peak >= noise_dn * k * _NOISE_MARGIN
+    chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
+    if cols.size and (chained or strong is not None):
         starts = _chain_starts(cols, rows, width, settings.max_row_jump_px)
-        lengths = np.empty_like(starts)
-        lengths[:-1] = starts[1:] - starts[:-1]
-        lengths[-1] = cols.size - starts[-1]
-        chain = np.repeat(np.arange(lengths.size), lengths) if settings.smooth_sigma_px else None
-        # Usually one chain holds every point: nothing to drop.
-        short = lengths.size > 1 or cols.size < settings.min_chain_px
-        if short and settings.min_chain_px > 1 and lengths.min() < settings.min_chain_px:
-            kept = np.flatnonzero(np.repeat(lengths >= settings.min_chain_px, lengths))
+        kept = _kept_chains(starts, strong, cols.size, settings.min_chain_px)
+        if kept is not None:
             index = kept if isinstance(index, slice) else index[kept]
             cols, rows, width = cols[kept], rows[kept], width[kept]
-            chain = None if chain is None else chain[kept]
-        if chain is not None and cols.size:
-            rows = _smoothed(cols, rows, chain, settings.smooth_sigma_px)
+            starts = np.flatnonzero(np.diff(np.searchsorted(starts, kept, "right"), prepend=0))
+        if settings.smooth_sigma_px > 0 and cols.size:
+            chain = np.zeros(cols.size, np.intp)
+            chain[starts[1:]] = 1
+            rows = _smoothed(cols, rows, np.cumsum(chain), settings.smooth_sigma_px)
     return StripePoints(
         cols, rows, points.peak[index], width, points.flags[index], confidence[index]
     )
+
+
+def _kept_chains(
+    starts: np.ndarray, strong: np.ndarray | None, n: int, min_chain_px: int
+) -> np.ndarray | None:
+    """Return the indices of the points in kept chains, or None when every point is kept.
+
+    A chain is kept when it holds ``min_chain_px`` consecutive strong points (every
+    point is strong without a gate).
+    """
+    if strong is None or strong.all():
+        if min_chain_px <= 1 or (starts.size == 1 and n >= min_chain_px):
+            return None  # the usual frame: one chain, strong throughout
+        strong = np.ones(n, bool)
+    first = np.zeros(n, bool)
+    first[starts] = True
+    # Stretches: runs of points alike in strength within one chain.
+    cut = first.copy()
+    cut[1:] |= strong[1:] != strong[:-1]
+    stretch = np.flatnonzero(cut)
+    length = np.diff(stretch, append=n)
+    enough = strong[stretch] & (length >= min_chain_px)
+    chain_of = np.cumsum(first)[stretch] - 1
+    keep_chain = np.zeros(starts.size, bool)
+    keep_chain[chain_of[enough]] = True
+    chain_length = np.diff(starts, append=n)
+    return np.flatnonzero(np.repeat(keep_chain, chain_length))
 
 
 def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:

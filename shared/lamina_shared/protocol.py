@@ -416,7 +416,8 @@ def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
     previous_scale = 0
     for length, scale in scale_runs:
         _put_varint(out, length - 1)
-        _put_varint(out, int(_zigzag(np.int64(scale - previous_scale))))
+        change = scale - previous_scale
+        _put_varint(out, 2 * change if change >= 0 else -2 * change - 1)  # zigzag
         previous_scale = scale
     fields = [_zigzag(np.diff(a)) for a in (rows_q, peak, width)] if n else []
     return bytes(out) + (_rice_encode(fields) if n > 1 else b"")
@@ -473,7 +474,7 @@ def _decode_scale_runs(body: bytes, at: int, n: int) -> tuple[np.ndarray, int]:
     for k in range(runs):
         length, at = _get_varint(body, at)
         change, at = _get_varint(body, at)
-        scale += int(_unzigzag(np.int64(change)))
+        scale += change >> 1 if not change & 1 else -(change >> 1) - 1  # zigzag
         if not 0 <= scale < _SCALE_LIMIT or length >= n:
             raise ProtocolError("segment confidence run out of range")
         lengths[k], scales[k] = length + 1, scale
