@@ -24,7 +24,7 @@ import serial
 from lamina_host.link import PtyBridge
 from lamina_host.report import load_segments
 from lamina_shared.link import Channel
-from lamina_shared.protocol import Kind, encode_json
+from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
 
 # Scans go into a library in the user's data folder: keep the tests' library out of it.
 TEST_DATA_HOME = tempfile.mkdtemp(prefix="lamina-test-data-")
@@ -199,7 +199,7 @@ def test_device_speaking_another_protocol_version(tmp_path):
     bridge = PtyBridge()
 
     def future_device() -> None:
-        # A device from the future: answers HELLO with protocol 3.
+        # A device from the future: answers HELLO with the next protocol version.
         with serial.Serial(bridge.device_port, timeout=0.05) as port:
             channel = Channel(port)
             for _ in range(200):
@@ -208,7 +208,11 @@ def test_device_speaking_another_protocol_version(tmp_path):
                     channel.send(
                         encode_json(
                             Kind.WELCOME,
-                            {"protocol": 3, "hardware": "pi", "image_size": [640, 480]},
+                            {
+                                "protocol": PROTOCOL_VERSION + 1,
+                                "hardware": "pi",
+                                "image_size": [640, 480],
+                            },
                         )
                     )
                     return
@@ -222,7 +226,8 @@ def test_device_speaking_another_protocol_version(tmp_path):
     finally:
         peer.join(timeout=5)
         bridge.close()
-    assert "protocol version 3" in message and "speaks 2" in message
+    expected = f"protocol version {PROTOCOL_VERSION + 1}"
+    assert expected in message and f"speaks {PROTOCOL_VERSION}" in message
 
 
 def test_replay_reads_captures_from_other_tools(live_scan, capture, tmp_path):

@@ -39,6 +39,7 @@ from lamina_shared.ops import (
 )
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
     FrameDecoder,
     Kind,
     Message,
@@ -176,7 +177,7 @@ def device():
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    server.handle(Message(Kind.HELLO, {"protocol": 2, "session": "fuzz"}))
+    server.handle(Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": "fuzz"}))
     yield server, inbox
     server._stop_worker()
     stop.set()
@@ -218,7 +219,9 @@ def test_device_answers_any_request_and_stays_responsive(device, request_id, op,
     server, host = device
     # A new session per example: request ids repeat across examples, and within one
     # session the device rightly answers a repeated id from its reply cache.
-    server.handle(Message(Kind.HELLO, {"protocol": 2, "session": f"fuzz-{time.monotonic()}"}))
+    server.handle(
+        Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": f"fuzz-{time.monotonic()}"})
+    )
     if isinstance(args.get("plan"), dict | list):
         args["plan"] = {"views": [{"section": 0, "z_mm": 0.0, "angle_deg": 0.0}]}
     # Unsolicited or malformed messages of other kinds are ignored without harm.
@@ -253,12 +256,12 @@ class _Silent:
 @given(st.dictionaries(st.text(max_size=20), JSON, max_size=8), JSON, JSON, JSON)
 def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plans, protocol):
     body = {**body, "image_size": image_size, "default_plans": plans, "protocol": protocol}
-    for candidate in (body, {**body, "protocol": 2, "hardware": "x"}):
+    for candidate in (body, {**body, "protocol": PROTOCOL_VERSION, "hardware": "x"}):
         try:
             info = DeviceInfo.from_dict(candidate)
         except DeviceError:
             continue
-        if info.protocol == 2:
+        if info.protocol == PROTOCOL_VERSION:
             assert 0 < info.image_size[0] <= 16_384 and 0 < info.image_size[1] <= 16_384
 
 

@@ -20,7 +20,7 @@ from lamina_device.server import DeviceServer, ServerSettings
 from lamina_host.link import DeviceClient, DeviceError, LineFaults, PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
-from lamina_shared.protocol import Kind, encode_json, quantise_segment
+from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
 
 PLAN = ScanPlan.regular(2, 2.0, 4)
@@ -83,7 +83,7 @@ def test_handshake_reports_capabilities():
     with link() as ends:
         info = ends.client.info
         assert info is not None
-        assert info.protocol == 2 and info.software.startswith("lamina-device")
+        assert info.protocol == PROTOCOL_VERSION and info.software.startswith("lamina-device")
         assert info.image_size == (640, 480)
         assert info.axes["lift"] == {"unit": "mm", "min": 0.0, "max": 200.0}
         assert info.axes["turntable"]["continuous"] is True

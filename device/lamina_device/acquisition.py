@@ -202,7 +202,7 @@ def acquire(
         plan: the views to visit, in order.
         on_segment: called with each view's segment, in plan order, from the worker thread.
         on_progress: called after each view's segment, from the worker thread.
-        settings: extraction settings (Otsu, p = 1 by default).
+        settings: extraction settings (ExtractSettings() by default: Otsu, p = 1, noise gate).
         sink: called with the raw frames of each view (recording), from the worker thread.
         control: pause, resume and abort from another thread.
 

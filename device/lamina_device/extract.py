@@ -1,10 +1,11 @@
 """Stripe extraction on the device: difference image, threshold, per-column stripe centre.
 
-The default is the thesis's method (section 5.2): a global Otsu threshold and, per image
+The core is the thesis's method (section 5.2): a global Otsu threshold and, per image
 column, the intensity-weighted centre of the pixels above it (eq. 5.1, power factor
-``p`` = 1). Two things go beyond it: the laser-off frame is subtracted first (the
-thesis's own recommendation, 9.2), and only one above-threshold run per column is used,
-so a stray reflection elsewhere in the column cannot drag the centre away. By default
+``p`` = 1). Three things go beyond it: the laser-off frame is subtracted first (the
+thesis's own recommendation, 9.2); only one above-threshold run per column is used, so
+a stray reflection elsewhere in the column cannot drag the centre away; and points the
+noise could have made are dropped (below). By default
 that is the run holding the column's peak; ``run_choice="continuity"`` keeps instead
 the run that best continues the stripe from the neighbouring columns.
 
@@ -14,6 +15,20 @@ two are the same level. Only when the whole-frame optimum falls into the noise b
 ``min_peak`` (no stripe in view) does this keep the best level above it, where the
 thesis's threshold, clipped to ``min_peak``, would let the noise through.
 
+Trusting a point (issue 10). A weak stripe (grazing views, the top and base of an
+object, thin parts, a red laser seen in the luma frame) leaves most columns to the
+noise, whose column maxima an Otsu level near the floor lets through. So the noise of
+each view is measured (the interquartile range of the signed laser-on minus laser-off
+difference on a strided subsample of ~2000 pixels, a few tens of microseconds), stripe
+pixels must rise a couple of sigmas above it, and a point is kept only if its peak
+clears the multiple of sigma derived for at most ``false_points_per_frame`` noise
+points (:func:`gate_sigmas`), the run is no longer than a laser profile can be, and it
+belongs to a chain of at least ``min_chain_px`` neighbouring columns whose runs meet
+within ``max_row_jump_px`` rows: a stripe is a curve, noise is not. Each point carries
+its peak over that noise as a confidence byte for the host. The thesis's method alone
+is :meth:`ExtractSettings.thesis`. Optionally the centres are smoothed along each
+chain by a local line fit (fewer speckle errors, a small bias on tight curves).
+
 Selectable as well: background removal by morphological opening (thesis 5.2.1), a fixed
 threshold, weights above the threshold, and the thesis's first method, Otsu
 binarisation then line thinning with whole-pixel output (5.2.3, figs. 5.4-5.6), kept so
@@ -22,7 +37,8 @@ that its bias can be measured.
 Speed: the whole frame is touched three times, by cheap vectorised passes: one
 saturating subtraction, one comparison and one test of 8 pixels per machine word (plus
 a sum). Otsu's counts, the runs and their sums then come from the few words that hold
-a bright pixel, ordered column by column with a single sort.
+a bright pixel, ordered column by column with a single sort; the noise comes from a
+subsample and the gate and chains work on the points alone.
 """
 
 from __future__ import annotations
@@ -30,10 +46,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cache, cached_property
+from statistics import NormalDist
 
 import cv2
 import numpy as np
 
+from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
 
 METHODS = ("cog", "thinning")
@@ -47,6 +65,14 @@ FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
 _FULL_SCALE = 255
+_NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
+_MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
+_PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
+_MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
+# The noise estimate of one frame scatters by ~3 % (a few thousand samples); the gate
+# allows for two of those, else an underestimated frame lets several times the rate in.
+_NOISE_MARGIN = 1.06
+_IQR_SIGMAS = 1.3489795003921634  # 2 Phi^-1(3/4): a Gaussian's interquartile range in sigmas
 
 
 @dataclass(frozen=True)
@@ -64,6 +90,17 @@ class ExtractSettings:
     nearest the stripe through the neighbouring columns). ``background_opening_px`` > 0
     removes what survives a vertical opening of that many rows (thesis 5.2.1; the
     stripe, thinner than the element, is kept, broad background is removed).
+
+    Trusting a point (issue 10): with ``noise_gate`` the frame's noise is estimated and
+    a point is strong if its peak clears the multiple of the noise sigma that lets at
+    most ``false_points_per_frame`` noise points through (:func:`gate_sigmas`);
+    ``min_peak`` stays a floor. A stripe is a curve: points form chains of neighbouring
+    columns (one may be skipped) whose runs come within ``max_row_jump_px`` rows of each
+    other, and a chain is kept only if ``min_chain_px`` of its points in a row are strong
+    (1 keeps isolated columns), its fainter points with it; runs longer than
+    ``max_width_px`` rows (or shorter than ``min_width_px``) are no laser profile.
+    ``smooth_sigma_px`` > 0 smooths the centres along each chain (a local line fit with
+    Gaussian weights of that many columns). :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -73,11 +110,26 @@ class ExtractSettings:
     method: str = "cog"
     run_choice: str = "peak"
     background_opening_px: int = 0
+    noise_gate: bool = True
+    false_points_per_frame: float = 1e-4
+    min_chain_px: int = 8
+    max_row_jump_px: float = 4.0
+    min_width_px: int = 1
+    max_width_px: int = 64
+    smooth_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
         problems = settings_problems(self)
         if problems:
             raise ValueError("bad extraction settings: " + "; ".join(problems))
+
+    @classmethod
+    def thesis(cls, **changes: object) -> ExtractSettings:
+        """Return the thesis's method alone: no noise gate, no chains, any run width."""
+        plain: dict[str, object] = {
+            "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
+        }  # fmt: skip
+        return cls(**{**plain, **changes})  # type: ignore[arg-type]
 
 
 def settings_problems(settings: ExtractSettings) -> list[str]:
@@ -97,10 +149,25 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         )
     if settings.background_opening_px < 0:
         problems.append(f"background_opening_px {settings.background_opening_px} is negative")
+    if not 1e-12 <= settings.false_points_per_frame <= 1:
+        problems.append(
+            f"false_points_per_frame {settings.false_points_per_frame} is not in 1e-12..1"
+        )
+    if not 1 <= settings.min_chain_px <= 1000:
+        problems.append(f"min_chain_px {settings.min_chain_px} is not in 1..1000")
+    if not 0 <= settings.max_row_jump_px <= 100:
+        problems.append(f"max_row_jump_px {settings.max_row_jump_px} is not in 0..100")
+    if not 1 <= settings.min_width_px <= settings.max_width_px <= _FULL_SCALE:
+        problems.append(
+            f"min_width_px {settings.min_width_px} and max_width_px {settings.max_width_px}"
+            " do not satisfy 1 <= min_width_px <= max_width_px <= 255"
+        )
+    if not 0 <= settings.smooth_sigma_px <= 50:
+        problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
     return problems
 
 
-_THESIS = ExtractSettings()
+_DEFAULT = ExtractSettings()
 
 
 def _no_flags() -> np.ndarray:
@@ -112,7 +179,9 @@ class StripePoints:
     """Per-column stripe centres of one view, before they are labelled as a segment.
 
     ``flags`` (uint8 per point, ``FLAG_*`` bits) stays on the device: the wire segment
-    carries only ``cols``, ``rows``, ``peak`` and ``width``. Left out, it is all zeros.
+    carries ``cols``, ``rows``, ``peak``, ``width`` and ``confidence`` (the peak over
+    the view's noise sigma, times ``CONFIDENCE_SCALE``, capped at 255; 0 when unknown).
+    Left out, flags and confidence are all zeros.
     """
 
     cols: np.ndarray
@@ -120,13 +189,82 @@ class StripePoints:
     peak: np.ndarray
     width: np.ndarray
     flags: np.ndarray = field(default_factory=_no_flags)
+    confidence: np.ndarray = field(default_factory=_no_flags)
 
     def __post_init__(self) -> None:
-        if self.flags.size == 0 and self.cols.size:
-            object.__setattr__(self, "flags", np.zeros(self.cols.size, np.uint8))
-        sizes = {a.size for a in (self.cols, self.rows, self.peak, self.width, self.flags)}
-        if len(sizes) > 1:
+        for name in ("flags", "confidence"):
+            if getattr(self, name).size == 0 and self.cols.size:
+                object.__setattr__(self, name, np.zeros(self.cols.size, np.uint8))
+        arrays = (self.cols, self.rows, self.peak, self.width, self.flags, self.confidence)
+        if len({a.size for a in arrays}) > 1:
             raise ValueError("stripe point arrays differ in length")
+
+    def subset(self, keep: np.ndarray) -> StripePoints:
+        """Return the points selected by ``keep`` (a mask or indices)."""
+        return StripePoints(
+            self.cols[keep], self.rows[keep], self.peak[keep], self.width[keep],
+            self.flags[keep], self.confidence[keep],
+        )  # fmt: skip
+
+
+def _iqr_sigma(counts: np.ndarray) -> float:
+    """Return the sigma of Gaussian noise from its values counted by level.
+
+    From the interquartile range, which ignores any offset and which the few percent of
+    stripe pixels among the values only widen. Level ``v`` is taken to spread evenly
+    over ``[v - 0.5, v + 0.5)``, so the quartiles move smoothly rather than by whole
+    steps, as a few DN of noise need.
+    """
+    cdf = np.cumsum(counts)
+    targets = (0.25 * float(cdf[-1]), 0.75 * float(cdf[-1]))
+    quartiles = []
+    for target, index in zip(targets, np.searchsorted(cdf, targets).tolist(), strict=True):
+        below = float(cdf[index - 1]) if index else 0.0
+        quartiles.append(index - 0.5 + (target - below) / max(float(counts[index]), 1.0))
+    return max((quartiles[1] - quartiles[0]) / _IQR_SIGMAS, _MIN_NOISE_DN)
+
+
+def estimate_noise(on: np.ndarray, off: np.ndarray | None) -> float:
+    """Return the noise sigma of laser-on minus laser-off, in 8-bit DN, from a subsample.
+
+    The saturating difference hides half the noise, so the signed difference is taken
+    on a strided subsample of a couple of thousand pixels; its interquartile range
+    ignores the few percent of stripe pixels and any offset between the frames. Without
+    a laser-off frame, neighbouring columns of the laser-on frame are differenced
+    instead (the same noise of two pixels). One sigma serves the whole frame: shot noise
+    makes bright parts noisier, which the gate's chains and margin absorb.
+    """
+    height, width = on.shape
+    step = max(1, int(math.sqrt(height * width / _NOISE_SAMPLES)))
+    rows, cols = slice(step // 2, height, step), slice(step // 2, width - 1, step)
+    first = on[rows, cols] if off is None else off[rows, cols]
+    second = on[rows, step // 2 + 1 :: step] if off is None else on[rows, cols]
+    if on.dtype == np.uint16:
+        first, second = first >> 8, second >> 8
+    key = np.subtract(second[:, : first.shape[1]], first, dtype=np.int16)
+    key += 256
+    return _iqr_sigma(np.bincount(key.ravel(), minlength=512))
+
+
+@cache
+def gate_sigmas(
+    width_px: int, height_px: int, min_chain_px: int, false_points_per_frame: float
+) -> float:
+    """Return the noise multiple ``k`` a point's peak must clear for the false-point rate asked.
+
+    In a frame without a stripe each column keeps its noise maximum, which clears
+    ``k`` sigmas with probability ``p = 1 - (1 - Q(k))**H`` (``Q`` the Gaussian upper
+    tail, ``H`` rows). A false point needs ``L = min_chain_px`` neighbouring columns
+    that all do, so the expected false points are at most ``W L p**L`` (``W``
+    columns); this returns the ``k`` that makes that ``false_points_per_frame``, never
+    below the stripe-pixel level. It takes no credit for the maxima having to line up
+    within the row jump (with white noise they seldom do), so it holds for noise that
+    is correlated along the columns as well.
+    """
+    chain = min_chain_px
+    per_column = min((false_points_per_frame / (width_px * chain)) ** (1.0 / chain), 0.5)
+    per_pixel = -math.expm1(math.log1p(-per_column) / height_px)
+    return max(-NormalDist().inv_cdf(per_pixel), _PIXEL_SIGMAS)
 
 
 def difference(on: np.ndarray, off: np.ndarray | None) -> np.ndarray:
@@ -558,16 +696,19 @@ def extract(
     Args:
         on: laser-on frame (H, W), uint8 or uint16 (16-bit is worked in 8-bit units).
         off: laser-off frame like ``on``, or None to use the laser-on frame alone.
-        settings: how to find the stripe; the thesis's method when None.
+        settings: how to find the stripe; :class:`ExtractSettings` defaults when None.
 
     Returns:
-        One point per column where a stripe was found.
+        One point per column where a stripe was found, with its confidence.
     """
-    settings = settings or _THESIS
+    settings = settings or _DEFAULT
     diff = _to_8bit(difference(on, off))
+    noise_dn = estimate_noise(on, off)
     if settings.background_opening_px > 0:
         diff = remove_background(diff, settings.background_opening_px)
     floor = math.ceil(settings.min_peak - 1)  # the lowest level a stripe pixel may have
+    if settings.noise_gate:  # below a couple of sigmas a pixel is as likely noise as stripe
+        floor = max(floor, min(math.floor(_PIXEL_SIGMAS * noise_dn), _FULL_SCALE - 1))
     if settings.threshold is None:
         bright = _Bright.find(diff, floor)
         # Otsu's criterion needs the counts above each candidate level only, which the
@@ -578,10 +719,149 @@ def extract(
         threshold = float(max(settings.threshold, floor))
         bright = _Bright.find(diff, math.floor(threshold))
     if settings.method == "thinning":
-        return _thinning(diff, bright, threshold, settings.run_choice)
-    return _centres(
-        bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
+        points = _thinning(diff, bright, threshold, settings.run_choice)
+    else:
+        points = _centres(
+            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
+        )
+    return _trust(points, noise_dn, settings, diff.shape)
+
+
+def _trust(
+    points: StripePoints, noise_dn: float, settings: ExtractSettings, shape: tuple[int, ...]
+) -> StripePoints:
+    """Return the points with their confidence, less those noise, width or chains reject.
+
+    Chains are traced through every point; a chain is kept if ``min_chain_px`` of its
+    points in a row clear the noise gate (then none of it is noise but with the rate
+    :func:`gate_sigmas` allows), and with it its fainter points, which continue the
+    stripe (hysteresis, as Canny's edges): the stripe's fading ends stay.
+    """
+    if points.cols.size == 0:
+        return points
+    # One noise for the view: one confidence scale on the wire, a few bytes a segment.
+    confidence = confidence_bytes(points.peak, noise_dn)
+    fits = None
+    if settings.min_width_px > 1:
+        fits = points.width >= settings.min_width_px
+    if settings.max_width_px < _FULL_SCALE:
+        fits = _both(fits, points.width <= settings.max_width_px)
+    index: np.ndarray | slice = slice(None)
+    if fits is not None and not fits.all():
+        index = np.flatnonzero(fits)
+    cols, rows, width, peak = (
+        a[index] for a in (points.cols, points.rows, points.width, points.peak)
     )
+    strong = None
+    if settings.noise_gate:
+        k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)
+        strong = peak >= noise_dn * k * _NOISE_MARGIN
+    chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
+    if cols.size and (chained or strong is not None):
+        starts = _chain_starts(cols, rows, width, settings.max_row_jump_px)
+        kept = _kept_chains(starts, strong, cols.size, settings.min_chain_px)
+        if kept is not None:
+            index = kept if isinstance(index, slice) else index[kept]
+            cols, rows, width = cols[kept], rows[kept], width[kept]
+            starts = np.flatnonzero(np.diff(np.searchsorted(starts, kept, "right"), prepend=0))
+        if settings.smooth_sigma_px > 0 and cols.size:
+            chain = np.zeros(cols.size, np.intp)
+            chain[starts[1:]] = 1
+            rows = _smoothed(cols, rows, np.cumsum(chain), settings.smooth_sigma_px)
+    return StripePoints(
+        cols, rows, points.peak[index], width, points.flags[index], confidence[index]
+    )
+
+
+def _kept_chains(
+    starts: np.ndarray, strong: np.ndarray | None, n: int, min_chain_px: int
+) -> np.ndarray | None:
+    """Return the indices of the points in kept chains, or None when every point is kept.
+
+    A chain is kept when it holds ``min_chain_px`` consecutive strong points (every
+    point is strong without a gate).
+    """
+    if strong is None or strong.all():
+        if min_chain_px <= 1 or (starts.size == 1 and n >= min_chain_px):
+            return None  # the usual frame: one chain, strong throughout
+        strong = np.ones(n, bool)
+    first = np.zeros(n, bool)
+    first[starts] = True
+    # Stretches: runs of points alike in strength within one chain.
+    cut = first.copy()
+    cut[1:] |= strong[1:] != strong[:-1]
+    stretch = np.flatnonzero(cut)
+    length = np.diff(stretch, append=n)
+    enough = strong[stretch] & (length >= min_chain_px)
+    chain_of = np.cumsum(first)[stretch] - 1
+    keep_chain = np.zeros(starts.size, bool)
+    keep_chain[chain_of[enough]] = True
+    chain_length = np.diff(starts, append=n)
+    return np.flatnonzero(np.repeat(keep_chain, chain_length))
+
+
+def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:
+    """Return ``first & second``, or ``second`` when there is no first condition yet."""
+    return second if first is None else first & second
+
+
+def _chain_starts(
+    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, max_row_jump_px: float
+) -> np.ndarray:
+    """Return the index of each chain's first point (0 first).
+
+    Neighbouring points (one column may be skipped) whose runs come within
+    ``max_row_jump_px`` rows of each other share a chain; a run of ``w`` rows spans its
+    centre +- (w - 1) / 2, so a steep stripe, whose runs are long, stays one chain.
+    """
+    twice_apart = rows[1:] - rows[:-1]
+    np.abs(twice_apart, out=twice_apart)
+    twice_apart += twice_apart
+    twice_reach = np.add(width[1:], width[:-1], dtype=np.float32)
+    twice_reach += 2 * max_row_jump_px - 2
+    broken = twice_apart > twice_reach
+    if int(cols[-1]) - int(cols[0]) != cols.size - 1:  # not every column: look for gaps
+        broken |= (cols[1:] - cols[:-1]) > 1 + _MAX_COL_GAP
+    starts = np.flatnonzero(broken)
+    starts += 1
+    return np.concatenate(([0], starts))
+
+
+@cache
+def _line_fit_kernels(sigma_px: float) -> np.ndarray:
+    """Return the Gaussian weights ``w``, ``w dx`` and ``w dx**2`` of a local line fit (3, K)."""
+    radius = math.ceil(3 * sigma_px)
+    dx = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (dx / sigma_px) ** 2)
+    kernels = np.stack([w, w * dx, w * dx * dx])
+    kernels.flags.writeable = False
+    return kernels
+
+
+def _smoothed(cols: np.ndarray, rows: np.ndarray, chain: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Return each centre replaced by a local line fit along its chain (Gaussian weights).
+
+    Fitting a line rather than averaging keeps a sloping stripe unbiased up to the
+    chain's ends; a curving one is biased by about curvature x sigma**2 / 2. Points are
+    laid out by column with each chain moved past the reach of the previous one, so
+    three correlations over the whole view fit every chain at once and none mixes.
+    """
+    kernels = _line_fit_kernels(sigma_px)
+    radius = kernels.shape[1] // 2
+    place = cols.astype(np.intp) + chain * (radius + 1) - int(cols[0])
+    lanes = np.zeros((2, int(place[-1]) + 1))
+    lanes[0, place] = 1.0
+    lanes[1, place] = rows
+    # cv2.filter2D correlates: lane[i + dx] * kernel[dx], zero beyond the ends.
+    sums = [
+        cv2.filter2D(lanes, -1, k[None, :], borderType=cv2.BORDER_CONSTANT)[:, place]
+        for k in kernels
+    ]
+    (s0, t0), (s1, t1), (s2, _) = sums
+    det = s0 * s2 - s1 * s1
+    usable = det > 1e-6 * s0 * s0  # a single point (or one column) has no slope
+    fitted = np.where(usable, (s2 * t0 - s1 * t1) / np.where(usable, det, 1.0), t0 / s0)
+    return fitted.astype(np.float32)
 
 
 def to_segment(
@@ -589,5 +869,6 @@ def to_segment(
 ) -> Segment:
     """Label one view's stripe points with where they were taken (flags stay on-device)."""
     return Segment(
-        target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak, points.width
-    )
+        target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak,
+        points.width, points.confidence,
+    )  # fmt: skip

@@ -15,7 +15,8 @@ from lamina_host.mesh import save_ply
 from lamina_host.pipeline import Reconstruction, stack, stacked_normals
 from lamina_shared.types import Segment
 
-SEGMENT_FIELDS = ("cols", "rows", "peak", "width")
+SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence")
+"""Per-point arrays saved; ``confidence`` may be missing from older files (then unknown)."""
 
 
 def save_segments(path: Path, segments: list[Segment]) -> None:
@@ -52,7 +53,7 @@ def load_segments(path: Path) -> list[Segment]:
                     int(view),
                     float(z_mm),
                     float(angle),
-                    *(data[f"{k}_{n}"] for n in SEGMENT_FIELDS),
+                    *(data[f"{k}_{n}"] for n in SEGMENT_FIELDS if f"{k}_{n}" in data.files),
                 )
             )
     return segments

@@ -161,21 +161,24 @@ def _now() -> str:
 
 
 def _segment_blob(segment: Segment) -> bytes:
-    """Return the segment's arrays, losslessly: cols u16, rows f32, peak u8, width u8."""
+    """Return the segment's arrays, losslessly: cols u16, rows f32, peak, width, confidence u8."""
     return b"".join(
         (
             np.ascontiguousarray(segment.cols, "<u2").tobytes(),
             np.ascontiguousarray(segment.rows, "<f4").tobytes(),
             np.ascontiguousarray(segment.peak, "u1").tobytes(),
             np.ascontiguousarray(segment.width, "u1").tobytes(),
+            np.ascontiguousarray(segment.confidence, "u1").tobytes(),
         )
     )
 
 
 def _segment_from_row(row: sqlite3.Row) -> Segment:
     n, data = row["points"], row["data"]
-    if len(data) != 8 * n:
+    # 8 bytes a point before segments carried a confidence (then unknown: zeros), 9 since.
+    if len(data) not in (8 * n, 9 * n):
         raise StoreError(f"stored segment {row['seq']} is damaged: restore the library")
+    confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) == 9 * n else None
     return Segment(
         row["target"],
         row["section"],
@@ -186,6 +189,7 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
         np.frombuffer(data, "<f4", n, 2 * n).astype(np.float32),
         np.frombuffer(data, "u1", n, 6 * n).copy(),
         np.frombuffer(data, "u1", n, 7 * n).copy(),
+        *(() if confidence is None else (confidence,)),
     )
 
 

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import TARGETS, Segment
+from lamina_shared.types import CONFIDENCE_SCALE, TARGETS, Segment
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Largest decoded payload either end accepts; longer frames are discarded unread."""
 
@@ -46,6 +46,8 @@ MAX_ACK_SEQS = 1024
 _RICE_BLOCK = 32  # values per Rice block: each block picks its own parameter k
 _RICE_MAX_K = 15  # k travels as a 4-bit nibble
 _ROW_LIMIT_Q = 65_536 * ROW_SCALE  # rows stay below 65,536 px
+_SCALE_BITS = 8  # confidence scales travel in 1/256: confidence = peak * scale / 256
+_SCALE_LIMIT = 1 << 20  # above any scale a confidence byte needs (255 * 256 + 128)
 
 
 class ProtocolError(LaminaError):
@@ -314,6 +316,55 @@ def quantise_segment(segment: Segment) -> Segment:
     return replace(segment, rows=quantise_rows(segment.rows))
 
 
+def _scale_bounds(peak: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return per point the integer scales q with ``confidence == _confidence(peak, q)``."""
+    p = np.maximum(peak, 1)
+    lo = np.maximum(-(-(256 * confidence - 128) // p), 0)
+    hi = np.where(confidence >= 255, _SCALE_LIMIT, -(-(256 * confidence + 128) // p) - 1)
+    free = peak == 0  # a point without a peak has confidence 0 whatever the scale
+    if np.any(free & (confidence != 0)):
+        raise ProtocolError("a segment point with peak 0 must have confidence 0")
+    return np.where(free, 0, lo), np.where(free, _SCALE_LIMIT, hi)
+
+
+def _confidence(peak: np.ndarray, scale: np.ndarray | int) -> np.ndarray:
+    """Return ``round(peak * scale / 256)`` capped at 255: the decoder's confidence."""
+    return np.minimum((peak * scale + (1 << (_SCALE_BITS - 1))) >> _SCALE_BITS, 255)
+
+
+def confidence_bytes(peak: np.ndarray, noise_sigma_dn: float) -> np.ndarray:
+    """Return each point's confidence byte: peak over ``noise_sigma_dn`` (see ``Segment``).
+
+    Computed as the decoder does, through one integer scale, so a segment whose points
+    share one noise travels with a single scale run.
+    """
+    scale = round((CONFIDENCE_SCALE << _SCALE_BITS) / max(noise_sigma_dn, 1e-3))
+    scale = min(scale, _SCALE_LIMIT - 1)
+    return _confidence(np.asarray(peak, np.int64), scale).astype(np.uint8)
+
+
+def _scale_runs(peak: np.ndarray, confidence: np.ndarray) -> list[tuple[int, int]]:
+    """Return the fewest (run length, scale) pairs that reproduce ``confidence`` from ``peak``.
+
+    The device's confidence is peak over a noise that changes slowly along the stripe,
+    so one scale holds for long runs of points: each run costs a few bytes where the
+    confidence bytes themselves would cost as much as the peaks. Greedy interval
+    intersection gives the fewest runs.
+    """
+    lo, hi = _scale_bounds(peak, confidence)
+    runs: list[tuple[int, int]] = []
+    low, high, length, previous = 0, _SCALE_LIMIT, 0, 0
+    for a, b in zip(lo.tolist(), hi.tolist(), strict=True):
+        if max(low, a) > min(high, b):
+            previous = min(max(previous, low), high)
+            runs.append((length, previous))
+            low, high, length = a, b, 0
+        low, high, length = max(low, a), min(high, b), length + 1
+    if length:
+        runs.append((length, min(max(previous, low), high)))
+    return runs
+
+
 _SEGMENT_HEAD = struct.Struct("<IIBHHddHIBB")
 """request id, seq, target, section, view, z_mm, angle_deg, n, first row (1/64 px),
 first peak, first width."""
@@ -360,6 +411,15 @@ def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
         _put_varint(out, int(cols[s]) - previous_end)
         _put_varint(out, e - s - 1)
         previous_end = int(cols[e - 1]) + 1
+    # Confidence: runs of points sharing one scale, (length - 1, zigzag scale change).
+    scale_runs = _scale_runs(peak, segment.confidence.astype(np.int64)) if n else []
+    _put_varint(out, len(scale_runs))
+    previous_scale = 0
+    for length, scale in scale_runs:
+        _put_varint(out, length - 1)
+        change = scale - previous_scale
+        _put_varint(out, 2 * change if change >= 0 else -2 * change - 1)  # zigzag
+        previous_scale = scale
     fields = [_zigzag(np.diff(a)) for a in (rows_q, peak, width)] if n else []
     return bytes(out) + (_rice_encode(fields) if n > 1 else b"")
 
@@ -405,6 +465,25 @@ def _decode_columns(body: bytes, at: int, n: int) -> tuple[np.ndarray, int]:
     return cols, at
 
 
+def _decode_scale_runs(body: bytes, at: int, n: int) -> tuple[np.ndarray, int]:
+    """Return each point's confidence scale from the scale runs and the next offset."""
+    runs, at = _get_varint(body, at)
+    if runs > n or (n and not runs):
+        raise ProtocolError("segment has an impossible number of confidence runs")
+    lengths, scales = np.zeros(runs, np.int64), np.zeros(runs, np.int64)
+    scale = 0
+    for k in range(runs):
+        length, at = _get_varint(body, at)
+        change, at = _get_varint(body, at)
+        scale += change >> 1 if not change & 1 else -(change >> 1) - 1  # zigzag
+        if not 0 <= scale < _SCALE_LIMIT or length >= n:
+            raise ProtocolError("segment confidence run out of range")
+        lengths[k], scales[k] = length + 1, scale
+    if lengths.sum() != n:
+        raise ProtocolError("segment confidence runs do not add up to its point count")
+    return np.repeat(scales, lengths), at
+
+
 def decode_segment_body(body: bytes) -> SegmentEvent:
     """Invert :func:`encode_segment_body`; raise :class:`ProtocolError` if malformed."""
     if len(body) < _SEGMENT_HEAD.size:
@@ -416,6 +495,7 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
     if not (math.isfinite(z_mm) and math.isfinite(angle_deg)):
         raise ProtocolError("segment with a non-finite height or angle")
     cols, at = _decode_columns(body, _SEGMENT_HEAD.size, n)
+    scales, at = _decode_scale_runs(body, at, n)
     if n > 1:
         d_rows, d_peak, d_width = _rice_decode(body, at, [n - 1] * 3)
     elif at != len(body) or (n == 0 and (row0 or peak0 or width0)):
@@ -439,6 +519,7 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
         (rows_q / ROW_SCALE).astype(np.float32),
         peak.astype(np.uint8),
         width.astype(np.uint8),
+        _confidence(peak, scales).astype(np.uint8),
     )
     return SegmentEvent(request_id, seq, segment)
 

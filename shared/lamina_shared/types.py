@@ -20,6 +20,9 @@ MAX_DECODED_VIEWS = 2**20
 TARGETS = ("grid", "cylinder", "object")
 """What can sit on the turntable: the calibration board, the calibration cylinder, the subject."""
 
+CONFIDENCE_SCALE = 4
+"""A point's confidence byte is its stripe peak over the noise sigma times this (0.25 steps)."""
+
 
 @dataclass(frozen=True)
 class ViewSpec:
@@ -156,6 +159,10 @@ class BoardSpec:
         return cls((nx, ny), float(data["square_mm"]), (ox, oy))
 
 
+def _unknown_confidence() -> np.ndarray:
+    return np.zeros(0, np.uint8)
+
+
 @dataclass(frozen=True, eq=False)
 class Segment:
     """The stripe points the device extracted from one laser-on/laser-off view.
@@ -163,6 +170,9 @@ class Segment:
     ``cols`` are image columns (integers), ``rows`` the sub-pixel stripe centre in
     each column, ``peak`` the highest difference intensity of the run used and
     ``width`` its length in pixels: per-point quality for the host to judge.
+    ``confidence`` (uint8) is the peak over the noise sigma of the view's difference
+    image, times :data:`CONFIDENCE_SCALE` and capped at 255; 0 means unknown (segments
+    recorded before the device measured its noise).
     """
 
     target: str
@@ -174,14 +184,22 @@ class Segment:
     rows: np.ndarray = field(repr=False)
     peak: np.ndarray = field(repr=False)
     width: np.ndarray = field(repr=False)
+    confidence: np.ndarray = field(default_factory=_unknown_confidence, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.cols)
-        if not (len(self.rows) == len(self.peak) == len(self.width) == n):
+        if len(self.confidence) == 0 and n:
+            object.__setattr__(self, "confidence", np.zeros(n, np.uint8))
+        if not (len(self.rows) == len(self.peak) == len(self.width) == len(self.confidence) == n):
             raise ValueError("segment arrays differ in length")
 
     def __len__(self) -> int:
         return len(self.cols)
+
+    @property
+    def peak_over_noise(self) -> np.ndarray:
+        """Return each point's confidence as a float ratio (0 where unknown)."""
+        return self.confidence.astype(np.float64) / CONFIDENCE_SCALE
 
     @property
     def uv(self) -> np.ndarray:
@@ -198,8 +216,8 @@ class Segment:
             other.angle_deg,
         ) and all(
             a.dtype == b.dtype and a.tobytes() == b.tobytes()
-            for a, b in zip(  # noqa: B905 - two tuples of four arrays
-                (self.cols, self.rows, self.peak, self.width),
-                (other.cols, other.rows, other.peak, other.width),
+            for a, b in zip(  # noqa: B905 - two tuples of five arrays
+                (self.cols, self.rows, self.peak, self.width, self.confidence),
+                (other.cols, other.rows, other.peak, other.width, other.confidence),
             )
         )

@@ -20,7 +20,7 @@ from lamina_shared.link import Channel
 from lamina_shared.protocol import Kind, SegmentEvent, encode_json, encode_segment, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
 
-TITLE = "link protocol v2: segment encoding, pty throughput, fault-injection overhead"
+TITLE = "link protocol v3: segment encoding, pty throughput, fault-injection overhead"
 UART_BYTES_PER_S = 115_200 / 10  # 8N1: ten bit times per byte
 LINK_SEGMENTS = 3000
 

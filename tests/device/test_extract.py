@@ -83,9 +83,10 @@ def reference_extract(on, off, threshold=None, power=1.0, min_peak=12.0, subtrac
 
 
 def assert_matches_reference(on, off, **options):
-    """Assert the fast extraction equals the reference within float32 rounding."""
+    """Assert the fast extraction (the thesis's method alone) equals the reference."""
     names = {"subtract": "subtract_threshold"}
-    fast = extract(on, off, ExtractSettings(**{names.get(k, k): v for k, v in options.items()}))
+    settings = ExtractSettings.thesis(**{names.get(k, k): v for k, v in options.items()})
+    fast = extract(on, off, settings)
     cols, rows, peak, width = reference_extract(on, off, **options)
     assert np.array_equal(fast.cols, cols)
     np.testing.assert_array_max_ulp(fast.rows, rows, maxulp=1)
@@ -347,7 +348,7 @@ def test_default_threshold_is_the_whole_frame_otsu_wherever_that_can_be_a_stripe
     cols, rows, _, width = reference_extract(
         on, off, threshold=max(thesis, floor), min_peak=min_peak
     )
-    points = extract(on, off, ExtractSettings(min_peak=min_peak))
+    points = extract(on, off, ExtractSettings.thesis(min_peak=min_peak))
     if thesis >= floor:  # the thesis's threshold, exactly
         assert np.array_equal(points.cols, cols)
         np.testing.assert_array_max_ulp(points.rows, rows, maxulp=1)

@@ -1,6 +1,7 @@
 """Frames, COBS, CRC and message encodings of the link protocol."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from lamina_shared.protocol import (
     SegmentEvent,
     cobs_decode,
     cobs_encode,
+    confidence_bytes,
     decode_frame,
     decode_message,
     encode_chunk,
@@ -23,7 +25,7 @@ from lamina_shared.protocol import (
     encode_segment,
     quantise_segment,
 )
-from lamina_shared.types import Segment
+from lamina_shared.types import CONFIDENCE_SCALE, Segment
 
 
 def make_segment(n: int = 640, noise_px: float = 0.15) -> Segment:
@@ -188,3 +190,43 @@ def test_json_kinds_round_trip():
         assert decode(encode_json(kind, body)) == decode_message(
             bytes([kind]) + json.dumps(body).encode()
         )
+
+
+def with_confidence(segment: Segment, confidence: np.ndarray) -> Segment:
+    """Return ``segment`` carrying ``confidence`` (uint8 per point)."""
+    fields = (getattr(segment, f) for f in SEG_FIELDS)
+    head = (segment.target, segment.section, segment.view, segment.z_mm, segment.angle_deg)
+    return Segment(*head, *fields, confidence.astype(np.uint8))
+
+
+@pytest.mark.parametrize("n", [1, 2, 33, 640])
+def test_any_confidence_bytes_round_trip(n):
+    segment = make_segment(n)
+    rng = np.random.default_rng(n)
+    confidence = rng.integers(0, 256, n)
+    confidence[:3] = 255  # saturated
+    peak = segment.peak.copy()
+    peak[-1] = 0  # a point without a peak can only have confidence 0
+    confidence[-1] = 0
+    segment = with_confidence(replace(segment, peak=peak), confidence)
+    assert decode(encode_segment(1, 2, segment)).body.segment.same_as(segment)
+
+
+def test_confidence_of_one_noise_costs_a_few_bytes_a_segment():
+    segment = make_segment(640)
+    plain = len(encode_segment(1, 0, segment))
+    device = with_confidence(segment, confidence_bytes(segment.peak, 6.3))
+    assert device.confidence.min() > 0
+    got = decode(encode_segment(1, 0, device)).body.segment
+    assert got.same_as(device)
+    assert len(encode_segment(1, 0, device)) - plain <= 4  # one scale run
+    expected = np.minimum(segment.peak / 6.3 * CONFIDENCE_SCALE, 255)
+    # The scale travels in 1/256: rounding it moves a confidence byte by at most one.
+    assert np.abs(device.confidence - expected).max() <= 1.0
+
+
+def test_confidence_without_a_peak_is_refused():
+    segment = make_segment(4)
+    segment = with_confidence(replace(segment, peak=np.zeros(4, np.uint8)), np.full(4, 9))
+    with pytest.raises(ProtocolError, match="peak 0"):
+        encode_segment(1, 0, segment)
