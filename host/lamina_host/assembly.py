@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lamina_host.calibration import CalibrationError
+from lamina_host.outliers import label_clusters
 
 TWO_PI = 2.0 * np.pi
 
@@ -139,8 +140,6 @@ def split_outlines(
     Returns:
         One list of segment pieces per outline, the outline with most points first.
     """
-    from scipy import ndimage  # deferred: only needed when a section is split
-
     if not gap_mm > 0:
         raise ValueError(f"the outline gap must be a positive number of mm, not {gap_mm}")
     segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
@@ -148,11 +147,7 @@ def split_outlines(
     if not segs:
         return []
     pts = np.concatenate(segs)
-    cell = np.floor((pts - pts.min(axis=0)) / (0.5 * gap_mm)).astype(np.int64)
-    grid = np.zeros(cell.max(axis=0) + 1, dtype=bool)
-    grid[cell[:, 0], cell[:, 1]] = True
-    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=int))
-    point_label = labels[cell[:, 0], cell[:, 1]] - 1
+    point_label, count = label_clusters(pts, gap_mm)
     sizes = np.bincount(point_label, minlength=count)
     owner = np.repeat(np.arange(len(segs)), [len(s) for s in segs])
     outlines = []
