@@ -98,24 +98,21 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
         order = np.argsort(unwrapped, kind="stable")
         tables.append((unwrapped[order], rad[order]))
 
-    out_ang, out_rad = [], []
-    for k, (ang, rad) in enumerate(polar):
-        total = rad.copy()
-        count = np.ones_like(rad)
-        for m, (xp, fp) in enumerate(tables):
-            if m == k or len(xp) < 2:
-                continue
-            lo, hi = xp[0], xp[-1]
-            # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
-            shifted = lo + np.mod(ang - lo, TWO_PI)
-            covered = shifted <= hi
-            total[covered] += np.interp(shifted[covered], xp, fp)
-            count[covered] += 1.0
-        out_ang.append(ang)
-        out_rad.append(total / count)
-
-    ang = np.concatenate(out_ang)
-    rad = np.concatenate(out_rad)
+    ang = np.concatenate([a for a, _ in polar])
+    own = np.concatenate([r for _, r in polar])
+    owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
+    total = own.copy()
+    count = np.ones_like(own)
+    for m, (xp, fp) in enumerate(tables):
+        if len(xp) < 2:
+            continue
+        lo, hi = xp[0], xp[-1]
+        # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
+        shifted = lo + np.mod(ang - lo, TWO_PI)
+        covered = (shifted <= hi) & (owner != m)
+        total[covered] += np.interp(shifted[covered], xp, fp)
+        count[covered] += 1.0
+    rad = total / count
     order = np.argsort(ang, kind="stable")
     ang, rad = ang[order], rad[order]
     return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)

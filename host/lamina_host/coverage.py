@@ -17,17 +17,29 @@ import numpy as np
 
 from lamina_host.axis import taubin_circle
 from lamina_host.calibration import CalibrationError
+from lamina_host.outliers import group_range
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bins about the outline's centre; a bin with a measured point is covered."""
 
+MEASURED_TOLERANCE_MM = 0.2
+"""A contour sample is measured when its bin is covered and its radius lies within this
+of the bin's measured radii; a curve bridging a gap may cross covered bins elsewhere (a
+chord across a wide gap passes near the centre)."""
+
 
 @dataclass(frozen=True, eq=False)
 class Coverage:
-    """Which angular bins about ``centre_mm`` hold measured points of an outline."""
+    """Which angular bins about ``centre_mm`` hold measured points of an outline.
+
+    ``radius_lo_mm`` and ``radius_hi_mm`` are each bin's smallest and largest measured
+    radius (inf and -inf where nothing was measured).
+    """
 
     centre_mm: tuple[float, float]
     covered: np.ndarray
+    radius_lo_mm: np.ndarray
+    radius_hi_mm: np.ndarray
 
     @property
     def bin_deg(self) -> float:
@@ -68,9 +80,14 @@ class Coverage:
         idx = ((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2.0 * np.pi) * n).astype(np.int64)
         return np.minimum(idx, n - 1)
 
-    def unseen(self, points: np.ndarray) -> np.ndarray:
-        """Return True for points that lie in an unseen gap (estimated, not measured)."""
-        return ~self.covered[self.bins_of(points)]
+    def unseen(self, points: np.ndarray, tolerance_mm: float = MEASURED_TOLERANCE_MM) -> np.ndarray:
+        """Return True for points not backed by a measurement (estimated): in an unseen gap,
+        or further than ``tolerance_mm`` in radius from what was measured in their bin."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        b = self.bins_of(pts)
+        r = np.hypot(*(pts - np.asarray(self.centre_mm)).T)
+        off = (r < self.radius_lo_mm[b] - tolerance_mm) | (r > self.radius_hi_mm[b] + tolerance_mm)
+        return ~self.covered[b] | off
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form."""
@@ -110,8 +127,12 @@ def measure_coverage(points: np.ndarray, bin_deg: float = COVERAGE_BIN_DEG) -> C
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     n = round(360.0 / bin_deg)
     centre = outline_centre(pts)
-    probe = Coverage((float(centre[0]), float(centre[1])), np.zeros(n, dtype=bool))
-    covered = np.zeros(n, dtype=bool)
-    covered[probe.bins_of(pts)] = True
-    covered |= np.roll(covered, 1) & np.roll(covered, -1)
-    return Coverage(probe.centre_mm, covered)
+    empty = np.zeros(n)
+    probe = Coverage((float(centre[0]), float(centre[1])), empty > 0, empty, empty)
+    bins = probe.bins_of(pts)
+    lo, hi = group_range(np.hypot(*(pts - centre).T), bins, n)
+    covered = np.isfinite(lo)
+    hole = ~covered & np.roll(covered, 1) & np.roll(covered, -1)
+    lo[hole] = np.minimum(np.roll(lo, 1), np.roll(lo, -1))[hole]
+    hi[hole] = np.maximum(np.roll(hi, 1), np.roll(hi, -1))[hole]
+    return Coverage(probe.centre_mm, covered | hole, lo, hi)

@@ -11,13 +11,16 @@ becomes a phantom outline or a bump. Four tests, cheapest first, each vectorised
    and a step, such as an occlusion edge, survives a median filter).
 3. **View consensus** (polar coordinates about the axis): the views overlap, so a surface
    point is normally seen by more than one view. A point no other view confirms nearby,
-   in an angular sector where the other views consistently see a surface at a radius far
-   from it, is an outlier. A point in a sector no other view covers is kept: it may be a
-   thin part only one view sees.
+   in an angular sector where other views agree on surfaces only at radii far from it,
+   is an outlier, unless it continues a stretch of its own stripe that other
+   views do confirm (the far side of a thin part, which one view sees, continues into
+   its confirmed sides; a reflection is a stretch of its own). A point in a sector no
+   other view covers is kept.
 4. **Outline support**: the points are grouped into clusters (points closer than the
    outline gap join); a cluster is an outline only with enough points, enough views,
-   enough size and enough angular extent about its own centre. Phantom clusters come from
-   one view (a reflection moves with the turntable, so it lands elsewhere in each view).
+   enough size and enough angular extent about its fitted circle's centre. Phantom
+   clusters come from one view (a reflection moves with the turntable, so it lands
+   elsewhere in each view), and two that meet by chance form a stroke, not an arc.
 """
 
 from __future__ import annotations
@@ -28,14 +31,27 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from lamina_host.axis import taubin_circle
+from lamina_host.calibration import CalibrationError
+
 SPIKE_WINDOW = 5
 """Points in the median window along the stripe: removes spikes of up to 2 points."""
 
 SECTOR_DEG = 2.0
 """Angular sectors about the axis in which the views' radii are compared."""
 
+SECTOR_KEY_MM = 1.0e5
+"""Sector stride of the sorted (sector, radius) key: larger than any radius in mm."""
+
 EXTENT_BIN_DEG = 10.0
-"""Angular bins about a cluster's own centre when measuring its angular extent."""
+"""Angular bins about a cluster's fitted circle centre when measuring its angular extent."""
+
+MIN_RUN_POINTS = 5
+"""A run of fewer points, left between rejected ones or apart from its stripe, is stray."""
+
+MIN_RUN_CONFIRMED = 0.5
+"""A stretch of one view's stripe with at least this share of points confirmed by other
+views is surface: its unconfirmed points are kept even where other views disagree."""
 
 
 @dataclass(frozen=True)
@@ -46,8 +62,7 @@ class OutlierRules:
         working_radius_mm: furthest a point may be from the axis; None: no limit.
         spike_mm: distance from the stripe's local median that makes a point a spike.
         consensus_mm: another view's point this close confirms a point; a point this far
-            from the other views' agreed radius contradicts them.
-        agree_mm: the other views agree when their radii in a sector span at most this.
+            from every confirmed radius of its sector contradicts them.
         min_points: fewest points of an outline.
         min_views: fewest views that must each see ``min_view_points`` of an outline.
         min_view_points: points a view must contribute to count as seeing an outline.
@@ -58,7 +73,6 @@ class OutlierRules:
     working_radius_mm: float | None = None
     spike_mm: float = 1.0
     consensus_mm: float = 1.0
-    agree_mm: float = 1.0
     min_points: int = 30
     min_views: int = 2
     min_view_points: int = 5
@@ -75,11 +89,18 @@ class Rejected:
     view_consensus: int = 0
     unsupported_clusters: int = 0
     clusters: int = 0
+    short_runs: int = 0
 
     @property
     def points(self) -> int:
         """Return the total number of points removed."""
-        return self.outside_volume + self.spikes + self.view_consensus + self.unsupported_clusters
+        return (
+            self.outside_volume
+            + self.spikes
+            + self.view_consensus
+            + self.unsupported_clusters
+            + self.short_runs
+        )
 
     def add(self, other: Rejected) -> None:
         """Add another count to this one."""
@@ -91,13 +112,41 @@ class Rejected:
         return {**self.__dict__, "points": self.points}
 
 
-def spike_mask(points: np.ndarray, spike_mm: float, window: int = SPIKE_WINDOW) -> np.ndarray:
-    """Return True for points further than ``spike_mm`` from their stripe's local median."""
+def spike_mask(
+    points: np.ndarray, lengths: list[int], spike_mm: float, window: int = SPIKE_WINDOW
+) -> np.ndarray:
+    """Return True for points further than ``spike_mm`` from their stripe's local median.
+
+    Args:
+        points: (N, 2) points of several stripes, one after the other, each in order.
+        lengths: the number of points of each stripe (summing to N).
+        spike_mm: the distance that makes a point a spike.
+        window: points in the coordinate-wise median, the stripe's ends repeated.
+    """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    if len(pts) < window:
-        return np.zeros(len(pts), dtype=bool)
-    med = ndimage.median_filter(pts, size=(window, 1), mode="nearest")
+    first = np.repeat(np.cumsum([0, *lengths[:-1]]), lengths)
+    last = first + np.repeat(lengths, lengths) - 1
+    half = window // 2
+    idx = np.clip(
+        np.arange(len(pts))[:, None] + np.arange(-half, half + 1), first[:, None], last[:, None]
+    )
+    med = np.median(pts[idx], axis=1)
     return np.hypot(*(pts - med).T) > spike_mm
+
+
+def group_range(
+    values: np.ndarray, groups: np.ndarray, count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the smallest and largest value of each group 0..count-1 (inf, -inf if empty)."""
+    lo = np.full(count, np.inf)
+    hi = np.full(count, -np.inf)
+    if len(values):
+        order = np.argsort(groups, kind="stable")
+        g = groups[order]
+        start = np.flatnonzero(np.diff(g, prepend=-1))
+        lo[g[start]] = np.minimum.reduceat(values[order], start)
+        hi[g[start]] = np.maximum.reduceat(values[order], start)
+    return lo, hi
 
 
 def _neighbour_offsets() -> np.ndarray:
@@ -120,41 +169,57 @@ def confirmed_by_other_views(points: np.ndarray, views: np.ndarray, radius_mm: f
     cell -= cell.min(axis=0) - 1
     height = int(cell[:, 1].max()) + 2
     key = cell[:, 0] * height + cell[:, 1]
-    order = np.argsort(key, kind="stable")
-    keys, start = np.unique(key[order], return_index=True)
-    lo = np.minimum.reduceat(views[order], start)
-    hi = np.maximum.reduceat(views[order], start)
-    confirmed = np.zeros(len(points), dtype=bool)
-    for dx, dy in _neighbour_offsets():
-        probe = key + dx * height + dy
-        at = np.minimum(np.searchsorted(keys, probe), len(keys) - 1)
-        hit = keys[at] == probe
-        confirmed |= hit & ((lo[at] != views) | (hi[at] != views))
-    return confirmed
+    n_views = int(views.max()) + 1
+    # Each view's occupied cells, spread to their 9 neighbours: (cell, view) pairs.
+    seen = np.unique(key * n_views + views)
+    step = (_neighbour_offsets() @ np.array([height, 1])) * n_views
+    spread = np.unique((seen[:, None] + step[None, :]).ravel())
+    cells, start = np.unique(spread // n_views, return_index=True)
+    count = np.diff(np.append(start, len(spread)))  # distinct views near each cell
+    at = np.minimum(np.searchsorted(cells, key), len(cells) - 1)
+    return count[at] >= 2  # the point's own view is one of them
 
 
-def contradicted(
-    points: np.ndarray, confirmed: np.ndarray, consensus_mm: float, agree_mm: float
-) -> np.ndarray:
-    """Return True for unconfirmed points whose sector's confirmed points agree far away.
+def contradicted(points: np.ndarray, confirmed: np.ndarray, consensus_mm: float) -> np.ndarray:
+    """Return True for unconfirmed points far from every confirmed surface in their sector.
 
-    Sectors of ``SECTOR_DEG`` about the axis (the object frame's origin). A sector's
-    confirmed points are seen by at least two views; if their radii span at most
-    ``agree_mm`` they agree, and an unconfirmed point more than ``consensus_mm`` from
-    their range contradicts them.
+    Sectors of ``SECTOR_DEG`` about the axis (the object frame's origin). Confirmed points
+    are where two or more views agree on a surface. An unconfirmed point whose sector
+    holds confirmed points, none within ``consensus_mm`` of its radius, contradicts them.
+    A sector may hold several surfaces (both sides of an off-axis part): each counts.
     """
-    ang = np.degrees(np.arctan2(points[:, 1], points[:, 0])) + 180.0
-    sector = np.minimum((ang / SECTOR_DEG).astype(np.int64), int(360.0 / SECTOR_DEG) - 1)
-    radius = np.hypot(points[:, 0], points[:, 1])
     n_sectors = int(360.0 / SECTOR_DEG)
-    r_min = np.full(n_sectors, np.inf)
-    r_max = np.full(n_sectors, -np.inf)
-    np.minimum.at(r_min, sector[confirmed], radius[confirmed])
-    np.maximum.at(r_max, sector[confirmed], radius[confirmed])
-    s, r = sector, radius
-    agreed = np.isfinite(r_min[s]) & (r_max[s] - r_min[s] <= agree_mm)
-    far = (r < r_min[s] - consensus_mm) | (r > r_max[s] + consensus_mm)
-    return ~confirmed & agreed & far
+    ang = np.degrees(np.arctan2(points[:, 1], points[:, 0])) + 180.0
+    sector = np.minimum((ang / SECTOR_DEG).astype(np.int64), n_sectors - 1)
+    radius = np.hypot(points[:, 0], points[:, 1])
+    if not confirmed.any():
+        return np.zeros(len(points), dtype=bool)
+    # One sorted key: sector first, radius within it (radii are far below SECTOR_KEY).
+    keys = np.sort(sector[confirmed] * SECTOR_KEY_MM + radius[confirmed])
+    key = sector * SECTOR_KEY_MM + radius
+    at = np.searchsorted(keys, key)
+    below = keys[np.maximum(at - 1, 0)]
+    above = keys[np.minimum(at, len(keys) - 1)]
+    near = (np.abs(below - key) <= consensus_mm) | (np.abs(above - key) <= consensus_mm)
+    lo, hi = sector * SECTOR_KEY_MM, (sector + 1) * SECTOR_KEY_MM
+    occupied = ((below >= lo) & (below < hi)) | ((above >= lo) & (above < hi))
+    return ~confirmed & occupied & ~near
+
+
+def run_confirmed_share(
+    points: np.ndarray, views: np.ndarray, confirmed: np.ndarray, gap_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return each point's run's share of confirmed points, and its run number.
+
+    A run is a stretch of one view's stripe (points in stripe order) without a jump
+    wider than ``gap_mm``. The far side of a thin part, seen by one view only, continues
+    a run the other views confirm; a reflection is a run of its own.
+    """
+    step = np.hypot(*np.diff(points, axis=0).T)
+    breaks = np.concatenate([[True], (np.diff(views) != 0) | (step > gap_mm)])
+    run = np.cumsum(breaks) - 1
+    share = np.bincount(run, confirmed.astype(float)) / np.bincount(run)
+    return share[run], run
 
 
 def label_clusters(points: np.ndarray, gap_mm: float) -> tuple[np.ndarray, int]:
@@ -183,25 +248,31 @@ def cluster_support(
     sizes = np.bincount(labels, minlength=count)
     per_view = np.bincount(labels * n_views + views, minlength=count * n_views)
     seen_by = (per_view.reshape(count, n_views) >= rules.min_view_points).sum(axis=1)
-    lo = np.full((count, 2), np.inf)
-    hi = np.full((count, 2), -np.inf)
-    np.minimum.at(lo, labels, points)
-    np.maximum.at(hi, labels, points)
-    extent = np.hypot(*(hi - lo).T)
-    sums = np.stack([np.bincount(labels, points[:, k], count) for k in (0, 1)], 1)
-    centre = sums / np.maximum(sizes, 1)[:, None]
-    d = points - centre[labels]
+    ranges = [group_range(points[:, k], labels, count) for k in (0, 1)]
+    extent = np.hypot(*(hi - lo for lo, hi in ranges))
+    good = (
+        (sizes >= rules.min_points) & (seen_by >= rules.min_views) & (extent >= rules.min_extent_mm)
+    )
+    for label in np.flatnonzero(good):
+        good[label] = angular_extent_deg(points[labels == label]) >= rules.min_angle_deg
+    return good
+
+
+def angular_extent_deg(points: np.ndarray) -> float:
+    """Return the angle an outline's points subtend about their fitted circle's centre.
+
+    An outline seen all round subtends 360 degrees, a 60-degree arc 60; a straight stroke
+    (a reflection) fits a huge circle and subtends almost nothing. The mean of the
+    points would not do: a shallow arc about its own mean looks like a line.
+    """
+    try:
+        cx, cy, _ = taubin_circle(points)
+    except CalibrationError:
+        return 0.0
+    d = points - np.array([cx, cy])
     n_bins = int(360.0 / EXTENT_BIN_DEG)
     angle_bin = ((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * n_bins).astype(np.int64)
-    occupied = np.zeros(count * n_bins, dtype=bool)
-    occupied[labels * n_bins + np.minimum(angle_bin, n_bins - 1)] = True
-    angle_deg = occupied.reshape(count, n_bins).sum(axis=1) * EXTENT_BIN_DEG
-    return (
-        (sizes >= rules.min_points)
-        & (seen_by >= rules.min_views)
-        & (extent >= rules.min_extent_mm)
-        & (angle_deg >= rules.min_angle_deg)
-    )
+    return float(len(np.unique(np.minimum(angle_bin, n_bins - 1))) * EXTENT_BIN_DEG)
 
 
 def clean_section(
@@ -216,8 +287,8 @@ def clean_section(
         rules: the thresholds.
 
     Returns:
-        One list of per-view pieces per outline (most points first; pieces keep their
-        stripe order), and the counts of points rejected.
+        One list of pieces per outline (most points first): runs of one view's stripe,
+        in stripe order, of ``MIN_RUN_POINTS`` or more; and the counts of points rejected.
     """
     rejected = Rejected()
     segs = [np.asarray(p, dtype=float).reshape(-1, 2) for p in pieces]
@@ -230,12 +301,13 @@ def clean_section(
     if rules.working_radius_mm is not None:
         keep = np.hypot(pts[:, 0], pts[:, 1]) <= rules.working_radius_mm
         rejected.outside_volume = int((~keep).sum())
-    spikes = np.concatenate([spike_mask(s, rules.spike_mm) for s in segs]) & keep
+    spikes = spike_mask(pts, [len(s) for s in segs], rules.spike_mm) & keep
     rejected.spikes = int(spikes.sum())
     keep &= ~spikes
     pts, views = pts[keep], views[keep]
     confirmed = confirmed_by_other_views(pts, views, rules.consensus_mm)
-    bad = contradicted(pts, confirmed, rules.consensus_mm, rules.agree_mm)
+    bad = contradicted(pts, confirmed, rules.consensus_mm)
+    bad &= run_confirmed_share(pts, views, confirmed, gap_mm)[0] < MIN_RUN_CONFIRMED
     rejected.view_consensus = int(bad.sum())
     pts, views = pts[~bad], views[~bad]
     labels, count = label_clusters(pts, gap_mm)
@@ -245,12 +317,18 @@ def clean_section(
     rejected.clusters = int((~good).sum())
     rejected.unsupported_clusters = int((~good[labels]).sum())
     sizes = np.bincount(labels, minlength=count)
+    pts, views, labels = pts[good[labels]], views[good[labels]], labels[good[labels]]
+    # Pieces are runs of one view's stripe: overlap averaging interpolates each piece
+    # between its points, which must not happen across a hole left by a rejection.
+    _, run = run_confirmed_share(pts, views, np.ones(len(pts), dtype=bool), gap_mm)
+    run_size = np.bincount(run)
+    short = run_size[run] < MIN_RUN_POINTS
+    rejected.short_runs = int(short.sum())
     outlines = []
     for label in np.argsort(-sizes, kind="stable"):
         if not good[label]:
             continue
-        mine = labels == label
-        owners = views[mine]
-        mine_pts = pts[mine]
-        outlines.append([mine_pts[owners == v] for v in np.unique(owners)])
+        mine = (labels == label) & ~short
+        bounds = np.flatnonzero(np.diff(run[mine])) + 1
+        outlines.append(np.split(pts[mine], bounds))
     return outlines, rejected

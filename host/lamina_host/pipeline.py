@@ -44,7 +44,7 @@ from lamina_host.mesh import (
     topology,
     tube_mesh,
 )
-from lamina_host.outliers import OutlierRules, Rejected, clean_section
+from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_shared.types import BoardSpec, Segment
 
 MIN_SEGMENT_POINTS = 10
@@ -555,7 +555,8 @@ def rejection_warning(rejected: Rejected) -> str:
         f"{rejected.points} stripe point(s) rejected as outliers: {rejected.outside_volume} "
         f"outside the working volume, {rejected.spikes} spikes, {rejected.view_consensus} "
         f"contradicted by overlapping views, {rejected.unsupported_clusters} in "
-        f"{rejected.clusters} cluster(s) too small or seen by too few views to be an outline"
+        f"{rejected.clusters} cluster(s) too small or seen by too few views to be an outline, "
+        f"{rejected.short_runs} in stray stretches of under {MIN_RUN_POINTS} points"
     )
 
 
