@@ -278,6 +278,19 @@ def true_coverage(scan: dict, rig: Rig, section: int, centre: tuple[float, float
     return float(covered.mean())
 
 
+def test_coverage_of_an_arc_about_its_own_centre() -> None:
+    """A 240-degree arc: two thirds covered, one 120-degree gap where it really is."""
+    points = arc((3.0, -2.0), 6.0, 30.0, 270.0, 2000)
+    coverage = measure_coverage(points)
+    assert np.allclose(coverage.centre_mm, (3.0, -2.0), atol=1e-9)
+    assert coverage.fraction == pytest.approx(240.0 / 360.0, abs=4.0 / 360.0)  # 2-deg bins
+    [(start, width)] = coverage.gaps_deg()
+    assert start == pytest.approx(-90.0, abs=2.0) and width == pytest.approx(120.0, abs=4.0)
+    # A point in the gap and a chord point near the centre are estimated; the arc is not.
+    probe = np.array([[3.0 + 6.0, -2.0 - 0.5], [3.5, -2.0], [3.0, 4.0]])
+    assert coverage.unseen(probe).tolist() == [True, True, False]
+
+
 CIRCLE = {"centre": (2.0, 1.0), "radius_mm": 6.0}
 
 
