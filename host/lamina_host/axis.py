@@ -13,7 +13,10 @@ Two methods (``AXIS_METHODS``):
   axis is the centroid of the arc centres (6.2.2).
 
 Either way the correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning
-when it is more than 5 % from one.
+when it is more than 5 % from one. The joint fit can go on to one angle offset per view
+(``fit_view_offsets``): the cylinder is scanned at the object's view angles, so a
+repeatable gear error (runout, an eccentric gear) is measured where it acts. This is
+Lamina's extension; the thesis has one correction factor.
 """
 
 from __future__ import annotations
@@ -61,6 +64,10 @@ class AxisCalibration:
     ``angle_scale`` maps a commanded turntable angle to the true one (1.0 unless the
     joint fit estimated it); ``cylinder_offset_mm`` is the cylinder's centre in the object
     frame (joint fit only); ``rms_mm`` is the joint fit's RMS orthogonal residual.
+    ``view_offsets_deg`` (per-view fit only) holds one row per calibrated view, its
+    commanded angle and its true-minus-commanded offset, measured to about
+    ``view_offset_sd_deg`` (standard error); ``view_offsets_note`` says why they are
+    missing when the fit was asked for but the cylinder could not measure them well.
     """
 
     axis_xy_mm: tuple[float, float]
@@ -76,6 +83,7 @@ class AxisCalibration:
     rms_mm: float = float("nan")
     view_offsets_deg: np.ndarray | None = None
     view_offset_sd_deg: float = float("nan")
+    view_offsets_note: str = ""
 
     def true_angle_deg(self, commanded_deg: float) -> float:
         """Return the turntable angle the object was really at for a commanded angle.
@@ -103,6 +111,7 @@ class AxisCalibration:
             ),
             "rms_mm": self.rms_mm,
             "view_offset_sd_deg": self.view_offset_sd_deg,
+            "view_offsets_note": self.view_offsets_note,
             "view_offsets_deg": (
                 self.view_offsets_deg.tolist() if self.view_offsets_deg is not None else None
             ),
@@ -394,7 +403,7 @@ def fit_view_offsets(
             f"to +-{np.median(sd_deg):.3f} deg (needs {MAX_VIEW_OFFSET_SD_DEG} deg); place it "
             "further off-centre"
         )
-        return replace(calibration, warnings=(*calibration.warnings, note))
+        return replace(calibration, view_offsets_note=note)
     d_est = float(2.0 * abs(sol.x[2]))
     return replace(
         calibration,
