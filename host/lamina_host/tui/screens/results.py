@@ -18,7 +18,7 @@ from lamina_host.pipeline import Section
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
 
-COLUMNS = ("sec", "z mm", "points", "perim mm", "area mm2", "round", "harm", "cover %", "closed")
+COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
 the circumference the views saw; closed says how: measured all round, bridged (small gaps
 closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
@@ -189,11 +189,11 @@ class ResultsScreen(LaminaScreen):
                 str(r.index),
                 f"{r.z_mm:.2f}",
                 str(r.points),
+                *coverage_cells(section),
                 f"{r.perimeter_mm:.2f}",
                 f"{r.area_mm2:.1f}",
                 f"{r.roundness:.4f}",
                 str(r.harmonics),
-                *coverage_cells(section),
             )
         self._draw_profile(results)
         self.query_one("#summary", Static).update(summary_text(results))
