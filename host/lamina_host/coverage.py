@@ -17,7 +17,7 @@ import numpy as np
 
 from lamina_host.axis import taubin_circle
 from lamina_host.calibration import CalibrationError
-from lamina_host.outliers import group_range
+from lamina_host.outliers import MAX_EXTENT_POINTS, group_range
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bins about the outline's centre; a bin with a measured point is covered."""
@@ -108,7 +108,7 @@ def outline_centre(points: np.ndarray) -> np.ndarray:
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     mean = pts.mean(axis=0)
     try:
-        cx, cy, _ = taubin_circle(pts)
+        cx, cy, _ = taubin_circle(pts[:: max(1, len(pts) // MAX_EXTENT_POINTS)])
     except CalibrationError:
         return mean
     centre = np.array([cx, cy])

@@ -40,6 +40,9 @@ SPIKE_WINDOW = 5
 SECTOR_DEG = 2.0
 """Angular sectors about the axis in which the views' radii are compared."""
 
+MAX_EXTENT_POINTS = 2000
+"""An outline's angular extent is measured on at most about this many of its points."""
+
 SECTOR_KEY_MM = 1.0e5
 """Sector stride of the sorted (sector, radius) key: larger than any radius in mm."""
 
@@ -112,26 +115,32 @@ class Rejected:
         return {**self.__dict__, "points": self.points}
 
 
-def spike_mask(
-    points: np.ndarray, lengths: list[int], spike_mm: float, window: int = SPIKE_WINDOW
-) -> np.ndarray:
+def spike_mask(points: np.ndarray, lengths: list[int], spike_mm: float) -> np.ndarray:
     """Return True for points further than ``spike_mm`` from their stripe's local median.
+
+    The median is coordinate-wise over ``SPIKE_WINDOW`` (5) points, the stripe's ends
+    repeated.
 
     Args:
         points: (N, 2) points of several stripes, one after the other, each in order.
         lengths: the number of points of each stripe (summing to N).
         spike_mm: the distance that makes a point a spike.
-        window: points in the coordinate-wise median, the stripe's ends repeated.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     first = np.repeat(np.cumsum([0, *lengths[:-1]]), lengths)
     last = first + np.repeat(lengths, lengths) - 1
-    half = window // 2
-    idx = np.clip(
-        np.arange(len(pts))[:, None] + np.arange(-half, half + 1), first[:, None], last[:, None]
-    )
-    med = np.median(pts[idx], axis=1)
+    at = np.arange(len(pts))
+    half = SPIKE_WINDOW // 2
+    med = _median5([pts[np.clip(at + k, first, last)] for k in range(-half, half + 1)])
     return np.hypot(*(pts - med).T) > spike_mm
+
+
+def _median5(p: list[np.ndarray]) -> np.ndarray:
+    """Return the element-wise median of five arrays (Devillard's 7-exchange network)."""
+    p = list(p)
+    for i, j in ((0, 1), (3, 4), (0, 3), (1, 4), (1, 2), (2, 3), (1, 2)):
+        p[i], p[j] = np.minimum(p[i], p[j]), np.maximum(p[i], p[j])
+    return p[2]
 
 
 def group_range(
@@ -168,16 +177,20 @@ def confirmed_by_other_views(points: np.ndarray, views: np.ndarray, radius_mm: f
     cell = np.floor(points / (0.5 * radius_mm)).astype(np.int64)
     cell -= cell.min(axis=0) - 1
     height = int(cell[:, 1].max()) + 2
-    key = cell[:, 0] * height + cell[:, 1]
     n_views = int(views.max()) + 1
-    # Each view's occupied cells, spread to their 9 neighbours: (cell, view) pairs.
-    seen = np.unique(key * n_views + views)
-    step = (_neighbour_offsets() @ np.array([height, 1])) * n_views
-    spread = np.unique((seen[:, None] + step[None, :]).ravel())
-    cells, start = np.unique(spread // n_views, return_index=True)
-    count = np.diff(np.append(start, len(spread)))  # distinct views near each cell
-    at = np.minimum(np.searchsorted(cells, key), len(cells) - 1)
-    return count[at] >= 2  # the point's own view is one of them
+    # Work on the distinct (cell, view) pairs, far fewer than the points.
+    pairs, inverse = np.unique((cell[:, 0] * height + cell[:, 1]) * n_views + views,
+                               return_inverse=True)  # fmt: skip
+    pair_cell, pair_view = pairs // n_views, pairs % n_views
+    cells, first = np.unique(pair_cell, return_index=True)
+    last = np.append(first[1:], len(pairs)) - 1
+    lo, hi = pair_view[first], pair_view[last]  # pairs are sorted: views ascend per cell
+    confirmed = np.zeros(len(pairs), dtype=bool)
+    for step in _neighbour_offsets() @ np.array([height, 1]):
+        probe = pair_cell + step
+        at = np.minimum(np.searchsorted(cells, probe), len(cells) - 1)
+        confirmed |= (cells[at] == probe) & ((lo[at] != pair_view) | (hi[at] != pair_view))
+    return confirmed[inverse.ravel()]
 
 
 def contradicted(points: np.ndarray, confirmed: np.ndarray, consensus_mm: float) -> np.ndarray:
@@ -188,22 +201,24 @@ def contradicted(points: np.ndarray, confirmed: np.ndarray, consensus_mm: float)
     holds confirmed points, none within ``consensus_mm`` of its radius, contradicts them.
     A sector may hold several surfaces (both sides of an off-axis part): each counts.
     """
+    out = np.zeros(len(points), dtype=bool)
+    if confirmed.all() or not confirmed.any():
+        return out
     n_sectors = int(360.0 / SECTOR_DEG)
     ang = np.degrees(np.arctan2(points[:, 1], points[:, 0])) + 180.0
     sector = np.minimum((ang / SECTOR_DEG).astype(np.int64), n_sectors - 1)
-    radius = np.hypot(points[:, 0], points[:, 1])
-    if not confirmed.any():
-        return np.zeros(len(points), dtype=bool)
     # One sorted key: sector first, radius within it (radii are far below SECTOR_KEY).
-    keys = np.sort(sector[confirmed] * SECTOR_KEY_MM + radius[confirmed])
-    key = sector * SECTOR_KEY_MM + radius
-    at = np.searchsorted(keys, key)
+    key = sector * SECTOR_KEY_MM + np.hypot(points[:, 0], points[:, 1])
+    keys = np.sort(key[confirmed])
+    ask, sec = key[~confirmed], sector[~confirmed]
+    at = np.searchsorted(keys, ask)
     below = keys[np.maximum(at - 1, 0)]
     above = keys[np.minimum(at, len(keys) - 1)]
-    near = (np.abs(below - key) <= consensus_mm) | (np.abs(above - key) <= consensus_mm)
-    lo, hi = sector * SECTOR_KEY_MM, (sector + 1) * SECTOR_KEY_MM
+    near = (np.abs(below - ask) <= consensus_mm) | (np.abs(above - ask) <= consensus_mm)
+    lo, hi = sec * SECTOR_KEY_MM, (sec + 1) * SECTOR_KEY_MM
     occupied = ((below >= lo) & (below < hi)) | ((above >= lo) & (above < hi))
-    return ~confirmed & occupied & ~near
+    out[~confirmed] = occupied & ~near
+    return out
 
 
 def run_confirmed_share(
@@ -265,6 +280,7 @@ def angular_extent_deg(points: np.ndarray) -> float:
     (a reflection) fits a huge circle and subtends almost nothing. The mean of the
     points would not do: a shallow arc about its own mean looks like a line.
     """
+    points = points[:: max(1, len(points) // MAX_EXTENT_POINTS)]
     try:
         cx, cy, _ = taubin_circle(points)
     except CalibrationError:
