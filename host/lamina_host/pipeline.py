@@ -167,8 +167,10 @@ class Section:
     """One outline of a planar section: measured points, EFD contour and how it was closed.
 
     A section with several separate outlines (two legs) gives one Section per outline,
-    ``part`` 0 being the one with most points. ``raw`` holds measured points only;
-    ``estimated`` marks the contour samples lying in an unseen gap (see ``status``).
+    ``part`` 0 being the one with most points. ``segments`` counts the stripe pieces
+    averaged into it (with outlier rejection, runs of one view's stripe). ``raw`` holds
+    measured points only; ``estimated`` marks the contour samples not backed by a
+    measurement (in an unseen gap; see ``status`` and ``Coverage.unseen``).
     """
 
     index: int
