@@ -85,6 +85,8 @@ class ProcessOptions:
         max_bridge_deg: the widest unseen gap EFD may close on its own (flagged as
             estimated); wider gaps are filled from neighbouring sections or the outline
             is left open (not meshed). None lets EFD close every gap (thesis).
+        max_efd_points: longer outlines are thinned to this many points before the EFD
+            fit (``thin_outline``); None fits every point (thesis).
     """
 
     trim_fraction: float = 0.10
@@ -104,6 +106,7 @@ class ProcessOptions:
     reject_outliers: bool = True
     working_radius_mm: float | None = None
     max_bridge_deg: float | None = 30.0
+    max_efd_points: int | None = 4096
 
     @classmethod
     def thesis(cls) -> ProcessOptions:
@@ -119,6 +122,7 @@ class ProcessOptions:
             per_view_angles=False,
             reject_outliers=False,
             max_bridge_deg=None,
+            max_efd_points=None,
         )
 
     def check(self) -> None:
@@ -142,6 +146,8 @@ class ProcessOptions:
             raise ValueError("the outline gap must be a positive number of mm")
         if self.working_radius_mm is not None and not self.working_radius_mm > 0:
             raise ValueError("the working radius must be a positive number of mm")
+        if self.max_efd_points is not None and self.max_efd_points < 16:
+            raise ValueError("the EFD needs at least 16 points per outline")
         if self.max_bridge_deg is not None and not 0 <= self.max_bridge_deg <= 360:
             raise ValueError("the widest gap to bridge must be 0 to 360 degrees")
 
@@ -283,11 +289,29 @@ def assemble(
     return by_section, heights, skipped
 
 
+def thin_outline(points: np.ndarray, max_points: int | None) -> np.ndarray:
+    """Return an ordered outline with runs of k consecutive points averaged into one,
+    k the smallest that leaves at most ``max_points`` (None or few points: unchanged).
+
+    Overlap-averaged outlines interleave the views' points, several per stripe step; a
+    mean over a few neighbours along the outline keeps its shape and the EFD's cost,
+    proportional to the point count, falls by k.
+    """
+    pts = np.asarray(points, dtype=float)
+    if max_points is None or len(pts) <= max_points:
+        return pts
+    k = -(-len(pts) // max_points)
+    starts = np.arange(0, len(pts), k)
+    counts = np.diff(np.append(starts, len(pts)))[:, None]
+    return np.add.reduceat(pts, starts, axis=0) / counts
+
+
 def fit_outline(raw: np.ndarray, options: ProcessOptions) -> EllipticFourier:
     """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4)."""
-    order = options.harmonics or choose_harmonics(raw, options.harmonic_rule, options.efd_parameter)
-    order = max(1, min(order, nyquist_max(len(raw))))
-    return efd_fit(raw, order, options.efd_parameter)
+    pts = thin_outline(raw, options.max_efd_points)
+    order = options.harmonics or choose_harmonics(pts, options.harmonic_rule, options.efd_parameter)
+    order = max(1, min(order, nyquist_max(len(pts))))
+    return efd_fit(pts, order, options.efd_parameter)
 
 
 def fit_section(

@@ -26,7 +26,14 @@ from lamina_host.coverage import measure_coverage
 from lamina_host.measure import polygon_area
 from lamina_host.mesh import signed_volume, topology, triangulate_polygon, tube_mesh
 from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section, cluster_support
-from lamina_host.pipeline import ProcessOptions, Reconstruction, assemble, reconstruct
+from lamina_host.pipeline import (
+    ProcessOptions,
+    Reconstruction,
+    assemble,
+    fit_outline,
+    reconstruct,
+    thin_outline,
+)
 from lamina_host.report import load_segments, measured_cloud
 from lamina_shared.types import Segment
 
@@ -476,3 +483,16 @@ def test_two_posts_with_phantoms_give_exactly_two_contours(tmp_path: Path) -> No
         assert distance_to(s.raw, truth).max() < 0.5
     topo = result.mesh_topology
     assert topo["components"] == 2 and topo["watertight"] and topo["two_manifold"]
+
+
+def test_thinning_a_long_outline_keeps_its_shape() -> None:
+    """9000 noisy points of a 55 mm ellipse thinned to <= 4096: same EFD contour to 5 um."""
+    rng = np.random.default_rng(5)
+    truth = ellipse((1.0, -2.0), 55.0, 40.0, 9000)
+    noisy = truth + rng.normal(0.0, 0.02, truth.shape)
+    thin = thin_outline(noisy, 4096)
+    assert len(thin) == 3000 and np.array_equal(thin[0], noisy[:3].mean(axis=0))
+    full = fit_outline(noisy, replace(ProcessOptions(), max_efd_points=None)).evaluate(20000)
+    fast = fit_outline(noisy, ProcessOptions()).evaluate(500)
+    assert distance_to(fast, full).max() < 0.005  # a quarter of the noise; the start moves
+    assert distance_to(fast, truth).mean() < 0.01
