@@ -2,7 +2,7 @@
 
 A real camera's stripe finder reports points that are not on the object: reflections,
 stray light and noise columns. The thesis assembles every point (6.3), so each such point
-becomes a phantom outline or a bump. Four tests, cheapest first, each vectorised:
+becomes a phantom outline or a bump. Five steps, cheapest first, each vectorised:
 
 1. **Working volume**: a point further from the turntable axis than the object can be (the
    disc the camera sees at every turntable angle) is not on the object.
@@ -21,6 +21,10 @@ becomes a phantom outline or a bump. Four tests, cheapest first, each vectorised
    enough size and enough angular extent about its fitted circle's centre. Phantom
    clusters come from one view (a reflection moves with the turntable, so it lands
    elsewhere in each view), and two that meet by chance form a stroke, not an arc.
+5. **Stray stretches**: what is left of a view's stripe in runs of fewer than
+   ``MIN_RUN_POINTS`` points (between rejected points, or apart from the stripe) goes;
+   each remaining run is one piece for overlap averaging, which interpolates a piece
+   between its points and so must not bridge a hole.
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ class OutlierRules:
         min_views: fewest views that must each see ``min_view_points`` of an outline.
         min_view_points: points a view must contribute to count as seeing an outline.
         min_extent_mm: smallest bounding-box diagonal of an outline.
-        min_angle_deg: smallest angular extent of an outline about its own centre.
+        min_angle_deg: smallest angle an outline subtends about its fitted circle's centre.
     """
 
     working_radius_mm: float | None = None
@@ -85,7 +89,8 @@ class OutlierRules:
 
 @dataclass
 class Rejected:
-    """How many points each test removed (all sections)."""
+    """How many points each test removed (all sections); ``clusters`` counts the clusters
+    (not points) that were not outlines."""
 
     outside_volume: int = 0
     spikes: int = 0
