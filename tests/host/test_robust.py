@@ -158,7 +158,8 @@ def with_phantoms(
     row[noisy] = rng.uniform(0.0, h - 1.0, int(noisy.sum()))
     n = len(cols)
     return replace(segment, cols=cols.astype(np.uint16), rows=row.astype(np.float32),
-                   peak=np.full(n, 200, np.uint8), width=np.full(n, 5, np.uint8))  # fmt: skip
+                   peak=np.full(n, 200, np.uint8), width=np.full(n, 5, np.uint8),
+                   confidence=np.zeros(n, np.uint8))  # fmt: skip
 
 
 def haunted(scan: dict, rig: Rig, centre_obj: tuple[float, float], reach_mm: float) -> list:
