@@ -27,8 +27,9 @@ import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.camera import CameraError
-from lamina_device.hardware import Hardware, open_sim
+from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
+from lamina_device.sim import open_sim
 from lamina_host.link import DeviceClient, PtyBridge, RequestRefused
 from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits

@@ -14,12 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.types import BoardSpec
 
 __all__ = ["RIG_PRESETS", "Rig"]
-
-RIG_PRESETS = ("thesis", "limb")
-"""Named rig geometries: ``Rig.preset(name)``."""
 
 
 @dataclass(frozen=True)
