@@ -149,6 +149,8 @@ class AxisLimits:
 
     def check(self, axis: str, position: float) -> None:
         """Raise RequestError(``limit``) unless ``position`` is within ``axis``'s limits."""
+        low: float | None
+        high: float | None
         if axis == "lift":
             low, high, unit = self.lift_min_mm, self.lift_max_mm, "mm"
         else:

@@ -37,7 +37,10 @@ _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own sur
 class SceneObject(Protocol):
     """A solid in the object frame that can be ray cast and sliced."""
 
-    name: str
+    @property
+    def name(self) -> str:
+        """Return the object's short name (``cylinder``, ``mesh:hand``...)."""
+        ...
 
     def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the first hit distance t (N,) (inf on a miss) and outward unit normals (N, 3)."""
