@@ -1,4 +1,4 @@
-"""Choosing and assembling the hardware the device program drives.
+"""The hardware factory: picks the backend the device program drives (pi, sim, replay).
 
 :func:`open_hardware` picks the backend: ``pi`` is the scanner box (picamera2, the
 laser on a GPIO, stepper axes, all as the TOML configuration says), assembled here by

@@ -23,11 +23,9 @@ from lamina_device.sim.axes import Mechanics, SimLift, SimTurntable
 from lamina_device.sim.backend import MOCK_LASER_PIN
 from lamina_device.sim.camera import SIM_EXPOSURE_US
 from lamina_shared.capture import MANIFEST, Capture, load_capture, read_frame
+from lamina_shared.limits import DeviceLimits
 
-__all__ = ["REPLAY_LIFT_TRAVEL_MM", "ReplayCamera", "open_replay"]
-
-REPLAY_LIFT_TRAVEL_MM = 10_000.0
-"""The replay's lift accepts any height a capture may hold (the capture format's limit)."""
+__all__ = ["ReplayCamera", "open_replay"]
 
 
 @dataclass
@@ -96,7 +94,8 @@ def open_replay(folder: Path) -> Hardware:
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory())
     mechanics = Mechanics.ideal()
     turntable, stage = SimTurntable(mechanics), Stage()
-    lift = SimLift(mechanics, REPLAY_LIFT_TRAVEL_MM)
+    # The lift goes wherever a valid capture may have recorded a view.
+    lift = SimLift(mechanics, DeviceLimits().max_z_mm)
     camera = ReplayCamera(capture, stage, turntable, lift, laser)
     plans = {t: p for t in ("cylinder", "object") if (p := capture.plan(t)) is not None}
     hardware = Hardware(

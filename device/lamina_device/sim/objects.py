@@ -1,6 +1,6 @@
 """Things that stand on the simulated turntable, with exact ray casts and true sections.
 
-Every object lives in the *object frame* of ``shared/specs/capture-format.md``: origin on
+Every object lives in the *object frame* of ``docs/capture-format.md``: origin on
 the turntable axis at the first section's laser height, ``z`` up, mm. Objects answer two
 questions: where does a ray first meet me (for rendering) and what is my exact
 cross-section at height ``z`` (for the laser-visibility test and as ground truth).
