@@ -212,7 +212,14 @@ def _speed_sps(units_per_s: float, steps_per_unit: float) -> float:
     return units_per_s * steps_per_unit
 
 
-class StepperTurntable:
+class ContinuousTurntable:
+    """Base of a turntable that turns without end: it has no angle limits."""
+
+    min_deg: float | None = None
+    max_deg: float | None = None
+
+
+class StepperTurntable(ContinuousTurntable):
     """The turntable on a stepper: position in whole microsteps, reported in degrees.
 
     Every view is approached counter-clockwise (the positive way): a move that must
@@ -229,16 +236,6 @@ class StepperTurntable:
         self._position = 0
         # Unknown at power-up: the first move takes the backlash up before it arrives.
         self._engaged = False
-
-    @property
-    def min_deg(self) -> float | None:
-        """Return None: the table turns without end (moves take the short way round)."""
-        return None
-
-    @property
-    def max_deg(self) -> float | None:
-        """Return None: the table turns without end."""
-        return None
 
     @property
     def steps_per_deg(self) -> float:

@@ -16,7 +16,7 @@ import math
 import struct
 from dataclasses import dataclass
 
-from lamina_device.motion import MotionError
+from lamina_device.motion import ContinuousTurntable, MotionError
 from lamina_shared.presets import NOISE_PRESETS
 
 __all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimLift", "SimTurntable"]
@@ -88,7 +88,7 @@ class Mechanics:
         return commanded_mm * (1.0 + self.lift_scale_error) + jitter if commanded_mm else jitter
 
 
-class SimTurntable:
+class SimTurntable(ContinuousTurntable):
     """A simulated continuous turntable: instant moves, real positions from :class:`Mechanics`."""
 
     def __init__(self, mechanics: Mechanics) -> None:
@@ -99,16 +99,6 @@ class SimTurntable:
     def angle_deg(self) -> float:
         """Return the commanded angle."""
         return self._angle_deg
-
-    @property
-    def min_deg(self) -> float | None:
-        """Return None: the simulated table turns without end."""
-        return None
-
-    @property
-    def max_deg(self) -> float | None:
-        """Return None: the simulated table turns without end."""
-        return None
 
     @property
     def true_angle_deg(self) -> float:
