@@ -34,7 +34,7 @@ test: install
 lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy shared/lamina_shared host/lamina_host
+	$(BIN)/mypy shared/lamina_shared device/lamina_device host/lamina_host
 
 # The terminal UI on the simulated scanner (add DEVICE=/dev/ttyACM0 for a real one).
 DEVICE ?= sim

@@ -23,8 +23,8 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lamina_device.hardware import open_sim
 from lamina_device.server import DeviceServer
+from lamina_device.sim import open_sim
 from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel

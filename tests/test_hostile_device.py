@@ -27,8 +27,9 @@ import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.camera import CameraError
-from lamina_device.hardware import Hardware, open_sim
+from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
+from lamina_device.sim import open_sim
 from lamina_host.link import DeviceClient, PtyBridge, RequestRefused
 from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits
@@ -36,6 +37,7 @@ from lamina_shared.link import Channel
 from lamina_shared.ops import OPS, plan_fits
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
     Kind,
     Message,
     encode_frame,
@@ -107,7 +109,7 @@ class Ends:
         assert reply["result"]["state"] in ("idle", "busy", "paused")
 
     def hello(self, session: str) -> None:
-        self.host.send(encode_json(Kind.HELLO, {"protocol": 2, "session": session}))
+        self.host.send(encode_json(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": session}))
 
 
 @contextmanager

@@ -32,8 +32,8 @@ import numpy as np
 import pytest
 import serial
 
-from lamina_device.hardware import open_sim
 from lamina_device.server import DeviceServer, ServerSettings
+from lamina_device.sim import open_sim
 from lamina_host import cli, link
 from lamina_host.link import DeviceClient, DeviceError, PtyBridge, open_device
 from lamina_host.report import load_segments

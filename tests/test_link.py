@@ -15,8 +15,9 @@ import pytest
 import serial
 
 from lamina_device.acquisition import acquire, grab_grid
-from lamina_device.hardware import Hardware, open_sim
+from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
+from lamina_device.sim import open_sim
 from lamina_host.link import DeviceClient, DeviceError, LineFaults, PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel

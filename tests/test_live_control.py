@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from lamina_device.acquisition import capture_pair
-from lamina_device.camera import SIM_EXPOSURE_US, CameraError, ReplayCamera
+from lamina_device.camera import CameraError
 from lamina_device.extract import extract, to_segment
-from lamina_device.hardware import open_sim
+from lamina_device.replay import ReplayCamera
+from lamina_device.sim import SIM_EXPOSURE_US, open_sim
 from lamina_host.link import DeviceError, ScanStopped
 from lamina_shared.protocol import quantise_segment
 from lamina_shared.types import ScanPlan, Segment

@@ -1,4 +1,4 @@
-"""Allow ``python -m lamina_device``."""
+"""Entry point of ``python -m lamina_device``: the ``lamina-device`` command."""
 
 from lamina_device.cli import main
 

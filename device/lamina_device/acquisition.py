@@ -1,4 +1,4 @@
-"""Running a scan plan as a pipeline: move, settle, capture the off/on pair, extract, send.
+"""Acquisition: a scan plan run as a pipeline (move, settle, capture off/on, extract, send).
 
 The main thread drives the mechanics and the camera; a worker thread extracts each
 view's stripe and hands the segment on, so the next move and capture overlap the

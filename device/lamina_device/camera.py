@@ -1,11 +1,11 @@
-"""Cameras: where frames come from. All of them answer :class:`Camera`.
+"""Cameras: the interface every frame source answers, and the Raspberry Pi camera.
 
-The Pi camera (picamera2) captures the luminance plane at fixed exposure and gain
-and returns only frames exposed entirely under the laser's current state. The
-simulated camera renders what the virtual rig would show given the real
-(error-laden) axis positions and the laser's actual pin state; the replay camera
-serves a recorded capture's frame for the commanded view. Either way the frame
-then goes through the same extraction as a live one.
+The acquisition only sees :class:`Camera`. The Pi camera (picamera2) captures the
+luminance plane at fixed exposure and gain and returns only frames exposed entirely
+under the laser's current state. The simulated camera lives with the rest of the
+virtual rig in ``lamina_device/sim/``, the replay of a recorded capture in
+``lamina_device/replay.py``; whichever produced it, a frame goes through the same
+extraction as a live one.
 """
 
 from __future__ import annotations
@@ -13,16 +13,13 @@ from __future__ import annotations
 import importlib
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from lamina_device.config import CameraConfig
 from lamina_device.laser import Laser
-from lamina_device.motion import SimLift, SimTurntable
-from lamina_device.sim import SimScene
-from lamina_shared.capture import Capture, read_frame
 from lamina_shared.errors import LaminaError
 
 log = logging.getLogger(__name__)
@@ -40,12 +37,6 @@ class CameraError(LaminaError, RuntimeError):
 
 class ExposureRefused(CameraError):
     """An exposure the camera does not accept; the text names what it accepts."""
-
-
-SIM_EXPOSURE_US = 4000
-"""The simulated camera's nominal exposure: frames at it are the simulator's reference."""
-SIM_EXPOSURE_RANGE_US = (100, 20_000)
-"""Exposures the simulated camera accepts (a Camera Module 3 in its 120 fps mode)."""
 
 
 class Camera(Protocol):
@@ -93,103 +84,6 @@ class Stage:
     """What currently stands on the turntable: ``grid``, ``cylinder`` or ``object``."""
 
     target: str = "object"
-
-
-@dataclass
-class SimCamera:
-    """Renders the virtual rig as it really is: true axis positions, real laser state."""
-
-    scene: SimScene
-    stage: Stage
-    turntable: SimTurntable
-    lift: SimLift
-    laser: Laser
-    frames_taken: int = field(default=0, init=False)
-    exposure_us: int = field(default=SIM_EXPOSURE_US, init=False)
-    exposure_range_us: tuple[int, int] = field(default=SIM_EXPOSURE_RANGE_US, init=False)
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """Return (width, height) in pixels."""
-        return self.scene.rig.image_size
-
-    def set_exposure(self, exposure_us: int) -> None:
-        """Expose later frames for ``exposure_us``: the light scales with it, noise does not."""
-        check_exposure(exposure_us, self.exposure_range_us)
-        self.exposure_us = int(exposure_us)
-
-    def capture(self) -> np.ndarray:
-        """Render one frame of the current scene."""
-        self.frames_taken += 1
-        return self.scene.render(
-            self.stage.target,
-            self.turntable.true_angle_deg,
-            self.lift.true_z_mm,
-            self.laser.is_on,
-            exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
-        )
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
-@dataclass
-class ReplayCamera:
-    """Serves the recorded frame of a capture for the commanded view and laser state."""
-
-    capture_set: Capture
-    stage: Stage
-    turntable: SimTurntable
-    lift: SimLift
-    laser: Laser
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """Return (width, height) in pixels."""
-        return self.capture_set.image_size
-
-    @property
-    def exposure_us(self) -> int:
-        """Return the nominal exposure (the recorded frames' own is not known here)."""
-        return SIM_EXPOSURE_US
-
-    @property
-    def exposure_range_us(self) -> tuple[int, int]:
-        """Return the one exposure a replay has: the one it was recorded with."""
-        return (SIM_EXPOSURE_US, SIM_EXPOSURE_US)
-
-    def set_exposure(self, exposure_us: int) -> None:
-        """Refuse any change: recorded frames cannot be exposed again."""
-        if exposure_us != self.exposure_us:
-            raise ExposureRefused(
-                "a replayed capture cannot change its exposure (the frames are recorded); "
-                "set the exposure on the live scanner or simulator instead"
-            )
-
-    def capture(self) -> np.ndarray:
-        """Return the recorded frame matching the stage, angle, height and laser state."""
-        channel = self.capture_set.laser_channel
-        if self.stage.target == "grid":
-            if self.capture_set.grid_image is None:
-                raise CameraError("the capture holds no calibration grid image")
-            return read_frame(self.capture_set.grid_image, channel)
-        z_mm, angle = self.lift.z_mm, self.turntable.angle_deg
-        for view in self.capture_set.views(self.stage.target):
-            if abs(view.spec.z_mm - z_mm) < 1e-6 and abs(view.spec.angle_deg - angle) < 1e-6:
-                if self.laser.is_on:
-                    return read_frame(view.laser_on, channel)
-                if view.laser_off is None:
-                    # No laser-off frame recorded: a black frame makes the difference
-                    # image equal to the laser-on frame, as the capture spec allows.
-                    width, height = self.size
-                    return np.zeros((height, width), np.uint8)
-                return read_frame(view.laser_off, channel)
-        raise CameraError(
-            f"the capture has no {self.stage.target} view at z={z_mm} mm, angle={angle} deg"
-        )
-
-    def close(self) -> None:
-        """Nothing to release."""
 
 
 # The sensor timestamps a frame when its first row ends exposure; the last row ends up

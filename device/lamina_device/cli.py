@@ -30,7 +30,7 @@ from lamina_shared.capture import CaptureError, CaptureWriter
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import ArgsError, Problems, check_plan
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
@@ -61,7 +61,7 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--rig",
-        choices=("thesis", "limb"),
+        choices=RIG_PRESETS,
         default="thesis",
         help="simulated rig geometry: thesis scale (640x480) or limb scale (1536x864)",
     )

@@ -1,45 +1,28 @@
-"""Choosing and assembling the hardware the device program drives.
+"""The hardware factory: picks the backend the device program drives (pi, sim, replay).
 
-``pi`` is the scanner box: picamera2, the laser on a GPIO, stepper axes, all as the
-TOML configuration says. ``sim`` is the virtual rig; ``replay:DIR`` is a recorded
-capture standing in for the camera. Sim and replay use gpiozero's MockFactory for
-the laser pin, so the laser's state history is real gpiozero behaviour, and
-simulated axes for motion. Every kind comes with its laser watchdog running.
+:func:`open_hardware` picks the backend: ``pi`` is the scanner box (picamera2, the
+laser on a GPIO, stepper axes, all as the TOML configuration says), assembled here by
+:func:`open_pi`; ``sim`` is the virtual rig (``lamina_device/sim/backend.py``) and
+``replay:DIR`` a recorded capture standing in for the camera (``replay.py``). Every
+kind comes with its laser watchdog running.
 """
 
 from __future__ import annotations
 
-import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from gpiozero.exc import GPIOZeroError
 from gpiozero.pins import Factory
-from gpiozero.pins.mock import MockFactory
 
-from lamina_device.camera import Camera, CameraError, PiCamera, ReplayCamera, SimCamera, Stage
+from lamina_device.camera import Camera, CameraError, PiCamera, Stage
 from lamina_device.config import ConfigError, DeviceConfig, load_config
 from lamina_device.laser import Laser
-from lamina_device.motion import (
-    Lift,
-    Mechanics,
-    SimLift,
-    SimTurntable,
-    StepperLift,
-    StepperTurntable,
-    Turntable,
-)
+from lamina_device.motion import Lift, StepperLift, StepperTurntable, Turntable
 from lamina_device.safety import LaserWatchdog
-from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
-from lamina_shared.capture import MANIFEST, load_capture
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, ScanPlan
-
-LASER_PIN = 17
-DEFAULT_OBJECT = "cylinder:d=19.05"
-DEFAULT_PLAN = ScanPlan.regular(sections=4, pitch_mm=2.0, views=8)
-DEFAULT_CYLINDER_PLAN = ScanPlan.regular(sections=1, pitch_mm=2.0, views=8)
 
 
 class HardwareError(LaminaError, ValueError):
@@ -107,86 +90,11 @@ def pi_serial(
     return "unknown"
 
 
-def sim_source(
-    object_spec: str, obj: object, rig: Rig, noise: NoiseModel, mechanics: Mechanics, seed: int
-) -> str:
-    """Return the canonical text of what a simulated device images.
-
-    The same configuration gives the same text; a different object, rig, noise model,
-    mechanics or seed a different one (the parameters' full values are hashed in).
-    """
-    detail = repr((object_spec, obj, rig, noise, mechanics, seed))
-    digest = hashlib.sha256(detail.encode()).hexdigest()[:16]
-    return f"sim object={object_spec} seed={seed} params={digest}"
-
-
-def _watched(hardware: Hardware, max_on_s: float = 2.0, link_silence_s: float = 10.0) -> Hardware:
+def watched(hardware: Hardware, max_on_s: float = 2.0, link_silence_s: float = 10.0) -> Hardware:
     """Start the laser watchdog of ``hardware`` and return it."""
     hardware.watchdog = LaserWatchdog(hardware.laser, max_on_s, link_silence_s)
     hardware.watchdog.start()
     return hardware
-
-
-def open_sim(
-    object_spec: str | None = None, seed: int = 0, noise: str = "thesis", rig_name: str = "thesis"
-) -> Hardware:
-    """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it."""
-    spec = object_spec or DEFAULT_OBJECT
-    try:
-        obj = parse_object(spec)
-    except ValueError as exc:
-        raise HardwareError(f"object {spec!r}: {exc}") from None
-    try:
-        noise_model = NoiseModel.preset(noise)
-        mechanics = Mechanics.preset(noise)
-        rig = Rig.preset(rig_name)
-    except ValueError as exc:
-        raise HardwareError(str(exc)) from None
-    source = sim_source(spec, obj, rig, noise_model, mechanics, seed)
-    scene = SimScene(rig, obj, noise_model, seed)
-    factory = MockFactory()
-    laser = Laser(LASER_PIN, pin_factory=factory)
-    turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics), Stage()
-    camera = SimCamera(scene, stage, turntable, lift, laser)
-    hardware = Hardware(
-        "sim",
-        camera,
-        laser,
-        turntable,
-        lift,
-        stage,
-        rig.board,
-        rig.cylinder_diameter_mm,
-        {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
-        f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
-        identity={"serial": "sim", "source": source},
-    )
-    return _watched(hardware)
-
-
-def open_replay(folder: Path) -> Hardware:
-    """Return a device whose camera replays the capture in ``folder`` (validated first)."""
-    capture = load_capture(folder)
-    manifest_sha = hashlib.sha256((capture.root / MANIFEST).read_bytes()).hexdigest()
-    laser = Laser(LASER_PIN, pin_factory=MockFactory())
-    mechanics = Mechanics.ideal()
-    turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics, 10_000.0), Stage()
-    camera = ReplayCamera(capture, stage, turntable, lift, laser)
-    plans = {t: p for t in ("cylinder", "object") if (p := capture.plan(t)) is not None}
-    hardware = Hardware(
-        "replay",
-        camera,
-        laser,
-        turntable,
-        lift,
-        stage,
-        capture.board,
-        capture.cylinder_diameter_mm,
-        plans,
-        f"replay of {folder}",
-        identity={"serial": "replay", "source": f"{folder.resolve().name} sha256={manifest_sha}"},
-    )
-    return _watched(hardware)
 
 
 def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = None) -> Hardware:
@@ -230,7 +138,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
     )
-    return _watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
+    return watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
 
 
 def open_hardware(
@@ -256,9 +164,14 @@ def open_hardware(
     Raises:
         HardwareError: naming what is wrong and what to do.
     """
+    # The simulator and replay modules build on this one, so they are imported on demand.
     if spec == "sim":
+        from lamina_device.sim.backend import open_sim
+
         return open_sim(object_spec, seed, noise, rig)
     if spec.startswith("replay:"):
+        from lamina_device.replay import open_replay
+
         folder = spec.removeprefix("replay:")
         if not folder:
             raise HardwareError("replay needs a capture folder: --hardware replay:DIR")

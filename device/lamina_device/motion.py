@@ -1,26 +1,21 @@
 """The two motion axes: the turntable (degrees) and the lift (millimetres).
 
-The acquisition only sees :class:`Turntable` and :class:`Lift`. Two families answer
-them. The stepper axes drive step/dir drivers (A4988, DRV8825, TMC2209 class) through
-gpiozero outputs: trapezoidal acceleration with the step timing computed up front,
-position kept in whole microsteps, a homing limit switch and soft limits on the lift,
-and backlash take-up on the turntable. The simulated axes carry a mechanical error
-model, so the simulated scanner puts objects where real mechanics would, not where
-they were asked to go: a gear-ratio error (the thesis measured about 0.2 degrees
-undershoot per 45 degree step, section 8.3), a once-per-revolution runout, and a
-small repeatable jitter per position. :meth:`Mechanics.harsh` adds an eccentric gear:
-a once-per-turn angle error of 0.15 degrees that no angle scale can absorb.
+The acquisition only sees :class:`Turntable` and :class:`Lift`; each declares its soft
+limits so the device can report and enforce them without knowing the implementation.
+This module holds those interfaces and the stepper axes of the scanner box: step/dir
+drivers (A4988, DRV8825, TMC2209 class) through gpiozero outputs, trapezoidal
+acceleration with the step timing computed up front, position kept in whole
+microsteps, a homing limit switch and soft limits on the lift, and backlash take-up on
+the turntable. The simulated axes, with their mechanical error model, live with the
+rest of the virtual rig in ``lamina_device/sim/axes.py``.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import struct
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -29,7 +24,6 @@ from gpiozero.pins import Factory
 
 from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig
 from lamina_shared.errors import LaminaError
-from lamina_shared.presets import NOISE_PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +38,16 @@ class Turntable(Protocol):
     @property
     def angle_deg(self) -> float:
         """Return the angle the axis is at, in [0, 360) for stepper axes."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def min_deg(self) -> float | None:
+        """Return the lowest angle the axis may be sent to; None for a continuous table."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def max_deg(self) -> float | None:
+        """Return the highest angle the axis may be sent to; None for a continuous table."""
         ...  # pragma: no cover - protocol
 
     def move_to(self, angle_deg: float) -> None:
@@ -63,6 +67,16 @@ class Lift(Protocol):
         """Return the height the axis is at."""
         ...  # pragma: no cover - protocol
 
+    @property
+    def min_mm(self) -> float:
+        """Return the lowest height the axis may be sent to (its lower soft limit)."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def max_mm(self) -> float:
+        """Return the highest height the axis may be sent to (its upper soft limit)."""
+        ...  # pragma: no cover - protocol
+
     def move_to(self, z_mm: float) -> None:
         """Move so the laser plane is ``z_mm`` above the first section."""
         ...  # pragma: no cover - protocol
@@ -74,128 +88,6 @@ class Lift(Protocol):
     def close(self) -> None:
         """Release the axis."""
         ...  # pragma: no cover - protocol
-
-
-def _repeatable_unit_noise(*key: float) -> float:
-    """Return a repeatable number in [-1, 1) derived from ``key`` (not from call order)."""
-    digest = hashlib.blake2b(struct.pack(f"<{len(key)}d", *key), digest_size=8).digest()
-    return int.from_bytes(digest, "little") / 2**63 - 1.0
-
-
-@dataclass(frozen=True)
-class Mechanics:
-    """Error model of the simulated axes; :meth:`ideal` has none."""
-
-    angle_scale_error: float = -0.2 / 45.0
-    angle_runout_deg: float = 0.02
-    angle_jitter_deg: float = 0.01
-    lift_scale_error: float = 0.002
-    lift_jitter_mm: float = 0.005
-    # A gear mounted off-centre: the angle error goes round once per turn with its own
-    # amplitude and phase, ``eccentric * sin(commanded + phase)``.
-    angle_eccentric_deg: float = 0.0
-    angle_eccentric_phase_deg: float = 0.0
-
-    @classmethod
-    def ideal(cls) -> Mechanics:
-        """Return perfect mechanics (for tests that isolate other error sources)."""
-        return cls(0.0, 0.0, 0.0, 0.0, 0.0)
-
-    @classmethod
-    def harsh(cls) -> Mechanics:
-        """Return the thesis mechanics plus a 0.15 degree eccentric gear error (phase 40 deg).
-
-        The undershoot per step (a scale error the host's angle correction can fit), the
-        runout and the jitter stay as measured in the thesis (8.3); the eccentric term is
-        mid-range of the 0.1-0.2 degrees a cheap printed or cast gear shows. Its phase
-        makes the error non-zero at the home angle, so the host's frame starts turned.
-        """
-        return cls(angle_eccentric_deg=0.15, angle_eccentric_phase_deg=40.0)
-
-    @classmethod
-    def preset(cls, noise: str) -> Mechanics:
-        """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
-        if noise == "thesis":
-            return cls()
-        if noise == "harsh":
-            return cls.harsh()
-        if noise == "none":
-            return cls.ideal()
-        raise ValueError(f"unknown noise {noise!r}; use one of {', '.join(NOISE_PRESETS)}")
-
-    def true_angle_deg(self, commanded_deg: float) -> float:
-        """Return where the turntable really is when told ``commanded_deg``."""
-        runout = self.angle_runout_deg * math.sin(math.radians(commanded_deg))
-        jitter = self.angle_jitter_deg * _repeatable_unit_noise(1.0, commanded_deg)
-        angle = commanded_deg * (1.0 + self.angle_scale_error) + runout + jitter
-        if self.angle_eccentric_deg:
-            phase = math.radians(commanded_deg + self.angle_eccentric_phase_deg)
-            angle += self.angle_eccentric_deg * math.sin(phase)
-        return angle
-
-    def true_z_mm(self, commanded_mm: float) -> float:
-        """Return where the lift really is when told ``commanded_mm``."""
-        jitter = self.lift_jitter_mm * _repeatable_unit_noise(2.0, commanded_mm)
-        return commanded_mm * (1.0 + self.lift_scale_error) + jitter if commanded_mm else jitter
-
-
-class SimTurntable:
-    """A simulated turntable: instant moves, real positions from :class:`Mechanics`."""
-
-    def __init__(self, mechanics: Mechanics) -> None:
-        self.mechanics = mechanics
-        self._angle_deg = 0.0
-
-    @property
-    def angle_deg(self) -> float:
-        """Return the commanded angle."""
-        return self._angle_deg
-
-    @property
-    def true_angle_deg(self) -> float:
-        """Return the angle the object is really at."""
-        return self.mechanics.true_angle_deg(self._angle_deg)
-
-    def move_to(self, angle_deg: float) -> None:
-        """Rotate to ``angle_deg``."""
-        if not math.isfinite(angle_deg):
-            raise ValueError(f"turntable angle must be finite, not {angle_deg}")
-        self._angle_deg = angle_deg
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
-class SimLift:
-    """A simulated lift between soft limits."""
-
-    def __init__(self, mechanics: Mechanics, travel_mm: float = 200.0) -> None:
-        self.mechanics = mechanics
-        self.travel_mm = travel_mm
-        self._z_mm = 0.0
-
-    @property
-    def z_mm(self) -> float:
-        """Return the commanded height."""
-        return self._z_mm
-
-    @property
-    def true_z_mm(self) -> float:
-        """Return the height the laser plane is really at."""
-        return self.mechanics.true_z_mm(self._z_mm)
-
-    def move_to(self, z_mm: float) -> None:
-        """Move to ``z_mm``; refuse heights outside ``0..travel_mm``."""
-        if not (math.isfinite(z_mm) and 0.0 <= z_mm <= self.travel_mm):
-            raise ValueError(f"lift height {z_mm} mm is outside 0..{self.travel_mm} mm")
-        self._z_mm = z_mm
-
-    def home(self) -> None:
-        """Return to z = 0."""
-        self.move_to(0.0)
-
-    def close(self) -> None:
-        """Nothing to release."""
 
 
 # --- Stepper axes on step/dir drivers -------------------------------------------------
@@ -320,7 +212,14 @@ def _speed_sps(units_per_s: float, steps_per_unit: float) -> float:
     return units_per_s * steps_per_unit
 
 
-class StepperTurntable:
+class ContinuousTurntable:
+    """Base of a turntable that turns without end: it has no angle limits."""
+
+    min_deg: float | None = None
+    max_deg: float | None = None
+
+
+class StepperTurntable(ContinuousTurntable):
     """The turntable on a stepper: position in whole microsteps, reported in degrees.
 
     Every view is approached counter-clockwise (the positive way): a move that must
@@ -410,6 +309,16 @@ class StepperLift:
         self._homed = False
 
     @property
+    def min_mm(self) -> float:
+        """Return the lower soft limit, ``[lift] min_mm``."""
+        return self.config.min_mm
+
+    @property
+    def max_mm(self) -> float:
+        """Return the upper soft limit, ``[lift] max_mm``."""
+        return self.config.max_mm
+
+    @property
     def homed(self) -> bool:
         """Return True once the position is referenced to the limit switch."""
         return self._homed
@@ -435,7 +344,7 @@ class StepperLift:
         Raises:
             MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
         """
-        low, high = self.config.min_mm, self.config.max_mm
+        low, high = self.min_mm, self.max_mm
         if not (math.isfinite(z_mm) and low <= z_mm <= high):
             raise MotionError(
                 f"lift height {z_mm} mm is outside its soft limits {low:g}..{high:g} mm; "

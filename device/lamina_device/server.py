@@ -84,9 +84,6 @@ from lamina_shared.types import ScanPlan, Segment
 
 log = logging.getLogger(__name__)
 
-SIM_LIFT_TRAVEL_MM = 200.0
-"""The simulated lift's travel, reported when the hardware does not say its own."""
-
 
 class RequestError(Exception):
     """A request the device refuses; ``code`` is machine-readable, the text is for people."""
@@ -134,18 +131,9 @@ class AxisLimits:
 
     @classmethod
     def of(cls, hardware: Hardware) -> AxisLimits:
-        """Return the hardware's limits, or the simulator's where it does not expose them."""
-        config = getattr(hardware.lift, "config", None)
-        if config is not None and hasattr(config, "min_mm"):
-            low, high = float(config.min_mm), float(config.max_mm)
-        else:
-            low, high = 0.0, float(getattr(hardware.lift, "travel_mm", SIM_LIFT_TRAVEL_MM))
-        return cls(
-            low,
-            high,
-            getattr(hardware.turntable, "min_deg", None),
-            getattr(hardware.turntable, "max_deg", None),
-        )
+        """Return the limits the hardware's axes declare."""
+        lift, turntable = hardware.lift, hardware.turntable
+        return cls(lift.min_mm, lift.max_mm, turntable.min_deg, turntable.max_deg)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the WELCOME form."""
@@ -161,6 +149,8 @@ class AxisLimits:
 
     def check(self, axis: str, position: float) -> None:
         """Raise RequestError(``limit``) unless ``position`` is within ``axis``'s limits."""
+        low: float | None
+        high: float | None
         if axis == "lift":
             low, high, unit = self.lift_min_mm, self.lift_max_mm, "mm"
         else:

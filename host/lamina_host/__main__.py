@@ -1,4 +1,4 @@
-"""Allow ``python -m lamina_host``."""
+"""Entry point of ``python -m lamina_host``: the ``lamina`` command."""
 
 from lamina_host.cli import main
 

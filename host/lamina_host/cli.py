@@ -46,14 +46,11 @@ from lamina_host.workflow import (
     printable,
 )
 from lamina_shared.link import LinkClosed
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
-RIG_PRESETS = ("thesis", "limb")
-"""The simulated rig geometries (lamina_device.sim.RIG_PRESETS; not imported, since the
-host must run without the device package)."""
 
 
 class UsageError(InputError):

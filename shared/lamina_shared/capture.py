@@ -1,4 +1,4 @@
-"""Raw captures: read, validate and write the format of ``../shared/specs/capture-format.md``.
+"""Raw captures: read, validate and write the format of ``docs/capture-format.md``.
 
 A reader validates the whole capture before any work starts and reports every
 problem at once, each naming the offending key. Validation reads only each frame's

@@ -6,9 +6,13 @@ the device package, so the names live here, once.
 
 from __future__ import annotations
 
-__all__ = ["NOISE_PRESETS"]
+__all__ = ["NOISE_PRESETS", "RIG_PRESETS"]
 
 NOISE_PRESETS = ("thesis", "harsh", "none")
 """Simulated camera noise and mechanical error: ``thesis`` (the thesis-like rig, default),
 ``harsh`` (a Pi camera at raised analog gain in a lit room, a real lens, an eccentric
 turntable gear) and ``none`` (noise-free camera, perfect mechanics)."""
+
+RIG_PRESETS = ("thesis", "limb")
+"""Simulated rig geometries (``lamina_device.sim.Rig.preset``): ``thesis`` (the thesis
+prototype's scale, 640x480 camera) and ``limb`` (objects up to ~150 mm, 1536x864)."""

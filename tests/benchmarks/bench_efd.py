@@ -1,5 +1,8 @@
-"""EFD studies: thesis fig. 6.8 (noisy circle), fig. 6.11 (HN of polygons), harmonic rules
-on other outlines, and interpolation of coefficients along z (thesis ref. [86])."""
+"""EFD benchmarks: harmonic-count rules and coefficient interpolation on known outlines.
+
+Thesis fig. 6.8 (noisy circle), fig. 6.11 (HN of polygons), the harmonic rules on other
+outlines, and interpolation of coefficients along z (thesis ref. [86]).
+"""
 
 from __future__ import annotations
 

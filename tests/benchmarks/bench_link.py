@@ -12,7 +12,7 @@ from typing import Any
 import serial
 
 from lamina_device.acquisition import acquire
-from lamina_device.hardware import open_sim
+from lamina_device.sim import open_sim
 from lamina_host import cli
 from lamina_host.link import LineFaults, PtyBridge, open_device
 from lamina_host.store import Library

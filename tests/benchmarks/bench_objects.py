@@ -33,8 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from lamina_device.motion import Mechanics
-from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
+from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, parse_object
 from lamina_device.sim.truth import (
     OUTLIER_MM,
     TrueSurface,

@@ -24,7 +24,7 @@ from lamina_device.extract import (
     gate_sigmas,
     settings_problems,
 )
-from lamina_device.hardware import open_sim
+from lamina_device.sim import open_sim
 from lamina_shared.protocol import (
     decode_segment_body,
     encode_segment_body,

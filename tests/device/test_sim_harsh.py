@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lamina_device.motion import Mechanics, _repeatable_unit_noise
 from lamina_device.sim import NOISE_PRESETS, NoiseModel, Rig, SimScene, parse_object
+from lamina_device.sim.axes import Mechanics, _repeatable_unit_noise
 from lamina_device.sim.truth import lit_and_seen_points
 
 CYLINDER = parse_object("cylinder:d=19.05")
@@ -225,7 +225,8 @@ def test_harsh_mechanics_add_a_once_per_turn_error_no_scale_absorbs():
 
 def test_the_simulated_device_opens_with_the_harsh_preset():
     """open_sim wires the harsh camera (luma frames) and the eccentric mechanics together."""
-    from lamina_device.hardware import HardwareError, open_sim
+    from lamina_device.hardware import HardwareError
+    from lamina_device.sim import open_sim
 
     hardware = open_sim("stump", noise="harsh")
     try:

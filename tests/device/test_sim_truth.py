@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lamina_device.motion import Mechanics
-from lamina_device.sim import NoiseModel, Rig, SimScene, TriangleMesh, parse_object
+from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, TriangleMesh, parse_object
 from lamina_device.sim.phantoms import phantom
 from lamina_device.sim.truth import (
     Alignment,

@@ -1,6 +1,6 @@
 """Things that stand on the simulated turntable, with exact ray casts and true sections.
 
-Every object lives in the *object frame* of ``shared/specs/capture-format.md``: origin on
+Every object lives in the *object frame* of ``docs/capture-format.md``: origin on
 the turntable axis at the first section's laser height, ``z`` up, mm. Objects answer two
 questions: where does a ray first meet me (for rendering) and what is my exact
 cross-section at height ``z`` (for the laser-visibility test and as ground truth).
@@ -37,7 +37,10 @@ _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own sur
 class SceneObject(Protocol):
     """A solid in the object frame that can be ray cast and sliced."""
 
-    name: str
+    @property
+    def name(self) -> str:
+        """Return the object's short name (``cylinder``, ``mesh:hand``...)."""
+        ...
 
     def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the first hit distance t (N,) (inf on a miss) and outward unit normals (N, 3)."""

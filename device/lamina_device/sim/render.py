@@ -1,4 +1,4 @@
-"""Physically honest simulated camera frames of the light-sectioning rig.
+"""The simulator's renderer: physically honest camera frames of the light-sectioning rig.
 
 Every pixel casts one ray from the pinhole to the nearest surface. A lit pixel gets the
 ambient term (albedo x a smooth, non-uniform ambient field x simple shading) and, in the

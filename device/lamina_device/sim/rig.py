@@ -1,6 +1,6 @@
 """Geometry of the simulated scanner: pinhole camera, turntable axis, laser and board.
 
-Conventions follow ``shared/specs/capture-format.md`` (world frame in the laser plane,
+Conventions follow ``docs/capture-format.md`` (world frame in the laser plane,
 ``x`` right as the camera sees it, ``y`` away from the camera, ``z`` up, mm) and
 ``lamina_shared.types`` (pixel ``(i, j)`` centre at exactly ``u = i, v = j``).
 The layout mirrors the thesis prototype (section 3.2.1): camera inclined 30 degrees,
@@ -14,12 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.types import BoardSpec
 
 __all__ = ["RIG_PRESETS", "Rig"]
-
-RIG_PRESETS = ("thesis", "limb")
-"""Named rig geometries: ``Rig.preset(name)``."""
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lamina_device.motion import Mechanics
+from lamina_device.sim.axes import Mechanics
 from lamina_device.sim.objects import Cylinder, Ellipsoid, SceneObject, TriangleMesh
 from lamina_device.sim.render import SimScene, laser_reaches
 

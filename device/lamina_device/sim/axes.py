@@ -1,0 +1,160 @@
+"""Simulated motion axes: a turntable and a lift that land where real mechanics would.
+
+They answer :class:`lamina_device.motion.Turntable` and :class:`~lamina_device.motion.Lift`
+like the stepper axes, but move instantly and carry a mechanical error model, so the
+simulated scanner puts objects where real mechanics would, not where they were asked
+to go: a gear-ratio error (the thesis measured about 0.2 degrees undershoot per 45
+degree step, section 8.3), a once-per-revolution runout, and a small repeatable jitter
+per position. :meth:`Mechanics.harsh` adds an eccentric gear: a once-per-turn angle
+error of 0.15 degrees that no angle scale can absorb.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import struct
+from dataclasses import dataclass
+
+from lamina_device.motion import ContinuousTurntable, MotionError
+from lamina_shared.presets import NOISE_PRESETS
+
+__all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimLift", "SimTurntable"]
+
+SIM_LIFT_TRAVEL_MM = 200.0
+"""The simulated lift's travel above its home (z = 0)."""
+
+
+def _repeatable_unit_noise(*key: float) -> float:
+    """Return a repeatable number in [-1, 1) derived from ``key`` (not from call order)."""
+    digest = hashlib.blake2b(struct.pack(f"<{len(key)}d", *key), digest_size=8).digest()
+    return int.from_bytes(digest, "little") / 2**63 - 1.0
+
+
+@dataclass(frozen=True)
+class Mechanics:
+    """Error model of the simulated axes; :meth:`ideal` has none."""
+
+    angle_scale_error: float = -0.2 / 45.0
+    angle_runout_deg: float = 0.02
+    angle_jitter_deg: float = 0.01
+    lift_scale_error: float = 0.002
+    lift_jitter_mm: float = 0.005
+    # A gear mounted off-centre: the angle error goes round once per turn with its own
+    # amplitude and phase, ``eccentric * sin(commanded + phase)``.
+    angle_eccentric_deg: float = 0.0
+    angle_eccentric_phase_deg: float = 0.0
+
+    @classmethod
+    def ideal(cls) -> Mechanics:
+        """Return perfect mechanics (for tests that isolate other error sources)."""
+        return cls(0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @classmethod
+    def harsh(cls) -> Mechanics:
+        """Return the thesis mechanics plus a 0.15 degree eccentric gear error (phase 40 deg).
+
+        The undershoot per step (a scale error the host's angle correction can fit), the
+        runout and the jitter stay as measured in the thesis (8.3); the eccentric term is
+        mid-range of the 0.1-0.2 degrees a cheap printed or cast gear shows. Its phase
+        makes the error non-zero at the home angle, so the host's frame starts turned.
+        """
+        return cls(angle_eccentric_deg=0.15, angle_eccentric_phase_deg=40.0)
+
+    @classmethod
+    def preset(cls, noise: str) -> Mechanics:
+        """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
+        if noise == "thesis":
+            return cls()
+        if noise == "harsh":
+            return cls.harsh()
+        if noise == "none":
+            return cls.ideal()
+        raise ValueError(f"unknown noise {noise!r}; use one of {', '.join(NOISE_PRESETS)}")
+
+    def true_angle_deg(self, commanded_deg: float) -> float:
+        """Return where the turntable really is when told ``commanded_deg``."""
+        runout = self.angle_runout_deg * math.sin(math.radians(commanded_deg))
+        jitter = self.angle_jitter_deg * _repeatable_unit_noise(1.0, commanded_deg)
+        angle = commanded_deg * (1.0 + self.angle_scale_error) + runout + jitter
+        if self.angle_eccentric_deg:
+            phase = math.radians(commanded_deg + self.angle_eccentric_phase_deg)
+            angle += self.angle_eccentric_deg * math.sin(phase)
+        return angle
+
+    def true_z_mm(self, commanded_mm: float) -> float:
+        """Return where the lift really is when told ``commanded_mm``."""
+        jitter = self.lift_jitter_mm * _repeatable_unit_noise(2.0, commanded_mm)
+        return commanded_mm * (1.0 + self.lift_scale_error) + jitter if commanded_mm else jitter
+
+
+class SimTurntable(ContinuousTurntable):
+    """A simulated continuous turntable: instant moves, real positions from :class:`Mechanics`."""
+
+    def __init__(self, mechanics: Mechanics) -> None:
+        self.mechanics = mechanics
+        self._angle_deg = 0.0
+
+    @property
+    def angle_deg(self) -> float:
+        """Return the commanded angle."""
+        return self._angle_deg
+
+    @property
+    def true_angle_deg(self) -> float:
+        """Return the angle the object is really at."""
+        return self.mechanics.true_angle_deg(self._angle_deg)
+
+    def move_to(self, angle_deg: float) -> None:
+        """Rotate to ``angle_deg``."""
+        if not math.isfinite(angle_deg):
+            raise MotionError(f"turntable angle must be finite, not {angle_deg}")
+        self._angle_deg = angle_deg
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class SimLift:
+    """A simulated lift between soft limits ``0..travel_mm``."""
+
+    def __init__(self, mechanics: Mechanics, travel_mm: float = SIM_LIFT_TRAVEL_MM) -> None:
+        self.mechanics = mechanics
+        self.travel_mm = travel_mm
+        self._z_mm = 0.0
+
+    @property
+    def z_mm(self) -> float:
+        """Return the commanded height."""
+        return self._z_mm
+
+    @property
+    def min_mm(self) -> float:
+        """Return the lower soft limit: home, z = 0."""
+        return 0.0
+
+    @property
+    def max_mm(self) -> float:
+        """Return the upper soft limit: the travel."""
+        return self.travel_mm
+
+    @property
+    def true_z_mm(self) -> float:
+        """Return the height the laser plane is really at."""
+        return self.mechanics.true_z_mm(self._z_mm)
+
+    def move_to(self, z_mm: float) -> None:
+        """Move to ``z_mm``; refuse heights outside ``0..travel_mm``."""
+        if not (math.isfinite(z_mm) and self.min_mm <= z_mm <= self.max_mm):
+            raise MotionError(
+                f"lift height {z_mm} mm is outside {self.min_mm:g}..{self.max_mm:g} mm; "
+                "choose sections within the simulated lift's travel"
+            )
+        self._z_mm = z_mm
+
+    def home(self) -> None:
+        """Return to z = 0."""
+        self.move_to(0.0)
+
+    def close(self) -> None:
+        """Nothing to release."""
