@@ -32,6 +32,9 @@ from lamina_host.mesh import MESH_METHODS
 from lamina_host.pipeline import ProcessOptions
 from lamina_host.store import Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
+    DEFAULT_PITCH_MM,
+    DEFAULT_SECTIONS,
+    DEFAULT_VIEWS,
     SUBJECT_RULE,
     InputError,
     check_count,
@@ -87,9 +90,16 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
-    scan.add_argument("--sections", type=int, help="number of sections (default: device's)")
-    scan.add_argument("--pitch", type=float, help="section pitch in mm (default 2)")
-    scan.add_argument("--views", type=int, help="views per section (default 8)")
+    scan.add_argument(
+        "--sections",
+        type=int,
+        help=f"number of sections (default {DEFAULT_SECTIONS}; with none of --sections, --pitch "
+        "and --views the device's own plan)",
+    )
+    scan.add_argument(
+        "--pitch", type=float, help=f"section pitch in mm (default {DEFAULT_PITCH_MM:g})"
+    )
+    scan.add_argument("--views", type=int, help=f"views per section (default {DEFAULT_VIEWS})")
     scan.add_argument(
         "--expect", help="known shape to measure accuracy against, e.g. cylinder:d=19.05"
     )
@@ -296,7 +306,7 @@ def _check_args(
 
 def _progress(p: Progress) -> None:
     """Show a scan's progress on stderr: a running count on a terminal, else one line."""
-    if p.done_this_run == 0 and p.done < p.total:
+    if p.starting:
         print(
             f"  {p.target}: {p.done} of {p.total} views already held, fetching {p.total - p.done}",
             file=sys.stderr,

@@ -494,11 +494,11 @@ class ScanJob:
         scan_id, identity = self.scan_id, self.identity
         library = self._library() if store else None
 
-        def report(section: int) -> None:
+        def report(section: int, starting: bool = False) -> None:
             if on_progress is not None:
-                elapsed = time.monotonic() - start
+                elapsed, done = time.monotonic() - start, len(held)
                 total = len(plan.views)
-                on_progress(Progress(target, len(held), total, section, elapsed, len(held) - first))
+                on_progress(Progress(target, done, total, section, elapsed, done - first, starting))
 
         def take(seq: int, segment: Segment) -> None:
             if library is not None and scan_id is not None:
@@ -513,7 +513,9 @@ class ScanJob:
                 report(int(body.get("section", 0)))
 
         if first:
-            report(-1)  # a resumed run: how many views are already held
+            # A resumed run: say how many views are held, and where it goes on.
+            missing = min(k for k in range(len(plan.views)) if k not in held)
+            report(plan.views[missing].section, starting=True)
         extra: dict[str, Any] = {} if self.extract is None else {"extract": self.extract}
         try:
             with self._link() as client:

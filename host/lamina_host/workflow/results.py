@@ -45,6 +45,8 @@ class Progress:
     elapsed_s: float
     done_this_run: int
     """Views received since this run (a start or a resume) began: the rate comes from these."""
+    starting: bool = False
+    """The report made as a resumed run starts, before any view: ``done`` are held already."""
 
     @property
     def left_s(self) -> float | None:
