@@ -8,7 +8,6 @@ time overhead is measured by ``tests/benchmarks/bench_link.py``, not here.
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import sqlite3
@@ -21,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lamina_host import cli
-from lamina_host.link import LineFaults, open_device
+from lamina_host.link import DeviceClient, LineFaults, open_device
 from lamina_host.store import Library
+from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_shared.types import Segment
 
 
@@ -34,16 +33,17 @@ class Stored:
     segments: list[Segment]
 
 
+def _acquire(client: DeviceClient, library: Library, out: Path) -> int:
+    """Run the workflow's acquisition (create, calibration, cylinder, object) on ``client``."""
+    job = ScanJob(DeviceTarget("sim"), library.path)
+    job.attach(client)
+    return acquire(job, ScanRequest("T-01"), out=out).scan_id
+
+
 def scan_into_library(library: Library, out: Path, faults: LineFaults | None) -> int:
     """Run the CLI's acquisition (store, acknowledge) over a possibly faulty line."""
-    options = argparse.Namespace(
-        resume=None, subject="T-01", device="sim", out=out, cylinder_mm=None, **{
-            name: None for name in cli.RESUMED_OPTIONS if name != "cylinder_mm"
-        }
-    )  # fmt: skip
     with open_device("sim", transform=faults) as client:
-        scan_id = cli._open_scan(client, options, library, None)
-        cli.acquire(client, options, library, scan_id, out)
+        scan_id = _acquire(client, library, out)
     return scan_id
 
 

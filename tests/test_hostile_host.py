@@ -11,7 +11,6 @@ nothing already recorded.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -46,6 +45,7 @@ from lamina_host.workflow import (
     printable,
     scan_identity,
 )
+from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan, Segment
@@ -417,17 +417,10 @@ def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan
         ) as client,
         Library(tmp_path / "library.sqlite") as library,
     ):
-        args = argparse.Namespace(
-            resume=None,
-            subject="P-01",
-            device="sim",
-            out=tmp_path,
-            cylinder_mm=None,
-            **dict.fromkeys(cli.RESUMED_OPTIONS[:-2]),
-            rig="thesis",
-        )
+        job = ScanJob(DeviceTarget("sim"), library.path)
+        job.attach(client)
         with pytest.raises(InputError, match=limit):
-            cli._open_scan(client, args, library, plan)
+            job.create(ScanRequest("P-01", plan))
         assert library.scans() == []
 
 

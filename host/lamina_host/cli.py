@@ -14,7 +14,6 @@ import argparse
 import math
 import sqlite3
 import sys
-import time
 from collections.abc import Sequence
 from contextlib import suppress
 from dataclasses import replace
@@ -22,29 +21,31 @@ from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
-import cv2
-
 from lamina_host import __version__
 from lamina_host.axis import AXIS_METHODS
-from lamina_host.calibration import CALIBRATION_METHODS, CalibrationError
+from lamina_host.calibration import CALIBRATION_METHODS
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
-from lamina_host.files import OutputError, prepare_output_folder, replace_file
-from lamina_host.link import DeviceClient, DeviceError, open_device
+from lamina_host.files import prepare_output_folder
+from lamina_host.link import DeviceError
 from lamina_host.mesh import MESH_METHODS
-from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
-from lamina_host.report import build_report, save_segments, write_outputs
-from lamina_host.store import Library, ScanRecord, StoreError, default_library_path
+from lamina_host.pipeline import ProcessOptions
+from lamina_host.store import Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
+    DEFAULT_PITCH_MM,
+    DEFAULT_SECTIONS,
+    DEFAULT_VIEWS,
     SUBJECT_RULE,
     InputError,
     check_count,
     check_plan,
-    check_plan_limits,
     check_positive_mm,
     check_subject,
     printable,
 )
+from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
+from lamina_host.workflow.results import Progress
+from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
@@ -86,9 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
-    scan.add_argument("--sections", type=int, help="number of sections (default: device's)")
-    scan.add_argument("--pitch", type=float, help="section pitch in mm (default 2)")
-    scan.add_argument("--views", type=int, help="views per section (default 8)")
+    scan.add_argument(
+        "--sections",
+        type=int,
+        help=f"number of sections (default {DEFAULT_SECTIONS}; with none of --sections, --pitch "
+        "and --views the device's own plan)",
+    )
+    scan.add_argument(
+        "--pitch", type=float, help=f"section pitch in mm (default {DEFAULT_PITCH_MM:g})"
+    )
+    scan.add_argument("--views", type=int, help=f"views per section (default {DEFAULT_VIEWS})")
     scan.add_argument(
         "--expect", help="known shape to measure accuracy against, e.g. cylinder:d=19.05"
     )
@@ -293,102 +301,20 @@ def _check_args(
     return plan, expect
 
 
-def _progress(event: dict[str, Any]) -> None:
-    if event.get("event") != "progress":
-        return
-    done, total = event.get("done"), event.get("total")
-    if sys.stderr.isatty():
+def _progress(p: Progress) -> None:
+    """Show a scan's progress on stderr: a running count on a terminal, else one line."""
+    if p.starting:
         print(
-            f"\r  {event.get('target')}: view {done}/{total}", end="", file=sys.stderr, flush=True
-        )
-    elif done == total:
-        print(f"  {event.get('target')}: {total} views", file=sys.stderr)
-
-
-def _fetch_views(
-    client: DeviceClient,
-    library: Library,
-    scan_id: int,
-    target: str,
-    identity: dict[str, Any] | None = None,
-) -> None:
-    """Fetch the views of ``target`` the library lacks; each is committed before its ack."""
-    plan = library.scan(scan_id).plans[target]
-    held = library.held(scan_id, target)
-    if len(held) == len(plan.views):
-        return
-    if held:
-        print(
-            f"  {target}: {len(held)} of {len(plan.views)} views already held, "
-            f"fetching {len(plan.views) - len(held)}",
+            f"  {p.target}: {p.done} of {p.total} views already held, fetching {p.total - p.done}",
             file=sys.stderr,
         )
-    client.scan(
-        target,
-        plan,
-        _progress,
-        have=held,
-        on_segment=lambda seq, segment: library.add_segment(scan_id, seq, segment, identity),
-    )
-
-
-def acquire(
-    client: DeviceClient, args: argparse.Namespace, library: Library, scan_id: int, out: Path
-) -> tuple[dict[str, Any], dict[str, float]]:
-    """Fetch what the library lacks of the scan, then write the received data to ``out``.
-
-    The segments held are written to ``out`` also when acquisition stops early.
-    """
-    identity = client.identity()
-    timings: dict[str, float] = {}
-    start = time.perf_counter()
-    if library.calibration(scan_id) is None:
-        grid, board = client.grab_grid()
-        library.save_calibration(scan_id, grid, board, _cylinder_mm(args, client), identity)
-    calibration = library.calibration(scan_id)
-    assert calibration is not None
-    grid_image, board = calibration.grid_image, calibration.board
-    diameter = calibration.cylinder_mm
-    if diameter is None:
-        diameter = _cylinder_mm(args, client)
-    if diameter is None:
-        raise UsageError("the device does not know its calibration cylinder: pass --cylinder-mm")
-    replace_file(out / "calibration-grid.png", lambda path: _write_image(path, grid_image))
-    try:
-        _fetch_views(client, library, scan_id, "cylinder", identity)
-        timings["acquire_calibration"] = time.perf_counter() - start
-        start = time.perf_counter()
-        _fetch_views(client, library, scan_id, "object", identity)
-        timings["acquire_object"] = time.perf_counter() - start
-    finally:
-        # What arrived is kept in the output folder too, also when the scan stops here.
-        cylinder = library.segments(scan_id, "cylinder")
-        segments = library.segments(scan_id, "object")
-        save_segments(out / "cylinder-segments.npz", cylinder)
-        save_segments(out / "segments.npz", segments)
-    library.set_status(scan_id, "acquired")
+        return
     if sys.stderr.isatty():
-        print(file=sys.stderr)
-    data = {
-        "grid_image": grid_image,
-        "board": board,
-        "cylinder": cylinder,
-        "cylinder_mm": diameter,
-        "segments": segments,
-    }
-    return data, timings
-
-
-def _cylinder_mm(args: argparse.Namespace, client: DeviceClient) -> float | None:
-    """Return the calibration cylinder's diameter: the one given, else the device's."""
-    if args.cylinder_mm is not None:
-        return float(args.cylinder_mm)
-    return client.info.cylinder_diameter_mm if client.info else None
-
-
-def _write_image(path: Path, image: Any) -> None:
-    if not cv2.imwrite(str(path), image):
-        raise OutputError(f"the calibration image could not be written to {path}")
+        print(f"\r  {p.target}: view {p.done}/{p.total}", end="", file=sys.stderr, flush=True)
+        if p.done == p.total:
+            print(file=sys.stderr)
+    elif p.done == p.total:
+        print(f"  {p.target}: {p.total} views", file=sys.stderr)
 
 
 def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
@@ -427,48 +353,6 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
         print(f"wrote {path}")
 
 
-def _open_scan(
-    client: DeviceClient, args: argparse.Namespace, library: Library, plan: ScanPlan | None
-) -> int:
-    """Return the scan to fill: the resumed one, or a new one with the device's plans.
-
-    Raises:
-        StoreError: the resumed scan was acquired by another device or setup.
-        InputError: a plan beyond the device's limits, or no cylinder diameter known.
-    """
-    identity = client.identity()
-    limits = client.info.limits if client.info else {}
-    if args.resume is not None:
-        scan_id = int(args.resume)
-        library.check_identity(scan_id, identity)
-        for target, stored in library.scan(scan_id).plans.items():
-            check_plan_limits(target, stored, limits)
-        return scan_id
-    plans = {
-        "cylinder": client.plan_for("cylinder", None),
-        "object": client.plan_for("object", plan),
-    }
-    for target, wanted in plans.items():
-        check_plan_limits(target, wanted, limits)
-    if _cylinder_mm(args, client) is None:
-        raise UsageError("the device does not know its calibration cylinder: pass --cylinder-mm")
-    info = client.info
-    device = {"software": info.software, "hardware": info.hardware} if info else {}
-    return library.create_scan(args.subject, plans, _scan_options(args), device, identity)
-
-
-def _device_summary(client: DeviceClient) -> dict[str, Any]:
-    """Return what the report says about the device that acquired the scan."""
-    if client.info is None:
-        return {}
-    return {
-        "software": client.info.software,
-        "hardware": client.info.hardware,
-        "description": client.info.description,
-        "identity": client.identity(),
-    }
-
-
 def _open_library(path: Path | None) -> Library:
     """Open the scan library, saying once on stderr what it had to put right."""
     library = Library(path)
@@ -482,6 +366,17 @@ def _notice(text: str) -> None:
     print(f"  {text}", file=sys.stderr)
 
 
+def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
+    """Return the typed scan request the checked arguments ask for."""
+    return ScanRequest(
+        args.subject,
+        plan,
+        None if args.cylinder_mm is None else float(args.cylinder_mm),
+        _scan_options(args),
+        getattr(args, "extract", None),
+    )
+
+
 def scan(args: argparse.Namespace) -> int:
     """Run ``lamina scan``: store into the library, resume what it holds, reconstruct."""
     with _open_library(args.library) as library:
@@ -490,65 +385,47 @@ def scan(args: argparse.Namespace) -> int:
             _apply_resume(args, record)
         _apply_defaults(args)
         plan, expect = _check_args(args, record)
+        request = _request(args, plan)
         own_out = record is not None and str(args.out.resolve()) == record.options.get("out")
         created = not args.out.exists()
         prepare_output_folder(args.out, allow_files=own_out)
+        target = DeviceTarget(args.device, args.object, args.seed, args.noise, args.rig)
+        job = ScanJob(target, library.path)
         try:
-            scan_id, data, timings, device = _acquire_scan(args, library, plan)
+            acquired = _acquire_scan(job, args, request)
         except BaseException:
             if created:
                 with suppress(OSError):
                     args.out.rmdir()  # only while empty: nothing was received into it
             raise
-        return _process(args, library, scan_id, data, timings, device, expect)
+        finally:
+            job.close()
+    results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+    print_summary(results.report, results.paths)
+    return 0
 
 
-def _acquire_scan(
-    args: argparse.Namespace, library: Library, plan: ScanPlan | None
-) -> tuple[int, dict[str, Any], dict[str, float], dict[str, Any]]:
-    """Connect, open (or resume) the scan and acquire it; return the scan id and its data."""
-    scan_id: int | None = None
+def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) -> Acquired:
+    """Connect and acquire; a stop after the scan exists says how to finish it."""
+    job.connect(on_notice=_notice)
     try:
-        with open_device(
-            args.device, args.object, args.seed, args.noise, rig=args.rig, on_notice=_notice
-        ) as client:
-            scan_id = _open_scan(client, args, library, plan)
-            print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
-            data, timings = acquire(client, args, library, scan_id, args.out)
-            return scan_id, data, timings, _device_summary(client)
+        return acquire(
+            job,
+            request,
+            args.resume,
+            args.out,
+            _progress,
+            on_opened=lambda scan_id: print(
+                f"scan {scan_id} in library {job.library_path}", file=sys.stderr
+            ),
+        )
     except (DeviceError, LinkClosed, ProtocolError) as exc:
-        if scan_id is None:
+        if job.scan_id is None:
             raise
         raise DeviceError(
-            f"{exc}; what arrived is kept: finish with lamina scan --resume {scan_id} "
+            f"{exc}; what arrived is kept: finish with lamina scan --resume {job.scan_id} "
             f"--device {args.device}"
         ) from None
-
-
-def _process(
-    args: argparse.Namespace,
-    library: Library,
-    scan_id: int,
-    data: dict[str, Any],
-    timings: dict[str, float],
-    device: dict[str, Any],
-    expect: Expectation | None,
-) -> int:
-    """Reconstruct, write the outputs and store them as the scan's result."""
-    options = _process_options(args)
-    result: Reconstruction = reconstruct(
-        data["grid_image"],
-        data["board"],
-        data["cylinder"],
-        data["cylinder_mm"],
-        data["segments"],
-        options,
-    )
-    report = build_report(result, device, data["segments"], expect, timings)
-    paths = write_outputs(args.out, result, report)
-    library.save_result(scan_id, report, paths)
-    print_summary(report, paths)
-    return 0
 
 
 def list_scans(args: argparse.Namespace) -> int:
@@ -598,20 +475,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return COMMANDS[args.command](args)
-    except (
-        InputError,
-        DeviceError,
-        CalibrationError,
-        StoreError,
-        OutputError,
-        ProtocolError,
-    ) as exc:
-        print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except LinkClosed as exc:
         print(
             f"lamina: the link to the device broke ({exc}); check the cable and try again",
             file=sys.stderr,
         )
+    except LaminaError as exc:
+        print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except sqlite3.Error as exc:
         library = getattr(args, "library", None) or default_library_path()
         print(

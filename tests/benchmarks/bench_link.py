@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 import threading
 import time
@@ -13,9 +12,10 @@ import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.sim import open_sim
-from lamina_host import cli
-from lamina_host.link import LineFaults, PtyBridge, open_device
+from lamina_host.link import DeviceClient, LineFaults, PtyBridge, open_device
 from lamina_host.store import Library
+from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
+from lamina_host.workflow.job import acquire as acquire_scan
 from lamina_shared.link import Channel
 from lamina_shared.protocol import Kind, SegmentEvent, encode_json, encode_segment, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
@@ -23,6 +23,13 @@ from lamina_shared.types import ScanPlan, Segment
 TITLE = "link protocol v3: segment encoding, pty throughput, fault-injection overhead"
 UART_BYTES_PER_S = 115_200 / 10  # 8N1: ten bit times per byte
 LINK_SEGMENTS = 3000
+
+
+def _acquire(client: DeviceClient, library: Library, out: Path) -> int:
+    """Run the workflow's acquisition (create, calibration, cylinder, object) on ``client``."""
+    job = ScanJob(DeviceTarget("sim"), library.path)
+    job.attach(client)
+    return acquire_scan(job, ScanRequest("B-01"), out=out).scan_id
 
 
 def _sim_segments(object_spec: str, plan: ScanPlan) -> list[Segment]:
@@ -104,14 +111,9 @@ def _full_scan(faults: LineFaults | None) -> float:
     """Time a full simulated acquisition (grid, cylinder, object) into a library."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        options = argparse.Namespace(
-            resume=None, subject="B-01", device="sim", out=out, cylinder_mm=None,
-            **{name: None for name in cli.RESUMED_OPTIONS if name != "cylinder_mm"},
-        )  # fmt: skip
         start = time.perf_counter()
         with Library(out / "library.sqlite") as library, open_device("sim", transform=faults) as c:
-            scan_id = cli._open_scan(c, options, library, None)
-            cli.acquire(c, options, library, scan_id, out)
+            scan_id = _acquire(c, library, out)
             assert library.missing(scan_id, "object") == []
         return time.perf_counter() - start
 

@@ -2,8 +2,11 @@
 
 Deterministic by construction: the simulated device runs with seed 0, the port list
 is pinned (the machine's own serial ports would differ), the library's creation time
-is fixed (see conftest), and nothing on screen shows a clock. Update the snapshots
-with ``pytest tests/tui --snapshot-update`` after an intended change of layout.
+is fixed (see conftest), and nothing on screen shows a clock. Screens that show the
+simulator's figures are compared by layout and text only (``layout_compare``: digits
+masked, plots emptied, frames greyed); their numbers are checked against the workflow's
+result objects in test_screen_numbers.py. Update the snapshots with
+``pytest tests/tui --snapshot-update`` after an intended change of layout.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ def test_scan_screen_with_bad_input(snap_compare, tmp_path: Path) -> None:
     assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
 
 
-def test_calibrate_screen(snap_compare, tmp_path: Path) -> None:
+def test_calibrate_screen(layout_compare, tmp_path: Path) -> None:
     """Calibrate after the chessboard and the cylinder, on the simulated device."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -57,10 +60,10 @@ def test_calibrate_screen(snap_compare, tmp_path: Path) -> None:
         pilot.app.clear_notifications()
 
     app = LaminaApp("sim", tmp_path / "l.sqlite")
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)
 
 
-def test_live_screen(snap_compare, tmp_path: Path) -> None:
+def test_live_screen(layout_compare, tmp_path: Path) -> None:
     """Live: a preview frame with the last cylinder view's stripe over it."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -72,10 +75,10 @@ def test_live_screen(snap_compare, tmp_path: Path) -> None:
         await wait_for(pilot, lambda: "frame 640 x 480" in app.status[0], "the frame")
 
     app = LaminaApp("sim", tmp_path / "l.sqlite")
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)
 
 
-def test_scan_screen_after_scan(snap_compare, tmp_path: Path) -> None:
+def test_scan_screen_after_scan(layout_compare, tmp_path: Path) -> None:
     """Scan, complete: progress at the end and the last section's points."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -91,10 +94,10 @@ def test_scan_screen_after_scan(snap_compare, tmp_path: Path) -> None:
         await wait_for(pilot, lambda: not screen.plot_pending, "the section plot")
 
     app = LaminaApp("sim", tmp_path / "l.sqlite")
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)
 
 
-def test_library_screen(snap_compare, scanned_library: Path) -> None:
+def test_library_screen(layout_compare, scanned_library: Path) -> None:
     """Library, with one processed scan."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -103,10 +106,10 @@ def test_library_screen(snap_compare, scanned_library: Path) -> None:
         await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
 
     app = LaminaApp("sim", scanned_library)
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)
 
 
-def test_library_delete_asks_first(snap_compare, scanned_library: Path) -> None:
+def test_library_delete_asks_first(layout_compare, scanned_library: Path) -> None:
     """Library, asking before deleting (answered no by the snapshot, so nothing is lost)."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -116,10 +119,10 @@ def test_library_delete_asks_first(snap_compare, scanned_library: Path) -> None:
         await pilot.press("d")
 
     app = LaminaApp("sim", scanned_library)
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)
 
 
-def test_results_screen(snap_compare, scanned_library: Path) -> None:
+def test_results_screen(layout_compare, scanned_library: Path) -> None:
     """Results of the library's scan, opened and processed again with 5 harmonics."""
 
     async def run_before(pilot: Pilot) -> None:
@@ -133,4 +136,4 @@ def test_results_screen(snap_compare, scanned_library: Path) -> None:
         await pilot.pause(0.2)
 
     app = LaminaApp("sim", scanned_library)
-    assert snap_compare(app, run_before=run_before, terminal_size=SIZE)
+    assert layout_compare(app, run_before, SIZE)

@@ -15,6 +15,7 @@ from lamina_host.axis import CF_WARNING, AxisCalibration
 from lamina_host.calibration import GridCalibration
 from lamina_host.tui.adapter import Progress
 from lamina_host.tui.widgets import LaminaScreen
+from lamina_shared.errors import LaminaError
 
 
 def grid_summary(grid: GridCalibration | None, accepted: bool) -> str:
@@ -111,7 +112,7 @@ class CalibrateScreen(LaminaScreen):
         """Accept or reject the chessboard calibration."""
         try:
             self.session.accept_grid(accept)
-        except ValueError as exc:
+        except LaminaError as exc:
             self.say(str(exc), error=True)
             return
         self.refresh_from_session()

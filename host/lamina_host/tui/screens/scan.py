@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import ClassVar
 
-import numpy as np
 from textual import on, work
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
@@ -66,7 +65,8 @@ class ScanScreen(LaminaScreen):
         self._aborting = False
         self.paused = False
         self._section = -1
-        self._points: list[np.ndarray] = []
+        self._segments: list[Segment] = []
+        """The current section's views so far (the plot assembles them as the result will)."""
         self._plot_stale = False
         self.scanning = False
 
@@ -134,7 +134,7 @@ class ScanScreen(LaminaScreen):
             self.say(str(exc), error=True)
             return
         self._aborting, self.paused = False, False
-        self._section, self._points = -1, []
+        self._section, self._segments = -1, []
         self._set_scanning(True)
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
         self.query_one("#progress-text", Static).update("starting ...")
@@ -170,8 +170,8 @@ class ScanScreen(LaminaScreen):
 
     def _add_segment(self, segment: Segment) -> None:
         if segment.section != self._section:
-            self._section, self._points = segment.section, []
-        self._points.append(self.session.section_points(segment))
+            self._section, self._segments = segment.section, []
+        self._segments.append(segment)
         self._plot_stale = True
 
     def _draw_points(self) -> None:
@@ -180,12 +180,11 @@ class ScanScreen(LaminaScreen):
         plt = plot.plt
         plt.clear_data()
         plt.title("current section (mm)" if self._section < 0 else f"section {self._section} (mm)")
-        if self._points:
-            pts = np.vstack(self._points)
+        pts = self.session.section_points(self._segments)
+        if len(pts):
             # A terminal plot cannot show more points than it has braille dots.
             pts = pts[:: max(1, len(pts) // PLOT_MAX_POINTS)]
-            if len(pts):
-                plt.scatter(pts[:, 0].tolist(), pts[:, 1].tolist(), marker="braille")
+            plt.scatter(pts[:, 0].tolist(), pts[:, 1].tolist(), marker="braille")
         plot.refresh()
 
     def finished(self, segments: list[Segment]) -> None:

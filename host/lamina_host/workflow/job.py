@@ -1,0 +1,711 @@
+"""The scan job: connect, calibrate, create or resume a scan, fetch, store, process, export.
+
+The command line runs the whole sequence at once (:func:`run_scan`); the terminal UI runs
+the same steps one key at a time. Both hand in a typed :class:`ScanRequest` (checked once
+on construction, the plan against the device's limits when the scan is created) and get
+typed results back (:mod:`lamina_host.workflow.results`). Every step blocks (serial I/O,
+calibration, meshing); the UI calls them from thread workers, one at a time (a second
+caller gets :class:`Busy`), except pause, resume and abort, which any thread may send
+while a scan runs.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import ExitStack, contextmanager, suppress
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from lamina_host.axis import AxisCalibration
+from lamina_host.calibration import GridCalibration, calibrate_grid
+from lamina_host.expect import Expectation
+from lamina_host.files import PRIVATE_FOLDER, OutputError, replace_file
+from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
+from lamina_host.pipeline import ProcessOptions, assemble, calibrate_axis, reconstruct
+from lamina_host.report import build_report, save_segments, write_outputs
+from lamina_host.store import Library, ScanSummary
+from lamina_host.workflow.checks import (
+    InputError,
+    check_plan_limits,
+    check_positive_mm,
+    check_subject,
+)
+from lamina_host.workflow.results import (
+    Progress,
+    Results,
+    ScanData,
+    device_summary,
+    report_device,
+    section_rows,
+    volume_mm3,
+)
+from lamina_shared.errors import LaminaError
+from lamina_shared.link import LinkClosed
+from lamina_shared.types import BoardSpec, ScanPlan, Segment
+
+EXPORT_NAMES = ("mesh.ply", "mesh.obj", "mesh.stl", "report.json")
+"""What an export writes into its folder: the mesh in three formats and the scan report."""
+
+TRIM_FRACTION = ProcessOptions().trim_fraction
+"""The trim of the axis shown during calibration and of the live section plot."""
+
+ProgressHandler = Callable[[Progress], object]
+SegmentHandler = Callable[[Segment], object]
+NoticeHandler = Callable[[str], object]
+
+
+class Busy(LaminaError, RuntimeError):
+    """The device is already running a request."""
+
+
+@dataclass(frozen=True)
+class DeviceTarget:
+    """What to connect to: a port path, ``sim`` or ``replay:DIR``, and the simulation's choices."""
+
+    device: str = "sim"
+    object_spec: str | None = None
+    seed: int = 0
+    noise: str = "thesis"
+    rig: str = "thesis"
+
+
+@dataclass(frozen=True)
+class ScanRequest:
+    """A new scan as a front end asks for it; checked once, when it is made.
+
+    Attributes:
+        subject: the pseudonymous subject code (:data:`~lamina_host.workflow.SUBJECT_RULE`).
+        plan: the object's plan; None for the device's default plan.
+        cylinder_mm: the calibration cylinder's diameter; None for the device's.
+        options: what the library records with the scan (what a resume must repeat).
+        extract: per-scan extraction settings for the device; None leaves the device's own.
+    """
+
+    subject: str
+    plan: ScanPlan | None = None
+    cylinder_mm: float | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+    extract: dict[str, object] | None = None
+
+    def __post_init__(self) -> None:
+        check_subject(self.subject)
+        if self.cylinder_mm is not None:
+            check_positive_mm("cylinder diameter", self.cylinder_mm, 1000.0)
+
+
+class ScanJob:
+    """One device connection and one scan at a time: calibration, views, results.
+
+    The attributes hold what the steps produced so far: :attr:`data` (the raw scan),
+    :attr:`grid` and :attr:`axis` (the calibration shown before scanning), :attr:`held`
+    (the object views received, by plan index) and :attr:`results`.
+    """
+
+    def __init__(self, target: DeviceTarget, library_path: Path | None = None) -> None:
+        self.target = target
+        self.library_path = library_path
+        self.data = ScanData()
+        self.grid: GridCalibration | None = None
+        self.grid_accepted = False
+        self.axis: AxisCalibration | None = None
+        self.results: Results | None = None
+        self.latest_segment: Segment | None = None
+        self.plan: ScanPlan | None = None
+        self.held: dict[int, Segment] = {}
+        self.cylinder_plan: ScanPlan | None = None
+        self.cylinder_held: dict[int, Segment] = {}
+        self.scan_id: int | None = None
+        self.identity: dict[str, Any] | None = None
+        """The identity the scan was recorded under (None before one exists)."""
+        self.extract: dict[str, object] | None = None
+        self.pose: dict[str, float] = {"lift": 0.0, "turntable": 0.0}
+        self.calibrated_by: dict[str, Any] | None = None
+        """The identity of the device the chessboard and cylinder were captured with."""
+        self._client: DeviceClient | None = None
+        self._stack: ExitStack | None = None
+        self._lock = threading.Lock()
+
+    # -- the connection ---------------------------------------------------------------
+
+    @property
+    def device(self) -> str:
+        """Return the device this job connects to (port path, ``sim`` or ``replay:DIR``)."""
+        return self.target.device
+
+    @property
+    def object_spec(self) -> str | None:
+        """Return the simulated object the next connection asks for (sim only)."""
+        return self.target.object_spec
+
+    @object_spec.setter
+    def object_spec(self, spec: str | None) -> None:
+        self.target = replace(self.target, object_spec=spec)
+
+    @property
+    def info(self) -> DeviceInfo | None:
+        """Return the connected device's information, or None."""
+        return self._client.info if self._client else None
+
+    @property
+    def connected(self) -> bool:
+        """Return True while a device is connected."""
+        return self._client is not None
+
+    @contextmanager
+    def _busy(self) -> Iterator[None]:
+        if not self._lock.acquire(blocking=False):
+            raise Busy("the device is busy with another request; wait for it or abort it")
+        try:
+            yield
+        finally:
+            self._lock.release()
+
+    def _device(self) -> DeviceClient:
+        if self._client is None:
+            raise InputError("no device connected: connect on the Connect screen (F2) first")
+        return self._client
+
+    def connect(
+        self, device: str | None = None, on_notice: NoticeHandler | None = None
+    ) -> DeviceInfo:
+        """Connect to DEVICE (port, ``sim`` or ``replay:DIR``; default the target's)."""
+        with self._busy():
+            name = (device or self.target.device).strip()
+            if not name:
+                raise InputError("enter a device: a serial port path, sim, or replay:CAPTURE_DIR")
+            self.target = replace(self.target, device=name)
+            self._reopen(on_notice)
+            info = self._device().info
+            assert info is not None
+            self.data.device = device_summary(info)
+            return info
+
+    def attach(self, client: DeviceClient) -> None:
+        """Use a client already handshaken elsewhere (an in-process device); closing leaves it."""
+        with self._busy():
+            self._close_link()
+            self._client = client
+            self.data.device = device_summary(client.info)
+
+    def _reopen(self, on_notice: NoticeHandler | None) -> None:
+        """Close and reopen the link to the same device (caller holds the busy lock)."""
+        self._close_link()
+        stack = ExitStack()
+        t = self.target
+        try:
+            self._client = stack.enter_context(
+                open_device(
+                    t.device, t.object_spec, t.seed, t.noise, rig=t.rig, on_notice=on_notice
+                )
+            )
+        except BaseException:
+            stack.close()
+            self._client = None
+            raise
+        self._stack = stack
+
+    def _close_link(self) -> None:
+        stack, self._stack, self._client = self._stack, None, None
+        if stack is not None:
+            # A broken link cannot be tidied further; closing must still forget it.
+            with suppress(DeviceError, LinkClosed, OSError):
+                stack.close()
+
+    def close(self) -> None:
+        """Disconnect (stopping a device program this host started)."""
+        with self._lock:
+            self._close_link()
+
+    @contextmanager
+    def _link(self) -> Iterator[DeviceClient]:
+        """Yield the client; a broken link is forgotten so the next connect starts afresh."""
+        try:
+            yield self._device()
+        except LinkClosed:
+            self._close_link()
+            raise
+
+    def _library(self) -> Library:
+        """Open the scan library (one connection per call: each worker is its own thread)."""
+        return Library(self.library_path)
+
+    # -- the device's own controls ------------------------------------------------------
+
+    def preview(self, laser: bool) -> Preview:
+        """Fetch one frame where the axes stand (laser on or off) and the stripe found there."""
+        with self._busy(), self._link() as client:
+            return client.preview(laser)
+
+    def exposure(self) -> tuple[int, int, int]:
+        """Return the camera's (exposure, min, max) in microseconds."""
+        with self._busy(), self._link() as client:
+            return client.exposure()
+
+    def set_exposure(self, exposure_us: int) -> int:
+        """Set the camera's exposure; return the one the device now uses."""
+        with self._busy(), self._link() as client:
+            return client.set_exposure(exposure_us)
+
+    def move(self, axis: str, position: float) -> float:
+        """Move ``lift`` (mm) or ``turntable`` (deg) to ``position``; return where it went."""
+        with self._busy(), self._link() as client:
+            result = client.request("move", {"axis": axis, "position": position})
+        self.pose[axis] = float(result.get("position", position))
+        return self.pose[axis]
+
+    def pause_scan(self) -> None:
+        """Hold the running scan on the device after its current view (any thread)."""
+        self._device().pause()
+
+    def resume_scan(self) -> None:
+        """Let the device go on with a paused scan (any thread)."""
+        self._device().resume()
+
+    def abort_scan(self) -> None:
+        """End the running scan on the device; the views received stay kept (any thread)."""
+        self._device().abort()
+
+    # -- calibration ------------------------------------------------------------------
+
+    def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
+        """Fetch the calibration image and board from the device."""
+        with self._busy(), self._link() as client:
+            image, board = client.grab_grid()
+        self.data.grid_image, self.data.board = image, board
+        self.calibrated_by = client.identity()
+        return image, board
+
+    def calibrate_grid(self) -> GridCalibration:
+        """Capture the chessboard and fit the homography; the result waits to be accepted."""
+        image, board = self.grab_grid()
+        self.grid = calibrate_grid(image, board)
+        self.grid_accepted = False
+        return self.grid
+
+    def accept_grid(self, accept: bool) -> None:
+        """Accept or reject the last grid calibration (a rejected one is forgotten)."""
+        if self.grid is None:
+            raise InputError("capture the chessboard first (g)")
+        self.grid_accepted = accept
+        if not accept:
+            self.grid = None
+            self.axis = None
+
+    def _accepted_grid(self) -> GridCalibration:
+        if self.grid is None or not self.grid_accepted:
+            raise InputError("calibrate and accept the chessboard first (Calibrate screen, F4)")
+        return self.grid
+
+    def _check_calibrated_here(self, client: DeviceClient) -> dict[str, Any]:
+        """Return the device's identity; refuse if calibration came from another device."""
+        identity = client.identity()
+        if self.calibrated_by is not None and identity != self.calibrated_by:
+            raise InputError(
+                "the connected device is not the one calibrated: calibrate again (F4) "
+                "before scanning with it"
+            )
+        return identity
+
+    def calibrate_axis(self, on_progress: ProgressHandler | None = None) -> AxisCalibration:
+        """Scan the calibration cylinder afresh and find the turntable axis (shown, not stored)."""
+        grid = self._accepted_grid()
+        client = self._device()
+        diameter = client.info.cylinder_diameter_mm if client.info else None
+        if diameter is None:
+            raise InputError("the device does not report its calibration cylinder's diameter")
+        self._check_calibrated_here(client)
+        plan = client.plan_for("cylinder", None)
+        held: dict[int, Segment] = {}
+        with self._busy():
+            cylinder = self._run_views("cylinder", plan, held, False, None, on_progress, None)
+        self.cylinder_plan, self.cylinder_held = plan, held
+        self.data.cylinder, self.data.cylinder_mm = cylinder, diameter
+        self.axis = calibrate_axis(cylinder, grid, diameter, TRIM_FRACTION)
+        return self.axis
+
+    def fetch_calibration(self, cylinder_mm: float | None = None) -> ScanData:
+        """Give the open scan its calibration: the one stored, else the device's chessboard.
+
+        Raises:
+            InputError: no calibration cylinder diameter is known.
+        """
+        scan_id = self.require_scan()
+        with self._library() as library:
+            if library.calibration(scan_id) is None:
+                image, board = self.grab_grid()
+                diameter = self._cylinder_mm(cylinder_mm)
+                library.save_calibration(scan_id, image, board, diameter, self.identity)
+            calibration = library.calibration(scan_id)
+        assert calibration is not None
+        self.data.grid_image, self.data.board = calibration.grid_image, calibration.board
+        diameter = calibration.cylinder_mm
+        if diameter is None:
+            diameter = self._cylinder_mm(cylinder_mm)
+        if diameter is None:
+            raise InputError(
+                "the device does not know its calibration cylinder: pass --cylinder-mm"
+            )
+        self.data.cylinder_mm = diameter
+        return self.data
+
+    def _cylinder_mm(self, given: float | None) -> float | None:
+        """Return the calibration cylinder's diameter: the one given, else the device's."""
+        if given is not None:
+            return float(given)
+        return self.info.cylinder_diameter_mm if self.info else None
+
+    # -- the scan in the library --------------------------------------------------------
+
+    def require_scan(self) -> int:
+        """Return the open scan's id, or refuse when no scan is open."""
+        if self.scan_id is None:
+            raise InputError("no scan to resume: start one (s)")
+        return self.scan_id
+
+    def create(self, request: ScanRequest) -> int:
+        """Record a new scan for ``request`` (with any calibration already captured); its id.
+
+        Raises:
+            InputError: a plan beyond the device's limits, or no cylinder diameter known.
+        """
+        client = self._device()
+        identity = self._check_calibrated_here(client)
+        limits = client.info.limits if client.info else {}
+        plans = {
+            "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
+            "object": client.plan_for("object", request.plan),
+        }
+        for target, wanted in plans.items():
+            check_plan_limits(target, wanted, limits)
+        diameter = request.cylinder_mm
+        if diameter is None:
+            diameter = self.data.cylinder_mm or self._cylinder_mm(None)
+        if diameter is None:
+            raise InputError(
+                "the device does not know its calibration cylinder: pass --cylinder-mm"
+            )
+        data = self.data
+        with self._library() as library:
+            scan_id = library.create_scan(
+                request.subject, plans, dict(request.options), data.device, identity
+            )
+            if data.grid_image is not None and data.board is not None:
+                library.save_calibration(scan_id, data.grid_image, data.board, diameter, identity)
+            for seq, segment in self.cylinder_held.items():
+                library.add_segment(scan_id, seq, segment, identity)
+        self.scan_id, self.identity, self.extract = scan_id, identity, request.extract
+        self.cylinder_plan, self.plan, self.held = plans["cylinder"], plans["object"], {}
+        data.subject_id, data.segments, data.complete = request.subject, [], False
+        self.results = None
+        return scan_id
+
+    def resume(self, scan_id: int, extract: dict[str, object] | None = None) -> int:
+        """Open library scan ``scan_id`` to fetch what it lacks from the connected device.
+
+        Raises:
+            StoreError: the scan was acquired by another device or setup.
+            InputError: a stored plan is beyond the device's limits.
+        """
+        client = self._device()
+        identity = client.identity()
+        limits = client.info.limits if client.info else {}
+        with self._library() as library:
+            library.check_identity(scan_id, identity)
+            record = library.scan(scan_id)
+            for target, stored in record.plans.items():
+                check_plan_limits(target, stored, limits)
+            self._load(library, scan_id)
+        self.identity, self.extract = identity, extract
+        return scan_id
+
+    def _load(self, library: Library, scan_id: int) -> ScanData:
+        """Take library scan ``scan_id`` as this job's scan (calibration, views, subject)."""
+        record = library.scan(scan_id)
+        calibration = library.calibration(scan_id)
+        self.scan_id, self.results = scan_id, None
+        self.plan, self.cylinder_plan = record.plans.get("object"), record.plans.get("cylinder")
+        self.held = self._held(library, scan_id, "object")
+        self.cylinder_held = self._held(library, scan_id, "cylinder")
+        self.identity = record.identity or None
+        self.data = ScanData(
+            calibration.grid_image if calibration else None,
+            calibration.board if calibration else None,
+            [self.cylinder_held[k] for k in sorted(self.cylinder_held)],
+            calibration.cylinder_mm if calibration else None,
+            [self.held[k] for k in sorted(self.held)],
+            record.subject,
+            {k: str(v) for k, v in record.device.items()},
+            self.plan is not None and len(self.held) == len(self.plan.views),
+        )
+        return self.data
+
+    @staticmethod
+    def _held(library: Library, scan_id: int, target: str) -> dict[int, Segment]:
+        return dict(
+            zip(
+                sorted(library.held(scan_id, target)),
+                library.segments(scan_id, target),
+                strict=True,
+            )
+        )
+
+    def open_scan(self, scan_id: int) -> ScanData:
+        """Load a library scan so it can be processed again, exported or resumed."""
+        with self._library() as library:
+            if library.calibration(scan_id) is None:
+                raise InputError(
+                    f"scan {scan_id} has no calibration stored; it cannot be processed"
+                )
+            return self._load(library, scan_id)
+
+    @property
+    def resumable(self) -> bool:
+        """Return True when a started object scan still misses views."""
+        return self.plan is not None and not self.data.complete
+
+    # -- acquisition ------------------------------------------------------------------
+
+    def _run_views(
+        self,
+        target: str,
+        plan: ScanPlan,
+        held: dict[int, Segment],
+        store: bool,
+        on_segment: SegmentHandler | None,
+        on_progress: ProgressHandler | None,
+        on_notice: NoticeHandler | None,
+    ) -> list[Segment]:
+        """Fetch the views of ``plan`` not in ``held``; keep each arrival in ``held``.
+
+        ``held`` maps plan index to segment and survives an abort or a broken link, so the
+        same call with the same ``held`` resumes the scan where it stopped. With ``store``
+        each view is committed to the open scan before the link acknowledges it.
+        """
+        if len(held) >= len(plan.views):
+            return [held[k] for k in sorted(held)]
+        start, first = time.monotonic(), len(held)
+        scan_id, identity = self.scan_id, self.identity
+        library = self._library() if store else None
+
+        def report(section: int, starting: bool = False) -> None:
+            if on_progress is not None:
+                elapsed, done = time.monotonic() - start, len(held)
+                total = len(plan.views)
+                on_progress(Progress(target, done, total, section, elapsed, done - first, starting))
+
+        def take(seq: int, segment: Segment) -> None:
+            if library is not None and scan_id is not None:
+                library.add_segment(scan_id, seq, segment, identity)
+            held[seq] = segment
+            self.latest_segment = segment
+            if on_segment is not None:
+                on_segment(segment)
+
+        def progress(body: dict[str, Any]) -> None:
+            if body.get("event") == "progress":
+                report(int(body.get("section", 0)))
+
+        if first:
+            # A resumed run: say how many views are held, and where it goes on.
+            missing = min(k for k in range(len(plan.views)) if k not in held)
+            report(plan.views[missing].section, starting=True)
+        extra: dict[str, Any] = {} if self.extract is None else {"extract": self.extract}
+        try:
+            with self._link() as client:
+                client.scan(
+                    target,
+                    plan,
+                    progress,
+                    have=tuple(held),
+                    on_segment=take,
+                    on_notice=on_notice,
+                    **extra,
+                )
+        finally:
+            if library is not None:
+                library.close()
+        return [held[k] for k in sorted(held)]
+
+    def fetch_cylinder(
+        self, on_progress: ProgressHandler | None = None, on_notice: NoticeHandler | None = None
+    ) -> list[Segment]:
+        """Fetch the open scan's calibration-cylinder views it lacks, storing each."""
+        self.require_scan()
+        plan = self.cylinder_plan or self._device().plan_for("cylinder", None)
+        self.cylinder_plan = plan
+        with self._busy():
+            try:
+                self._run_views(
+                    "cylinder", plan, self.cylinder_held, True, None, on_progress, on_notice
+                )
+            finally:
+                self.data.cylinder = [self.cylinder_held[k] for k in sorted(self.cylinder_held)]
+        return self.data.cylinder
+
+    def fetch_object(
+        self,
+        on_segment: SegmentHandler | None = None,
+        on_progress: ProgressHandler | None = None,
+        on_notice: NoticeHandler | None = None,
+    ) -> list[Segment]:
+        """Fetch the open scan's object views it lacks, storing each; mark it acquired."""
+        scan_id = self.require_scan()
+        if self.plan is None:
+            raise InputError("no scan to resume: start one (s)")
+        plan = self.plan
+        identity = self._device().identity()
+        with self._library() as library:
+            # Before anything changes: a scan is only ever continued by what began it.
+            library.check_identity(scan_id, identity)
+            check_plan_limits("object", plan, self.info.limits if self.info else {})
+        self.identity = identity
+        self.data.complete = False
+        self.results = None
+        with self._busy():
+            try:
+                self._run_views("object", plan, self.held, True, on_segment, on_progress, on_notice)
+            finally:
+                self.data.segments = [self.held[k] for k in sorted(self.held)]
+        with self._library() as library:
+            library.set_status(scan_id, "acquired")
+        self.data.complete = True
+        return self.data.segments
+
+    def section_points(self, segments: list[Segment]) -> np.ndarray:
+        """Return the object-frame points (mm) of one section's views so far.
+
+        The same assembly as the final result (:func:`lamina_host.pipeline.assemble`,
+        with the turntable's angle correction); (0, 2) before calibration.
+        """
+        if self.grid is None or self.axis is None or not segments:
+            return np.empty((0, 2))
+        by_section, _, _ = assemble(segments, self.grid, self.axis, TRIM_FRACTION)
+        parts = [p for k in sorted(by_section) for p in by_section[k]]
+        return np.vstack(parts) if parts else np.empty((0, 2))
+
+    # -- results ----------------------------------------------------------------------
+
+    def process_scan(
+        self,
+        options: ProcessOptions | None = None,
+        expect: Expectation | None = None,
+        timings_s: Mapping[str, float] | None = None,
+        out: Path | None = None,
+    ) -> Results:
+        """Reconstruct the scan held in :attr:`data`, store the result and return it.
+
+        The outputs are written to ``out`` when given, else only into the library.
+        """
+        data = self.data
+        if data.grid_image is None or data.board is None or data.cylinder_mm is None:
+            raise InputError("nothing to process: calibrate and scan, or open a saved scan")
+        if not data.segments:
+            raise InputError("nothing to process: scan the subject first (F5)")
+        options = options or ProcessOptions()
+        result = reconstruct(
+            data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments, options
+        )
+        rows = section_rows(result)
+        device = report_device(data.device, self.identity)
+        report = build_report(result, device, data.segments, expect, dict(timings_s or {}))
+        report["subject_id"] = data.subject_id
+        report["volume_mm3"] = volume_mm3(rows)
+        paths: dict[str, Any] = {}
+        if self.scan_id is not None or out is not None:
+            with tempfile.TemporaryDirectory() as tmp, self._library() as library:
+                paths = write_outputs(out or Path(tmp), result, report)
+                if self.scan_id is not None:
+                    library.save_result(self.scan_id, report, paths)
+            if out is None:
+                paths = {}
+        self.results = Results(result, rows, report["volume_mm3"], report, options.mesh, paths)
+        return self.results
+
+    def export(self, folder: Path) -> list[Path]:
+        """Export the current scan's mesh (PLY, OBJ, STL) and report into a new folder."""
+        if self.results is None or self.scan_id is None:
+            raise InputError("process the scan first (p on the Results screen)")
+        return self.export_scan(self.scan_id, folder)
+
+    def export_scan(self, scan_id: int, folder: Path) -> list[Path]:
+        """Export a processed library scan into ``folder`` (new or empty)."""
+        if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+            raise InputError(f"{folder} is not an empty folder; choose a new one")
+        folder.mkdir(parents=True, exist_ok=True, mode=PRIVATE_FOLDER)
+        with self._library() as library:
+            return [library.export(scan_id, folder / name) for name in EXPORT_NAMES]
+
+    def scans(self) -> list[ScanSummary]:
+        """Return the library's scans, oldest first."""
+        with self._library() as library:
+            return library.scans()
+
+    def delete_scan(self, scan_id: int) -> None:
+        """Delete a scan from the library (forgetting it here too if it is open)."""
+        with self._library() as library:
+            library.delete_scan(scan_id)
+        if self.scan_id == scan_id:
+            self.scan_id, self.results, self.plan, self.held = None, None, None, {}
+            self.data = ScanData()
+
+
+@dataclass
+class Acquired:
+    """What :func:`acquire` leaves: the scan's id and the acquisition's timings."""
+
+    scan_id: int
+    timings_s: dict[str, float]
+
+
+def acquire(
+    job: ScanJob,
+    request: ScanRequest | None,
+    resume_id: int | None = None,
+    out: Path | None = None,
+    on_progress: ProgressHandler | None = None,
+    on_notice: NoticeHandler | None = None,
+    on_opened: Callable[[int], object] | None = None,
+) -> Acquired:
+    """Run the whole acquisition on a connected job: create (or resume) the scan, fetch it.
+
+    ``out``, when given, receives the calibration image and the segments received, also
+    when acquisition stops early. ``on_opened`` hears the scan's id once it exists.
+    """
+    if resume_id is not None:
+        job.resume(resume_id, request.extract if request else None)
+    elif request is not None:
+        job.create(request)
+    else:
+        raise InputError("name a scan to resume or what to scan")
+    scan_id = job.require_scan()
+    if on_opened is not None:
+        on_opened(scan_id)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    data = job.fetch_calibration(request.cylinder_mm if request else None)
+    if out is not None:
+        replace_file(out / "calibration-grid.png", lambda path: _write_image(path, data))
+    try:
+        job.fetch_cylinder(on_progress, on_notice)
+        timings["acquire_calibration"] = time.perf_counter() - start
+        start = time.perf_counter()
+        job.fetch_object(None, on_progress, on_notice)
+        timings["acquire_object"] = time.perf_counter() - start
+    finally:
+        if out is not None:
+            # What arrived is kept in the output folder too, also when the scan stops here.
+            save_segments(out / "cylinder-segments.npz", job.data.cylinder)
+            save_segments(out / "segments.npz", job.data.segments)
+    return Acquired(scan_id, timings)
+
+
+def _write_image(path: Path, data: ScanData) -> None:
+    if data.grid_image is None or not cv2.imwrite(str(path), data.grid_image):
+        raise OutputError(f"the calibration image could not be written to {path}")

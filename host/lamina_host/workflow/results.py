@@ -1,0 +1,133 @@
+"""Typed results of the scan workflow: progress, the raw scan, section rows, a processed scan.
+
+Both front ends show these; neither builds its own. :func:`device_summary` is the one
+place the device information recorded with a scan (and in its report) is built.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from lamina_host.link import DeviceInfo
+from lamina_host.measure import perimeter, polygon_area
+from lamina_host.pipeline import Reconstruction
+from lamina_shared.types import BoardSpec, Segment
+
+
+def device_summary(info: DeviceInfo | None) -> dict[str, str]:
+    """Return what a scan records about the device that acquires it (empty when unknown)."""
+    if info is None:
+        return {}
+    return {"software": info.software, "hardware": info.hardware, "description": info.description}
+
+
+def report_device(device: Mapping[str, Any], identity: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Return the report's ``device`` entry: the recorded summary and the scan's identity."""
+    report = dict(device)
+    if identity:
+        report["identity"] = dict(identity)
+    return report
+
+
+@dataclass(frozen=True)
+class Progress:
+    """How far a scan has come, for the progress bar and the time left."""
+
+    target: str
+    done: int
+    total: int
+    section: int
+    elapsed_s: float
+    done_this_run: int
+    """Views received since this run (a start or a resume) began: the rate comes from these."""
+    starting: bool = False
+    """The report made as a resumed run starts, before any view: ``done`` are held already."""
+
+    @property
+    def left_s(self) -> float | None:
+        """Return the estimated seconds left (None before this run's first view)."""
+        if self.done_this_run <= 0:
+            return None
+        return self.elapsed_s / self.done_this_run * max(self.total - self.done, 0)
+
+
+@dataclass
+class ScanData:
+    """The raw data of one scan: what processing needs and what the library keeps."""
+
+    grid_image: np.ndarray | None = None
+    board: BoardSpec | None = None
+    cylinder: list[Segment] = field(default_factory=list)
+    cylinder_mm: float | None = None
+    segments: list[Segment] = field(default_factory=list)
+    subject_id: str = ""
+    device: dict[str, str] = field(default_factory=dict)
+    complete: bool = False
+
+
+@dataclass(frozen=True)
+class SectionRow:
+    """One section's measurements, as the Results table and the report give them."""
+
+    index: int
+    z_mm: float
+    points: int
+    perimeter_mm: float
+    area_mm2: float
+    roundness: float
+    harmonics: int
+
+
+@dataclass
+class Results:
+    """A processed scan: the reconstruction, its section rows, volume and report."""
+
+    reconstruction: Reconstruction
+    rows: list[SectionRow]
+    volume_mm3: float
+    report: dict[str, Any]
+    mesh_method: str
+    paths: dict[str, Any] = field(default_factory=dict)
+    """The files written for the scan (empty when they went only into the library)."""
+
+
+def roundness(contour: np.ndarray) -> float:
+    """Return the isoperimetric quotient 4*pi*A/P^2: 1 for a circle, less for any other shape."""
+    p = perimeter(contour)
+    return 4.0 * math.pi * polygon_area(contour) / (p * p) if p > 0 else 0.0
+
+
+def section_rows(result: Reconstruction) -> list[SectionRow]:
+    """Measure every section's EFD contour."""
+    return [
+        SectionRow(
+            s.index,
+            s.z_mm,
+            len(s.raw),
+            perimeter(s.contour),
+            polygon_area(s.contour),
+            roundness(s.contour),
+            s.harmonics,
+        )
+        for s in result.sections
+    ]
+
+
+def volume_mm3(rows: list[SectionRow]) -> float:
+    """Return the volume between the first and last section (trapezoid rule over areas)."""
+    if len(rows) < 2:
+        return 0.0
+    z = np.array([r.z_mm for r in rows])
+    area = np.array([r.area_mm2 for r in rows])
+    order = np.argsort(z)
+    return float(np.trapezoid(area[order], z[order]))
+
+
+def radius_profile(rows: list[SectionRow]) -> tuple[list[float], list[float]]:
+    """Return (z_mm, equivalent radius sqrt(A/pi) in mm) per section, for the profile plot."""
+    return [r.z_mm for r in rows], [math.sqrt(r.area_mm2 / math.pi) for r in rows]
