@@ -12,8 +12,17 @@ Two methods (``AXIS_METHODS``):
 - ``"centroid"``: the thesis' method. A circle is fitted to every arc (6.2.1) and the
   axis is the centroid of the arc centres (6.2.2).
 
-Either way the correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning
-when it is more than 5 % from one.
+The centroid method's correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3). The joint
+fit can instead hold the radius at the known ``D_a / 2`` (``fit_radius=False``, what the
+pipeline does): the camera and the laser see every arc from the same side, so a free
+radius trades almost one for one against the axis position along that side, and only
+the arcs' curvature separates them. At limb scale (0.2 mm/px, 0.5 mm sheet) stripe noise
+moves both by ~0.1 mm; ``C_f`` then turns that radius offset into a scale, which cancels
+on an object the size of the cylinder (the thesis' set-up) but not on a larger one
+(a 120 mm object scanned with a 60 mm cylinder read 0.14 mm too large, ``C_f`` 1.0043).
+With the radius known the axis is pinned by the arcs' positions and the board alone
+sets the scale. Either way a warning is given when the measured diameter is more than
+5 % from the true one.
 """
 
 from __future__ import annotations
@@ -253,6 +262,7 @@ def find_axis_joint(
     actual_diameter_mm: float,
     fit_offset: bool = True,
     fit_angle_scale: bool = False,
+    fit_radius: bool = True,
 ) -> AxisCalibration:
     """Fit one circle to all cylinder arcs jointly in the object frame.
 
@@ -261,7 +271,9 @@ def find_axis_joint(
     ``fit_angle_scale``, a turntable scale ``k`` (true angle = k x commanded). The
     residual of a point ``p`` seen at commanded angle ``theta`` is
     ``|Rz(-k theta)(p - a) - c| - r``, minimised by Levenberg-Marquardt from the thesis'
-    estimate (per-arc circles, centroid of centres). ``C_f = D_a / 2r``.
+    estimate (per-arc circles, centroid of centres). ``C_f = D_a / 2r``; with
+    ``fit_radius`` off, ``r`` is held at ``D_a / 2`` and ``C_f`` is 1 (the module docstring
+    says why), while ``estimated_diameter_mm`` still reports the free fit's ``2r``.
 
     Args:
         arcs: world-frame (K, 2) arcs in mm, one per view, already trimmed.
@@ -270,6 +282,8 @@ def find_axis_joint(
         fit_offset: estimate the cylinder's offset from the axis.
         fit_angle_scale: estimate the turntable's angle scale too (needs an off-centre
             cylinder: a centred one looks the same at every angle).
+        fit_radius: estimate the radius (and ``C_f`` from it) rather than hold it at the
+            known ``D_a / 2``.
 
     Returns:
         AxisCalibration with method "joint".
@@ -277,6 +291,9 @@ def find_axis_joint(
     _check_inputs(arcs, actual_diameter_mm)
     if len(angles_deg) != len(arcs):
         raise CalibrationError("give one turntable angle per cylinder arc")
+    if not fit_radius:
+        free = find_axis_joint(arcs, angles_deg, actual_diameter_mm, fit_offset, fit_angle_scale)
+        return _hold_radius(free, arcs, angles_deg, actual_diameter_mm, fit_offset)
     start = find_axis(arcs, actual_diameter_mm)
     pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
     theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
@@ -319,6 +336,48 @@ def find_axis_joint(
         arc_radii_mm=start.arc_radii_mm,
         warnings=tuple(warnings),
         method="joint",
+        angle_scale=scale,
+        cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
+        rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
+    )
+
+
+def _hold_radius(
+    free: AxisCalibration,
+    arcs: list[np.ndarray],
+    angles_deg: list[float],
+    actual_diameter_mm: float,
+    fit_offset: bool,
+) -> AxisCalibration:
+    """Refit the axis, offset and angle scale of a free joint fit with ``r = D_a / 2``.
+
+    The free fit is the starting point and keeps its role as a check: its diameter is
+    reported as ``estimated_diameter_mm`` and drives the 5 % warning.
+    """
+    pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
+    theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
+    radius = actual_diameter_mm / 2.0
+    offset0 = free.cylinder_offset_mm if free.cylinder_offset_mm is not None else (0.0, 0.0)
+    fit_scale = free.angle_scale != 1.0
+    x0 = [*free.axis_xy_mm, *(offset0 if fit_offset else ())]
+    if fit_scale:
+        x0.append(free.angle_scale)
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        offset = p[2:4] if fit_offset else np.zeros(2)
+        return p[:2], offset, float(p[-1]) if fit_scale else 1.0
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        axis, offset, scale = unpack(p)
+        q = _rotate(pts - axis, -scale * theta) - offset
+        return np.hypot(q[:, 0], q[:, 1]) - radius
+
+    sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
+    axis, offset, scale = unpack(sol.x)
+    return replace(
+        free,
+        axis_xy_mm=(float(axis[0]), float(axis[1])),
+        correction_factor=1.0,
         angle_scale=scale,
         cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
         rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
