@@ -12,11 +12,21 @@ Two methods (``AXIS_METHODS``):
 - ``"centroid"``: the thesis' method. A circle is fitted to every arc (6.2.1) and the
   axis is the centroid of the arc centres (6.2.2).
 
-Either way the correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning
-when it is more than 5 % from one. The joint fit can go on to one angle offset per view
-(``fit_view_offsets``): the cylinder is scanned at the object's view angles, so a
-repeatable gear error (runout, an eccentric gear) is measured where it acts. This is
-Lamina's extension; the thesis has one correction factor.
+The centroid method's correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3). The joint
+fit can instead hold the radius at the known ``D_a / 2`` (``fit_radius=False``, what the
+pipeline does): the camera and the laser see every arc from the same side, so a free
+radius trades almost one for one against the axis position along that side, and only
+the arcs' curvature separates them. At limb scale (0.2 mm/px, 0.5 mm sheet) stripe noise
+moves both by ~0.1 mm; ``C_f`` then turns that radius offset into a scale, which cancels
+on an object the size of the cylinder (the thesis' set-up) but not on a larger one
+(a 120 mm object scanned with a 60 mm cylinder read 0.14 mm too large, ``C_f`` 1.0043).
+With the radius known the axis is pinned by the arcs' positions and the board alone
+sets the scale. Either way a warning is given when the measured diameter is more than
+5 % from the true one.
+The joint fit can go on to one angle offset per view (``fit_view_offsets``): the
+cylinder is scanned at the object's view angles, so a repeatable gear error (runout, an
+eccentric gear) is measured where it acts. This is Lamina's extension; the thesis has one
+correction factor.
 """
 
 from __future__ import annotations
@@ -284,6 +294,7 @@ def find_axis_joint(
     fit_offset: bool = True,
     fit_angle_scale: bool = False,
     per_view: bool = False,
+    fit_radius: bool = True,
 ) -> AxisCalibration:
     """Fit one circle to all cylinder arcs jointly in the object frame.
 
@@ -292,7 +303,9 @@ def find_axis_joint(
     ``fit_angle_scale``, a turntable scale ``k`` (true angle = k x commanded). The
     residual of a point ``p`` seen at commanded angle ``theta`` is
     ``|Rz(-k theta)(p - a) - c| - r``, minimised by Levenberg-Marquardt from the thesis'
-    estimate (per-arc circles, centroid of centres). ``C_f = D_a / 2r``.
+    estimate (per-arc circles, centroid of centres). ``C_f = D_a / 2r``; with
+    ``fit_radius`` off, ``r`` is held at ``D_a / 2`` and ``C_f`` is 1 (the module docstring
+    says why), while ``estimated_diameter_mm`` still reports the free fit's ``2r``.
 
     Args:
         arcs: world-frame (K, 2) arcs in mm, one per view, already trimmed.
@@ -303,6 +316,8 @@ def find_axis_joint(
             cylinder: a centred one looks the same at every angle).
         per_view: with ``fit_angle_scale``, also estimate each view's own angle offset
             (:func:`fit_view_offsets`), so a repeatable gear error is absorbed.
+        fit_radius: estimate the radius (and ``C_f`` from it) rather than hold it at the
+            known ``D_a / 2``.
 
     Returns:
         AxisCalibration with method "joint".
@@ -310,6 +325,12 @@ def find_axis_joint(
     _check_inputs(arcs, actual_diameter_mm)
     if len(angles_deg) != len(arcs):
         raise CalibrationError("give one turntable angle per cylinder arc")
+    if not fit_radius:
+        free = find_axis_joint(arcs, angles_deg, actual_diameter_mm, fit_offset, fit_angle_scale)
+        held = _hold_radius(free, arcs, angles_deg, actual_diameter_mm, fit_offset)
+        if fit_angle_scale and per_view and fit_offset:
+            return fit_view_offsets(held, arcs, angles_deg, radius_mm=actual_diameter_mm / 2.0)
+        return held
     start = find_axis(arcs, actual_diameter_mm)
     pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
     theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
@@ -362,16 +383,20 @@ def find_axis_joint(
 
 
 def fit_view_offsets(
-    calibration: AxisCalibration, arcs: list[np.ndarray], angles_deg: list[float]
+    calibration: AxisCalibration,
+    arcs: list[np.ndarray],
+    angles_deg: list[float],
+    radius_mm: float | None = None,
 ) -> AxisCalibration:
     """Refine a joint fit with one turntable angle offset per distinct commanded angle.
 
     The cylinder is scanned at the object's view angles, so the error of each view's
     angle (a gear's once-per-turn runout, an eccentric gear) is measured where it is
-    used. Unknowns: axis, radius, the cylinder's offset and the offset of every view
-    but the first, whose offset stays at the scale fit's value (a common rotation of all
-    views is the same as a rotation of the cylinder's offset, so one must be fixed).
-    Started from the scale fit, whose scale is kept; ``C_f`` follows the refined radius.
+    used. Unknowns: axis, the cylinder's offset, the radius unless ``radius_mm`` holds it
+    at the known value, and the offset of every view but the first, whose offset stays
+    at the scale fit's value (a common rotation of all views is the same as a rotation of
+    the cylinder's offset, so one must be fixed). Started from the scale fit, whose
+    scale is kept; with a free radius ``C_f`` follows the refined radius.
     """
     commanded = np.asarray(angles_deg, dtype=float)
     distinct, view = np.unique(np.round(commanded % 360.0, 6), return_inverse=True)
@@ -383,20 +408,21 @@ def fit_view_offsets(
     point_view = np.repeat(view, counts)
     scale = calibration.angle_scale
     start = (scale - 1.0) * np.array([commanded[view == k][0] for k in range(len(distinct))])
+    free_radius = () if radius_mm is not None else (calibration.estimated_diameter_mm / 2.0,)
+    first_offset = 4 + len(free_radius)  # parameters: axis, cylinder offset, [radius], views
     x0 = np.array(
-        [*calibration.axis_xy_mm, calibration.estimated_diameter_mm / 2.0,
-         *calibration.cylinder_offset_mm, *start[1:]]
-    )  # fmt: skip
+        [*calibration.axis_xy_mm, *calibration.cylinder_offset_mm, *free_radius, *start[1:]]
+    )
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        offsets = np.deg2rad(np.concatenate([start[:1], p[5:]]))
-        q = _rotate(pts - p[:2], -(theta + offsets[point_view])) - p[3:5]
-        return np.hypot(q[:, 0], q[:, 1]) - p[2]
+        offsets = np.deg2rad(np.concatenate([start[:1], p[first_offset:]]))
+        q = _rotate(pts - p[:2], -(theta + offsets[point_view])) - p[2:4]
+        return np.hypot(q[:, 0], q[:, 1]) - (p[4] if radius_mm is None else radius_mm)
 
     sol = least_squares(residuals, x0, method="lm", xtol=1e-12, ftol=1e-12)
-    offsets = np.concatenate([start[:1], sol.x[5:]])
+    offsets = np.concatenate([start[:1], sol.x[first_offset:]])
     first = np.array([commanded[view == k][0] for k in range(len(distinct))])
-    sd_deg = _standard_errors(sol.jac, sol.fun)[5:]
+    sd_deg = _standard_errors(sol.jac, sol.fun)[first_offset:]
     if not np.median(sd_deg) <= MAX_VIEW_OFFSET_SD_DEG:
         note = (
             f"per-view turntable angles not used: the calibration cylinder measures them only "
@@ -404,13 +430,17 @@ def fit_view_offsets(
             "further off-centre"
         )
         return replace(calibration, view_offsets_note=note)
-    d_est = float(2.0 * abs(sol.x[2]))
+    if radius_mm is None:
+        d_est = float(2.0 * abs(sol.x[4]))
+        calibration = replace(
+            calibration,
+            correction_factor=calibration.actual_diameter_mm / d_est,
+            estimated_diameter_mm=d_est,
+        )
     return replace(
         calibration,
-        correction_factor=calibration.actual_diameter_mm / d_est,
-        estimated_diameter_mm=d_est,
         axis_xy_mm=(float(sol.x[0]), float(sol.x[1])),
-        cylinder_offset_mm=(float(sol.x[3]), float(sol.x[4])),
+        cylinder_offset_mm=(float(sol.x[2]), float(sol.x[3])),
         rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
         view_offsets_deg=np.stack([first, offsets], axis=1),
         view_offset_sd_deg=float(np.median(sd_deg)),
@@ -426,3 +456,45 @@ def _standard_errors(jac: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         return np.full(jac.shape[1], np.inf)
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def _hold_radius(
+    free: AxisCalibration,
+    arcs: list[np.ndarray],
+    angles_deg: list[float],
+    actual_diameter_mm: float,
+    fit_offset: bool,
+) -> AxisCalibration:
+    """Refit the axis, offset and angle scale of a free joint fit with ``r = D_a / 2``.
+
+    The free fit is the starting point and keeps its role as a check: its diameter is
+    reported as ``estimated_diameter_mm`` and drives the 5 % warning.
+    """
+    pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
+    theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
+    radius = actual_diameter_mm / 2.0
+    offset0 = free.cylinder_offset_mm if free.cylinder_offset_mm is not None else (0.0, 0.0)
+    fit_scale = free.angle_scale != 1.0
+    x0 = [*free.axis_xy_mm, *(offset0 if fit_offset else ())]
+    if fit_scale:
+        x0.append(free.angle_scale)
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        offset = p[2:4] if fit_offset else np.zeros(2)
+        return p[:2], offset, float(p[-1]) if fit_scale else 1.0
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        axis, offset, scale = unpack(p)
+        q = _rotate(pts - axis, -scale * theta) - offset
+        return np.hypot(q[:, 0], q[:, 1]) - radius
+
+    sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
+    axis, offset, scale = unpack(sol.x)
+    return replace(
+        free,
+        axis_xy_mm=(float(axis[0]), float(axis[1])),
+        correction_factor=1.0,
+        angle_scale=scale,
+        cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
+        rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
+    )

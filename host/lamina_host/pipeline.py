@@ -265,8 +265,14 @@ def calibrate_axis(
     if method == "centroid":
         return find_axis(arcs, diameter_mm)
     angles = [angle for _, angle in views]
+    # The radius is known: holding it keeps stripe noise out of the axis and scale (axis.py).
     return find_axis_joint(
-        arcs, angles, diameter_mm, fit_angle_scale=angle_correction, per_view=per_view
+        arcs,
+        angles,
+        diameter_mm,
+        fit_angle_scale=angle_correction,
+        per_view=per_view,
+        fit_radius=False,
     )
 
 

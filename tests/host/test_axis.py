@@ -177,3 +177,60 @@ def test_joint_fit_recovers_turntable_undershoot() -> None:
     assert cal.angle_scale == 1.0 and any("off-centre" in w for w in cal.warnings)
     with pytest.raises(CalibrationError, match="one turntable angle per"):
         find_axis_joint(arcs, angles[:-1], 2 * R_CYL)
+
+
+def front_arcs(
+    axis: tuple[float, float],
+    offset: tuple[float, float],
+    r: float,
+    angles_deg: list[float],
+    sigma: float,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
+    """Arcs of +-50 degrees on the side facing the camera (-y), as the rig sees them."""
+    arcs = []
+    for angle in angles_deg:
+        th = np.deg2rad(angle)
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        centre = np.asarray(axis) + rot @ np.asarray(offset)
+        arcs.append(arc(tuple(centre), r, -140.0, 100.0, 250, sigma, rng))
+    return arcs
+
+
+def test_known_radius_keeps_stripe_noise_out_of_the_axis() -> None:
+    """Front-only arcs: a free radius drags the axis along y; the known radius does not.
+
+    Limb scale: a 60 mm cylinder 11.7 mm off the axis, 0.18 mm of noise per point. The
+    free radius and the axis's y move together (each error ~0.05 mm); with the radius
+    held at the known value the axis is found to ~0.01 mm, and C_f is 1.
+    """
+    axis, offset, r = (2.0, -1.5), (10.0, -6.0), 30.0
+    angles = [45.0 * k for k in range(8)]
+    free_err, held_err, radius_err = [], [], []
+    for seed in range(12):
+        arcs = front_arcs(axis, offset, r, angles, 0.18, np.random.default_rng(100 + seed))
+        free = find_axis_joint(arcs, angles, 2 * r, fit_angle_scale=True)
+        held = find_axis_joint(arcs, angles, 2 * r, fit_angle_scale=True, fit_radius=False)
+        free_err.append(free.axis_xy_mm[1] - axis[1])
+        held_err.append(held.axis_xy_mm[1] - axis[1])
+        radius_err.append(free.estimated_diameter_mm / 2 - r)
+        assert held.correction_factor == 1.0
+        assert held.estimated_diameter_mm == free.estimated_diameter_mm
+        assert np.allclose(held.cylinder_offset_mm, offset, atol=0.05)
+    rms_free, rms_held = (
+        np.sqrt(np.mean(np.square(free_err))),
+        np.sqrt(np.mean(np.square(held_err))),
+    )
+    print(f"axis y error RMS: free radius {rms_free:.4f} mm, known radius {rms_held:.4f} mm")
+    # The free fit's radius and axis errors are the same error, seen twice.
+    assert np.corrcoef(free_err, radius_err)[0, 1] > 0.9
+    assert rms_held < 0.015 and rms_free > 3.0 * rms_held
+
+
+def test_known_radius_still_warns_about_a_wrong_diameter() -> None:
+    """Holding the radius does not hide a cylinder 7 % bigger than the one configured."""
+    angles = [45.0 * k for k in range(8)]
+    arcs = world_arcs((0.6, -0.4), (3.0, -1.5), 1.07 * R_CYL, angles, 1.0, np.random.default_rng(3))
+    cal = find_axis_joint(arcs, angles, 2 * R_CYL, fit_radius=False)
+    assert cal.estimated_diameter_mm == pytest.approx(2 * 1.07 * R_CYL, abs=0.01)
+    assert any("5%" in w for w in cal.warnings), cal.warnings

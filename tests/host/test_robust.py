@@ -20,8 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lamina_device.motion import Mechanics
-from lamina_device.sim import Rig, SimScene
+from lamina_device.sim import Mechanics, Rig, SimScene
 from lamina_host.coverage import measure_coverage
 from lamina_host.measure import polygon_area
 from lamina_host.mesh import signed_volume, topology, triangulate_polygon, tube_mesh
