@@ -121,6 +121,12 @@ class ProcessOptions:
         """Return the JSON form (for the report)."""
         return dict(self.__dict__)
 
+    @classmethod
+    def from_dict(cls, recorded: dict[str, Any]) -> ProcessOptions:
+        """Return the options a report recorded; fields this version lacks are ignored."""
+        known = cls.__dataclass_fields__
+        return cls(**{k: v for k, v in recorded.items() if k in known})
+
 
 @dataclass(frozen=True)
 class Section:
