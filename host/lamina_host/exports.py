@@ -64,6 +64,7 @@ def dicom_export(library: Library, scan_id: int, institution: str = "") -> bytes
 
 def record_export(library: Library, scan_id: int) -> bytes:
     """Return the scan's compact record, reprocessed from its segments and calibration."""
+    library.scan(scan_id)
     if library.result(scan_id) is None:
         raise StoreError(
             f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
