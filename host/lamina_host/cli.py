@@ -637,7 +637,6 @@ def batch(args: argparse.Namespace) -> int:
     check_output(args.out)
     with _open_library(args.library) as library:
         scan_ids = select_scans(library, args.subjects)
-        print(f"measuring {len(scan_ids)} scans", file=sys.stderr)
         outcomes = run_batch(library, scan_ids, workers=args.workers, address=args.scheduler)
     failed = [o for o in outcomes if o.error is not None]
     for outcome in failed:

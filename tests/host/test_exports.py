@@ -17,8 +17,13 @@ import numpy as np
 import pydicom
 import pytest
 
-from lamina_host.dicom import ENCAPSULATED_STL, DicomContext, encapsulated_stl, read_stl_triangles
-from lamina_host.dicom import dicom_bytes
+from lamina_host.dicom import (
+    ENCAPSULATED_STL,
+    DicomContext,
+    dicom_bytes,
+    encapsulated_stl,
+    read_stl_triangles,
+)
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import load_ply, tube_mesh
 from lamina_host.record import load_record

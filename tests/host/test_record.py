@@ -76,7 +76,9 @@ def test_a_40_section_limb_record_fits_10_kb_and_rebuilds_within_0_1_percent(lim
     ]
     for original, again in zip(limb.sections, rebuilt, strict=True):
         assert perimeter(again.contour) == pytest.approx(perimeter(original.contour), rel=1e-3)
-        assert polygon_area(again.contour) == pytest.approx(polygon_area(original.contour), rel=1e-3)
+        assert polygon_area(again.contour) == pytest.approx(
+            polygon_area(original.contour), rel=1e-3
+        )
         # The same curve point for point (once started at the same place), within 20 um.
         gap = np.linalg.norm(again.efd.evaluate(720) - align(original.efd).evaluate(720), axis=1)
         assert gap.max() < 0.02
