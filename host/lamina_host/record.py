@@ -112,6 +112,8 @@ def _pack(efds: list[EllipticFourier], order: int) -> bytes:
     for k, e in enumerate(efds):
         rows[k, :2] = e.a0, e.c0
         rows[k, 2 : 2 + 4 * e.order] = e.coeffs.ravel()
+    if not np.isfinite(rows).all() or np.abs(rows).max(initial=0.0) > 1e6:
+        raise RecordError("an outline's EFD is not finite or beyond 1 km: nothing to record")
     steps = np.rint(rows / QUANTUM_MM).astype(np.int64)
     deltas = np.diff(steps, axis=0, prepend=np.zeros((1, steps.shape[1]), np.int64))
     coded = _zigzag(deltas.ravel()).astype("<u4")
