@@ -24,6 +24,7 @@ import os
 import re
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -214,7 +215,13 @@ def run_batch(
                 for item in loaded
                 if isinstance(item, ScanInputs)
             ]
-            done = iter(dask.compute(*tasks, **keywords))
+            try:
+                done = iter(dask.compute(*tasks, **keywords))
+            except (BrokenProcessPool, ImportError, OSError) as exc:
+                raise BatchError(
+                    f"the batch's workers failed ({exc.__class__.__name__}: {exc}); "
+                    "check lamina-host is installed where they run"
+                ) from None
             outcomes += [item if isinstance(item, ScanOutcome) else next(done) for item in loaded]
     return outcomes
 
