@@ -146,12 +146,19 @@ def _inputs(library: Library, scan_id: int) -> ScanInputs | ScanOutcome:
         return ScanOutcome(scan_id, library.scan(scan_id).subject, error=str(exc))
 
 
+def _context() -> multiprocessing.context.BaseContext:
+    """Return how worker processes start: forked where possible, so they inherit the
+    imported pipeline (numpy, scipy, OpenCV, MeshLab) instead of importing it again."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+
+
 @contextmanager
 def _scheduler(workers: int, address: str | None) -> Iterator[dict[str, Any]]:
     """Yield the ``dask.compute`` keywords of the chosen scheduler, set up for the batch.
 
-    A process pool is created once for the whole batch (its workers import the pipeline
-    once); ``address`` connects to a dask.distributed scheduler instead.
+    A process pool is created once for the whole batch; ``address`` connects to a
+    dask.distributed scheduler instead.
     """
     if address is not None:
         with _client(address) as client:
@@ -160,7 +167,7 @@ def _scheduler(workers: int, address: str | None) -> Iterator[dict[str, Any]]:
     if workers == 1:
         yield {"scheduler": "synchronous"}
         return
-    pool: Executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    pool: Executor = ProcessPoolExecutor(workers, mp_context=_context())
     with pool:
         yield {"scheduler": "processes", "pool": pool, "num_workers": workers}
 
