@@ -663,7 +663,12 @@ def test_export_refuses_every_path_it_must_not_write(processed, tmp_path, capsys
     (tmp_path / "dangling.ply").symlink_to(tmp_path / "nowhere.ply")
     (tmp_path / "exists.json").write_text("old")
     (tmp_path / "folder.ply").mkdir()
+    (tmp_path / "link.dcm").symlink_to(victim)
+    (tmp_path / "link.lrec").symlink_to(victim)
     cases = [
+        (tmp_path / "link.dcm", "already exists"),
+        (tmp_path / "link.lrec", "already exists"),
+        (tmp_path / "no" / "x.dcm", "does not exist"),
         (tmp_path / "no" / "such" / "folder" / "x.ply", "does not exist"),
         (tmp_path / "victim.txt" / "x.ply", "does not exist"),
         (tmp_path / "link.ply", "already exists"),
@@ -713,13 +718,15 @@ def test_a_damaged_library_is_one_line_for_every_command(processed, tmp_path, ca
     commands = [
         ["scans"],
         ["export", "1", "-o", str(tmp_path / "x.ply")],
+        ["export", "1", "-o", str(tmp_path / "x.lrec")],
+        ["batch", "--subjects", "*", "--measure", "-o", str(tmp_path / "t.csv")],
         ["scan", "--device", "sim", "-o", str(tmp_path / "new"), "--sections", "1"],
         ["scan", "--device", "sim", "--resume", "1"],
     ]
     for command in commands:
         line = refused(capsys, *command, "--library", str(path))
         assert "library" in line, line
-    assert not (tmp_path / "x.ply").exists()
+    assert not (tmp_path / "x.ply").exists() and not (tmp_path / "t.csv").exists()
 
 
 # --- 5. smaller ----------------------------------------------------------------------------

@@ -23,9 +23,18 @@ from typing import Any
 
 from lamina_host import __version__
 from lamina_host.axis import AXIS_METHODS
+from lamina_host.batch import (
+    check_output,
+    check_pattern,
+    run_batch,
+    select_scans,
+    write_table,
+)
 from lamina_host.calibration import CALIBRATION_METHODS
+from lamina_host.dicom import check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
+from lamina_host.exports import export_scan
 from lamina_host.files import prepare_output_folder
 from lamina_host.link import DeviceError
 from lamina_host.mesh import MESH_METHODS
@@ -121,11 +130,42 @@ def build_parser() -> argparse.ArgumentParser:
     scans = sub.add_parser("scans", help="list the scans in the library")
     _add_library_option(scans)
     export = sub.add_parser(
-        "export", help="export a scan's mesh (.ply/.obj/.stl) or report (.json)"
+        "export",
+        help="export a scan's mesh (.ply/.obj/.stl), report (.json), DICOM Encapsulated STL "
+        "(.dcm) or compact follow-up record (.lrec)",
     )
     export.add_argument("scan", type=int, help="scan id (see lamina scans)")
     export.add_argument("-o", "--out", required=True, type=Path, help="new file to write")
+    export.add_argument(
+        "--institution",
+        default="",
+        help="Institution Name written into a .dcm export (default: none)",
+    )
     _add_library_option(export)
+    batch = sub.add_parser(
+        "batch", help="reprocess and measure many scans in parallel (Dask) into a CSV table"
+    )
+    _add_library_option(batch)
+    batch.add_argument(
+        "--subjects",
+        required=True,
+        metavar="PATTERN",
+        help="subject codes to include, with wildcards * ? [...] (quote it), e.g. 'P0*'",
+    )
+    batch.add_argument(
+        "--measure",
+        action="store_true",
+        help="measure each scan: every outline's perimeter and area, the mesh volume",
+    )
+    batch.add_argument("-o", "--out", required=True, type=Path, help="new CSV file to write")
+    batch.add_argument(
+        "--workers", type=int, help="local worker processes (default: all cores; 1: serial)"
+    )
+    batch.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run on a dask.distributed scheduler, e.g. tcp://host:8786 (default: local)",
+    )
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
     tui.add_argument(
         "--device", default="sim", help="serial port path, 'sim' (default) or 'replay:DIR'"
@@ -450,11 +490,35 @@ def list_scans(args: argparse.Namespace) -> int:
 
 
 def export(args: argparse.Namespace) -> int:
-    """Run ``lamina export SCAN -o FILE``."""
+    """Run ``lamina export SCAN -o FILE``: the format follows the file's extension."""
+    institution = check_institution(args.institution)
     with _open_library(args.library) as library:
-        path = library.export(args.scan, args.out)
+        path = export_scan(library, args.scan, args.out, institution)
     print(f"wrote {path}")
     return 0
+
+
+def batch(args: argparse.Namespace) -> int:
+    """Run ``lamina batch``: reprocess matching scans in parallel, write the table as CSV.
+
+    Returns 1 (after writing the table of the others) when some scans could not be measured.
+    """
+    if not args.measure:
+        raise UsageError("lamina batch needs --measure (the only batch job so far)")
+    if args.workers is not None:
+        check_count("--workers", args.workers, 1, 256)
+    check_pattern(args.subjects)
+    check_output(args.out)
+    with _open_library(args.library) as library:
+        scan_ids = select_scans(library, args.subjects)
+        outcomes = run_batch(library, scan_ids, workers=args.workers, address=args.scheduler)
+    failed = [o for o in outcomes if o.error is not None]
+    for outcome in failed:
+        print(f"lamina: scan {outcome.scan_id} not measured: {printable(outcome.error or '')}",
+              file=sys.stderr)  # fmt: skip
+    write_table(args.out, outcomes)
+    print(f"wrote {args.out} ({len(outcomes) - len(failed)} of {len(outcomes)} scans)")
+    return 1 if failed else 0
 
 
 def tui(args: argparse.Namespace) -> int:
@@ -467,7 +531,9 @@ def tui(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"scan": scan, "scans": list_scans, "export": export, "tui": tui}
+COMMANDS = {
+    "scan": scan, "scans": list_scans, "export": export, "batch": batch, "tui": tui,
+}  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> int:

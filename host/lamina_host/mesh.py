@@ -296,3 +296,62 @@ def save_ply(
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         for chunk in body:
             fh.write(chunk)
+
+
+def load_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Return the float32 vertices (V, 3) and faces (F, 3) of a PLY written by :func:`save_ply`.
+
+    Raises:
+        ValueError: the bytes are not a binary little-endian triangle PLY of that layout.
+    """
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise ValueError("not a PLY file")
+    header = data[:end].decode("ascii", "replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise ValueError("only binary little-endian PLY files are read")
+    counts = {
+        words[1]: int(words[2])
+        for words in (line.split() for line in header)
+        if len(words) == 3 and words[0] == "element"
+    }
+    props = sum(1 for line in header if line.startswith("property float "))
+    n_vertices, n_faces = counts.get("vertex", 0), counts.get("face", 0)
+    offset = end + len(b"end_header\n")
+    vrec = np.frombuffer(data, "<f4", n_vertices * props, offset).reshape(n_vertices, props)
+    frec = np.frombuffer(data, [("n", "u1"), ("idx", "<i4", (3,))], n_faces, offset + vrec.nbytes)
+    if n_faces and not (frec["n"] == 3).all():
+        raise ValueError("only triangle meshes are read")
+    return vrec[:, :3].copy(), frec["idx"].astype(np.int64)
+
+
+STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+"""One triangle of a binary STL file (50 bytes)."""
+
+
+def stl_bytes(vertices: np.ndarray, faces: np.ndarray, title: str = "Lamina mesh") -> bytes:
+    """Return a binary STL file of a triangle mesh: float32 coordinates in mm, unit normals."""
+    tris = _points3(vertices).astype(np.float32)[np.asarray(faces, dtype=np.int64)]
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]).astype(np.float64)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    records = np.zeros(len(tris), STL_RECORD)
+    records["normal"] = normals
+    records["v"] = tris
+    # The header must not start with "solid": readers would take the file for ASCII STL.
+    head = title.encode("ascii", "replace")[:80].ljust(80, b" ")
+    return head + np.uint32(len(tris)).tobytes() + records.tobytes()
+
+
+def stl_triangles(data: bytes) -> np.ndarray:
+    """Return the (F, 3, 3) float32 triangles of a binary STL file.
+
+    Raises:
+        ValueError: the bytes are not a complete binary STL file.
+    """
+    if len(data) < 84:
+        raise ValueError("not a binary STL file (shorter than its header)")
+    count = int(np.frombuffer(data, "<u4", 1, 80)[0])
+    if len(data) != 84 + count * STL_RECORD.itemsize:
+        raise ValueError(f"binary STL file of {count} triangles has the wrong length")
+    return np.frombuffer(data, STL_RECORD, count, 84)["v"].copy()

@@ -155,6 +155,12 @@ class ProcessOptions:
         """Return the JSON form (for the report)."""
         return dict(self.__dict__)
 
+    @classmethod
+    def from_dict(cls, recorded: dict[str, Any]) -> ProcessOptions:
+        """Return the options a report recorded; fields this version lacks are ignored."""
+        known = cls.__dataclass_fields__
+        return cls(**{k: v for k, v in recorded.items() if k in known})
+
 
 STATUSES = ("measured", "bridged", "interpolated", "open")
 """How an outline was closed: seen all round; small unseen gaps closed by EFD; large gaps

@@ -107,6 +107,8 @@ CREATE TABLE IF NOT EXISTS exports (
 """
 
 EXPORT_FORMATS = (".ply", ".obj", ".stl", ".json")
+"""What :meth:`Library.export` writes; ``lamina export`` adds ``.dcm`` and ``.lrec``
+(:data:`lamina_host.exports.EXPORTERS`)."""
 
 
 class StoreError(LaminaError):
@@ -148,6 +150,25 @@ class Calibration:
     grid_image: np.ndarray
     board: BoardSpec
     cylinder_mm: float | None
+
+
+@dataclass(frozen=True)
+class ScanInputs:
+    """Everything a scan's reprocessing needs, read from the library (picklable, no handles).
+
+    ``options`` is the processing options its stored result recorded ({} if none).
+    """
+
+    scan_id: int
+    subject: str
+    created: str
+    grid_image: np.ndarray
+    board: BoardSpec
+    cylinder: list[Segment]
+    cylinder_mm: float
+    segments: list[Segment]
+    options: dict[str, Any]
+    device: dict[str, Any]
 
 
 def default_library_path() -> Path:
@@ -507,6 +528,33 @@ class Library:
         board = BoardSpec.from_dict(json.loads(row["board"]))
         return Calibration(image, board, row["cylinder_mm"])
 
+    def inputs(self, scan_id: int) -> ScanInputs:
+        """Return what reprocessing scan ``scan_id`` needs.
+
+        Raises:
+            StoreError: no such scan, or it lacks its calibration or the cylinder diameter.
+        """
+        record = self.scan(scan_id)
+        calibration = self.calibration(scan_id)
+        if calibration is None or calibration.cylinder_mm is None:
+            raise StoreError(
+                f"scan {scan_id} has no complete calibration: finish it with "
+                f"lamina scan --resume {scan_id}"
+            )
+        report = self.result(scan_id) or {}
+        return ScanInputs(
+            scan_id,
+            record.subject,
+            record.created,
+            calibration.grid_image,
+            calibration.board,
+            self.segments(scan_id, "cylinder"),
+            float(calibration.cylinder_mm),
+            self.segments(scan_id, "object"),
+            dict(report.get("options", {})),
+            dict(record.device),
+        )
+
     def save_result(self, scan_id: int, report: dict[str, Any], files: dict[str, Path]) -> None:
         """Store the processing report and output files (replacing earlier ones)."""
         blobs = {name: Path(path).read_bytes() for name, path in files.items()}
@@ -534,6 +582,22 @@ class Library:
         ).fetchone()
         return bytes(row[0]) if row else None
 
+    def result_mesh(self, scan_id: int) -> bytes:
+        """Return the scan's stored mesh (PLY bytes).
+
+        Raises:
+            StoreError: the scan has no result, or its result has no mesh.
+        """
+        self.scan(scan_id)
+        if self.result(scan_id) is None:
+            raise StoreError(
+                f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
+            )
+        mesh = self._result_file(scan_id, "mesh.ply")
+        if mesh is None:
+            raise StoreError(f"scan {scan_id} produced no mesh to export")
+        return mesh
+
     def export(self, scan_id: int, path: Path) -> Path:
         """Write the scan's result to ``path``: mesh as PLY/OBJ/STL by extension, or the report.
 
@@ -547,12 +611,7 @@ class Library:
                 f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh) "
                 "or .json (report)"
             )
-        if path.exists() or path.is_symlink():
-            raise StoreError(f"{path} already exists: choose a new file name")
-        if not path.parent.is_dir():
-            raise StoreError(
-                f"folder {path.parent} does not exist: create it first or name a file in another"
-            )
+        check_new_file(path)
         self.scan(scan_id)
         report = self.result(scan_id)
         if report is None:
@@ -562,10 +621,15 @@ class Library:
         if suffix == ".json":
             data = (json.dumps(report, indent=2) + "\n").encode()
         else:
-            mesh = self._result_file(scan_id, "mesh.ply")
-            if mesh is None:
-                raise StoreError(f"scan {scan_id} produced no mesh to export")
-            data = _convert_mesh(mesh, suffix)
+            data = _convert_mesh(self.result_mesh(scan_id), suffix)
+        return self.write_export(scan_id, path, data)
+
+    def write_export(self, scan_id: int, path: Path, data: bytes) -> Path:
+        """Write ``data`` to the new file ``path`` (0600) and record it as an export of the scan.
+
+        Raises:
+            StoreError: the file exists or cannot be written.
+        """
         try:
             write_new_file(path, data)
         except OutputError as exc:
@@ -573,9 +637,19 @@ class Library:
         with self._db:
             self._db.execute(
                 "INSERT INTO exports (scan_id, created, format, path) VALUES (?, ?, ?, ?)",
-                (scan_id, _now(), suffix.lstrip("."), str(path.resolve())),
+                (scan_id, _now(), path.suffix.lower().lstrip("."), str(path.resolve())),
             )
         return path
+
+
+def check_new_file(path: Path) -> None:
+    """Refuse (StoreError, one line) an export path that exists or lies in no folder."""
+    if path.exists() or path.is_symlink():
+        raise StoreError(f"{path} already exists: choose a new file name")
+    if not path.parent.is_dir():
+        raise StoreError(
+            f"folder {path.parent} does not exist: create it first or name a file in another"
+        )
 
 
 def _convert_mesh(ply: bytes, suffix: str) -> bytes:

@@ -1,0 +1,81 @@
+"""``lamina export`` beyond the stored files: DICOM Encapsulated STL and the compact record.
+
+The library writes the mesh formats and the report itself (:meth:`Library.export`);
+these two need more than a stored file: the DICOM object wraps the mesh with the
+scan's study data, and the compact record is rebuilt from the scan's segments and
+calibration by the current pipeline with the options its result recorded.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from lamina_host.dicom import DicomContext, dicom_bytes, encapsulated_stl
+from lamina_host.mesh import load_ply
+from lamina_host.pipeline import ProcessOptions, reconstruct
+from lamina_host.record import record_bytes
+from lamina_host.store import EXPORT_FORMATS, Library, StoreError, check_new_file
+
+EXPORTERS = (".dcm", ".lrec")
+"""Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
+
+
+def export_scan(library: Library, scan_id: int, path: Path, institution: str = "") -> Path:
+    """Write scan ``scan_id`` to the new file ``path`` in the format its extension names.
+
+    Raises:
+        StoreError: unknown extension, an existing file, or a scan without a result.
+    """
+    suffix = path.suffix.lower()
+    if suffix in EXPORT_FORMATS:
+        return library.export(scan_id, path)
+    if suffix not in EXPORTERS:
+        raise StoreError(
+            f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh), .json (report), "
+            ".dcm (DICOM Encapsulated STL) or .lrec (compact follow-up record)"
+        )
+    check_new_file(path)
+    if suffix == ".dcm":
+        data = dicom_export(library, scan_id, institution)
+    else:
+        data = record_export(library, scan_id)
+    return library.write_export(scan_id, path, data)
+
+
+def _serial(identity: dict[str, Any]) -> str:
+    return str(identity.get("serial") or identity.get("source") or "unknown")
+
+
+def dicom_export(library: Library, scan_id: int, institution: str = "") -> bytes:
+    """Return the scan's stored mesh as a DICOM Encapsulated STL file."""
+    vertices, faces = load_ply(library.result_mesh(scan_id))
+    record = library.scan(scan_id)
+    context = DicomContext(
+        record.subject,
+        scan_id,
+        record.created,
+        institution,
+        _serial(record.identity),
+        str(record.device.get("software", "")),
+    )
+    return dicom_bytes(encapsulated_stl(vertices, faces, context))
+
+
+def record_export(library: Library, scan_id: int) -> bytes:
+    """Return the scan's compact record, reprocessed from its segments and calibration."""
+    library.scan(scan_id)
+    if library.result(scan_id) is None:
+        raise StoreError(
+            f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
+        )
+    inputs = library.inputs(scan_id)
+    result = reconstruct(
+        inputs.grid_image,
+        inputs.board,
+        inputs.cylinder,
+        inputs.cylinder_mm,
+        inputs.segments,
+        ProcessOptions.from_dict(inputs.options),
+    )
+    return record_bytes(result, scan_id, inputs.subject, inputs.created)

@@ -1,0 +1,153 @@
+"""``lamina export`` to DICOM Encapsulated STL and to the compact record, on a real scan.
+
+The DICOM file is checked by ``dciodvfy`` (dicom3tools, the reference IOD checker) and
+read back with pydicom; the record is rebuilt and compared with the scan's own report.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+
+from lamina_host.dicom import (
+    ENCAPSULATED_STL,
+    DicomContext,
+    dicom_bytes,
+    encapsulated_stl,
+    read_stl_triangles,
+)
+from lamina_host.measure import perimeter, polygon_area
+from lamina_host.mesh import load_ply, tube_mesh
+from lamina_host.record import load_record
+from lamina_host.store import Library
+
+from .conftest import SUBJECT
+
+DCIODVFY = shutil.which("dciodvfy")
+needs_dciodvfy = pytest.mark.skipif(
+    DCIODVFY is None,
+    reason="dciodvfy is not installed: apt-get install -y dicom3tools (the DICOM IOD checker)",
+)
+
+
+def lamina(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``lamina`` in a fresh process."""
+    return subprocess.run(
+        [sys.executable, "-m", "lamina_host", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+def dciodvfy(path: Path) -> tuple[list[str], list[str]]:
+    """Return the errors and warnings ``dciodvfy`` reports for a file."""
+    assert DCIODVFY is not None
+    done = subprocess.run([DCIODVFY, str(path)], capture_output=True, text=True, timeout=60)
+    lines = (done.stdout + done.stderr).splitlines()
+    errors = [line for line in lines if line.startswith("Error")]
+    warnings = [line for line in lines if line.startswith("Warning")]
+    return errors, warnings
+
+
+def ring_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """A closed 10 mm radius tube, 4 mm tall."""
+    t = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
+    ring = np.column_stack([10.0 * np.cos(t), 10.0 * np.sin(t)])
+    return tube_mesh(np.stack([ring] * 3), np.array([0.0, 2.0, 4.0]))
+
+
+@needs_dciodvfy
+def test_encapsulated_stl_passes_dciodvfy_and_keeps_the_mesh_exactly(tmp_path: Path) -> None:
+    vertices, faces = ring_mesh()
+    context = DicomContext(SUBJECT, 3, "2026-11-29T13:00:00+00:00", "Lamina Test Clinic")
+    path = tmp_path / "mesh.dcm"
+    path.write_bytes(dicom_bytes(encapsulated_stl(vertices, faces, context)))
+    errors, warnings = dciodvfy(path)
+    print("dciodvfy warnings:", warnings)
+    assert errors == []
+    assert np.array_equal(read_stl_triangles(str(path)), vertices.astype(np.float32)[faces])
+
+
+def test_every_export_of_a_scan_shares_its_study_and_series() -> None:
+    vertices, faces = ring_mesh()
+    context = DicomContext(SUBJECT, 3, "2026-11-29T13:00:00+00:00")
+    one, two = (encapsulated_stl(vertices, faces, context) for _ in range(2))
+    assert one.StudyInstanceUID == two.StudyInstanceUID
+    assert one.SeriesInstanceUID == two.SeriesInstanceUID
+    assert one.SOPInstanceUID != two.SOPInstanceUID
+    other = encapsulated_stl(vertices, faces, DicomContext(SUBJECT, 4, context.created))
+    assert other.StudyInstanceUID != one.StudyInstanceUID
+    assert "InstitutionName" not in one
+
+
+@needs_dciodvfy
+def test_cli_exports_a_scan_as_dicom(scanned_library: Path, tmp_path: Path) -> None:
+    out = tmp_path / "scan1.dcm"
+    done = lamina(
+        "export", "1", "-o", str(out), "--library", str(scanned_library),
+        "--institution", "Lamina Test Clinic",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert stat.S_IMODE(out.stat().st_mode) == 0o600
+    errors, warnings = dciodvfy(out)
+    print("dciodvfy warnings:", warnings)
+    assert errors == []
+    ds = pydicom.dcmread(out)
+    assert ds.SOPClassUID == ENCAPSULATED_STL and ds.MIMETypeOfEncapsulatedDocument == "model/stl"
+    assert ds.PatientID == SUBJECT and str(ds.PatientName) == ""
+    assert ds.InstitutionName == "Lamina Test Clinic" and ds.Modality == "M3D"
+    assert ds.MeasurementUnitsCodeSequence[0].CodeValue == "mm"
+    with Library(scanned_library) as library:
+        vertices, faces = load_ply(library.result_mesh(1))
+    triangles = read_stl_triangles(str(out))
+    assert len(faces) > 100 and np.array_equal(triangles, vertices[faces])
+
+
+def test_cli_refuses_bad_export_requests_in_one_line(scanned_library: Path, tmp_path: Path) -> None:
+    library = ("--library", str(scanned_library))
+    existing = tmp_path / "old.dcm"
+    existing.write_bytes(b"earlier")
+    cases = [
+        (("export", "1", "-o", str(tmp_path / "x.dcm"), "--institution", "a\tb"), "institution"),
+        (("export", "1", "-o", str(tmp_path / "x.dcm"), "--institution", "a" * 65), "institution"),
+        (("export", "1", "-o", str(existing)), "already exists"),
+        (("export", "1", "-o", str(tmp_path / "x.dicom")), ".dcm"),
+        (("export", "1", "-o", str(tmp_path / "none" / "x.lrec")), "does not exist"),
+        (("export", "9", "-o", str(tmp_path / "x.lrec")), "no scan 9"),
+    ]
+    for args, needle in cases:
+        done = lamina(*args, *library)
+        assert done.returncode != 0 and done.stdout == ""
+        assert done.stderr.count("\n") == 1 and needle in done.stderr, done.stderr
+    assert existing.read_bytes() == b"earlier"
+    assert not (tmp_path / "x.dcm").exists() and not (tmp_path / "x.lrec").exists()
+
+
+def test_cli_record_rebuilds_the_scan_measurements(scanned_library: Path, tmp_path: Path) -> None:
+    """The record's contours measure as the scan's report did (0.1 %), and so does its mesh."""
+    out = tmp_path / "scan1.lrec"
+    done = lamina("export", "1", "-o", str(out), "--library", str(scanned_library))
+    assert done.returncode == 0, done.stderr
+    assert stat.S_IMODE(out.stat().st_mode) == 0o600
+    record = load_record(out.read_bytes())
+    with Library(scanned_library) as library:
+        report = library.result(1)
+    assert report is not None and record.subject == SUBJECT and record.scan_id == 1
+    print(f"record {out.stat().st_size} bytes for {len(record.outlines)} outlines")
+    assert record.axis["axis_xy_mm"] == report["axis"]["axis_xy_mm"]
+    assert record.calibration["matrix"] == report["calibration"]["matrix"]
+    rebuilt = record.sections()
+    assert len(rebuilt) == len(report["sections"])
+    for row, section in zip(report["sections"], rebuilt, strict=True):
+        assert (section.index, section.z_mm) == (row["section"], row["z_mm"])
+        assert perimeter(section.contour) == pytest.approx(row["perimeter_mm"], rel=1e-3)
+        assert polygon_area(section.contour) == pytest.approx(row["area_mm2"], rel=1e-3)
+    volume = report["mesh"]["topology"]["volume_mm3"]
+    assert record.mesh_volume_mm3() == pytest.approx(volume, rel=1e-3)
+    assert json.loads(json.dumps(record.options))["mesh"] == report["options"]["mesh"]
