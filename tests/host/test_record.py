@@ -16,7 +16,14 @@ from lamina_host.calibration import GridCalibration, Homography
 from lamina_host.efd import align
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import signed_volume
-from lamina_host.pipeline import ProcessOptions, Reconstruction, build_mesh, fit_outlines
+from lamina_host.outliers import OutlierRules
+from lamina_host.pipeline import (
+    ProcessOptions,
+    Reconstruction,
+    build_mesh,
+    fit_groups,
+    outline_groups,
+)
 from lamina_host.record import RecordError, load_record, record_bytes
 
 SECTIONS = 40
@@ -40,6 +47,12 @@ def views(z_mm: float, rng: np.random.Generator) -> list[np.ndarray]:
     return arcs
 
 
+def outlines(parts: list[np.ndarray], options: ProcessOptions) -> list[list[np.ndarray]]:
+    """Return a section's outlines as the pipeline groups them (outliers rejected)."""
+    rules = OutlierRules(working_radius_mm=options.working_radius_mm)
+    return outline_groups(parts, options, rules)[0]
+
+
 @pytest.fixture(scope="module")
 def limb() -> Reconstruction:
     """A reconstruction of the limb-like shape: real fits, a contour mesh, stand-in calibration."""
@@ -48,7 +61,7 @@ def limb() -> Reconstruction:
     sections = [
         s
         for k in range(SECTIONS)
-        for s in fit_outlines(k, k * PITCH_MM, views(k * PITCH_MM, rng), options)
+        for s in fit_groups(k, k * PITCH_MM, outlines(views(k * PITCH_MM, rng), options), options)
     ]
     vertices, faces, _ = build_mesh(sections, options)
     grid = GridCalibration(
