@@ -22,8 +22,9 @@ import numpy as np
 import pytest
 
 from lamina_host import cli
-from lamina_host.link import LineFaults, open_device
+from lamina_host.link import open_device
 from lamina_host.store import Library
+from lamina_host.testing import LineFaults
 from lamina_shared.types import Segment
 
 

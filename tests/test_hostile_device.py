@@ -36,6 +36,7 @@ from lamina_shared.link import Channel
 from lamina_shared.ops import OPS, plan_fits
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
     Kind,
     Message,
     encode_frame,
@@ -107,7 +108,7 @@ class Ends:
         assert reply["result"]["state"] in ("idle", "busy", "paused")
 
     def hello(self, session: str) -> None:
-        self.host.send(encode_json(Kind.HELLO, {"protocol": 2, "session": session}))
+        self.host.send(encode_json(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": session}))
 
 
 @contextmanager

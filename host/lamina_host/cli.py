@@ -46,6 +46,7 @@ from lamina_host.workflow import (
     printable,
 )
 from lamina_shared.link import LinkClosed
+from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS
 from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
@@ -92,6 +93,12 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--sections", type=int, help="number of sections (default: device's)")
     scan.add_argument("--pitch", type=float, help="section pitch in mm (default 2)")
     scan.add_argument("--views", type=int, help="views per section (default 8)")
+    scan.add_argument(
+        "--extract",
+        type=_extract_option,
+        metavar="KEY=VALUE[,KEY=VALUE]",
+        help="change the device's stripe extraction for this scan, e.g. method=thinning,power=2",
+    )
     scan.add_argument(
         "--expect", help="known shape to measure accuracy against, e.g. cylinder:d=19.05"
     )
@@ -478,6 +485,14 @@ def _open_library(path: Path | None) -> Library:
     return library
 
 
+def _extract_option(text: str) -> ExtractChanges:
+    """Return ``--extract``'s changes; argparse reports a bad one in one line."""
+    try:
+        return parse_extract_text(text)
+    except ArgsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _notice(text: str) -> None:
     """Say on stderr what the device is doing (not an error: no ``lamina:`` prefix)."""
     print(f"  {text}", file=sys.stderr)
@@ -513,6 +528,7 @@ def _acquire_scan(
         with open_device(
             args.device, args.object, args.seed, args.noise, rig=args.rig, on_notice=_notice
         ) as client:
+            client.extract = getattr(args, "extract", None)
             scan_id = _open_scan(client, args, library, plan)
             print(f"scan {scan_id} in library {library.path}", file=sys.stderr)
             data, timings = acquire(client, args, library, scan_id, args.out)

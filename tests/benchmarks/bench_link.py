@@ -14,8 +14,9 @@ import serial
 from lamina_device.acquisition import acquire
 from lamina_device.hardware import open_sim
 from lamina_host import cli
-from lamina_host.link import LineFaults, PtyBridge, open_device
+from lamina_host.link import PtyBridge, open_device
 from lamina_host.store import Library
+from lamina_host.testing import LineFaults
 from lamina_shared.link import Channel
 from lamina_shared.protocol import Kind, SegmentEvent, encode_json, encode_segment, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
