@@ -69,6 +69,7 @@ FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
 _FULL_SCALE = 255
+_MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
@@ -177,8 +178,10 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         problems.append(
             f"run_choice {settings.run_choice!r} is not one of {', '.join(RUN_CHOICES)}"
         )
-    if settings.background_opening_px < 0:
-        problems.append(f"background_opening_px {settings.background_opening_px} is negative")
+    if not 0 <= settings.background_opening_px <= _MAX_OPENING_PX:
+        problems.append(
+            f"background_opening_px {settings.background_opening_px} is not in 0..{_MAX_OPENING_PX}"
+        )
     if not 1e-12 <= settings.false_points_per_frame <= 1:
         problems.append(
             f"false_points_per_frame {settings.false_points_per_frame} is not in 1e-12..1"
