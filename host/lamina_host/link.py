@@ -9,6 +9,12 @@ Requests are repeated (same id) until the device answers, and the device answers
 repeat from its reply cache, so a lost frame in either direction costs a timeout,
 never a request run twice. Each segment is handed to the caller (who stores it)
 before it is acknowledged; transfers are fetched piece by piece until complete.
+
+One reader thread (:class:`lamina_shared.endpoint.Dispatcher`) reads the link and hands
+each message to the request it belongs to, so any thread may send a request and wait
+for its own reply: a scan runs on one thread while another pauses or aborts it. The
+requests are built from the typed arguments of :mod:`lamina_shared.ops`, the schemas
+the device checks them with.
 """
 
 from __future__ import annotations
