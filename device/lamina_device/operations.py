@@ -14,6 +14,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -61,7 +62,7 @@ class Link(Protocol):
     def running_id(self) -> int | None: ...  # pragma: no cover - protocol
 
     @property
-    def abandoned(self) -> Any: ...  # pragma: no cover - protocol
+    def abandoned(self) -> threading.Event: ...  # pragma: no cover - protocol
 
     def offer(self, request_id: int, data: bytes) -> dict[str, Any]: ...  # pragma: no cover
 
@@ -160,6 +161,7 @@ class Operations:
         }
 
     def grab_grid(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Offer a PNG of the calibration board (laser off) and the board's geometry."""
         result = self.link.offer(request_id, _png(grab_grid(self.hardware)))
         board = self.hardware.board
         return {**result, "board": board.to_dict() if board else None}
@@ -349,6 +351,7 @@ class Operations:
         return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
 
     def status(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Report what a heartbeat says, and the retransmissions so far."""
         return {**self.link.state(), "retransmissions": self.link.buffer.retransmissions}
 
     def shutdown(self, request_id: int, args: NoArgs) -> dict[str, Any]:
