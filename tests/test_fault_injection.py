@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lamina_host.link import DeviceClient, LineFaults, open_device
+from lamina_host.link import DeviceClient, open_device
 from lamina_host.store import Library
+from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_shared.types import Segment
 

@@ -31,6 +31,7 @@ from lamina_shared.link import Channel
 from lamina_shared.ops import OPS as SCHEMAS
 from lamina_shared.ops import (
     ArgsError,
+    ExtractChanges,
     MoveArgs,
     ScanArgs,
     UnknownOp,
@@ -391,6 +392,9 @@ def test_typed_requests_round_trip(axis, position, sections, pitch_mm, views):
     assert ScanPlan.from_dict(wire) == plan
     if len(plan.views) <= LIMITS.max_views:
         scan = ScanArgs("object", plan, (0,))
+        assert parse_args("scan", request_args(scan), LIMITS) == scan
+        changes = ExtractChanges((("method", "thinning"), ("threshold", None), ("power", pitch_mm)))
+        scan = ScanArgs("object", plan, (0,), changes)
         assert parse_args("scan", request_args(scan), LIMITS) == scan
 
 

@@ -18,7 +18,8 @@ from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link import DeviceClient, DeviceError, LineFaults, PtyBridge
+from lamina_host.link import DeviceClient, DeviceError, PtyBridge
+from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json, quantise_segment

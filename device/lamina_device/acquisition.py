@@ -18,7 +18,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -193,6 +193,7 @@ def acquire(
     settings: ExtractSettings | None = None,
     sink: FrameSink | None = None,
     control: ScanControl | None = None,
+    numbers: Sequence[int] | None = None,
 ) -> int:
     """Scan ``target`` along ``plan``; return the number of segments produced.
 
@@ -205,6 +206,9 @@ def acquire(
         settings: extraction settings (ExtractSettings() by default: Otsu, p = 1, noise gate).
         sink: called with the raw frames of each view (recording), from the worker thread.
         control: pause, resume and abort from another thread.
+        numbers: each view's index in its section (:func:`views_in_section` of the
+            whole scan when ``plan`` is the part of it still to acquire); by default
+            ``plan``'s own numbering.
 
     Returns:
         How many segments were handed to ``on_segment``.
@@ -227,7 +231,9 @@ def acquire(
 
     hardware.place(target)
     stage = _Stage(handle)
-    index_in_section: dict[int, int] = {}
+    index_in_section = list(numbers) if numbers is not None else views_in_section(plan)
+    if len(index_in_section) != total:
+        raise ValueError(f"{len(index_in_section)} view numbers for {total} views")
     captured = 0
     ok = False
     try:
@@ -238,9 +244,7 @@ def acquire(
                 hardware.turntable.move_to(view.angle_deg)
                 hardware.settle()
                 on, off = capture_pair(hardware)
-                index = index_in_section.get(view.section, 0)
-                index_in_section[view.section] = index + 1
-                stage.put(_Captured(view, index, done, on, off))
+                stage.put(_Captured(view, index_in_section[done - 1], done, on, off))
                 captured = done
         finally:
             hardware.laser.off()
@@ -255,6 +259,16 @@ def acquire(
         hardware.laser.off()
         _home(hardware, raise_errors=ok)
     return total
+
+
+def views_in_section(plan: ScanPlan) -> list[int]:
+    """Return each view's index within its section: the one place views are numbered."""
+    seen: dict[int, int] = {}
+    out = []
+    for view in plan.views:
+        out.append(seen.get(view.section, 0))
+        seen[view.section] = out[-1] + 1
+    return out
 
 
 def _home(hardware: Hardware, raise_errors: bool) -> None:

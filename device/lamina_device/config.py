@@ -18,9 +18,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from lamina_device.extract import ExtractSettings, changed_settings
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
-from lamina_shared.ops import Problems, check_plan
+from lamina_shared.ops import Problems, check_extract, check_plan
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
 BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
@@ -165,10 +166,12 @@ class DeviceConfig:
     plan: PlanConfig
     device_id: str | None = None
     """Optional ``[device] id``: names this box in the WELCOME instead of the Pi's serial."""
+    extract: ExtractSettings = field(default_factory=ExtractSettings)
+    """Optional ``[extract]``: the stripe extraction's settings (a scan may change them)."""
 
 
 DEVICE_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
-OPTIONAL_TABLES = ("device",)
+OPTIONAL_TABLES = ("device", "extract")
 
 
 def default_config_path() -> Path:
@@ -269,6 +272,24 @@ def _device_id(table: Any, problems: list[str]) -> str | None:
     return value
 
 
+def _extract(table: Any, problems: list[str]) -> ExtractSettings | None:
+    """Return the optional ``[extract]`` settings (defaults for the keys left out).
+
+    The keys and their kinds are the ``scan`` request's ``extract`` schema; the ranges
+    are :func:`~lamina_device.extract.settings_problems`'.
+    """
+    if table is None:
+        return ExtractSettings()
+    found = Problems()
+    changes = check_extract(table, "[extract]", found)
+    problems.extend(found.items)
+    if changes is None:
+        return None
+    settings, wrong = changed_settings(ExtractSettings(), changes.as_dict())
+    problems.extend(f"[extract] {text}" for text in wrong)
+    return settings
+
+
 def _pin_problems(data: dict[str, Any]) -> list[str]:
     """Return one problem per GPIO pin claimed by more than one setting."""
     owners: dict[int, list[str]] = {}
@@ -278,7 +299,7 @@ def _pin_problems(data: dict[str, Any]) -> list[str]:
             continue
         for spec in fields(typing.get_type_hints(DeviceConfig)[cls_field.name]):
             value = table.get(spec.name)
-            if spec.metadata["pin"] and isinstance(value, int) and not isinstance(value, bool):
+            if spec.metadata.get("pin") and isinstance(value, int) and not isinstance(value, bool):
                 owners.setdefault(value, []).append(f"[{cls_field.name}] {spec.name}")
     return [
         f"GPIO{pin} is used twice: by {' and '.join(users)}"
@@ -343,7 +364,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
     tables = {
         f.name: typing.get_type_hints(DeviceConfig)[f.name]
         for f in fields(DeviceConfig)
-        if f.name != "device_id"
+        if f.name not in ("device_id", "extract")
     }
     problems.extend(
         f"[{key}]: unknown section"
@@ -351,6 +372,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
         if key not in tables and key not in OPTIONAL_TABLES
     )
     device_id = _device_id(data.get("device"), problems)
+    extract = _extract(data.get("extract"), problems)
     built: dict[str, Any] = {}
     for name, cls in tables.items():
         if name not in data:
@@ -359,7 +381,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
         built[name] = _build_table(cls, name, data[name], problems)
     problems.extend(_pin_problems(data))
     if not problems:
-        config = DeviceConfig(**built, device_id=device_id)
+        config = DeviceConfig(**built, device_id=device_id, extract=extract or ExtractSettings())
         problems.extend(_consistency_problems(config))
         if not problems:
             return config

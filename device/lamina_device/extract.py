@@ -43,19 +43,23 @@ subsample and the gate and chains work on the points alone.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache, cached_property
 from statistics import NormalDist
+from typing import Any
 
 import cv2
 import numpy as np
 
+from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
 
-METHODS = ("cog", "thinning")
-RUN_CHOICES = ("peak", "continuity")
+METHODS = EXTRACT_METHODS
+RUN_CHOICES = EXTRACT_RUN_CHOICES
 
 FLAG_SEVERAL_RUNS = 1
 """Point flag: the column held more than one bright run (a reflection, a second surface)."""
@@ -65,6 +69,7 @@ FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
 _FULL_SCALE = 255
+_MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
@@ -121,7 +126,7 @@ class ExtractSettings:
     def __post_init__(self) -> None:
         problems = settings_problems(self)
         if problems:
-            raise ValueError("bad extraction settings: " + "; ".join(problems))
+            raise SettingsError(problems)
 
     @classmethod
     def thesis(cls, **changes: object) -> ExtractSettings:
@@ -130,6 +135,32 @@ class ExtractSettings:
             "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
         }  # fmt: skip
         return cls(**{**plain, **changes})  # type: ignore[arg-type]
+
+
+class SettingsError(ValueError):
+    """Extraction settings out of range; ``problems`` lists every one."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("bad extraction settings: " + "; ".join(problems))
+        self.problems = problems
+
+
+def changed_settings(
+    base: ExtractSettings, changes: Mapping[str, Any]
+) -> tuple[ExtractSettings | None, list[str]]:
+    """Return ``base`` with ``changes`` applied, or None and every problem of the result.
+
+    ``changes`` have the kinds of :data:`lamina_shared.ops.EXTRACT_FIELDS` (checked by
+    :func:`lamina_shared.ops.check_extract`); whole numbers are accepted as floats.
+    """
+    values: dict[str, Any] = {
+        key: float(value) if _FLOAT_FIELDS.get(key) and type(value) is int else value
+        for key, value in changes.items()
+    }
+    try:
+        return dataclasses.replace(base, **values), []
+    except SettingsError as exc:
+        return None, exc.problems
 
 
 def settings_problems(settings: ExtractSettings) -> list[str]:
@@ -147,8 +178,10 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         problems.append(
             f"run_choice {settings.run_choice!r} is not one of {', '.join(RUN_CHOICES)}"
         )
-    if settings.background_opening_px < 0:
-        problems.append(f"background_opening_px {settings.background_opening_px} is negative")
+    if not 0 <= settings.background_opening_px <= _MAX_OPENING_PX:
+        problems.append(
+            f"background_opening_px {settings.background_opening_px} is not in 0..{_MAX_OPENING_PX}"
+        )
     if not 1e-12 <= settings.false_points_per_frame <= 1:
         problems.append(
             f"false_points_per_frame {settings.false_points_per_frame} is not in 1e-12..1"
@@ -168,6 +201,9 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
 
 
 _DEFAULT = ExtractSettings()
+_FLOAT_FIELDS = {
+    f.name: f.type in ("float", "float | None") for f in dataclasses.fields(ExtractSettings)
+}
 
 
 def _no_flags() -> np.ndarray:

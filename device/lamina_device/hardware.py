@@ -18,6 +18,7 @@ from gpiozero.pins import Factory
 
 from lamina_device.camera import Camera, CameraError, PiCamera, Stage
 from lamina_device.config import ConfigError, DeviceConfig, load_config
+from lamina_device.extract import ExtractSettings
 from lamina_device.laser import Laser
 from lamina_device.motion import Lift, StepperLift, StepperTurntable, Turntable
 from lamina_device.safety import LaserWatchdog
@@ -48,6 +49,8 @@ class Hardware:
     identity: dict[str, str] = field(default_factory=lambda: {"serial": "", "source": ""})
     """What the host stores with a scan and checks at resume: ``serial`` names the
     device, ``source`` what it images (WELCOME ``identity``)."""
+    extract: ExtractSettings = field(default_factory=ExtractSettings)
+    """The configured stripe extraction (``[extract]``; a scan request may change it)."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
@@ -137,6 +140,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
+        extract=config.extract,
     )
     return watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
 

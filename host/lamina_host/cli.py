@@ -56,6 +56,7 @@ from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanReques
 from lamina_host.workflow.results import Progress
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
@@ -106,6 +107,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--pitch", type=float, help=f"section pitch in mm (default {DEFAULT_PITCH_MM:g})"
     )
     scan.add_argument("--views", type=int, help=f"views per section (default {DEFAULT_VIEWS})")
+    scan.add_argument(
+        "--extract",
+        type=_extract_option,
+        metavar="KEY=VALUE[,KEY=VALUE]",
+        help="change the device's stripe extraction for this scan, e.g. method=thinning,power=2",
+    )
     scan.add_argument(
         "--expect", help="known shape to measure accuracy against, e.g. cylinder:d=19.05"
     )
@@ -401,6 +408,14 @@ def _open_library(path: Path | None) -> Library:
     return library
 
 
+def _extract_option(text: str) -> ExtractChanges:
+    """Return ``--extract``'s changes; argparse reports a bad one in one line."""
+    try:
+        return parse_extract_text(text)
+    except ArgsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _notice(text: str) -> None:
     """Say on stderr what the device is doing (not an error: no ``lamina:`` prefix)."""
     print(f"  {text}", file=sys.stderr)
@@ -448,6 +463,8 @@ def scan(args: argparse.Namespace) -> int:
 def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) -> Acquired:
     """Connect and acquire; a stop after the scan exists says how to finish it."""
     job.connect(on_notice=_notice)
+    # Before calibrating: the extraction settings are part of what the scan records.
+    job.set_extract(request.extract)
     try:
         return acquire(
             job,

@@ -9,6 +9,12 @@ Requests are repeated (same id) until the device answers, and the device answers
 repeat from its reply cache, so a lost frame in either direction costs a timeout,
 never a request run twice. Each segment is handed to the caller (who stores it)
 before it is acknowledged; transfers are fetched piece by piece until complete.
+
+One reader thread (:class:`lamina_shared.endpoint.Dispatcher`) reads the link and hands
+each message to the request it belongs to, so any thread may send a request and wait
+for its own reply: a scan runs on one thread while another pauses or aborts it. The
+requests are built from the typed arguments of :mod:`lamina_shared.ops`, the schemas
+the device checks them with.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import base64
 import binascii
 import logging
 import os
+import queue
 import secrets
 import select
 import subprocess
@@ -35,8 +42,18 @@ import numpy as np
 import serial
 
 from lamina_host.workflow import scan_identity, spawned_source
+from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import Channel, LinkClosed, Ticker
+from lamina_shared.ops import (
+    ExposureArgs,
+    ExtractChanges,
+    FetchArgs,
+    NoArgs,
+    PreviewArgs,
+    ScanArgs,
+    request_args,
+)
 from lamina_shared.protocol import (
     CHUNK_BYTES,
     MAX_TRANSFER_BYTES,
@@ -155,8 +172,8 @@ class PtyBridge:
     """A software null-modem cable: two pseudo-terminal pairs joined by a relay thread.
 
     ``host_port`` and ``device_port`` are tty paths each end opens with pyserial.
-    ``transform`` (for fault-injection tests, e.g. :class:`LineFaults`) may alter bytes
-    in flight.
+    ``transform`` (for fault-injection tests, e.g. ``lamina_host.testing.LineFaults``)
+    may alter bytes in flight.
     """
 
     def __init__(self, transform: Callable[[bytes, str], bytes] | None = None) -> None:
@@ -199,65 +216,6 @@ class PtyBridge:
         for fd in (self._a_master, self._a_slave, self._b_master, self._b_slave):
             with suppress(OSError):
                 os.close(fd)
-
-
-@dataclass
-class LineFaults:
-    """A bad cable for :class:`PtyBridge`: flips, drops, duplicates, delays bytes, cuts.
-
-    Each byte meets an error with probability ``error_rate``: half of them flip one bit,
-    a quarter vanish, a quarter arrive twice. With probability ``delay_rate`` a burst
-    of bytes is held for ``delay_s`` (order is kept, as on a real line). When the bytes
-    relayed towards the host pass each of ``cut_after_bytes``, the line goes dead in
-    both directions for ``cut_s``.
-    """
-
-    error_rate: float = 0.0
-    delay_rate: float = 0.0
-    delay_s: float = 0.02
-    cut_after_bytes: tuple[int, ...] = ()
-    cut_s: float = 1.0
-    seed: int = 0
-    counts: dict[str, int] = field(default_factory=dict)
-    _to_host: int = 0
-    _cut_until_s: float = 0.0
-    _rng: np.random.Generator = field(init=False)
-
-    def __post_init__(self) -> None:
-        self._rng = np.random.default_rng(self.seed)
-        self._cuts = sorted(self.cut_after_bytes)
-        for name in ("flipped", "dropped", "duplicated", "delayed", "cuts", "cut_bytes"):
-            self.counts[name] = 0
-
-    def __call__(self, data: bytes, direction: str) -> bytes:
-        """Return what arrives at the other end of the line for ``data``."""
-        now = time.monotonic()
-        if direction == "to-host":
-            self._to_host += len(data)
-            if self._cuts and self._to_host >= self._cuts[0]:
-                self._cuts.pop(0)
-                self._cut_until_s = now + self.cut_s
-                self.counts["cuts"] += 1
-        if now < self._cut_until_s:
-            self.counts["cut_bytes"] += len(data)
-            return b""
-        if self.delay_rate and self._rng.random() < self.delay_rate:
-            self.counts["delayed"] += 1
-            time.sleep(self.delay_s)
-        if not self.error_rate:
-            return data
-        arr = np.frombuffer(data, np.uint8).copy()
-        hit = np.flatnonzero(self._rng.random(len(arr)) < self.error_rate)
-        what = self._rng.integers(0, 4, len(hit))
-        flips = hit[what < 2]
-        arr[flips] ^= (1 << self._rng.integers(0, 8, len(flips))).astype(np.uint8)
-        repeat = np.ones(len(arr), np.int64)
-        repeat[hit[what == 2]] = 0
-        repeat[hit[what == 3]] = 2
-        self.counts["flipped"] += len(flips)
-        self.counts["dropped"] += int(np.sum(what == 2))
-        self.counts["duplicated"] += int(np.sum(what == 3))
-        return np.repeat(arr, repeat).tobytes()
 
 
 EventHandler = Callable[[Message], None]
@@ -328,10 +286,14 @@ class DeviceClient:
         self.stats = LinkStats()
         self._heartbeat = Ticker(0.5)
         self._next_id = 1
-        self._id_lock = threading.Lock()  # ids and pending controls, shared with control()
-        self._controls: dict[int, tuple[str, bytes, float]] = {}
+        self._id_lock = threading.Lock()  # request ids and the scan's notice, between threads
         self._scanning = False
         self._on_notice: Callable[[str], object] | None = None
+        self._welcomes: queue.SimpleQueue[Message] = queue.SimpleQueue()
+        self.dispatcher = Dispatcher(channel, on_other=self._unclaimed, on_tick=self._tick)
+        """The link's one reader: hands each reply to the thread waiting for it."""
+        self.extract: ExtractChanges | None = None
+        """Extraction settings changed for this session's scans (``lamina scan --extract``)."""
         self.spawned: str | None = None
         """What a device program started here was asked to acquire (``workflow.spawned_source``)."""
         self._process_checked_s = 0.0
@@ -343,8 +305,17 @@ class DeviceClient:
             return request_id
 
     def identity(self) -> dict[str, Any]:
-        """Return the identity of what this device acquires (see ``workflow.scan_identity``)."""
-        return scan_identity(self.info.welcome if self.info else {}, self.spawned)
+        """Return the identity of what this device acquires (see ``workflow.scan_identity``).
+
+        Its ``extract`` is the effective extraction: the device's configured settings
+        (WELCOME) with this session's changes (:attr:`extract`).
+        """
+        welcome = dict(self.info.welcome) if self.info else {}
+        if self.extract is not None:
+            configured = welcome.get("extract")
+            base = configured if isinstance(configured, dict) else {}
+            welcome["extract"] = {**base, **self.extract.as_dict()}
+        return scan_identity(welcome, self.spawned)
 
     def _device_exit_message(self) -> str | None:
         """Return one line on a device program started here that has exited, else None."""
@@ -379,6 +350,9 @@ class DeviceClient:
         deadline = start + timeout_s
         noticed = False
         hello = {"protocol": PROTOCOL_VERSION, "software": "lamina-host", "session": self.session}
+        self.dispatcher.start()
+        while not self._welcomes.empty():
+            self._welcomes.get_nowait()  # answers to an earlier handshake
         while time.monotonic() < deadline:
             slow = time.monotonic() - start > STARTUP_NOTICE_S
             if slow and self.process is not None and not noticed and on_notice is not None:
@@ -386,10 +360,10 @@ class DeviceClient:
                 noticed = True
             # Repeat HELLO: a device that opened its port late flushed the earlier ones.
             self.channel.send(encode_json(Kind.HELLO, hello))
-            until = time.monotonic() + 0.5
-            while (message := self.channel.receive(until - time.monotonic())) is not None:
-                if message.kind is Kind.WELCOME:
-                    return self._welcome(message.body)
+            try:
+                return self._welcome(self._welcomes.get(timeout=0.5).body)
+            except queue.Empty:
+                self.dispatcher.raise_failure()
             if (exit_message := self._device_exit_message()) is not None:
                 raise DeviceError(exit_message)
         if self.process is not None:
@@ -411,55 +385,74 @@ class DeviceClient:
         self.info = info
         return info
 
-    def poll(self, timeout_s: float = 0.05) -> Message | None:
-        """Receive one message (or none), sending our heartbeat when it is due."""
-        self._check_process(time.monotonic())
-        if self._heartbeat.due():
+    def _unclaimed(self, message: Message) -> None:
+        """Keep a WELCOME for :meth:`hello`; drop what belongs to no open request."""
+        if message.kind is Kind.WELCOME:
+            self._welcomes.put(message)
+
+    def _tick(self) -> None:
+        """Send our heartbeat while a request is open (on the reader thread)."""
+        if self.dispatcher.open_requests and self._heartbeat.due():
             self.channel.send(encode_json(Kind.HEARTBEAT, {"session": self.session}))
-        return self.channel.receive(timeout_s)
 
     def request(
-        self, op: str, args: dict[str, Any] | None = None, on_event: EventHandler | None = None
+        self, op: str, args: Any = None, on_event: EventHandler | None = None
     ) -> dict[str, Any]:
-        """Send one request until answered; pass its events on; return the reply's result."""
+        """Send one request until answered; pass its events on; return the reply's result.
+
+        Any thread may call this while another thread's request runs: the link's reader
+        (:attr:`dispatcher`) hands each thread the messages of its own request, and
+        ``on_event`` runs on the calling thread. ``args`` is the operation's typed
+        arguments (a dataclass of :mod:`lamina_shared.ops`) or their JSON object.
+        """
+        if args is not None and not isinstance(args, dict):
+            args = request_args(args)
         request_id = self._new_id()
         frame = encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": args or {}})
-        self.channel.send(frame)
-        last_related = time.monotonic()
-        while True:
-            message = self.poll()
-            now = time.monotonic()
-            self._retry_controls(now)
-            if message is None:
-                if now - self.channel.last_received_s > self.idle_timeout_s:
-                    raise DeviceError(
-                        self._device_exit_message()
-                        or f"the device stopped answering during {op}: check the cable"
-                    )
-                if now - last_related > self.retry_s:
-                    # Our request or its reply was lost (or the line is down): ask again;
-                    # the device answers a repeat from its reply cache, never runs it twice.
-                    self.channel.send(frame)
-                    self.stats.request_retries += 1
-                    last_related = now
-                continue
-            if _request_id(message) != request_id:
+        self.dispatcher.start()
+        waiter = self.dispatcher.open(request_id)
+        try:
+            self.channel.send(frame)
+            last_related = time.monotonic()
+            while True:
+                message = waiter.get(0.05)
+                now = time.monotonic()
+                self._check_process(now)
+                if message is None:
+                    if now - self.channel.last_received_s > self.idle_timeout_s:
+                        raise DeviceError(
+                            self._device_exit_message()
+                            or f"the device stopped answering during {op}: check the cable"
+                        )
+                    if now - last_related > self.retry_s:
+                        # Our request or its reply was lost (or the line is down): ask again;
+                        # the device answers a repeat from its reply cache, never runs it twice.
+                        self._resend(frame)
+                        last_related = now
+                    continue
+                if message.kind is Kind.HEARTBEAT:
+                    if request_id_of(message) == request_id:
+                        last_related = now
+                    elif now - last_related > 0.3:
+                        # The device says it is not working on our request: it never got
+                        # it, or its reply was lost. Ask again now rather than after a timeout.
+                        self._resend(frame)
+                        last_related = now
+                    continue
+                last_related = now
                 if message.kind is Kind.REPLY:
-                    self._control_reply(message.body)
-                if message.kind is Kind.HEARTBEAT and now - last_related > 0.3:
-                    # The device says it is not working on our request: it never got it,
-                    # or its reply was lost. Ask again now rather than after a timeout.
-                    self.channel.send(frame)
-                    self.stats.request_retries += 1
-                    last_related = now
-                continue
-            last_related = now
-            if message.kind is Kind.REPLY:
-                return _result(op, message.body)
-            if on_event is not None and message.kind is not Kind.HEARTBEAT:
-                on_event(message)
+                    return _result(op, message.body)
+                if on_event is not None:
+                    on_event(message)
+        finally:
+            self.dispatcher.close(request_id)
 
-    def _fetch(self, op: str, args: dict[str, Any] | None = None) -> tuple[bytes, dict[str, Any]]:
+    def _resend(self, frame: bytes) -> None:
+        self.channel.send(frame)
+        with self._id_lock:
+            self.stats.request_retries += 1
+
+    def _fetch(self, op: str, args: Any = None) -> tuple[bytes, dict[str, Any]]:
         """Run a request that offers a binary transfer; fetch what did not arrive."""
         assemblies: dict[int, _Assembly] = {}
 
@@ -479,9 +472,8 @@ class DeviceClient:
         max_bytes = int(self.info.limits.get("max_fetch_bytes", 65536)) if self.info else 65536
         while not assembly.have.all():
             before = int(assembly.have.sum())
-            self.request(
-                "fetch", {"transfer": transfer, "ranges": assembly.missing(max_bytes)}, take
-            )
+            ranges = tuple((offset, length) for offset, length in assembly.missing(max_bytes))
+            self.request("fetch", FetchArgs(transfer, ranges), take)
             self.stats.fetch_rounds += 1
             if int(assembly.have.sum()) == before and self.stats.fetch_rounds > 1000:
                 raise DeviceError(f"the {op} transfer makes no progress: check the cable")
@@ -508,7 +500,7 @@ class DeviceClient:
             stripe: also have the device take a laser-off/on pair and extract the stripe
                 (the laser then flashes for one frame even when ``laser`` is False).
         """
-        data, result = self._fetch("preview", {"laser": laser, "stripe": stripe})
+        data, result = self._fetch("preview", PreviewArgs(laser, stripe))
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the preview frame could not be decoded")
@@ -531,65 +523,46 @@ class DeviceClient:
         Raises:
             DeviceError: outside the camera's range (the message names it) or a scan runs.
         """
-        return int(self.request("exposure", {"exposure_us": int(exposure_us)})["exposure_us"])
+        return int(self.request("exposure", ExposureArgs(int(exposure_us)))["exposure_us"])
 
     def exposure(self) -> tuple[int, int, int]:
         """Return the camera's (exposure, min, max) in microseconds."""
         result = self.request("exposure")
         return int(result["exposure_us"]), int(result["min_us"]), int(result["max_us"])
 
-    def pause(self) -> None:
-        """Ask the device to hold the running scan after the current view (thread-safe)."""
-        self._control("pause")
+    def pause(self) -> str | None:
+        """Ask the device to hold the running scan after the current view (thread-safe).
 
-    def resume(self) -> None:
-        """Ask the device to go on with a paused scan (thread-safe)."""
-        self._control("resume")
+        Returns the state the device reports (``paused``), None if it refused.
+        """
+        return self._control("pause")
 
-    def abort(self) -> None:
+    def resume(self) -> str | None:
+        """Ask the device to go on with a paused scan (thread-safe); return its state."""
+        return self._control("resume")
+
+    def abort(self) -> str | None:
         """Ask the device to end the running scan at the next view (thread-safe).
 
-        :meth:`scan` then raises :class:`ScanStopped` holding what arrived.
+        :meth:`scan` then raises :class:`ScanStopped` holding what arrived. Returns the
+        state the device reports (``aborting``), None if it refused.
         """
-        self._control("abort")
+        return self._control("abort")
 
-    def _control(self, op: str) -> None:
-        """Send a control request; the running :meth:`scan` reads and retries its reply."""
-        if not self._scanning:
+    def _control(self, op: str) -> str | None:
+        """Send a control request and wait for its reply on this thread (the link's
+        reader hands it over); a refusal goes to the scan's ``on_notice``, never raised."""
+        with self._id_lock:
+            scanning, on_notice = self._scanning, self._on_notice
+        if not scanning:
             raise DeviceError(f"no scan is running to {op}")
-        request_id = self._new_id()
-        frame = encode_json(Kind.REQUEST, {"id": request_id, "op": op, "args": {}})
-        with self._id_lock:
-            self._controls[request_id] = (op, frame, time.monotonic())
-        self.channel.send(frame)
-
-    def _retry_controls(self, now: float) -> None:
-        """Send again the control requests unanswered for ``retry_s`` (same id)."""
-        with self._id_lock:
-            due = [
-                (request_id, op, frame)
-                for request_id, (op, frame, sent_s) in self._controls.items()
-                if now - sent_s > self.retry_s
-            ]
-            for request_id, op, frame in due:
-                self._controls[request_id] = (op, frame, now)
-        for _, _, frame in due:
-            self.channel.send(frame)
-            self.stats.request_retries += 1
-
-    def _control_reply(self, body: Any) -> None:
-        """Consume a control request's reply; pass a refusal on as a notice, never raise."""
-        request_id = body.get("id") if isinstance(body, dict) else None
-        with self._id_lock:
-            pending = self._controls.pop(request_id, None) if isinstance(request_id, int) else None
-        if pending is None:
-            return
         try:
-            _result(pending[0], body)
-        except DeviceError as exc:
+            return str(self.request(op, NoArgs()).get("state"))
+        except RequestRefused as exc:
             log.warning("%s", exc)
-            if self._on_notice is not None:
-                self._on_notice(str(exc))
+            if on_notice is not None:
+                on_notice(str(exc))
+            return None
 
     def plan_for(self, target: str, plan: ScanPlan | None) -> ScanPlan:
         """Return ``plan``, or the device's default plan for ``target``."""
@@ -609,11 +582,12 @@ class DeviceClient:
         have: Collection[int] = (),
         on_segment: SegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
+        extract: ExtractChanges | None = None,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
 
         While it runs, other threads may call :meth:`pause`, :meth:`resume` and
-        :meth:`abort`; this call reads their replies (a refusal goes to ``on_notice``).
+        :meth:`abort`; each gets its own reply (a refusal goes to ``on_notice``).
 
         Args:
             target: ``cylinder`` or ``object``.
@@ -623,6 +597,8 @@ class DeviceClient:
             on_segment: receives (seq, segment) and must store it before returning;
                 only then is the segment acknowledged.
             on_notice: receives the one-line text of a refused pause, resume or abort.
+            extract: extraction settings to change for this scan (default: :attr:`extract`);
+                the device refuses the scan, naming every problem, if they are unusable.
 
         Raises:
             ScanStopped: the scan was aborted; it holds the segments received.
@@ -651,8 +627,9 @@ class DeviceClient:
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = {"target": target, "plan": plan.to_wire(), "have": sorted(held)}
-        self._scanning, self._on_notice = True, on_notice
+        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract)
+        with self._id_lock:
+            self._scanning, self._on_notice = True, on_notice
         try:
             self.request("scan", args, on_event=take)
         except RequestRefused as exc:
@@ -666,14 +643,14 @@ class DeviceClient:
         finally:
             with self._id_lock:
                 self._scanning, self._on_notice = False, None
-                self._controls.clear()
         missing = set(range(len(plan.views))) - held - set(received)
         if missing:
             raise DeviceError(f"the device finished the scan but {len(missing)} views are missing")
         return [received[s] for s in sorted(received)]
 
     def close(self) -> None:
-        """Ask a device this host started to stop, then wait for it."""
+        """Stop the link's reader; ask a device this host started to stop, then wait for it."""
+        self.dispatcher.stop()
         if self.process is not None:
             with suppress(DeviceError, LinkClosed):
                 self.channel.send(encode_json(Kind.REQUEST, {"id": 0, "op": "shutdown"}))
@@ -720,15 +697,6 @@ def _check_segment(
             problem = f"view {seq} has points outside the {image_size[0]}x{image_size[1]} image"
     if problem:
         raise DeviceError(f"the device sent a segment beyond this host's limits ({problem})")
-
-
-def _request_id(message: Message) -> int | None:
-    body = message.body
-    if isinstance(body, Chunk | SegmentEvent):
-        return body.request_id
-    if message.kind is Kind.HEARTBEAT:
-        return body.get("request") if isinstance(body, dict) else None
-    return body.get("id") if isinstance(body, dict) else None
 
 
 SINGLE_THREADED = {

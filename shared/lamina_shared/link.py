@@ -58,6 +58,8 @@ class Channel:
         self.bytes_received = 0
         self.last_received_s = time.monotonic()
         """When the last valid message arrived (``time.monotonic()``)."""
+        self.reader: Any = None
+        """The one reader of this channel (a ``lamina_shared.endpoint.Dispatcher``), if any."""
 
     @property
     def bad_frames(self) -> int:

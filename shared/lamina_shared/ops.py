@@ -22,6 +22,30 @@ from lamina_shared.types import ScanPlan, ViewSpec
 
 TARGETS = ("cylinder", "object")
 AXES = ("lift", "turntable")
+EXTRACT_METHODS = ("cog", "thinning")
+"""Stripe centre methods of the device's extraction (``ExtractSettings.method``)."""
+EXTRACT_RUN_CHOICES = ("peak", "continuity")
+"""Which run a column keeps (``ExtractSettings.run_choice``)."""
+EXTRACT_FIELDS: dict[str, str] = {
+    "threshold": "number-or-null",
+    "power": "number",
+    "min_peak": "number",
+    "subtract_threshold": "bool",
+    "method": "method",
+    "run_choice": "run_choice",
+    "background_opening_px": "int",
+    "noise_gate": "bool",
+    "false_points_per_frame": "number",
+    "min_chain_px": "int",
+    "max_row_jump_px": "number",
+    "min_width_px": "int",
+    "max_width_px": "int",
+    "smooth_sigma_px": "number",
+}
+"""The wire schema of the device's extraction settings: each field's JSON kind. The
+device checks the ranges (``lamina_device.extract.settings_problems``)."""
+MAX_SETTING = 1_000_000
+"""Largest whole-number extraction setting the schema lets through to the range check."""
 MAX_SHOWN_PROBLEMS = 12
 """Problems named in one error reply; the rest are counted (a reply must fit one frame)."""
 MISSING: Any = object()
@@ -248,6 +272,80 @@ def _json(data: Any) -> bytes:
     return json.dumps(data, separators=(",", ":")).encode()
 
 
+# --- extraction settings ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ExtractChanges:
+    """Extraction settings to change for one scan, by name (the rest stay as configured)."""
+
+    values: tuple[tuple[str, float | int | bool | str | None], ...] = ()
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON object form."""
+        return dict(self.values)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Return the changes as keyword arguments of ``ExtractSettings``."""
+        return dict(self.values)
+
+
+def _setting(value: Any, where: str, kind: str, problems: Problems) -> Any:
+    if kind == "number-or-null" and value is None:
+        return None
+    if kind in ("number", "number-or-null"):
+        return check_number(value, where, -math.inf, math.inf, problems)
+    if kind == "int":
+        return check_int(value, where, -MAX_SETTING, MAX_SETTING, problems)
+    if kind == "bool":
+        return check_bool(value, where, problems)
+    options = EXTRACT_METHODS if kind == "method" else EXTRACT_RUN_CHOICES
+    return check_choice(value, where, options, problems)
+
+
+def check_extract(data: Any, where: str, problems: Problems) -> ExtractChanges | None:
+    """Return the extraction changes of a JSON object (or TOML table); record every problem.
+
+    Names and kinds are checked here; the ranges by the device against its settings.
+    """
+    if not isinstance(data, dict):
+        problems.add(f"{where}: an object is required, found {show(data)}")
+        return None
+    start = len(problems.items)
+    check_keys(data, where, set(), set(EXTRACT_FIELDS), problems)
+    values = []
+    for key, value in data.items():
+        kind = EXTRACT_FIELDS.get(key) if isinstance(key, str) else None
+        if kind is not None:
+            values.append((key, _setting(value, f"{where}.{key}", kind, problems)))
+    return None if len(problems.items) > start else ExtractChanges(tuple(values))
+
+
+def parse_extract_text(text: str) -> ExtractChanges:
+    """Return the changes written ``KEY=VALUE[,KEY=VALUE]`` (a command line's form).
+
+    Values are JSON where they parse as JSON (numbers, true, false, null), else text.
+
+    Raises:
+        ArgsError: listing every problem.
+    """
+    problems = Problems()
+    data: dict[str, Any] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            problems.add(f"extract: {show(item)} is not KEY=VALUE")
+            continue
+        try:
+            data[key.strip()] = json.loads(raw.strip())
+        except ValueError:
+            data[key.strip()] = raw.strip()
+    changes = check_extract(data, "extract", problems)
+    if problems.items or changes is None:
+        raise ArgsError("extract", problems.items)
+    return changes
+
+
 # --- the operations ---------------------------------------------------------------------
 
 
@@ -289,11 +387,15 @@ class MoveArgs:
 
 @dataclass(frozen=True)
 class ScanArgs:
-    """``scan``: acquire ``plan`` (None: the device's default) except the indices in ``have``."""
+    """``scan``: acquire ``plan`` (None: the device's default) except the indices in ``have``.
+
+    ``extract`` changes the device's configured extraction settings for this scan.
+    """
 
     target: str
     plan: ScanPlan | None = None
     have: tuple[int, ...] = ()
+    extract: ExtractChanges | None = None
 
 
 Checker = Callable[[Any, DeviceLimits, Problems], Any]
@@ -346,7 +448,7 @@ def _move(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Mov
 
 
 def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> ScanArgs:
-    check_keys(args, "scan", {"target"}, {"plan", "have"}, problems)
+    check_keys(args, "scan", {"target"}, {"plan", "have", "extract"}, problems)
     target = check_choice(args.get("target", MISSING), "scan.target", TARGETS, problems)
     plan = None if args.get("plan") is None else check_plan(args["plan"], limits, problems)
     have: list[int] = []
@@ -356,7 +458,12 @@ def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Sca
             problems.add(f"scan.have[{k}]: a view index in 0..{limits.max_views - 1} is required")
             break
         have.append(item)
-    return ScanArgs(target or "", plan, tuple(have))
+    extract = (
+        None
+        if args.get("extract") is None
+        else check_extract(args["extract"], "scan.extract", problems)
+    )
+    return ScanArgs(target or "", plan, tuple(have), extract)
 
 
 def _none(op: str) -> Callable[[dict[str, Any], DeviceLimits, Problems], NoArgs]:
@@ -423,7 +530,7 @@ def request_args(args: Any) -> dict[str, Any]:
         value = getattr(args, item.name)
         if value is None:
             continue
-        if isinstance(value, ScanPlan):
+        if isinstance(value, ScanPlan | ExtractChanges):
             value = value.to_wire()
         elif isinstance(value, tuple):
             value = [list(v) if isinstance(v, tuple) else v for v in value]

@@ -80,6 +80,8 @@ def config_toml(config: DeviceConfig) -> str:
             continue
         lines.append(f"[{table}]")
         for key, value in values.__dict__.items():
+            if value is None:  # TOML has no null: left out ([extract] threshold: Otsu's)
+                continue
             if isinstance(value, bool):
                 text = "true" if value else "false"
             elif isinstance(value, str):

@@ -13,7 +13,7 @@ from gpiozero.pins.mock import MockFactory
 from lamina_device import cli as device_cli
 from lamina_device.hardware import open_hardware
 from lamina_device.motion import MotionError, StepperLift, StepperTurntable
-from lamina_device.server import AxisLimits
+from lamina_device.operations import AxisLimits
 from lamina_device.sim import SIM_LIFT_TRAVEL_MM, Mechanics, NoiseModel, Rig
 from lamina_host import cli as host_cli
 from lamina_shared.capture import CaptureWriter

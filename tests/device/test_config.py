@@ -95,3 +95,35 @@ def test_check_config_command(tmp_path):
     assert result.returncode == 2 and "not valid TOML" in result.stderr
     missing = check_config(tmp_path / "nope.toml")
     assert missing.returncode == 2 and "cannot read it" in missing.stderr
+
+
+def test_extraction_settings_come_from_the_extract_table():
+    from lamina_device.extract import ExtractSettings
+
+    assert load_config().extract == ExtractSettings()  # the packaged table states the defaults
+    data = default_data()
+    data["extract"] = {"method": "thinning", "threshold": 40, "min_chain_px": 3}
+    config = parse_config(data, "box.toml")
+    assert config.extract == ExtractSettings(method="thinning", threshold=40.0, min_chain_px=3)
+    del data["extract"]
+    assert parse_config(data, "box.toml").extract == ExtractSettings()  # the table is optional
+
+
+def test_every_extraction_problem_is_listed():
+    data = default_data()
+    data["extract"] = {"method": "sobel", "noise_gate": 1, "speed": 2}
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, "box.toml")
+    assert info.value.problems == [
+        "[extract]: takes no argument 'speed'",
+        "[extract].method: one of cog, thinning is required, found 'sobel'",
+        "[extract].noise_gate: true or false is required, found 1",
+    ]
+    data["extract"] = {"power": 0, "min_width_px": 9, "max_width_px": 4}
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, "box.toml")
+    assert info.value.problems == [
+        "[extract] power 0.0 is not in (0, 8]",
+        "[extract] min_width_px 9 and max_width_px 4 do not satisfy "
+        "1 <= min_width_px <= max_width_px <= 255",
+    ]

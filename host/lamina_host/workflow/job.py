@@ -48,6 +48,7 @@ from lamina_host.workflow.results import (
 )
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.ops import ExtractChanges
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 EXPORT_NAMES = ("mesh.ply", "mesh.obj", "mesh.stl", "report.json")
@@ -92,7 +93,7 @@ class ScanRequest:
     plan: ScanPlan | None = None
     cylinder_mm: float | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
-    extract: dict[str, object] | None = None
+    extract: ExtractChanges | None = None
 
     def __post_init__(self) -> None:
         check_subject(self.subject)
@@ -124,7 +125,7 @@ class ScanJob:
         self.scan_id: int | None = None
         self.identity: dict[str, Any] | None = None
         """The identity the scan was recorded under (None before one exists)."""
-        self.extract: dict[str, object] | None = None
+        self.extract: ExtractChanges | None = None
         self.pose: dict[str, float] = {"lift": 0.0, "turntable": 0.0}
         self.calibrated_by: dict[str, Any] | None = None
         """The identity of the device the chessboard and cylinder were captured with."""
@@ -186,6 +187,15 @@ class ScanJob:
             assert info is not None
             self.data.device = device_summary(info)
             return info
+
+    def set_extract(self, changes: ExtractChanges | None) -> None:
+        """Change the device's stripe extraction for this session's scans (None: its own).
+
+        The effective settings are part of the scan identity, so set them before the
+        calibration that a scan will use.
+        """
+        self._device().extract = changes
+        self.extract = changes
 
     def attach(self, client: DeviceClient) -> None:
         """Use a client already handshaken elsewhere (an in-process device); closing leaves it."""
@@ -406,7 +416,7 @@ class ScanJob:
         self.results = None
         return scan_id
 
-    def resume(self, scan_id: int, extract: dict[str, object] | None = None) -> int:
+    def resume(self, scan_id: int, extract: ExtractChanges | None = None) -> int:
         """Open library scan ``scan_id`` to fetch what it lacks from the connected device.
 
         Raises:

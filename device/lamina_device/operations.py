@@ -1,0 +1,357 @@
+"""The device's operations table: what each request does to the scanner's hardware.
+
+The shared endpoint (:class:`lamina_shared.endpoint.DeviceEndpoint`) frames, caches,
+acknowledges and retries; it hands each request's typed arguments (validated by
+:mod:`lamina_shared.ops`) to one method here. Nothing received is ever evaluated or
+used as a file path. Views are numbered in one place,
+:func:`lamina_device.acquisition.views_in_section`.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import hashlib
+import json
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from lamina_device.acquisition import (
+    Progress,
+    ScanAborted,
+    ScanControl,
+    acquire,
+    capture_pair,
+    grab_grid,
+    views_in_section,
+)
+from lamina_device.camera import ExposureRefused
+from lamina_device.extract import ExtractSettings, changed_settings, extract, to_segment
+from lamina_device.hardware import Hardware
+from lamina_shared.endpoint import Abandoned, Handler, RequestError, SegmentBuffer, ServerSettings
+from lamina_shared.ops import (
+    ArgsError,
+    ExposureArgs,
+    MoveArgs,
+    NoArgs,
+    PreviewArgs,
+    Problems,
+    ScanArgs,
+    check_plan,
+)
+from lamina_shared.protocol import encode_segment_body, quantise_segment
+from lamina_shared.types import ScanPlan, Segment
+
+"""The simulated lift's travel, reported when the hardware does not say its own."""
+
+
+class Link(Protocol):
+    """What the operations use of the endpoint that runs them."""
+
+    settings: ServerSettings
+    buffer: SegmentBuffer
+    running: bool
+
+    @property
+    def running_id(self) -> int | None: ...  # pragma: no cover - protocol
+
+    @property
+    def abandoned(self) -> threading.Event: ...  # pragma: no cover - protocol
+
+    def offer(self, request_id: int, data: bytes) -> dict[str, Any]: ...  # pragma: no cover
+
+    def event(self, request_id: int, event: str, **fields: Any) -> None: ...  # pragma: no cover
+
+    def send_segment(
+        self, request_id: int, seq: int, segment: Segment
+    ) -> None: ...  # pragma: no cover
+
+    def state(self) -> dict[str, Any]: ...  # pragma: no cover - protocol
+
+
+@dataclass(frozen=True)
+class AxisLimits:
+    """Soft limits of the two axes; None means the axis has no limit that way."""
+
+    lift_min_mm: float
+    lift_max_mm: float
+    turntable_min_deg: float | None = None
+    turntable_max_deg: float | None = None
+
+    @classmethod
+    def of(cls, hardware: Hardware) -> AxisLimits:
+        """Return the limits the hardware's axes declare."""
+        lift, turntable = hardware.lift, hardware.turntable
+        return cls(lift.min_mm, lift.max_mm, turntable.min_deg, turntable.max_deg)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the WELCOME form."""
+        return {
+            "lift": {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm},
+            "turntable": {
+                "unit": "deg",
+                "min": self.turntable_min_deg,
+                "max": self.turntable_max_deg,
+                "continuous": self.turntable_min_deg is None and self.turntable_max_deg is None,
+            },
+        }
+
+    def check(self, axis: str, position: float) -> None:
+        """Raise RequestError(``limit``) unless ``position`` is within ``axis``'s limits."""
+        low: float | None
+        high: float | None
+        if axis == "lift":
+            low, high, unit = self.lift_min_mm, self.lift_max_mm, "mm"
+        else:
+            low, high, unit = self.turntable_min_deg, self.turntable_max_deg, "deg"
+        if not math.isfinite(position):
+            raise RequestError("limit", f"{axis} position must be a finite number of {unit}")
+        if (low is not None and position < low) or (high is not None and position > high):
+            raise RequestError(
+                "limit",
+                f"{axis} position {position} {unit} is outside its soft limits {low}..{high}",
+            )
+
+
+def plan_key(target: str, plan: ScanPlan, settings: ExtractSettings) -> tuple[str, str]:
+    """Return what identifies a scan across sessions: its target, plan and extraction."""
+    text = json.dumps([plan.to_dict(), dataclasses.asdict(settings)], sort_keys=True)
+    return target, hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class Operations:
+    """Every operation of the scanner, bound to its hardware and the link that asks."""
+
+    def __init__(self, hardware: Hardware, link: Link) -> None:
+        self.hardware = hardware
+        self.link = link
+        self.limits = AxisLimits.of(hardware)
+        self.control: ScanControl | None = None
+        """The running scan's pause/resume/abort, while one runs."""
+        """False once the host asked the device to shut down."""
+
+    def table(self) -> dict[str, Handler]:
+        """Return the handler of each operation (``fetch`` is the endpoint's own)."""
+        return {
+            "grab_grid": self.grab_grid,
+            "preview": self.preview,
+            "scan": self.scan,
+            "move": self.move,
+            "pause": self.pause,
+            "resume": self.resume,
+            "abort": self.abort,
+            "exposure": self.exposure,
+            "status": self.status,
+            "shutdown": self.shutdown,
+        }
+
+    def grab_grid(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Offer a PNG of the calibration board (laser off) and the board's geometry."""
+        result = self.link.offer(request_id, _png(grab_grid(self.hardware)))
+        board = self.hardware.board
+        return {**result, "board": board.to_dict() if board else None}
+
+    def preview(self, request_id: int, args: PreviewArgs) -> dict[str, Any]:
+        """Capture one frame where the axes stand (laser on only during its exposure).
+
+        With ``stripe`` the device takes the laser-off/laser-on pair a scan would, extracts
+        the stripe with the scan's own extraction and returns it as a SEGMENT body.
+        """
+        laser, stripe = args.laser, args.stripe
+        hw = self.hardware
+        if not stripe:
+            frame = capture_pair(hw)[0] if laser else hw.camera.capture()
+            return self.link.offer(request_id, _png(frame))
+        on, off = capture_pair(hw)
+        points = extract(on, off, hw.extract)
+        segment = quantise_segment(
+            to_segment(points, hw.stage.target, 0, 0, hw.lift.z_mm, hw.turntable.angle_deg)
+        )
+        body = encode_segment_body(request_id, 0, segment)
+        result = self.link.offer(request_id, _png(on if laser else off))
+        return {**result, "stripe": base64.b64encode(body).decode("ascii")}
+
+    # --- scanning --------------------------------------------------------------------
+
+    def _plan(self, args: ScanArgs) -> ScanPlan:
+        """Return the plan to scan (the request's, or the default), within the axes' limits."""
+        plan = args.plan
+        if plan is None:
+            plan = self.hardware.default_plans.get(args.target)
+            if plan is None:
+                raise RequestError("bad-args", f"no {args.target} views to scan on this device")
+            problems = Problems()
+            check_plan(plan.to_wire(), self.link.settings.limits, problems)
+            if problems.items:
+                # A configured or replayed default beyond the limits is refused like any plan.
+                raise ArgsError("scan", problems.items, "limit")
+        lifts = sorted({view.z_mm for view in plan.views})
+        angles = sorted({view.angle_deg for view in plan.views})
+        # The extremes decide: every height and angle between them is within limits too.
+        for axis, values in (("lift", lifts), ("turntable", angles)):
+            self.limits.check(axis, values[0])
+            self.limits.check(axis, values[-1])
+        return plan
+
+    def scan(self, request_id: int, args: ScanArgs) -> dict[str, Any]:
+        """Send every view of the plan the host does not hold: from the buffer or acquired."""
+        target = args.target
+        settings = self.extract_settings(args)
+        plan = self._plan(args)
+        outside = [s for s in args.have if s >= len(plan.views)]
+        if outside:
+            raise RequestError(
+                "bad-args",
+                f"have must list view indices of the plan: {outside[0]} is beyond its "
+                f"{len(plan.views)} views",
+            )
+        have = set(args.have)
+        kept = self.link.buffer.adopt(plan_key(target, plan, settings), request_id)
+        self.link.buffer.ack(request_id, have & set(kept))
+        resend = sorted(set(kept) - have)
+        if kept:
+            self.link.event(request_id, "log", message=f"resending {len(resend)} buffered segments")
+        self.link.buffer.mark_resent(resend)
+        for seq in resend:
+            self.link.send_segment(request_id, seq, kept[seq])
+        todo = [s for s in range(len(plan.views)) if s not in have and s not in kept]
+        if todo:
+            self._acquire(request_id, target, plan, todo, settings)
+        if not self.link.buffer.wait_empty(self.link.abandoned, self.link.settings.ack_timeout_s):
+            raise RequestError(
+                "unacknowledged",
+                f"{len(self.link.buffer)} segments unacknowledged; they stay buffered for a resume",
+            )
+        return {
+            "segments": len(plan.views),
+            "acquired": len(todo),
+            "resent": len(resend),
+        }
+
+    def extract_settings(self, args: ScanArgs) -> ExtractSettings:
+        """Return the configured extraction with the request's changes; refuse bad ones."""
+        if args.extract is None:
+            return self.hardware.extract
+        settings, problems = changed_settings(self.hardware.extract, args.extract.as_dict())
+        if settings is None:
+            raise ArgsError("scan", [f"scan.extract: {text}" for text in problems])
+        return settings
+
+    def _acquire(
+        self,
+        request_id: int,
+        target: str,
+        plan: ScanPlan,
+        todo: list[int],
+        settings: ExtractSettings,
+    ) -> None:
+        """Acquire the views ``todo`` (plan indices), numbering them as the full plan does."""
+        index = views_in_section(plan)
+        pending = iter(todo)
+        held = len(plan.views) - len(todo)
+
+        def on_segment(segment: Segment) -> None:
+            seq = next(pending)
+            segment = quantise_segment(segment)
+            self.link.buffer.put(seq, segment, self.link.abandoned)
+            self.link.send_segment(request_id, seq, segment)
+
+        def on_progress(progress: Progress) -> None:
+            self.link.event(
+                request_id,
+                "progress",
+                target=progress.target,
+                done=held + progress.done,
+                total=len(plan.views),
+                section=progress.section,
+            )
+
+        sub_plan = ScanPlan(tuple(plan.views[s] for s in todo))
+        self.control = ScanControl()
+        try:
+            acquire(
+                self.hardware,
+                target,
+                sub_plan,
+                on_segment,
+                on_progress,
+                settings,
+                control=self.control,
+                numbers=[index[s] for s in todo],
+            )
+        except ScanAborted as exc:
+            if self.link.abandoned.is_set():
+                raise Abandoned from None
+            raise RequestError("aborted", f"{exc}; the views sent so far are kept") from None
+        finally:
+            self.control = None
+
+    # --- quick operations ------------------------------------------------------------
+
+    def move(self, request_id: int, args: MoveArgs) -> dict[str, Any]:
+        """Move one axis within its soft limits (positioning before a preview)."""
+        axis, position = args.axis, args.position
+        if self.link.running_id is not None:
+            raise RequestError("busy", f"request {self.link.running_id} is moving the axes")
+        self.limits.check(axis, position)
+        (self.hardware.lift if axis == "lift" else self.hardware.turntable).move_to(position)
+        return {"axis": axis, "position": position}
+
+    def _scan_control(self, op: str) -> ScanControl:
+        control = self.control
+        if control is None:
+            raise RequestError("idle", f"no scan is running to {op}")
+        return control
+
+    def pause(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Hold the running scan after the current view, laser off."""
+        self._scan_control("pause").pause()
+        self.link.event(self.link.running_id or 0, "status", state="paused")
+        return {"state": "paused"}
+
+    def resume(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Let a paused scan go on."""
+        self._scan_control("resume").resume()
+        self.link.event(self.link.running_id or 0, "status", state="busy")
+        return {"state": "busy"}
+
+    def abort(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """End the running scan at the next view; what was sent stays valid."""
+        self._scan_control("abort").abort()
+        return {"state": "aborting"}
+
+    def exposure(self, request_id: int, args: ExposureArgs) -> dict[str, Any]:
+        """Set the camera's exposure (``exposure_us``) within its limits; report it and them."""
+        camera = self.hardware.camera
+        low, high = camera.exposure_range_us
+        value = args.exposure_us
+        if value is not None:
+            if self.link.running_id is not None:
+                # A scan's views must all share one exposure.
+                raise RequestError("busy", f"request {self.link.running_id} is using the camera")
+            try:
+                camera.set_exposure(value)
+            except ExposureRefused as exc:
+                raise RequestError("limit", str(exc)) from None
+        return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
+
+    def status(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """Report what a heartbeat says, and the retransmissions so far."""
+        return {**self.link.state(), "retransmissions": self.link.buffer.retransmissions}
+
+    def shutdown(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+        """End the device program after this reply (the host started it)."""
+        self.link.running = False
+        return {}
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise RequestError("failed", "could not encode the image as PNG")
+    return bytes(encoded.tobytes())

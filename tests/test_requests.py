@@ -1,0 +1,198 @@
+"""The request/reply layer: any thread's request gets its own reply; extraction per scan."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from lamina_device.acquisition import acquire
+from lamina_device.extract import ExtractSettings
+from lamina_device.sim import open_sim
+from lamina_host import cli
+from lamina_host.link import DeviceClient, RequestRefused, ScanStopped
+from lamina_host.testing import LineFaults
+from lamina_shared.link import Channel
+from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
+from lamina_shared.protocol import Kind, encode_json, quantise_segment
+from lamina_shared.types import ScanPlan, Segment
+from tests.test_link import PLAN, link, same
+
+
+def reference(plan: ScanPlan, settings: ExtractSettings) -> list[Segment]:
+    """What the rig gives with ``settings`` and no link at all, quantised as it travels."""
+    hardware = open_sim("cylinder:d=19.05", seed=3)
+    segments: list[Segment] = []
+    try:
+        acquire(hardware, "object", plan, segments.append, settings=settings)
+    finally:
+        hardware.close()
+    return [quantise_segment(s) for s in segments]
+
+
+def test_each_thread_gets_its_own_reply_and_events_in_any_order():
+    """Two threads ask at once; the peer answers the second first, with an event between."""
+    from lamina_host.link import PtyBridge
+
+    bridge = PtyBridge()
+    host_port = serial.Serial(bridge.host_port, timeout=0.02)
+    peer_port = serial.Serial(bridge.device_port, timeout=0.02)
+    peer = Channel(peer_port)
+    client = DeviceClient(Channel(host_port), idle_timeout_s=10)
+    results: dict[str, object] = {}
+    events: dict[str, list[tuple[str, object]]] = {"status": [], "exposure": []}
+
+    def ask(op: str) -> None:
+        def on_event(message: object) -> None:
+            events[op].append((threading.current_thread().name, message.body["n"]))  # type: ignore[attr-defined]
+
+        results[op] = client.request(op, on_event=on_event)
+
+    def answer() -> None:
+        requests: dict[str, int] = {}
+        while len(requests) < 2:
+            message = peer.receive(5.0)
+            assert message is not None, "a request did not arrive"
+            if message.kind is Kind.REQUEST:
+                requests[message.body["op"]] = message.body["id"]
+        first, second = requests["status"], requests["exposure"]
+        peer.send(encode_json(Kind.EVENT, {"id": second, "n": 2}))
+        peer.send(encode_json(Kind.EVENT, {"id": first, "n": 1}))
+        peer.send(encode_json(Kind.REPLY, {"id": second, "ok": True, "result": {"v": "e"}}))
+        peer.send(encode_json(Kind.REPLY, {"id": first, "ok": True, "result": {"v": "s"}}))
+
+    try:
+        responder = threading.Thread(target=answer)
+        responder.start()
+        threads = [threading.Thread(target=ask, args=(op,), name=op) for op in events]
+        for thread in threads:
+            thread.start()
+        for thread in [*threads, responder]:
+            thread.join(timeout=15)
+        assert results == {"status": {"v": "s"}, "exposure": {"v": "e"}}
+        # Each event reached the thread that asked, on that thread.
+        assert events == {"status": [("status", 1)], "exposure": [("exposure", 2)]}
+        assert client.stats.request_retries == 0
+    finally:
+        client.close()
+        host_port.close()
+        peer_port.close()
+        bridge.close()
+
+
+def test_pause_resume_abort_and_status_from_another_thread_over_a_faulty_line():
+    plan = ScanPlan.regular(3, 2.0, 8)
+    expected = reference(plan, ExtractSettings())
+    faults = LineFaults(error_rate=1e-3, delay_rate=0.02, delay_s=0.01, seed=7)
+    with link(faults) as ends:
+        client = ends.client
+        arrived: dict[int, Segment] = {}
+        first = threading.Event()
+        seen: dict[str, object] = {}
+
+        def store(seq: int, segment: Segment) -> None:
+            arrived[seq] = segment
+            first.set()
+
+        def operator() -> None:
+            first.wait(30)
+            seen["pause"] = client.pause()
+            seen["status"] = client.request("status")["state"]
+            seen["resume"] = client.resume()
+            count = len(arrived)
+            deadline = time.monotonic() + 30
+            while len(arrived) < count + 2 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            seen["abort"] = client.abort()
+
+        thread = threading.Thread(target=operator)
+        thread.start()
+        notices: list[str] = []
+        with pytest.raises(ScanStopped) as info:
+            client.scan("object", plan, on_segment=store, on_notice=notices.append)
+        thread.join(timeout=30)
+        # Each control's reply reached the operator's thread through the link's reader.
+        assert seen == {
+            "pause": "paused",
+            "status": "paused",
+            "resume": "busy",
+            "abort": "aborting",
+        }
+        assert notices == []
+        got = info.value.segments
+        assert 3 <= len(got) < len(plan.views)
+        assert same([got[s] for s in sorted(got)], [expected[s] for s in sorted(got)])
+        assert faults.counts["flipped"] + faults.counts["dropped"] > 0  # the line did damage
+        assert not ends.hardware.laser.is_on
+
+
+def test_a_scan_uses_the_extraction_the_host_asks_for():
+    thinning = reference(PLAN, ExtractSettings(method="thinning"))
+    default = reference(PLAN, ExtractSettings())
+    assert not same(thinning, default)
+    with link() as ends:
+        client = ends.client
+        assert client.info is not None
+        assert client.info.welcome["extract"] == dataclasses.asdict(ExtractSettings())
+        got = client.scan("object", PLAN, extract=ExtractChanges((("method", "thinning"),)))
+        assert same(got, thinning)
+        # Whole-pixel centres: the thinning method really ran on the device.
+        assert all(np.array_equal(s.rows, np.round(s.rows)) for s in got)
+        # The configuration's settings are reported and used when the scan changes none.
+        ends.hardware.extract = ExtractSettings(method="thinning")
+        info = client.hello()
+        assert info.welcome["extract"]["method"] == "thinning"
+        assert same(client.scan("object", PLAN), thinning)
+
+
+def test_unusable_extraction_is_refused_with_every_problem_and_nothing_acquired():
+    with link() as ends:
+        client = ends.client
+        frames = ends.hardware.camera.frames_taken
+        bad = ExtractChanges((("power", 0.0), ("min_width_px", 9), ("max_width_px", 4)))
+        with pytest.raises(RequestRefused) as info:
+            client.scan("object", PLAN, extract=bad)
+        assert info.value.code == "bad-args"
+        assert "power 0.0 is not in (0, 8]" in str(info.value)
+        assert "min_width_px 9 and max_width_px 4" in str(info.value)
+        with pytest.raises(RequestRefused) as info:
+            client.request("scan", {"target": "object", "extract": {"method": "sobel", "zz": 1}})
+        assert "scan.extract: takes no argument 'zz'" in str(info.value)
+        assert "scan.extract.method: one of cog, thinning is required" in str(info.value)
+        assert ends.hardware.camera.frames_taken == frames
+        assert client.request("status")["state"] == "idle"
+
+
+def test_the_scan_identity_holds_the_effective_extraction():
+    with link() as ends:
+        client = ends.client
+        configured = client.identity()["extract"]
+        assert configured == dataclasses.asdict(ExtractSettings())
+        client.extract = ExtractChanges((("method", "thinning"), ("threshold", 40.0)))
+        changed = client.identity()["extract"]
+        assert changed == {**configured, "method": "thinning", "threshold": 40.0}
+
+
+def test_extract_option_text():
+    changes = parse_extract_text("method=thinning, threshold=40,noise_gate=false,threshold=null")
+    assert changes.as_dict() == {"method": "thinning", "threshold": None, "noise_gate": False}
+    with pytest.raises(ArgsError) as info:
+        parse_extract_text("power=big,colour=red,nothing")
+    assert info.value.problems == [
+        "extract: 'nothing' is not KEY=VALUE",
+        "extract: takes no argument 'colour'",
+        "extract.power: a number is required, found 'big'",
+    ]
+
+
+def test_cli_refuses_a_bad_extract_option_in_one_line(capsys, tmp_path):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["scan", "--device", "sim", "-o", str(tmp_path / "x"), "--extract", "zz=1"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "lamina scan: error: argument --extract: extract: takes no argument 'zz'"
+    assert not (tmp_path / "x").exists()
