@@ -84,6 +84,7 @@ def build_report(
                 "harmonics": s.harmonics,
                 "perimeter_mm": perimeter(s.contour),
                 "area_mm2": polygon_area(s.contour),
+                "efd": s.efd.to_dict(),
             }
             for s in result.sections
         ],
