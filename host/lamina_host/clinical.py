@@ -639,7 +639,9 @@ def history(
     Args:
         scans: (scan id, creation time ISO 8601, measurement) of one subject's scans.
 
-    Volumes are between the first and last level the visit shares with the baseline.
+    A visit's volume is its whole measured range's; the change is measured between the
+    first and last level it shares with the baseline (scans of one limb may cover more or
+    less of it). A visit sharing fewer than two levels has no change (NaN) and says why.
     """
     ordered = sorted(scans, key=lambda item: (item[1], item[0]))
     if not ordered:
@@ -648,13 +650,18 @@ def history(
     visits = []
     for scan_id, created, m in ordered:
         if scan_id == base_id:
-            volume = baseline.levels_volume_mm3 / 1000.0
-            visits.append(Visit(scan_id, created, volume, 0.0, 0.0))
+            visits.append(Visit(scan_id, created, m.volume_mm3 / 1000.0, 0.0, 0.0))
             continue
-        c = compare(m, baseline, "visits", thresholds)
+        try:
+            c = compare(m, baseline, "visits", thresholds)
+        except ClinicalError as exc:
+            visits.append(
+                Visit(scan_id, created, m.volume_mm3 / 1000.0, math.nan, math.nan, (str(exc),))
+            )
+            continue
         visits.append(
             Visit(
-                scan_id, created, c.volume_mm3 / 1000.0, c.difference_ml, c.difference_percent,
+                scan_id, created, m.volume_mm3 / 1000.0, c.difference_ml, c.difference_percent,
                 c.flags,
             )
         )  # fmt: skip
