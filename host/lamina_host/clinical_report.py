@@ -135,7 +135,15 @@ def _header_lines(data: ReportData) -> list[str]:
             f"{c.difference_ml:+.1f} mL ({c.difference_percent:+.2f} %), "
             f"{c.volume_mm3 / 1000:.1f} vs {c.reference_volume_mm3 / 1000:.1f} mL"
         )
-        lines += [f"FLAG: {f}" for f in c.flags] or ["no threshold crossed"]
+        lines += [f"FLAG: {f}" for f in c.flags if not f.startswith("circumference")]
+        crossed = [f"{d.offset_mm:g}" for d in c.levels if d.flagged]
+        if crossed:
+            lines.append(
+                f"FLAG: circumference differs by the threshold or more at {', '.join(crossed)} "
+                "mm from the landmark (marked ! in the table)"
+            )
+        if not c.flags:
+            lines.append("no threshold crossed")
     lines += [f"note: {n}" for n in m.notes]
     estimated = [r for r in m.levels if r.source != "measured"]
     if estimated:
@@ -257,15 +265,12 @@ def render(data: ReportData, fmt: str) -> bytes:
         fig = plt.figure(figsize=PAGE_IN)
         try:
             fig.text(0.06, 0.965, "Lamina limb measurement report", fontsize=13, weight="bold")
-            for k, line in enumerate(_header_lines(data)):
-                fig.text(
-                    0.06,
-                    0.94 - 0.014 * k,
-                    line,
-                    fontsize=7.5,
-                    color="darkred" if line.startswith("FLAG") else "black",
-                )
-            _draw_table(fig.add_axes((0.06, 0.40, 0.88, 0.38)), data)
+            header = _header_lines(data)
+            for k, line in enumerate(header):
+                colour = "darkred" if line.startswith("FLAG") else "black"
+                fig.text(0.06, 0.94 - 0.014 * k, line, fontsize=7.5, color=colour)
+            top = min(0.80, 0.93 - 0.014 * len(header))
+            _draw_table(fig.add_axes((0.06, 0.40, 0.88, top - 0.40)), data)
             _draw_profile(fig.add_axes((0.08, 0.06, 0.40, 0.27)), data)
             _draw_outlines(fig.add_axes((0.56, 0.20, 0.38, 0.16)), data)
             _draw_visits(fig.add_axes((0.56, 0.04, 0.38, 0.11)), data)
