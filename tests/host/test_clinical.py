@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,11 +20,13 @@ from lamina_host.clinical import (
     history,
     measure_limb,
     parse_landmark,
+    sections_from_reconstruction,
     sections_from_report,
     stack_volume_mm3,
 )
 from lamina_host.efd import efd_fit
-from lamina_host.mesh import signed_volume, tube_mesh
+from lamina_host.mesh import signed_volume, topology, tube_mesh
+from lamina_host.pipeline import Section, mesh_contours
 
 
 def ellipse_section(
@@ -122,6 +125,15 @@ def test_contour_stack_volume_agrees_with_the_watertight_mesh() -> None:
     m = measure_limb(sections)
     vertices, faces = tube_mesh(m.stack.sample(2000), m.stack.z_mm)
     assert signed_volume(vertices, faces) == pytest.approx(m.volume_mm3, rel=1e-5)
+    # The pipeline's own mesh (500 samples per contour, as the scans are meshed).
+    built = [
+        Section(k, s.z_mm, 1, s.efd.evaluate(500), s.efd, s.efd.evaluate(500))
+        for k, s in enumerate(sections)
+    ]
+    assert sections_from_reconstruction(SimpleNamespace(sections=built))[3].z_mm == 30.0
+    vertices, faces = mesh_contours(built, 500, "linear")
+    assert topology(vertices, faces)["watertight"]
+    assert signed_volume(vertices, faces) == pytest.approx(m.volume_mm3, rel=1e-4)
 
 
 def test_levels_never_extrapolate_and_landmarks_outside_are_refused() -> None:
