@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lamina_host.calibration import CalibrationError
+from lamina_host.outliers import label_clusters
 
 TWO_PI = 2.0 * np.pi
 
@@ -97,24 +98,21 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
         order = np.argsort(unwrapped, kind="stable")
         tables.append((unwrapped[order], rad[order]))
 
-    out_ang, out_rad = [], []
-    for k, (ang, rad) in enumerate(polar):
-        total = rad.copy()
-        count = np.ones_like(rad)
-        for m, (xp, fp) in enumerate(tables):
-            if m == k or len(xp) < 2:
-                continue
-            lo, hi = xp[0], xp[-1]
-            # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
-            shifted = lo + np.mod(ang - lo, TWO_PI)
-            covered = shifted <= hi
-            total[covered] += np.interp(shifted[covered], xp, fp)
-            count[covered] += 1.0
-        out_ang.append(ang)
-        out_rad.append(total / count)
-
-    ang = np.concatenate(out_ang)
-    rad = np.concatenate(out_rad)
+    ang = np.concatenate([a for a, _ in polar])
+    own = np.concatenate([r for _, r in polar])
+    owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
+    total = own.copy()
+    count = np.ones_like(own)
+    for m, (xp, fp) in enumerate(tables):
+        if len(xp) < 2:
+            continue
+        lo, hi = xp[0], xp[-1]
+        # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
+        shifted = lo + np.mod(ang - lo, TWO_PI)
+        covered = (shifted <= hi) & (owner != m)
+        total[covered] += np.interp(shifted[covered], xp, fp)
+        count[covered] += 1.0
+    rad = total / count
     order = np.argsort(ang, kind="stable")
     ang, rad = ang[order], rad[order]
     return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
@@ -139,8 +137,6 @@ def split_outlines(
     Returns:
         One list of segment pieces per outline, the outline with most points first.
     """
-    from scipy import ndimage  # deferred: only needed when a section is split
-
     if not gap_mm > 0:
         raise ValueError(f"the outline gap must be a positive number of mm, not {gap_mm}")
     segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
@@ -148,11 +144,7 @@ def split_outlines(
     if not segs:
         return []
     pts = np.concatenate(segs)
-    cell = np.floor((pts - pts.min(axis=0)) / (0.5 * gap_mm)).astype(np.int64)
-    grid = np.zeros(cell.max(axis=0) + 1, dtype=bool)
-    grid[cell[:, 0], cell[:, 1]] = True
-    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=int))
-    point_label = labels[cell[:, 0], cell[:, 1]] - 1
+    point_label, count = label_clusters(pts, gap_mm)
     sizes = np.bincount(point_label, minlength=count)
     owner = np.repeat(np.arange(len(segs)), [len(s) for s in segs])
     outlines = []

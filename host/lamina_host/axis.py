@@ -13,7 +13,10 @@ Two methods (``AXIS_METHODS``):
   axis is the centroid of the arc centres (6.2.2).
 
 Either way the correction factor is ``C_f = D_a / D_e`` (6.2.4, eq. 6.3), with a warning
-when it is more than 5 % from one.
+when it is more than 5 % from one. The joint fit can go on to one angle offset per view
+(``fit_view_offsets``): the cylinder is scanned at the object's view angles, so a
+repeatable gear error (runout, an eccentric gear) is measured where it acts. This is
+Lamina's extension; the thesis has one correction factor.
 """
 
 from __future__ import annotations
@@ -31,6 +34,10 @@ CF_WARNING = 0.05
 
 MIN_OFFSET_FOR_SCALE_MM = 0.5
 """The angle scale is only estimated from a cylinder at least this far off the axis."""
+
+MAX_VIEW_OFFSET_SD_DEG = 0.05
+"""Per-view turntable angles are used only when the cylinder measures them this well
+(median standard error); worse, they would add more error than a 0.15 deg runout."""
 
 RADIUS_SPREAD_WARNING = 0.02
 """Fitted arc radii that differ by more than 2 % between views suggest bad arcs."""
@@ -57,6 +64,10 @@ class AxisCalibration:
     ``angle_scale`` maps a commanded turntable angle to the true one (1.0 unless the
     joint fit estimated it); ``cylinder_offset_mm`` is the cylinder's centre in the object
     frame (joint fit only); ``rms_mm`` is the joint fit's RMS orthogonal residual.
+    ``view_offsets_deg`` (per-view fit only) holds one row per calibrated view, its
+    commanded angle and its true-minus-commanded offset, measured to about
+    ``view_offset_sd_deg`` (standard error); ``view_offsets_note`` says why they are
+    missing when the fit was asked for but the cylinder could not measure them well.
     """
 
     axis_xy_mm: tuple[float, float]
@@ -70,10 +81,24 @@ class AxisCalibration:
     angle_scale: float = 1.0
     cylinder_offset_mm: tuple[float, float] | None = None
     rms_mm: float = float("nan")
+    view_offsets_deg: np.ndarray | None = None
+    view_offset_sd_deg: float = float("nan")
+    view_offsets_note: str = ""
 
     def true_angle_deg(self, commanded_deg: float) -> float:
-        """Return the turntable angle the object was really at for a commanded angle."""
-        return commanded_deg * self.angle_scale
+        """Return the turntable angle the object was really at for a commanded angle.
+
+        With per-view offsets (``view_offsets_deg`` rows: commanded angle, true minus
+        commanded), the angle is ``scale x commanded`` plus the periodic remainder of the
+        offsets, interpolated round the turn: exactly the fitted offset at a calibrated
+        angle, and a repeatable gear error in between.
+        """
+        base = commanded_deg * self.angle_scale
+        if self.view_offsets_deg is None:
+            return base
+        cmd, offset = self.view_offsets_deg.T
+        periodic = offset - (self.angle_scale - 1.0) * cmd
+        return base + float(np.interp(commanded_deg % 360.0, cmd % 360.0, periodic, period=360.0))
 
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
@@ -85,6 +110,11 @@ class AxisCalibration:
                 list(self.cylinder_offset_mm) if self.cylinder_offset_mm is not None else None
             ),
             "rms_mm": self.rms_mm,
+            "view_offset_sd_deg": self.view_offset_sd_deg,
+            "view_offsets_note": self.view_offsets_note,
+            "view_offsets_deg": (
+                self.view_offsets_deg.tolist() if self.view_offsets_deg is not None else None
+            ),
             "axis_xy_mm": list(self.axis_xy_mm),
             "correction_factor": self.correction_factor,
             "estimated_diameter_mm": self.estimated_diameter_mm,
@@ -95,7 +125,7 @@ class AxisCalibration:
         }
 
 
-def _taubin(pts: np.ndarray) -> tuple[float, float, float]:
+def taubin_circle(pts: np.ndarray) -> tuple[float, float, float]:
     """Taubin's algebraic circle fit (SVD form); nearly unbiased on short arcs, unlike Kasa.
 
     Returns:
@@ -147,7 +177,7 @@ def fit_circle(points: np.ndarray) -> Circle:
         )
     if not np.isfinite(pts).all():
         raise CalibrationError("arc points contain NaN or infinity; re-extract the arc")
-    cx0, cy0, r0 = _taubin(pts)
+    cx0, cy0, r0 = taubin_circle(pts)
 
     def residuals(p: np.ndarray) -> np.ndarray:
         return np.hypot(pts[:, 0] - p[0], pts[:, 1] - p[1]) - p[2]
@@ -253,6 +283,7 @@ def find_axis_joint(
     actual_diameter_mm: float,
     fit_offset: bool = True,
     fit_angle_scale: bool = False,
+    per_view: bool = False,
 ) -> AxisCalibration:
     """Fit one circle to all cylinder arcs jointly in the object frame.
 
@@ -270,6 +301,8 @@ def find_axis_joint(
         fit_offset: estimate the cylinder's offset from the axis.
         fit_angle_scale: estimate the turntable's angle scale too (needs an off-centre
             cylinder: a centred one looks the same at every angle).
+        per_view: with ``fit_angle_scale``, also estimate each view's own angle offset
+            (:func:`fit_view_offsets`), so a repeatable gear error is absorbed.
 
     Returns:
         AxisCalibration with method "joint".
@@ -310,7 +343,7 @@ def find_axis_joint(
     d_est = float(2.0 * abs(r))
     cf = float(actual_diameter_mm / d_est)
     warnings = _warnings(cf, d_est, actual_diameter_mm, start.arc_radii_mm)
-    return AxisCalibration(
+    calibration = AxisCalibration(
         axis_xy_mm=(float(axis[0]), float(axis[1])),
         correction_factor=cf,
         estimated_diameter_mm=d_est,
@@ -323,3 +356,73 @@ def find_axis_joint(
         cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
         rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
     )
+    if fit_angle_scale and per_view and fit_offset:
+        return fit_view_offsets(calibration, arcs, angles_deg)
+    return calibration
+
+
+def fit_view_offsets(
+    calibration: AxisCalibration, arcs: list[np.ndarray], angles_deg: list[float]
+) -> AxisCalibration:
+    """Refine a joint fit with one turntable angle offset per distinct commanded angle.
+
+    The cylinder is scanned at the object's view angles, so the error of each view's
+    angle (a gear's once-per-turn runout, an eccentric gear) is measured where it is
+    used. Unknowns: axis, radius, the cylinder's offset and the offset of every view
+    but the first, whose offset stays at the scale fit's value (a common rotation of all
+    views is the same as a rotation of the cylinder's offset, so one must be fixed).
+    Started from the scale fit, whose scale is kept; ``C_f`` follows the refined radius.
+    """
+    commanded = np.asarray(angles_deg, dtype=float)
+    distinct, view = np.unique(np.round(commanded % 360.0, 6), return_inverse=True)
+    if len(distinct) < 3 or calibration.cylinder_offset_mm is None:
+        return calibration
+    pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
+    counts = [len(a) for a in arcs]
+    theta = np.deg2rad(np.repeat(commanded, counts))
+    point_view = np.repeat(view, counts)
+    scale = calibration.angle_scale
+    start = (scale - 1.0) * np.array([commanded[view == k][0] for k in range(len(distinct))])
+    x0 = np.array(
+        [*calibration.axis_xy_mm, calibration.estimated_diameter_mm / 2.0,
+         *calibration.cylinder_offset_mm, *start[1:]]
+    )  # fmt: skip
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        offsets = np.deg2rad(np.concatenate([start[:1], p[5:]]))
+        q = _rotate(pts - p[:2], -(theta + offsets[point_view])) - p[3:5]
+        return np.hypot(q[:, 0], q[:, 1]) - p[2]
+
+    sol = least_squares(residuals, x0, method="lm", xtol=1e-12, ftol=1e-12)
+    offsets = np.concatenate([start[:1], sol.x[5:]])
+    first = np.array([commanded[view == k][0] for k in range(len(distinct))])
+    sd_deg = _standard_errors(sol.jac, sol.fun)[5:]
+    if not np.median(sd_deg) <= MAX_VIEW_OFFSET_SD_DEG:
+        note = (
+            f"per-view turntable angles not used: the calibration cylinder measures them only "
+            f"to +-{np.median(sd_deg):.3f} deg (needs {MAX_VIEW_OFFSET_SD_DEG} deg); place it "
+            "further off-centre"
+        )
+        return replace(calibration, view_offsets_note=note)
+    d_est = float(2.0 * abs(sol.x[2]))
+    return replace(
+        calibration,
+        correction_factor=calibration.actual_diameter_mm / d_est,
+        estimated_diameter_mm=d_est,
+        axis_xy_mm=(float(sol.x[0]), float(sol.x[1])),
+        cylinder_offset_mm=(float(sol.x[3]), float(sol.x[4])),
+        rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
+        view_offsets_deg=np.stack([first, offsets], axis=1),
+        view_offset_sd_deg=float(np.median(sd_deg)),
+    )
+
+
+def _standard_errors(jac: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """Return the least-squares parameters' standard errors, in the parameters' units."""
+    dof = max(len(residuals) - jac.shape[1], 1)
+    sigma2 = float(residuals @ residuals) / dof
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * sigma2
+    except np.linalg.LinAlgError:
+        return np.full(jac.shape[1], np.inf)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))

@@ -451,10 +451,12 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
         f"factor {report['correction_factor']:.5f}"
     )
     accuracy = {r["section"]: r for r in report.get("accuracy", {}).get("rows", [])}
-    header = "section  z_mm  points  harmonics"
+    header = "section  z_mm  points  harmonics  cover%  status      "
     print(header + ("  rms_own_mm  rms_mean_mm" if accuracy else ""))
     for s in report["sections"]:
         line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}  {s['harmonics']:>9}"
+        cover = (s.get("coverage") or {}).get("fraction", float("nan"))
+        line += f"  {100 * cover:6.1f}  {s.get('status', 'measured'):<12}"
         if s["section"] in accuracy:
             row = accuracy[s["section"]]
             line += f"  {row['rms_own_mm']:10.4f}  {row['rms_mean_mm']:11.4f}"

@@ -53,6 +53,15 @@ class EllipticFourier:
         """
         if n_points < 1:
             raise ValueError(f"n_points must be at least 1, not {n_points}")
+        if 2 * self.order < n_points:
+            # Uniform t makes the series an inverse real FFT: sum_n a_n cos + b_n sin
+            # = Re sum_n (a_n - i b_n) e^(2 pi i n k / K), exact below the Nyquist limit.
+            a, b, c, d = self.coeffs.T
+            spectrum = np.zeros((2, n_points // 2 + 1), dtype=complex)
+            spectrum[0, 1 : self.order + 1] = a - 1j * b
+            spectrum[1, 1 : self.order + 1] = c - 1j * d
+            xy = np.fft.irfft(spectrum * (n_points / 2.0), n_points, axis=1)
+            return np.stack([xy[0] + self.a0, xy[1] + self.c0], axis=1)
         t = np.arange(n_points) / n_points
         n = np.arange(1, self.order + 1)[:, None]
         phase = 2.0 * np.pi * n * t[None, :]
@@ -124,9 +133,11 @@ def _steps(pts: np.ndarray, parameter: str) -> np.ndarray:
         half = len(pts) // 64
         if half == 0:
             return _steps(pts, "chord")
-        kernel = np.ones(2 * half + 1) / (2 * half + 1)
+        width = 2 * half + 1
         padded = np.concatenate([pts[-half:], pts, pts[:half]])
-        smooth = np.stack([np.convolve(padded[:, k], kernel, mode="valid") for k in (0, 1)], 1)
+        # Moving average by running sums: O(K) instead of a K x K/32 convolution.
+        csum = np.concatenate([np.zeros((1, 2)), np.cumsum(padded, axis=0)])
+        smooth = (csum[width:] - csum[:-width]) / width
         dt = np.linalg.norm(np.roll(smooth, -1, axis=0) - smooth, axis=1)
     else:
         raise ValueError(f"unknown EFD parameter {parameter!r}; use {', '.join(PARAMETERS)}")
@@ -306,7 +317,11 @@ def harmonics_noise(contour: np.ndarray, parameter: str = "smoothed") -> int:
         return max(1, cap)
     power = _spectrum(pts, 2 * top + 8, parameter)
     n = np.arange(1, top + 1)
-    floor = np.array([np.median(power[k : 2 * k + 8]) for k in n]) / _CHI2_4_MEDIAN
+    # The median of power[k : 2k + 8] for every k at once: rows padded with NaN.
+    cols = np.arange(2 * top + 8)
+    idx = np.minimum(n[:, None] + cols[None, :], len(power) - 1)
+    windows = np.where(cols[None, :] < (n + 8)[:, None], power[idx], np.nan)
+    floor = np.nanmedian(windows, axis=1) / _CHI2_4_MEDIAN
     signal = n[power[:top] > NOISE_POWER_FACTOR * floor]
     return int(max(1, min(cap, signal[-1] if len(signal) else 1)))
 

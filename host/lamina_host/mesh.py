@@ -1,7 +1,8 @@
 """Surface meshes from the contour stack, and PLY output (thesis chapter 7).
 
 ``MESH_METHODS``: ``"contours"`` (default) joins neighbouring EFD contours sampled at the
-same parameter values into a watertight, manifold tube with capped ends;
+same parameter values into a watertight, manifold tube whose ends are the end contours
+themselves, triangulated;
 ``"ball-pivoting"`` (the thesis' choice, 7.2.1) and ``"poisson"`` (screened Poisson)
 reconstruct from the points through MeshLab.
 """
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_host.calibration import CalibrationError
-from lamina_host.measure import centroid, signed_area
+from lamina_host.measure import signed_area
 
 
 def contour_normals(contour: np.ndarray) -> np.ndarray:
@@ -89,20 +90,87 @@ MESH_METHODS = ("contours", "ball-pivoting", "poisson")
 """Selectable surface methods; the first is the default."""
 
 
+def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the z component of (a - o) x (b - o) for stacked 2-D points."""
+    return (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (
+        b[..., 0] - o[..., 0]
+    )
+
+
+def _ears(pts: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """Return a mask over ``alive`` of convex vertices whose triangle holds no other vertex."""
+    p = pts[alive]
+    prev, nxt = np.roll(p, 1, axis=0), np.roll(p, -1, axis=0)
+    area = _cross(prev, p, nxt)
+    scale = float(np.ptp(p, axis=0).max()) ** 2
+    convex = area > 1e-12 * scale
+    reflex = np.flatnonzero(~convex)
+    ears = convex.copy()
+    cand = np.flatnonzero(convex)
+    if len(reflex) and len(cand):
+        q = p[reflex][None, :, :]
+        a, b, c = prev[cand][:, None], p[cand][:, None], nxt[cand][:, None]
+        eps = -1e-12 * scale
+        inside = (_cross(a, b, q) >= eps) & (_cross(b, c, q) >= eps) & (_cross(c, a, q) >= eps)
+        n = len(p)
+        own = (reflex[None, :] == (cand[:, None] - 1) % n) | (
+            reflex[None, :] == (cand[:, None] + 1) % n
+        )
+        ears[cand] = ~np.any(inside & ~own, axis=1)
+    return ears
+
+
+def triangulate_polygon(ring: np.ndarray) -> np.ndarray:
+    """Triangulate a simple counter-clockwise polygon by ear clipping; return (M-2, 3) indices.
+
+    Unlike a fan from the centroid, this is right for any simple outline, star-shaped or
+    not (a bent finger, a crescent), and adds no vertex. Several ears that share no
+    vertex are clipped per pass (their diagonals cannot cross), so a convex outline
+    takes about log2(M) vectorised passes. Should the outline not be simple (no ear
+    left), the rest is closed by a fan from its first vertex.
+    """
+    pts = np.asarray(ring, dtype=float)
+    alive = np.arange(len(pts))
+    triangles = []
+    while len(alive) > 3:
+        ears = _ears(pts, alive)
+        if not ears.any():
+            rest = alive[1:]
+            triangles.append(np.stack([np.full(len(rest) - 1, alive[0]), rest[:-1], rest[1:]], 1))
+            alive = alive[:0]
+            break
+        # Ears at even positions only (odd if none): no two clipped ears are neighbours.
+        n = len(alive)
+        parity = np.arange(n) % 2
+        if n % 2:
+            parity[-1] = 2  # n - 1 and 0 are neighbours across the wrap
+        pick = ears & (parity == 0)
+        if not pick.any():
+            pick = ears & (parity == 1)
+        if not pick.any() or n - int(pick.sum()) < 3:
+            pick = ears & (np.arange(n) == np.flatnonzero(ears)[0])
+        k = np.flatnonzero(pick)
+        triangles.append(np.stack([alive[(k - 1) % n], alive[k], alive[(k + 1) % n]], 1))
+        alive = alive[~pick]
+    if len(alive) == 3:
+        triangles.append(alive[None, :])
+    return np.concatenate(triangles).astype(np.int64)
+
+
 def tube_mesh(rings: np.ndarray, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Join contours sampled at the same parameter values into a closed triangle mesh.
 
     Ring ``s`` vertex ``j`` joins ring ``s + 1`` by two triangles per quad; each end is
-    closed by a fan from its area centroid (one extra vertex), which is exact for
-    outlines star-shaped about their centroid, as overlap averaging assumes. With
-    counter-clockwise rings in ascending z every face normal points outward.
+    closed by triangulating the end contour itself (:func:`triangulate_polygon`), so the
+    caps are exactly the measured end sections, whatever their shape, with no invented
+    vertex. With counter-clockwise rings in ascending z every face normal points outward.
 
     Args:
         rings: (S, M, 2) contours, S >= 1, M >= 3, counter-clockwise, aligned.
         z_mm: (S,) ascending heights.
 
     Returns:
-        (vertices (S*M + 2, 3), faces (2*M*(S-1) + 2*M, 3)).
+        (vertices (S*M, 3), faces (2*M*(S-1) + 2*(M-2), 3)).
     """
     r = np.asarray(rings, dtype=float)
     z = np.asarray(z_mm, dtype=float)
@@ -115,17 +183,10 @@ def tube_mesh(rings: np.ndarray, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarr
     base = (np.arange(n_rings - 1) * m)[:, None]
     a, b, c, d = base + j, base + jn, base + m + jn, base + m + j
     side = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], axis=1)
-    bottom, top = n_rings * m, n_rings * m + 1
-    centres = [np.append(centroid(r[0]), z[0]), np.append(centroid(r[-1]), z[-1])]
-    last = (n_rings - 1) * m
-    caps = np.concatenate(
-        [
-            np.stack([np.full(m, bottom), jn, j], axis=1),
-            np.stack([np.full(m, top), last + j, last + jn], axis=1),
-        ]
-    )
-    faces = np.concatenate([side.reshape(-1, 3), caps]).astype(np.int64)
-    return np.vstack([verts, centres]), faces
+    bottom = triangulate_polygon(r[0])[:, ::-1]  # facing down
+    top = triangulate_polygon(r[-1]) + (n_rings - 1) * m
+    faces = np.concatenate([side.reshape(-1, 3), bottom, top]).astype(np.int64)
+    return verts, faces
 
 
 def screened_poisson(

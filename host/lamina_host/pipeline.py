@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +24,7 @@ from lamina_host.calibration import (
     GridCalibration,
     calibrate_grid,
 )
+from lamina_host.coverage import Coverage, measure_coverage
 from lamina_host.efd import (
     HARMONIC_RULES,
     INTERPOLATIONS,
@@ -43,10 +44,15 @@ from lamina_host.mesh import (
     topology,
     tube_mesh,
 )
+from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_shared.types import BoardSpec, Segment
 
 MIN_SEGMENT_POINTS = 10
 """Segments with fewer points than this after trimming carry no usable outline."""
+
+
+DEFAULT_SPLIT_GAP_MM = 2.0
+"""Outlines further apart than this are separate (also used to cluster for rejection)."""
 
 
 @dataclass(frozen=True)
@@ -62,12 +68,25 @@ class ProcessOptions:
         distortion: estimate radial lens distortion with the ``"ml"`` calibration.
         axis: one of ``AXIS_METHODS``.
         angle_correction: estimate the turntable angle scale from the cylinder (joint only).
+        per_view_angles: with ``angle_correction``, also fit each view's own angle offset
+            from the cylinder (scanned at the same view angles), absorbing a repeatable
+            gear error; False keeps one scale.
         harmonic_rule: one of ``HARMONIC_RULES``.
         efd_parameter: one of ``PARAMETERS``.
         split_gap_mm: outlines further apart than this are fitted separately; None keeps
             one outline per section (thesis).
         mesh: one of ``MESH_METHODS``.
         interpolation: how the contour mesh interpolates EFD coefficients along z.
+        reject_outliers: reject points outside the working volume, stripe spikes, points
+            the overlapping views contradict and outlines too poorly supported
+            (``lamina_host.outliers``); False assembles every point (thesis).
+        working_radius_mm: the working volume's radius about the axis; None: the disc the
+            camera sees at every turntable angle, from the calibration.
+        max_bridge_deg: the widest unseen gap EFD may close on its own (flagged as
+            estimated); wider gaps are filled from neighbouring sections or the outline
+            is left open (not meshed). None lets EFD close every gap (thesis).
+        max_efd_points: longer outlines are thinned to this many points before the EFD
+            fit (``thin_outline``); None fits every point (thesis).
     """
 
     trim_fraction: float = 0.10
@@ -80,9 +99,14 @@ class ProcessOptions:
     angle_correction: bool = True
     harmonic_rule: str = HARMONIC_RULES[0]
     efd_parameter: str = PARAMETERS[0]
-    split_gap_mm: float | None = 2.0
+    split_gap_mm: float | None = DEFAULT_SPLIT_GAP_MM
     mesh: str = MESH_METHODS[0]
     interpolation: str = INTERPOLATIONS[0]
+    per_view_angles: bool = True
+    reject_outliers: bool = True
+    working_radius_mm: float | None = None
+    max_bridge_deg: float | None = 30.0
+    max_efd_points: int | None = 4096
 
     @classmethod
     def thesis(cls) -> ProcessOptions:
@@ -95,6 +119,10 @@ class ProcessOptions:
             efd_parameter="chord",
             split_gap_mm=None,
             mesh="ball-pivoting",
+            per_view_angles=False,
+            reject_outliers=False,
+            max_bridge_deg=None,
+            max_efd_points=None,
         )
 
     def check(self) -> None:
@@ -116,18 +144,39 @@ class ProcessOptions:
             raise ValueError(f"trim fraction {self.trim_fraction} must be in [0, 0.5)")
         if self.split_gap_mm is not None and not self.split_gap_mm > 0:
             raise ValueError("the outline gap must be a positive number of mm")
+        if self.working_radius_mm is not None and not self.working_radius_mm > 0:
+            raise ValueError("the working radius must be a positive number of mm")
+        if self.max_efd_points is not None and self.max_efd_points < 16:
+            raise ValueError("the EFD needs at least 16 points per outline")
+        if self.max_bridge_deg is not None and not 0 <= self.max_bridge_deg <= 360:
+            raise ValueError("the widest gap to bridge must be 0 to 360 degrees")
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form (for the report)."""
         return dict(self.__dict__)
 
 
+STATUSES = ("measured", "bridged", "interpolated", "open")
+"""How an outline was closed: seen all round; small unseen gaps closed by EFD; large gaps
+filled from the neighbouring sections' EFD (interpolated along z); or not closed (open:
+the gap is too wide and no neighbouring section could fill it; not meshed)."""
+
+INTERP_REACH_SECTIONS = 3
+"""A large gap is filled only from outlines at most this many section pitches away."""
+
+GAP_FILL_SAMPLES = 720
+"""Samples of the neighbours' interpolated contour offered to fill a gap."""
+
+
 @dataclass(frozen=True)
 class Section:
-    """One closed outline of a planar section: raw assembled points and its EFD contour.
+    """One outline of a planar section: measured points, EFD contour and how it was closed.
 
     A section with several separate outlines (two legs) gives one Section per outline,
-    ``part`` 0 being the one with most points.
+    ``part`` 0 being the one with most points. ``segments`` counts the stripe pieces
+    averaged into it (with outlier rejection, runs of one view's stripe). ``raw`` holds
+    measured points only; ``estimated`` marks the contour samples not backed by a
+    measurement (in an unseen gap; see ``status`` and ``Coverage.unseen``).
     """
 
     index: int
@@ -137,11 +186,24 @@ class Section:
     efd: EllipticFourier
     contour: np.ndarray
     part: int = 0
+    coverage: Coverage | None = None
+    status: str = "measured"
+    estimated: np.ndarray | None = None
 
     @property
     def harmonics(self) -> int:
         """Return the number of EFD harmonics fitted."""
         return self.efd.order
+
+    @property
+    def closed(self) -> bool:
+        """Return whether the outline is closed (it is meshed only then)."""
+        return self.status != "open"
+
+    @property
+    def measured_contour(self) -> np.ndarray:
+        """Return the contour samples that are not estimated (in seen stretches)."""
+        return self.contour if self.estimated is None else self.contour[~self.estimated]
 
 
 @dataclass
@@ -157,6 +219,7 @@ class Reconstruction:
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     options: ProcessOptions = field(default_factory=ProcessOptions)
+    rejected: Rejected = field(default_factory=Rejected)
 
 
 class Timer:
@@ -188,6 +251,7 @@ def calibrate_axis(
     trim_fraction: float,
     method: str = AXIS_METHODS[0],
     angle_correction: bool = True,
+    per_view: bool = False,
 ) -> AxisCalibration:
     """Find the turntable axis and correction factor from the calibration cylinder (6.2)."""
     views = [(world_points(s, grid, trim_fraction), s.angle_deg) for s in cylinder]
@@ -201,7 +265,9 @@ def calibrate_axis(
     if method == "centroid":
         return find_axis(arcs, diameter_mm)
     angles = [angle for _, angle in views]
-    return find_axis_joint(arcs, angles, diameter_mm, fit_angle_scale=angle_correction)
+    return find_axis_joint(
+        arcs, angles, diameter_mm, fit_angle_scale=angle_correction, per_view=per_view
+    )
 
 
 def assemble(
@@ -223,40 +289,142 @@ def assemble(
     return by_section, heights, skipped
 
 
+def thin_outline(points: np.ndarray, max_points: int | None) -> np.ndarray:
+    """Return an ordered outline with runs of k consecutive points averaged into one,
+    k the smallest that leaves at most ``max_points`` (None or few points: unchanged).
+
+    Overlap-averaged outlines interleave the views' points, several per stripe step; a
+    mean over a few neighbours along the outline keeps its shape and the EFD's cost,
+    proportional to the point count, falls by k.
+    """
+    pts = np.asarray(points, dtype=float)
+    if max_points is None or len(pts) <= max_points:
+        return pts
+    k = -(-len(pts) // max_points)
+    starts = np.arange(0, len(pts), k)
+    counts = np.diff(np.append(starts, len(pts)))[:, None]
+    return np.add.reduceat(pts, starts, axis=0) / counts
+
+
 def fit_outline(raw: np.ndarray, options: ProcessOptions) -> EllipticFourier:
     """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4)."""
-    order = options.harmonics or choose_harmonics(raw, options.harmonic_rule, options.efd_parameter)
-    order = max(1, min(order, nyquist_max(len(raw))))
-    return efd_fit(raw, order, options.efd_parameter)
+    pts = thin_outline(raw, options.max_efd_points)
+    order = options.harmonics or choose_harmonics(pts, options.harmonic_rule, options.efd_parameter)
+    order = max(1, min(order, nyquist_max(len(pts))))
+    return efd_fit(pts, order, options.efd_parameter)
 
 
 def fit_section(
-    index: int, z_mm: float, parts: list[np.ndarray], options: ProcessOptions
+    index: int, z_mm: float, parts: list[np.ndarray], options: ProcessOptions, part: int = 0
 ) -> Section:
-    """Average a section's overlaps and fit its EFD contour as one outline (thesis 6.3-6.4)."""
+    """Average an outline's overlaps, fit its EFD (thesis 6.3-6.4) and measure its coverage.
+
+    The status is "measured" without unseen gaps, "bridged" when the widest gap is at most
+    ``options.max_bridge_deg`` (EFD closes it; those samples are flagged estimated) and
+    "open" otherwise, until :func:`fill_gaps` fills it from neighbouring sections.
+    """
     raw = average_overlaps(parts)
     efd = fit_outline(raw, options)
-    return Section(index, z_mm, len(parts), raw, efd, efd.evaluate(options.outline_points))
+    contour = efd.evaluate(options.outline_points)
+    coverage = measure_coverage(raw)
+    gap = coverage.largest_gap_deg
+    limit = options.max_bridge_deg
+    status = "measured" if gap == 0 else "bridged" if limit is None or gap <= limit else "open"
+    estimated = coverage.unseen(contour)
+    return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
 
 
-def fit_outlines(
-    index: int, z_mm: float, parts: list[np.ndarray], options: ProcessOptions
-) -> list[Section]:
-    """Split a section into its separate outlines (thesis 9.2) and fit each on its own."""
+def outline_groups(
+    parts: list[np.ndarray], options: ProcessOptions, rules: OutlierRules
+) -> tuple[list[list[np.ndarray]], Rejected]:
+    """Return a section's outlines (each a list of per-view pieces) and what was rejected.
+
+    With ``reject_outliers`` the outliers go first and only well-supported outlines stay
+    (``lamina_host.outliers``); they are fitted apart if ``split_gap_mm`` is set, together
+    otherwise. Without it, the section splits at ``split_gap_mm`` (thesis 9.2) or stays
+    one outline (thesis).
+    """
+    if options.reject_outliers:
+        gap = options.split_gap_mm or DEFAULT_SPLIT_GAP_MM
+        outlines, rejected = clean_section(parts, gap, rules)
+        if options.split_gap_mm is None and outlines:
+            outlines = [[piece for outline in outlines for piece in outline]]
+        return outlines, rejected
     if options.split_gap_mm is None:
-        return [fit_section(index, z_mm, parts, options)]
-    groups = split_outlines(parts, options.split_gap_mm)
-    if not groups:
-        return [fit_section(index, z_mm, parts, options)]
-    sections = []
-    for k, pieces in enumerate(groups):
-        raw = average_overlaps(pieces)
-        if len(raw) < 3:
+        return [parts], Rejected()
+    return split_outlines(parts, options.split_gap_mm) or [parts], Rejected()
+
+
+def fit_groups(
+    index: int, z_mm: float, groups: list[list[np.ndarray]], options: ProcessOptions
+) -> list[Section]:
+    """Fit every outline of one section (outlines of fewer than 3 points are skipped)."""
+    sections: list[Section] = []
+    for pieces in groups:
+        if sum(len(p) for p in pieces) < 3:
             continue
-        efd = fit_outline(raw, options)
-        contour = efd.evaluate(options.outline_points)
-        sections.append(Section(index, z_mm, len(pieces), raw, efd, contour, k))
+        sections.append(fit_section(index, z_mm, pieces, options, len(sections)))
     return sections
+
+
+def _neighbours(section: Section, solid: list[Section], reach_mm: float) -> list[Section]:
+    """Return the nearest closed outline below and above ``section`` that continues it.
+
+    A candidate continues the outline when its EFD centre lies within its own mean radius
+    of the outline's coverage centre and it is at most ``reach_mm`` away in z.
+    """
+    assert section.coverage is not None
+    centre = np.asarray(section.coverage.centre_mm)
+    best: dict[bool, Section] = {}
+    for other in solid:
+        dz = other.z_mm - section.z_mm
+        if other.index == section.index or abs(dz) > reach_mm:
+            continue
+        c = np.array([other.efd.a0, other.efd.c0])
+        if np.linalg.norm(c - centre) > np.linalg.norm(other.contour - c, axis=1).mean():
+            continue
+        side = dz > 0
+        if side not in best or abs(dz) < abs(best[side].z_mm - section.z_mm):
+            best[side] = other
+    return list(best.values())
+
+
+def fill_gap(section: Section, neighbours: list[Section], options: ProcessOptions) -> Section:
+    """Close a large unseen gap with the neighbouring sections' contour (z-interpolated).
+
+    The neighbours' EFDs are interpolated to this height (``EfdStack``, thesis ref. [86]);
+    its samples inside the gap join the measured points and the outline is refitted.
+    ``raw`` keeps the measured points only; the contour samples in the gap are flagged.
+    """
+    assert section.coverage is not None
+    stack_ = EfdStack.from_sections([s.z_mm for s in neighbours], [s.efd for s in neighbours])
+    predicted = stack_.section(section.z_mm).evaluate(GAP_FILL_SAMPLES)
+    fill = predicted[section.coverage.unseen(predicted)]
+    merged = np.concatenate([section.raw, fill])
+    d = merged - np.asarray(section.coverage.centre_mm)
+    merged = merged[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
+    efd = fit_outline(merged, options)
+    contour = efd.evaluate(options.outline_points)
+    estimated = section.coverage.unseen(contour)
+    return replace(section, efd=efd, contour=contour, status="interpolated", estimated=estimated)
+
+
+def fill_gaps(sections: list[Section], options: ProcessOptions) -> list[Section]:
+    """Fill each open outline's gap from closed outlines of neighbouring sections.
+
+    Only outlines closed from their own data ("measured" or "bridged") are used, within
+    ``INTERP_REACH_SECTIONS`` pitches; with no such neighbour the outline stays open.
+    """
+    pitch = section_pitch_mm(sections)
+    if pitch is None or all(s.closed for s in sections):
+        return sections
+    solid = [s for s in sections if s.status in ("measured", "bridged")]
+    reach = INTERP_REACH_SECTIONS * pitch
+    out = []
+    for s in sections:
+        near = _neighbours(s, solid, reach) if s.status == "open" else []
+        out.append(fill_gap(s, near, options) if near else s)
+    return out
 
 
 def stack(contours: list[np.ndarray], heights: list[float]) -> np.ndarray:
@@ -361,7 +529,13 @@ def section_pitch_mm(sections: list[Section]) -> float | None:
 def build_mesh(
     sections: list[Section], options: ProcessOptions
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Mesh the contours with ``options.mesh``; return vertices, faces and warnings."""
+    """Mesh the closed contours with ``options.mesh``; return vertices, faces and warnings.
+
+    Open outlines (a wide unseen gap nothing could fill) are not meshed.
+    """
+    sections = [s for s in sections if s.closed]
+    if not sections:
+        return np.empty((0, 3)), np.empty((0, 3), int), ["no outline is closed: nothing to mesh"]
     pitch = section_pitch_mm(sections)
     if options.mesh == "contours":
         return (*mesh_contours(sections, options.outline_points, options.interpolation), [])
@@ -376,14 +550,72 @@ def build_mesh(
     return (*mesh_ball_pivoting(sections, pitch, options.ball_radius_mm), [])
 
 
+def camera_disc_mm(
+    grid: GridCalibration, image_shape: tuple[int, ...], axis: AxisCalibration
+) -> float | None:
+    """Return the radius about the axis of the disc the camera sees at every turntable angle.
+
+    The image border is mapped into the laser plane; the disc reaches the nearest border
+    point (object-frame mm). None when the axis is not inside the camera's view.
+    """
+    h, w = image_shape[:2]
+    t = np.linspace(0.0, 1.0, 64, endpoint=False)
+    u, v = (w - 1) * t, (h - 1) * t
+    top, bottom = np.zeros_like(u), np.full_like(u, h - 1.0)
+    left, right = np.zeros_like(v), np.full_like(v, w - 1.0)
+    border = np.concatenate(  # round the image, back to the start
+        [np.stack([u, top], 1), np.stack([right, v], 1), np.stack([w - 1 - u, bottom], 1),
+         np.stack([left, h - 1 - v], 1), [[0.0, 0.0]]]
+    )  # fmt: skip
+    world = grid.homography.apply(border)
+    d = world - np.asarray(axis.axis_xy_mm)
+    winding = np.diff(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))
+    if not np.isfinite(world).all() or abs(winding.sum()) < np.pi:
+        return None  # the border does not wind round the axis
+    return float(np.hypot(d[:, 0], d[:, 1]).min() * axis.correction_factor)
+
+
+def rejection_warning(rejected: Rejected) -> str:
+    """Return one line saying how many points the outlier tests removed and why."""
+    return (
+        f"{rejected.points} stripe point(s) rejected as outliers: {rejected.outside_volume} "
+        f"outside the working volume, {rejected.spikes} spikes, {rejected.view_consensus} "
+        f"contradicted by overlapping views, {rejected.unsupported_clusters} in "
+        f"{rejected.clusters} cluster(s) too small or seen by too few views to be an outline, "
+        f"{rejected.short_runs} in stray stretches of under {MIN_RUN_POINTS} points"
+    )
+
+
+def gap_warnings(sections: list[Section]) -> list[str]:
+    """Return lines naming the outlines that are estimated in part or left open."""
+
+    def names(status: str) -> str:
+        return ", ".join(f"{s.index}.{s.part}" for s in sections if s.status == status)
+
+    lines = []
+    if filled := names("interpolated"):
+        lines.append(
+            f"outline(s) {filled} had unseen gaps too wide to bridge; filled from the "
+            "neighbouring sections (flagged estimated, left out of points.ply)"
+        )
+    if left := names("open"):
+        lines.append(
+            f"outline(s) {left} had unseen gaps too wide to bridge and no closed neighbour: "
+            "left open and not meshed; add views or sections"
+        )
+    return lines
+
+
 def process_segments(
     grid: GridCalibration,
     axis: AxisCalibration,
     segments: list[Segment],
     options: ProcessOptions,
     timer: Timer,
-) -> tuple[list[Section], list[str]]:
-    """Assemble the object's segments into sections and fit their outlines."""
+    rules: OutlierRules | None = None,
+) -> tuple[list[Section], list[str], Rejected]:
+    """Assemble the object's segments, reject outliers, fit the outlines, close the gaps."""
+    rules = rules or OutlierRules(working_radius_mm=options.working_radius_mm)
     with timer.stage("assemble"):
         by_section, heights, skipped = assemble(segments, grid, axis, options.trim_fraction)
     warnings = []
@@ -397,13 +629,25 @@ def process_segments(
             "no view of the object shows the laser stripe: check the object "
             "stands inside the laser plane and the laser works"
         )
+    rejected = Rejected()
+    with timer.stage("reject"):
+        groups = {}
+        for k in sorted(by_section):
+            groups[k], counts = outline_groups(by_section[k], options, rules)
+            rejected.add(counts)
+    if rejected.points:
+        warnings.append(rejection_warning(rejected))
+    if not any(groups.values()):
+        raise CalibrationError(
+            "no section has an outline seen well enough by several views: check the "
+            "object stands inside the laser plane and the views overlap"
+        )
     with timer.stage("fit_efd"):
         sections = [
-            s
-            for k in sorted(by_section)
-            for s in fit_outlines(k, heights[k], by_section[k], options)
+            s for k in sorted(groups) for s in fit_groups(k, heights[k], groups[k], options)
         ]
-    return sections, warnings
+        sections = fill_gaps(sections, options)
+    return sections, warnings + gap_warnings(sections), rejected
 
 
 def reconstruct(
@@ -427,9 +671,11 @@ def reconstruct(
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
             cylinder, grid, cylinder_mm, options.trim_fraction, options.axis,
-            options.angle_correction,
+            options.angle_correction, options.per_view_angles,
         )  # fmt: skip
-    sections, warnings = process_segments(grid, axis, segments, options, timer)
+    radius = options.working_radius_mm or camera_disc_mm(grid, grid_image.shape, axis)
+    rules = OutlierRules(working_radius_mm=radius)
+    sections, warnings, rejected = process_segments(grid, axis, segments, options, timer, rules)
     warnings = [*grid.warnings, *axis.warnings, *warnings]
     with timer.stage("mesh"):
         vertices, faces, mesh_warnings = build_mesh(sections, options)
@@ -441,5 +687,5 @@ def reconstruct(
             f"({topo['boundary_edges']} boundary edges); use --mesh contours for a closed mesh"
         )
     return Reconstruction(
-        grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options
+        grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected
     )

@@ -11,8 +11,8 @@ import numpy as np
 from lamina_host.expect import Expectation
 from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
-from lamina_host.mesh import save_ply
-from lamina_host.pipeline import Reconstruction, stack, stacked_normals
+from lamina_host.mesh import contour_normals, save_ply
+from lamina_host.pipeline import Reconstruction, stack
 from lamina_shared.types import Segment
 
 SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence")
@@ -85,14 +85,23 @@ def build_report(
                 "perimeter_mm": perimeter(s.contour),
                 "area_mm2": polygon_area(s.contour),
                 "efd": s.efd.to_dict(),
+                "status": s.status,
+                "coverage": s.coverage.to_dict() if s.coverage is not None else None,
+                "estimated_outline_points": int(s.estimated.sum())
+                if s.estimated is not None
+                else 0,
             }
             for s in result.sections
         ],
+        "outliers": result.rejected.to_dict(),
         "point_counts": {
             "segments": len(segments),
             "segment_points": int(sum(len(s) for s in segments)),
             "raw_points": int(sum(len(s.raw) for s in result.sections)),
             "outline_points": int(sum(len(s.contour) for s in result.sections)),
+            "estimated_outline_points": int(
+                sum(len(s.contour) - len(s.measured_contour) for s in result.sections)
+            ),
         },
         "mesh": {
             "method": result.options.mesh,
@@ -123,19 +132,37 @@ def _points3d(sections: list[Any], raw: bool) -> np.ndarray:
     return stack([s.raw if raw else s.contour for s in sections], [s.z_mm for s in sections])
 
 
+def measured_cloud(result: Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """Return the EFD contour samples in seen stretches and their normals, as (N, 3) each.
+
+    Samples in unseen gaps (bridged by EFD or filled from neighbouring sections) are left
+    out: points.ply holds measured outline only, while the mesh keeps the estimated parts
+    closed (``report.json`` flags them per section).
+    """
+    points, normals = [], []
+    for s in result.sections:
+        keep = np.ones(len(s.contour), dtype=bool) if s.estimated is None else ~s.estimated
+        flat = np.zeros(int(keep.sum()))
+        points.append(np.column_stack([s.contour[keep], flat + s.z_mm]))
+        normals.append(np.column_stack([contour_normals(s.contour)[keep], flat]))
+    if not points:
+        return np.empty((0, 3)), np.empty((0, 3))
+    return np.vstack(points), np.vstack(normals)
+
+
 def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> dict[str, Path]:
     """Write the point clouds, the mesh and the report into ``out``; return their paths.
 
+    points.ply holds only the measured stretches of the EFD contours (:func:`measured_cloud`).
     Each file is private and replaced whole, never written through a link.
     """
     paths = {
         name: out / name for name in ("raw_points.ply", "points.ply", "mesh.ply", "report.json")
     }
     heights = [s.z_mm for s in result.sections]
-    contours = [s.contour for s in result.sections]
     raw = stack([s.raw for s in result.sections], heights)
     replace_file(paths["raw_points.ply"], lambda temporary: save_ply(temporary, raw))
-    points, normals = stack(contours, heights), stacked_normals(contours)
+    points, normals = measured_cloud(result)
     replace_file(
         paths["points.ply"], lambda temporary: save_ply(temporary, points, normals=normals)
     )

@@ -74,6 +74,18 @@ def test_default_methods_meet_the_target_and_beat_the_thesis(cylinder_scan: Path
     assert thesis.grid.method == "dlt" and thesis.axis.method == "centroid"
 
 
+def test_report_gives_coverage_closure_and_rejections(cylinder_scan: Path) -> None:
+    """A clean 8-view cylinder: every outline seen all round, nothing rejected or estimated;
+    points.ply holds exactly the measured contour samples."""
+    report = json.loads((cylinder_scan / "report.json").read_text())
+    for s in report["sections"]:
+        assert s["status"] == "measured" and s["coverage"]["fraction"] == 1.0
+        assert s["coverage"]["gaps_deg"] == [] and s["estimated_outline_points"] == 0
+    assert report["outliers"]["points"] == 0
+    header = (cylinder_scan / "points.ply").read_bytes().split(b"end_header")[0].decode()
+    assert f"element vertex {report['point_counts']['outline_points']}" in header
+
+
 def two_cylinders_stl(path: Path) -> None:
     """Write a binary STL of two separate 10 mm cylinders 14 mm apart (two legs)."""
     t = np.linspace(0.0, 2.0 * np.pi, 96, endpoint=False)

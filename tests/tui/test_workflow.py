@@ -83,7 +83,8 @@ async def test_whole_workflow(tmp_path: Path) -> None:
         await wait_for(pilot, lambda: app.session.results is not None, "processing")
         rows = table_rows(app)
         assert [r[0] for r in rows] == ["0", "1"]
-        for _, _, _, perimeter, area, roundness, harm in rows:
+        for _, _, _, cover, closed, perimeter, area, roundness, harm in rows:
+            assert float(cover) == 100.0 and closed == "measured"  # 8 views see it all round
             assert abs(float(area) - AREA_MM2) / AREA_MM2 < 0.02
             assert abs(float(perimeter) - PERIMETER_MM) / PERIMETER_MM < 0.02
             assert float(roundness) > 0.98

@@ -14,11 +14,21 @@ from textual_plotext import PlotextPlot
 
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
+from lamina_host.pipeline import Section
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
 
-COLUMNS = ("sec", "z mm", "points", "perim mm", "area mm2", "round", "harm")
-"""Per-section table; roundness is 4 pi A / P^2 (1 for a circle)."""
+COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
+"""Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
+the circumference the views saw; closed says how: measured all round, bridged (small gaps
+closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
+(not closed, not meshed). Bridged and interpolated stretches are estimated, not measured."""
+
+
+def coverage_cells(section: Section) -> tuple[str, str]:
+    """Return the cover % and closed cells of one outline."""
+    cover = section.coverage.fraction if section.coverage is not None else 1.0
+    return f"{100.0 * cover:.0f}", section.status
 
 
 def parse_harmonics(text: str) -> tuple[int | None, str | None]:
@@ -52,6 +62,12 @@ def summary_text(results: Results | None) -> str:
         + (", watertight" if topo.get("watertight") else "")
     )
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
+    estimated = [s for s in result.sections if s.status in ("bridged", "interpolated")]
+    if estimated or not all(s.closed for s in result.sections):
+        lines.append(
+            f"{len(estimated)} outline(s) closed across unseen gaps (estimated stretches, "
+            f"not in points.ply), {sum(not s.closed for s in result.sections)} left open"
+        )
     return "\n".join(lines + [f"warning: {w}" for w in result.warnings])
 
 
@@ -183,11 +199,13 @@ class ResultsScreen(LaminaScreen):
         results = self.session.results
         table = self.query_one("#sections", DataTable)
         table.clear()
-        for r in results.rows if results else []:
+        sections = results.reconstruction.sections if results else []
+        for r, section in zip(results.rows if results else [], sections, strict=True):
             table.add_row(
                 str(r.index),
                 f"{r.z_mm:.2f}",
                 str(r.points),
+                *coverage_cells(section),
                 f"{r.perimeter_mm:.2f}",
                 f"{r.area_mm2:.1f}",
                 f"{r.roundness:.4f}",
