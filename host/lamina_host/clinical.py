@@ -396,7 +396,9 @@ def measure_limb(
     profile_c = np.array([_circumference(stack.section(z), z, limb_axis) for z in stack.z_mm])
     distal_top = len(profile_c) > 1 and profile_c[-1] < (1.0 - DISTAL_MARGIN) * profile_c[0]
     start = _landmark_position(landmark, limb_axis, lo, hi, distal_top)
-    sign = -1.0 if distal_top else 1.0
+    # Levels run away from a named end, else away from the distal end (proximally).
+    upward = {"bottom": True, "top": False}.get(landmark.kind, not distal_top)
+    sign = 1.0 if upward else -1.0
     s_lo, s_hi = float(limb_axis.position_mm(lo)), float(limb_axis.position_mm(hi))
     d_lo, d_hi = sorted((sign * (s_lo - start), sign * (s_hi - start)))
     tol = _LEVEL_TOLERANCE_MM / spacing_mm

@@ -94,6 +94,11 @@ def test_distal_end_at_the_top_runs_levels_downwards() -> None:
     m = measure_limb(cone(50.0, 30.0, 200.0, 10.0), spacing_mm=80.0)
     assert [lv.z_mm for lv in m.levels] == pytest.approx([200.0, 120.0, 40.0])
     assert m.levels[0].circumference_mm == pytest.approx(2 * np.pi * 30.0, rel=1e-5)
+    # Named ends: levels run from the bottom upwards and from the top downwards.
+    bottom = measure_limb(cone(50.0, 30.0, 200.0, 10.0), 80.0, Landmark("bottom"))
+    assert [lv.z_mm for lv in bottom.levels] == pytest.approx([0.0, 80.0, 160.0])
+    top = measure_limb(cone(30.0, 50.0, 200.0, 10.0), 80.0, Landmark("top"))
+    assert [lv.z_mm for lv in top.levels] == pytest.approx([200.0, 120.0, 40.0])
 
 
 def test_ellipsoid_volume_and_circumferences() -> None:
