@@ -142,7 +142,8 @@ def run() -> dict[str, Any]:
 def report(results: dict[str, Any]) -> list[str]:
     """Return the table lines: volume error and the circumference error at every level."""
     lines = [
-        "  object     range mm    volume mL  true mL   error %  mesh-stack %  max |dC| mm  wall s"
+        "  object     range mm    volume mL  true mL   error %  pchip %  mesh-stack %  "
+        "max |dC| mm  wall s"
     ]
     for name, _, _, _ in OBJECTS:
         row = results[name]
