@@ -173,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ADDRESS",
         help="run on a dask.distributed scheduler, e.g. tcp://host:8786 (default: local)",
     )
+    _add_report_parser(sub)
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
     tui.add_argument(
         "--device", default="sim", help="serial port path, 'sim' (default) or 'replay:DIR'"
@@ -180,6 +181,50 @@ def build_parser() -> argparse.ArgumentParser:
     tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
     _add_library_option(tui)
     return parser
+
+
+def _add_report_parser(sub: Any) -> None:
+    """Add ``lamina report``: a processed scan's clinical measurements on one page."""
+    from lamina_host.clinical import AXES, COMPARISONS, Thresholds
+
+    limits = Thresholds()
+    report = sub.add_parser(
+        "report", help="write a scan's clinical report (.pdf/.png) or its measurement table (.csv)"
+    )
+    report.add_argument("scan", type=int, help="scan id (see lamina scans)")
+    report.add_argument("-o", "--out", required=True, type=Path, help="new .pdf, .png or .csv")
+    report.add_argument("--csv", type=Path, help="also write the measurement table to this CSV")
+    report.add_argument("--compare", type=int, metavar="SCAN", help="the scan to compare with")
+    report.add_argument(
+        "--compare-as",
+        choices=COMPARISONS,
+        default=COMPARISONS[0],
+        help="limbs: excess over the other limb (default); visits: change from a baseline",
+    )
+    report.add_argument(
+        "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
+    )
+    report.add_argument(
+        "--landmark",
+        default="distal",
+        help="level 0: distal (default, the narrower end), bottom, top or a height in mm",
+    )
+    report.add_argument(
+        "--limb-axis", choices=AXES, default=AXES[0], help="what distances are measured along"
+    )
+    for name, default, what in (
+        ("difference-ml", limits.limb_difference_ml, "inter-limb volume difference in mL"),
+        ("difference-percent", limits.limb_difference_percent, "inter-limb difference in %%"),
+        ("circumference-mm", limits.circumference_mm, "circumference difference in mm"),
+        ("change-percent", limits.change_percent, "change from baseline in %%"),
+    ):
+        report.add_argument(
+            f"--flag-{name}",
+            type=float,
+            default=default,
+            help=f"flag from this {what} (default {default:g})",
+        )
+    _add_library_option(report)
 
 
 def _add_processing_options(parser: argparse.ArgumentParser) -> None:
@@ -548,9 +593,43 @@ def tui(args: argparse.Namespace) -> int:
     return 0
 
 
+def clinical_report(args: argparse.Namespace) -> int:
+    """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
+    from lamina_host.clinical import Thresholds, parse_landmark
+    from lamina_host.clinical_report import MeasureRequest, build_report_data, write_report
+
+    limits: tuple[float, ...] = (args.flag_difference_ml, args.flag_difference_percent)
+    limits += (args.flag_circumference_mm, args.flag_change_percent)
+    if not all(math.isfinite(v) and v >= 0 for v in limits):
+        raise UsageError("the --flag-... thresholds must be numbers of at least 0")
+    if not (math.isfinite(args.spacing_mm) and 1.0 <= args.spacing_mm <= 1000.0):
+        raise UsageError(f"--spacing-mm {args.spacing_mm} must be between 1 and 1000 mm")
+    outputs = [args.out] + ([args.csv] if args.csv else [])
+    for path in outputs:
+        if path.suffix.lower() not in (".pdf", ".png", ".csv"):
+            raise UsageError(f"cannot write {path.name}: name the file .pdf, .png or .csv")
+        if path.exists() or path.is_symlink():
+            raise UsageError(f"{path} already exists: choose a new file name")
+    request = MeasureRequest(
+        args.spacing_mm, parse_landmark(args.landmark), args.limb_axis, Thresholds(*limits)
+    )
+    with _open_library(args.library) as library:
+        data = build_report_data(library, args.scan, request, args.compare, args.compare_as)
+    for path in outputs:
+        print(f"wrote {write_report(path, data)}")
+    for flag in data.comparison.flags if data.comparison else ():
+        print(f"flag: {flag}")
+    return 0
+
+
 COMMANDS = {
-    "scan": scan, "scans": list_scans, "export": export, "batch": batch, "tui": tui,
-}  # fmt: skip
+    "scan": scan,
+    "scans": list_scans,
+    "export": export,
+    "report": clinical_report,
+    "batch": batch,
+    "tui": tui,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -19,6 +19,7 @@ contour can be produced at any height and all contours share one parameterisatio
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator, make_smoothing_spline
@@ -69,6 +70,28 @@ class EllipticFourier:
         x = self.a0 + a @ cos + b @ sin
         y = self.c0 + c @ cos + d @ sin
         return np.stack([x, y], axis=1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form: DC terms and the (N, 4) coefficient rows."""
+        return {"a0": self.a0, "c0": self.c0, "coeffs": self.coeffs.tolist()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> EllipticFourier:
+        """Rebuild a series from :meth:`to_dict`'s form.
+
+        Raises:
+            CalibrationError: the form is not a finite series of at least one harmonic.
+        """
+        try:
+            coeffs = np.asarray(data["coeffs"], dtype=float).reshape(-1, 4)
+            a0, c0 = float(data["a0"]), float(data["c0"])
+        except (KeyError, TypeError, ValueError):
+            raise CalibrationError(
+                "a stored EFD section is damaged; process the scan again"
+            ) from None
+        if len(coeffs) == 0 or not np.isfinite(coeffs).all() or not np.isfinite([a0, c0]).all():
+            raise CalibrationError("a stored EFD section is damaged; process the scan again")
+        return cls(a0, c0, coeffs)
 
 
 def _clean_closed(contour: np.ndarray) -> np.ndarray:

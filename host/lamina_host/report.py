@@ -84,6 +84,7 @@ def build_report(
                 "harmonics": s.harmonics,
                 "perimeter_mm": perimeter(s.contour),
                 "area_mm2": polygon_area(s.contour),
+                "efd": s.efd.to_dict(),
                 "status": s.status,
                 "coverage": s.coverage.to_dict() if s.coverage is not None else None,
                 "estimated_outline_points": int(s.estimated.sum())

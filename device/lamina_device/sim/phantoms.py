@@ -1,4 +1,4 @@
-"""Anatomy-like test objects built by code: hand, foot, bust, bone, ring and stump.
+"""Anatomy-like test objects built by code: hand, foot, bust, bone, ring, stump and arm.
 
 Each phantom is a small closed triangle mesh (a few thousand triangles) in the object
 frame, sized for the thesis rig (20-30 mm across, sections from z = 0 up to ~20 mm,
@@ -13,7 +13,8 @@ limb``). What each one makes hard for the scanner:
 - ``bone``: a shaft flaring into two condyles with a notch between them (a concave
   waist in every section) and rounded ends;
 - ``ring``: an upright torus: two outlines per section, each shadowing the other;
-- ``stump``: a tapered residual limb with a rounded distal end (the stripe grazes it).
+- ``stump``: a tapered residual limb with a rounded distal end (the stripe grazes it);
+- ``arm``: a tapered, oval forearm with a muscle belly (limb measurements at scale 5).
 
 Parts are built as lofts of closed outlines (rings of vertices joined by strips), and
 parts of one phantom touch but do not overlap (the hand's fingers stand on the palm's
@@ -221,7 +222,24 @@ def _stump() -> np.ndarray:
     return _loft(z, s, radius)
 
 
+def _arm() -> np.ndarray:
+    """A forearm (wrist 11 -> elbow 17 mm across, z -5..20): tapered, oval, a muscle belly.
+
+    Scaled five times (``arm:scale=5`` on ``--rig limb``) it is an adult forearm: about
+    170 mm round at the wrist and 270 mm below the elbow, flatter at the wrist.
+    """
+
+    def radius(phi: np.ndarray, z: float) -> np.ndarray:
+        u = (z + 5.0) / 25.0
+        mean = 5.4 + 2.6 * u + 0.9 * _gauss(z, 14.0, 4.0)
+        return mean * (1.0 + (0.14 - 0.08 * u) * np.cos(2.0 * phi) + 0.015 * np.sin(3.0 * phi))
+
+    z, s = _straight(-5.0, 20.0)
+    return _loft(z, s, radius)
+
+
 _BUILDERS: dict[str, Callable[[], np.ndarray]] = {
+    "arm": _arm,
     "hand": _hand,
     "foot": _foot,
     "bust": _bust,

@@ -79,6 +79,7 @@ class ResultsScreen(LaminaScreen):
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("p", "process", "Process"),
         Binding("e", "export", "Export"),
+        Binding("m", "clinical", "Measure", show=False),
         Binding("escape", "leave_field", "Leave field", show=False),
     ]
 
@@ -109,6 +110,21 @@ class ResultsScreen(LaminaScreen):
         """Set up the table columns and the empty profile."""
         self.query_one("#sections", DataTable).add_columns(*COLUMNS)
         self._draw_profile(None)
+
+    def action_clinical(self) -> None:
+        """Open the clinical measurements (lamina_host.tui.clinical_view) of the results."""
+        from lamina_host.clinical import sections_from_reconstruction
+        from lamina_host.tui.clinical_view import ClinicalView
+
+        results = self.session.results
+        if results is None:
+            self.say("process a scan first (p), then measure it (m)", error=True)
+            return
+        row = self.query_one("#sections", DataTable).cursor_row
+        picked = results.rows[row].z_mm if 0 <= row < len(results.rows) else None
+        self.app.push_screen(
+            ClinicalView(sections_from_reconstruction(results.reconstruction), picked)
+        )
 
     def action_leave_field(self) -> None:
         """Leave the text field so the screen's keys work again."""

@@ -1,0 +1,243 @@
+"""Clinical measurements against exact formulas: cylinder, cone frustum, ellipsoid."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.special import ellipe
+
+from lamina_host.clinical import (
+    ClinicalError,
+    Landmark,
+    LimbSection,
+    Thresholds,
+    compare,
+    fit_axis,
+    frustum_volume_mm3,
+    history,
+    measure_limb,
+    parse_landmark,
+    sections_from_reconstruction,
+    sections_from_report,
+    stack_volume_mm3,
+)
+from lamina_host.efd import efd_fit
+from lamina_host.mesh import signed_volume, topology, tube_mesh
+from lamina_host.pipeline import Section, mesh_contours
+
+
+def ellipse_section(
+    z: float, a: float, b: float, centre: tuple[float, float] = (0.0, 0.0), status="measured"
+) -> LimbSection:
+    """A section fitted by EFD from a densely sampled ellipse (as the pipeline does)."""
+    t = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    pts = np.column_stack([centre[0] + a * np.cos(t), centre[1] + b * np.sin(t)])
+    return LimbSection(z, efd_fit(pts, 20), status)
+
+
+def cone(r0: float, r1: float, z1: float, pitch: float, **kw) -> list[LimbSection]:
+    """Circular sections of a cone frustum from radius r0 at z=0 to r1 at z1."""
+    zs = np.arange(0.0, z1 + 1e-9, pitch)
+    return [ellipse_section(z, *(2 * [r0 + (r1 - r0) * z / z1]), **kw) for z in zs]
+
+
+def test_cylinder_circumferences_and_volumes() -> None:
+    """A 120 mm cylinder 300 mm long: 2 pi r at every 40 mm level, pi r^2 h volumes."""
+    r = 60.0
+    m = measure_limb(cone(r, r, 300.0, 7.5), spacing_mm=40.0)
+    assert [lv.offset_mm for lv in m.levels] == [40.0 * k for k in range(8)]
+    for lv in m.levels:
+        assert lv.circumference_mm == pytest.approx(2 * np.pi * r, rel=1e-5)
+        assert lv.source == "measured"
+    assert m.volume_mm3 == pytest.approx(np.pi * r * r * 300.0, rel=1e-4)
+    assert m.levels_volume_mm3 == pytest.approx(np.pi * r * r * 280.0, rel=1e-4)
+    assert m.frustum_volume_mm3 == pytest.approx(np.pi * r * r * 280.0, rel=1e-4)
+    for seg in m.segments:
+        assert seg.volume_mm3 == pytest.approx(np.pi * r * r * 40.0, rel=1e-4)
+
+
+def test_frustum_formula_is_a_truncated_cone() -> None:
+    """V = h (C1^2 + C1 C2 + C2^2) / (12 pi) equals pi h (r1^2 + r1 r2 + r2^2) / 3."""
+    r1, r2, h = 30.0, 45.0, 40.0
+    exact = np.pi * h * (r1 * r1 + r1 * r2 + r2 * r2) / 3.0
+    assert frustum_volume_mm3(2 * np.pi * r1, 2 * np.pi * r2, h) == pytest.approx(exact)
+    assert frustum_volume_mm3(2 * np.pi * r1, 2 * np.pi * r1, h) == pytest.approx(
+        np.pi * r1 * r1 * h
+    )
+
+
+def test_cone_frustum_levels_interpolate_between_sections() -> None:
+    """A cone measured at 40 mm from its narrow end: levels between sections are exact."""
+    r0, r1, length = 30.0, 50.0, 250.0
+    m = measure_limb(cone(r0, r1, length, 9.0), spacing_mm=40.0)  # sections miss the levels
+    assert m.landmark_z_mm == 0.0  # the narrower end is the distal one
+    for lv in m.levels:
+        radius = r0 + (r1 - r0) * lv.z_mm / length
+        assert lv.circumference_mm == pytest.approx(2 * np.pi * radius, rel=1e-5)
+    top = m.coverage_mm[1]
+    r_top = r0 + (r1 - r0) * top / length
+    exact = np.pi * top * (r0 * r0 + r0 * r_top + r_top * r_top) / 3.0
+    assert m.volume_mm3 == pytest.approx(exact, rel=1e-4)
+    for seg in m.segments:
+        ra = r0 + (r1 - r0) * seg.offset_lo_mm / length
+        rb = r0 + (r1 - r0) * seg.offset_hi_mm / length
+        truth = np.pi * 40.0 * (ra * ra + ra * rb + rb * rb) / 3.0
+        assert seg.volume_mm3 == pytest.approx(truth, rel=1e-4)
+        assert seg.frustum_mm3 == pytest.approx(truth, rel=1e-4)
+
+
+def test_distal_end_at_the_top_runs_levels_downwards() -> None:
+    """A limb narrowing upwards has its distal end on top; offsets grow downwards."""
+    m = measure_limb(cone(50.0, 30.0, 200.0, 10.0), spacing_mm=80.0)
+    assert [lv.z_mm for lv in m.levels] == pytest.approx([200.0, 120.0, 40.0])
+    assert m.levels[0].circumference_mm == pytest.approx(2 * np.pi * 30.0, rel=1e-5)
+    # Named ends: levels run from the bottom upwards and from the top downwards.
+    bottom = measure_limb(cone(50.0, 30.0, 200.0, 10.0), 80.0, Landmark("bottom"))
+    assert [lv.z_mm for lv in bottom.levels] == pytest.approx([0.0, 80.0, 160.0])
+    top = measure_limb(cone(30.0, 50.0, 200.0, 10.0), 80.0, Landmark("top"))
+    assert [lv.z_mm for lv in top.levels] == pytest.approx([200.0, 120.0, 40.0])
+
+
+def test_ellipsoid_volume_and_circumferences() -> None:
+    """An ellipsoid (a, b, c) = (40, 30, 150) cut at |z| <= 0.9 c, sections every 2 mm."""
+    a, b, c = 40.0, 30.0, 150.0
+    zs = np.arange(-135.0, 135.0 + 1e-9, 2.0)
+    scale = np.sqrt(1 - (zs / c) ** 2)
+    m = measure_limb(
+        [ellipse_section(z, a * s, b * s) for z, s in zip(zs, scale, strict=True)],
+        spacing_mm=40.0,
+        landmark=Landmark("height", 0.0),
+    )
+    exact = np.pi * a * b * (2 * 135.0 - 2 * 135.0**3 / (3 * c * c))
+    assert m.volume_mm3 == pytest.approx(exact, rel=2e-4)
+    assert [lv.offset_mm for lv in m.levels] == [-120.0, -80.0, -40.0, 0.0, 40.0, 80.0, 120.0]
+    for lv in m.levels:
+        s = math.sqrt(1 - (lv.z_mm / c) ** 2)
+        e2 = 1 - (b / a) ** 2
+        truth = 4 * a * s * ellipe(e2)  # exact ellipse perimeter
+        assert lv.circumference_mm == pytest.approx(truth, rel=3e-4)
+
+
+def test_contour_stack_volume_agrees_with_the_watertight_mesh() -> None:
+    """The tube mesh the pipeline builds encloses the same volume as the stack integral."""
+    sections = [
+        ellipse_section(z, 40 + 0.1 * z, 30 + 0.05 * z, (0.02 * z, -0.01 * z))
+        for z in np.arange(0.0, 200.1, 10.0)
+    ]
+    m = measure_limb(sections)
+    vertices, faces = tube_mesh(m.stack.sample(2000), m.stack.z_mm)
+    assert signed_volume(vertices, faces) == pytest.approx(m.volume_mm3, rel=1e-5)
+    # The pipeline's own mesh (500 samples per contour, as the scans are meshed).
+    built = [
+        Section(k, s.z_mm, 1, s.efd.evaluate(500), s.efd, s.efd.evaluate(500))
+        for k, s in enumerate(sections)
+    ]
+    assert sections_from_reconstruction(SimpleNamespace(sections=built))[3].z_mm == 30.0
+    vertices, faces = mesh_contours(built, 500, "linear")
+    assert topology(vertices, faces)["watertight"]
+    assert signed_volume(vertices, faces) == pytest.approx(m.volume_mm3, rel=1e-4)
+
+
+def test_levels_never_extrapolate_and_landmarks_outside_are_refused() -> None:
+    """Levels stop inside the scanned range; a landmark outside it is an error."""
+    m = measure_limb(cone(40.0, 40.0, 100.0, 10.0), spacing_mm=30.0)
+    assert [lv.offset_mm for lv in m.levels] == [0.0, 30.0, 60.0, 90.0]
+    assert max(lv.z_mm for lv in m.levels) <= 100.0
+    with pytest.raises(ClinicalError, match="outside the measured range"):
+        measure_limb(cone(40.0, 40.0, 100.0, 10.0), landmark=Landmark("height", 120.0))
+    with pytest.raises(ClinicalError, match="outside the measured range"):
+        m.outline(101.0)
+    with pytest.raises(ClinicalError, match="spacing"):
+        measure_limb(cone(40.0, 40.0, 100.0, 10.0), spacing_mm=0.0)
+
+
+def test_estimated_and_open_sections_are_said_per_level() -> None:
+    """Levels resting on an estimated outline or across an open one are flagged."""
+    sections = cone(40.0, 40.0, 100.0, 10.0)
+    sections[3] = ellipse_section(30.0, 40.0, 40.0, status="bridged")
+    sections[6] = ellipse_section(60.0, 40.0, 40.0, status="open")
+    m = measure_limb(sections, spacing_mm=20.0)
+    by_offset = {lv.offset_mm: lv for lv in m.levels}
+    assert by_offset[0.0].source == "measured"
+    assert by_offset[20.0].source == "measured"
+    assert by_offset[40.0].source == "measured"
+    assert by_offset[60.0].source == "estimated" and "open" in by_offset[60.0].note
+    assert any("open section" in n for n in m.notes)
+    m2 = measure_limb(sections, spacing_mm=30.0)
+    assert {lv.offset_mm: lv.source for lv in m2.levels}[30.0] == "estimated"
+    assert "bridged" in m2.levels[1].note
+
+
+def test_centreline_axis_measures_perpendicular_to_a_tilted_limb() -> None:
+    """A cylinder tilted 20 deg: horizontal cuts are ellipses, the tape sees 2 pi r."""
+    r, tilt = 50.0, math.radians(20.0)
+    zs = np.arange(0.0, 200.1, 5.0)
+    # A cylinder of radius r along (sin t, 0, cos t): horizontal cut = ellipse r/cos t by r.
+    sections = [ellipse_section(z, r / math.cos(tilt), r, (z * math.tan(tilt), 0.0)) for z in zs]
+    axis = fit_axis(sections, "centreline")
+    assert axis.tilt_deg == pytest.approx(20.0, abs=1e-3)
+    m = measure_limb(sections, spacing_mm=40.0, axis="centreline")
+    for lv in m.levels:
+        assert lv.circumference_mm == pytest.approx(2 * np.pi * r, rel=1e-4)
+    assert m.levels[1].offset_mm == 40.0
+    assert m.levels[1].z_mm == pytest.approx(40.0 * math.cos(tilt))
+    assert m.volume_mm3 == pytest.approx(np.pi * r * r * 200.0 / math.cos(tilt), rel=1e-4)
+
+
+def test_comparison_flags_follow_the_thresholds() -> None:
+    """Left against right limb: circumference and volume differences cross the thresholds."""
+    right = measure_limb(cone(40.0, 50.0, 300.0, 10.0))
+    left = measure_limb(cone(40.0, 50.0, 300.0, 10.0))
+    same = compare(left, right)
+    assert same.flags == () and same.difference_ml == pytest.approx(0.0, abs=1e-6)
+    swollen = measure_limb(cone(43.5, 53.5, 300.0, 10.0))  # +22 mm circumference
+    c = compare(swollen, right, "limbs")
+    r_a = np.array([43.5, 53.5 - 10.0 / 300.0 * 20.0])  # at offsets 0 and 280
+    assert c.levels[0].difference_mm == pytest.approx(2 * np.pi * 3.5, rel=1e-4)
+    assert all(d.flagged for d in c.levels)
+    expected = (
+        np.pi * 280.0 * (r_a[0] ** 2 + r_a[0] * r_a[1] + r_a[1] ** 2) / 3.0
+        - np.pi * 280.0 * (40.0**2 + 40.0 * (r_a[1] - 3.5) + (r_a[1] - 3.5) ** 2) / 3.0
+    )
+    assert c.difference_ml == pytest.approx(expected / 1000.0, rel=1e-3)
+    assert any("mL" in f for f in c.flags) and any("%" in f for f in c.flags)
+    relaxed = compare(
+        swollen, right, "limbs", Thresholds(limb_difference_ml=1e6, limb_difference_percent=90)
+    )
+    assert not any("volume" in f for f in relaxed.flags)
+    # A visit 2 % above its baseline is below the 3 % change threshold; 4 % is above.
+    small = measure_limb(cone(40.0 * 1.01, 50.0 * 1.01, 300.0, 10.0))
+    big = measure_limb(cone(40.0 * 1.02, 50.0 * 1.02, 300.0, 10.0))
+    assert compare(small, right, "visits").difference_percent == pytest.approx(2.01, rel=1e-3)
+    assert compare(small, right, "visits").flags == ()
+    assert any("change" in f for f in compare(big, right, "visits").flags)
+
+
+def test_history_orders_visits_and_measures_change_from_baseline() -> None:
+    """Visits come out in time order with the change from the first."""
+    base = measure_limb(cone(40.0, 50.0, 300.0, 10.0))
+    later = measure_limb(cone(40.0 * 1.02, 50.0 * 1.02, 300.0, 10.0))
+    visits = history([(7, "2026-03-01T10:00:00", later), (3, "2026-01-05T09:00:00", base)])
+    assert [v.scan_id for v in visits] == [3, 7]
+    assert visits[0].change_ml == 0.0
+    assert visits[1].change_percent == pytest.approx(100 * (1.02**2 - 1), rel=1e-4)
+    assert visits[1].flags
+
+
+def test_landmark_parsing_and_reports_without_efd() -> None:
+    """Landmarks by name or height; a report without EFD coefficients is refused."""
+    assert parse_landmark("distal") == Landmark("distal")
+    assert parse_landmark("z=120") == Landmark("height", 120.0)
+    assert parse_landmark(" 85.5 ") == Landmark("height", 85.5)
+    with pytest.raises(ClinicalError, match="landmark"):
+        parse_landmark("elbow")
+    with pytest.raises(ClinicalError, match="process it again"):
+        sections_from_report({"sections": [{"z_mm": 0.0, "part": 0}]}, 4)
+    section = cone(40.0, 40.0, 10.0, 10.0)[0]
+    stored = {"sections": [{"z_mm": 0.0, "part": 0, "efd": section.efd.to_dict()}]}
+    (back,) = sections_from_report(stored)
+    assert np.allclose(back.efd.coeffs, section.efd.coeffs) and back.status == "measured"
+    assert stack_volume_mm3(measure_limb([back]).stack, 0.0, 0.0) == 0.0

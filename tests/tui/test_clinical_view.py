@@ -1,0 +1,50 @@
+"""The clinical view on the Results screen (key m), driven by Textual's Pilot."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from drive import wait_for
+from textual.widgets import DataTable, Input, Static
+
+from lamina_host.tui.app import LaminaApp
+from lamina_host.tui.clinical_view import ClinicalView
+
+DIAMETER_MM = 19.05
+"""The simulated cylinder of the scanned library (see conftest)."""
+
+
+async def test_measure_key_shows_circumferences_of_the_processed_scan(
+    scanned_library: Path,
+) -> None:
+    """Open the library's scan, press m: levels at the cylinder's true circumference."""
+    app = LaminaApp("sim", scanned_library)
+    async with app.run_test(size=(100, 30)) as pilot:
+        await pilot.press("f7")
+        table = app.screen.query_one("#scans", DataTable)
+        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await pilot.press("o")
+        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        await pilot.pause(0.2)
+        await pilot.press("m")
+        await wait_for(pilot, lambda: isinstance(app.screen, ClinicalView), "the clinical view")
+        view = app.screen
+        assert isinstance(view, ClinicalView) and view.measurement is not None
+        levels = view.query_one("#levels", DataTable)
+        assert levels.row_count == len(view.measurement.levels) >= 1
+        for level in view.measurement.levels:
+            assert level.circumference_mm == pytest.approx(math.pi * DIAMETER_MM, abs=0.1)
+        # A landmark outside the scan is refused in one line; the table is kept.
+        view.query_one("#landmark", Input).value = "500"
+        view.set_focus(view.query_one("#landmark", Input))
+        await pilot.press("enter")
+        summary = str(view.query_one("#clinical-summary", Static).render())
+        assert "outside the measured range" in summary
+        # k puts the landmark at the section picked on Results (row 0: z = 0).
+        await pilot.press("k")
+        assert view.query_one("#landmark", Input).value == "0"
+        assert view.measurement.landmark_z_mm == 0.0
+        await pilot.press("escape")
+        await wait_for(pilot, lambda: not isinstance(app.screen, ClinicalView), "closing")
