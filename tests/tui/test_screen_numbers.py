@@ -67,7 +67,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         table = app.screen.query_one("#sections", DataTable)
         shown = [[str(c) for c in table.get_row_at(i)] for i in range(table.row_count)]
         expected = [
-            [str(r.index), f"{r.z_mm:.2f}", str(r.points), f"{r.perimeter_mm:.2f}",
+            [str(r.index), f"{r.z_mm:.2f}", str(r.points), f"{r.coverage_percent:.0f}",
+             r.status, f"{r.perimeter_mm:.2f}",
              f"{r.area_mm2:.1f}", f"{r.roundness:.4f}", str(r.harmonics)]
             for r in results.rows
         ]  # fmt: skip

@@ -81,6 +81,10 @@ class SectionRow:
     area_mm2: float
     roundness: float
     harmonics: int
+    coverage_percent: float = 100.0
+    """Share of the circumference the views saw (``lamina_host.coverage``)."""
+    status: str = "measured"
+    """How the outline was closed: measured, bridged, interpolated or open."""
 
 
 @dataclass
@@ -113,6 +117,8 @@ def section_rows(result: Reconstruction) -> list[SectionRow]:
             polygon_area(s.contour),
             roundness(s.contour),
             s.harmonics,
+            100.0 * (s.coverage.fraction if s.coverage is not None else 1.0),
+            s.status,
         )
         for s in result.sections
     ]

@@ -14,9 +14,9 @@ from textual_plotext import PlotextPlot
 
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
-from lamina_host.pipeline import Section
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
+from lamina_host.workflow.results import SectionRow
 
 COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
@@ -25,10 +25,9 @@ closed by EFD), interpolated (a wide gap filled from the neighbouring sections) 
 (not closed, not meshed). Bridged and interpolated stretches are estimated, not measured."""
 
 
-def coverage_cells(section: Section) -> tuple[str, str]:
+def coverage_cells(row: SectionRow) -> tuple[str, str]:
     """Return the cover % and closed cells of one outline."""
-    cover = section.coverage.fraction if section.coverage is not None else 1.0
-    return f"{100.0 * cover:.0f}", section.status
+    return f"{row.coverage_percent:.0f}", row.status
 
 
 def parse_harmonics(text: str) -> tuple[int | None, str | None]:
@@ -199,13 +198,12 @@ class ResultsScreen(LaminaScreen):
         results = self.session.results
         table = self.query_one("#sections", DataTable)
         table.clear()
-        sections = results.reconstruction.sections if results else []
-        for r, section in zip(results.rows if results else [], sections, strict=True):
+        for r in results.rows if results else []:
             table.add_row(
                 str(r.index),
                 f"{r.z_mm:.2f}",
                 str(r.points),
-                *coverage_cells(section),
+                *coverage_cells(r),
                 f"{r.perimeter_mm:.2f}",
                 f"{r.area_mm2:.1f}",
                 f"{r.roundness:.4f}",
