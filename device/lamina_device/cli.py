@@ -21,12 +21,12 @@ import serial
 
 from lamina_device import __version__
 from lamina_device.acquisition import Progress, acquire, grab_grid
-from lamina_device.camera import CameraError
 from lamina_device.config import check_config
-from lamina_device.hardware import Hardware, HardwareError, open_hardware
+from lamina_device.hardware import Hardware, open_hardware
 from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer, PortLost
 from lamina_shared.capture import CaptureError, CaptureWriter
+from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import ArgsError, Problems, check_plan
@@ -234,7 +234,7 @@ def record(args: argparse.Namespace, hardware: Hardware) -> int:
             _progress_printer("object", plan),
             sink=writer.add_view,
         )
-    except (CameraError, ValueError, OSError) as exc:
+    except (LaminaError, OSError) as exc:
         print(
             f"lamina-device: recording stopped: {exc} (the frames recorded so far stay in "
             f"{args.out}, without a manifest as the capture is incomplete)",
@@ -266,7 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"  - {problem}", file=sys.stderr)
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except HardwareError as exc:
+    except LaminaError as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:

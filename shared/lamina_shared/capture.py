@@ -39,7 +39,7 @@ _COLOUR_TYPES = {0: "grayscale", 2: "RGB"}
 _OTHER_COLOUR_TYPES = {3: "palette", 4: "grayscale with alpha", 6: "RGB with alpha"}
 
 
-class FrameError(ValueError):
+class FrameError(LaminaError, ValueError):
     """A frame file that cannot be decoded as the capture format says."""
 
 
@@ -455,7 +455,9 @@ class CaptureWriter:
         import cv2
 
         if image.shape[::-1] != self.image_size:
-            raise ValueError(f"frame {rel} is {image.shape[::-1]}, expected {self.image_size}")
+            raise CaptureError(
+                self.root, [f"frame {rel} is {image.shape[::-1]}, expected {self.image_size}"]
+            )
         path = self.root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(path), image):
