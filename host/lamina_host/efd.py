@@ -327,21 +327,19 @@ def harmonics_noise(contour: np.ndarray, parameter: str = "smoothed") -> int:
 
 
 def _last_of_first_run(signal: np.ndarray) -> int:
-    """Return the highest signal harmonic that is not a lone one (1 if there is none).
+    """Return the last harmonic of the run that starts the spectrum (1 if there is none).
 
-    An outline's harmonics come in runs (a smooth shape's decay, a partly seen arc's
-    ringing); a lone harmonic above 8 with no other signal harmonic within two of it is
-    a periodic artefact of the scan (the seams between a section's views repeat once per
-    view, so they fall near multiples of the view count), not shape.
+    An outline's harmonics decay together, so its signal harmonics lie close to each
+    other; a lone harmonic far above the rest is a periodic artefact of the scan (the
+    seams between a section's views repeat once per view, so they fall near multiples
+    of the view count), not shape. A gap wider than ``max(8, n)`` after harmonic ``n``
+    ends the run.
     """
     if len(signal) == 0:
         return 1
-    close = np.diff(signal) <= 2
-    paired = np.zeros(len(signal), dtype=bool)
-    paired[1:] |= close
-    paired[:-1] |= close
-    kept = signal[(signal <= 8) | paired]
-    return int(kept[-1]) if len(kept) else 1
+    gaps = np.diff(signal)
+    breaks = np.flatnonzero(gaps > np.maximum(8, signal[:-1]))
+    return int(signal[breaks[0]] if len(breaks) else signal[-1])
 
 
 def harmonics_power(
