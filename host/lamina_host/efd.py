@@ -323,23 +323,7 @@ def harmonics_noise(contour: np.ndarray, parameter: str = "smoothed") -> int:
     windows = np.where(cols[None, :] < (n + 8)[:, None], power[idx], np.nan)
     floor = np.nanmedian(windows, axis=1) / _CHI2_4_MEDIAN
     signal = n[power[:top] > NOISE_POWER_FACTOR * floor]
-    return int(max(1, min(cap, _last_of_first_run(signal))))
-
-
-def _last_of_first_run(signal: np.ndarray) -> int:
-    """Return the last harmonic of the run that starts the spectrum (1 if there is none).
-
-    An outline's harmonics decay together, so its signal harmonics lie close to each
-    other; a lone harmonic far above the rest is a periodic artefact of the scan (the
-    seams between a section's views repeat once per view, so they fall near multiples
-    of the view count), not shape. A gap wider than ``max(8, n)`` after harmonic ``n``
-    ends the run.
-    """
-    if len(signal) == 0:
-        return 1
-    gaps = np.diff(signal)
-    breaks = np.flatnonzero(gaps > np.maximum(8, signal[:-1]))
-    return int(signal[breaks[0]] if len(breaks) else signal[-1])
+    return int(max(1, min(cap, signal[-1] if len(signal) else 1)))
 
 
 def harmonics_power(
