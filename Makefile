@@ -12,7 +12,7 @@ $(STAMP): shared/pyproject.toml device/pyproject.toml host/pyproject.toml requir
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	# One command, so pip resolves lamina-shared from this tree rather than a registry.
-	$(BIN)/python -m pip install --quiet -e shared -e device -e host -r requirements-dev.txt
+	$(BIN)/python -m pip install --quiet -e shared -e device -e "host[meshlab]" -r requirements-dev.txt
 	touch $@
 
 install: $(STAMP)

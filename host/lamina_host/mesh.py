@@ -4,17 +4,42 @@
 same parameter values into a watertight, manifold tube whose ends are the end contours
 themselves, triangulated;
 ``"ball-pivoting"`` (the thesis' choice, 7.2.1) and ``"poisson"`` (screened Poisson)
-reconstruct from the points through MeshLab.
+reconstruct from the points through MeshLab (pymeshlab, the optional extra
+``lamina-host[meshlab]``). Everything else here (the contour mesh, topology, PLY/STL/OBJ)
+is numpy only, so the host runs where pymeshlab cannot be installed.
 """
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from lamina_host.calibration import CalibrationError
 from lamina_host.measure import signed_area
+from lamina_shared.errors import LaminaError
+
+MESHLAB_EXTRA = "pip install 'lamina-host[meshlab]'"
+"""The command that installs pymeshlab for ball pivoting and Poisson."""
+
+
+class MeshlabMissing(LaminaError):
+    """Ball pivoting or Poisson was asked for where pymeshlab cannot be imported."""
+
+
+def meshlab(method: str) -> ModuleType:
+    """Return the pymeshlab module for ``method``, or raise MeshlabMissing naming the extra."""
+    try:
+        return importlib.import_module("pymeshlab")
+    except ImportError as exc:  # absent, or present without its GL/font libraries
+        raise MeshlabMissing(
+            f"--mesh {method} needs pymeshlab, which cannot be imported ({exc}); "
+            f"install it with {MESHLAB_EXTRA} or use --mesh contours"
+        ) from None
 
 
 def contour_normals(contour: np.ndarray) -> np.ndarray:
@@ -69,8 +94,7 @@ def ball_pivoting(
     Returns:
         (vertices (V, 3) float64, faces (F, 3) int64).
     """
-    import pymeshlab  # deferred: heavy import, only needed for meshing
-
+    pymeshlab = meshlab("ball-pivoting")  # deferred: heavy import, only needed here
     pts = _points3(points)
     if len(pts) < 3:
         raise CalibrationError(f"meshing needs at least 3 points, got {len(pts)}")
@@ -202,8 +226,7 @@ def screened_poisson(
     Returns:
         (vertices (V, 3), faces (F, 3)).
     """
-    import pymeshlab
-
+    pymeshlab = meshlab("poisson")
     pts = _points3(points)
     if len(pts) < 3:
         raise CalibrationError(f"meshing needs at least 3 points, got {len(pts)}")
@@ -224,34 +247,73 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 
 def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool | float]:
-    """Return MeshLab's topological measures of a triangle mesh.
+    """Return the topological measures of a triangle mesh, as MeshLab defines them.
 
     Returns:
-        dict with watertight (no boundary edges), two_manifold, components, faces,
-        vertices, boundary_edges, non-manifold edge and vertex counts, genus (MeshLab
-        reports -1 when undefined), and the signed volume in mm^3.
+        dict with watertight (no boundary edges), two_manifold, components (joined by shared
+        edges), faces, vertices, boundary_edges, non-manifold edge and vertex counts, genus
+        (-1 when undefined: not two-manifold), and the signed volume in mm^3.
     """
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(
-        pymeshlab.Mesh(
-            vertex_matrix=_points3(vertices), face_matrix=np.asarray(faces, dtype=np.int32)
-        )
+    verts = _points3(vertices)
+    tris = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n_faces = len(tris)
+    # Each face's three edges (corner k to corner k+1), as sorted vertex pairs.
+    half = np.stack([tris, np.roll(tris, -1, axis=1)], axis=2).reshape(-1, 2)
+    edges, edge_of, uses = np.unique(
+        np.sort(half, axis=1), axis=0, return_inverse=True, return_counts=True
     )
-    m = ms.get_topological_measures()
+    edge_of = edge_of.reshape(-1)
+    face_of = np.repeat(np.arange(n_faces), 3)
+    components = _components(n_faces + len(edges), face_of, n_faces + edge_of, n_faces)
+    boundary = edges[uses == 1]
+    holes = _components(len(verts), boundary[:, 0], boundary[:, 1], len(verts), np.unique(boundary))
+    # MeshLab counts a non-manifold edge once per face that uses it.
+    bad_edges = int(uses[uses > 2].sum())
+    bad_vertices = _non_manifold_vertices(tris, half, edges, edge_of)
+    manifold = bad_edges == 0 and bad_vertices == 0
+    used = len(np.unique(tris))
+    genus = -(used - len(edges) + n_faces + holes - 2 * components) // 2 if manifold else -1
     return {
-        "watertight": int(m["boundary_edges"]) == 0,
-        "two_manifold": bool(m["is_mesh_two_manifold"]),
-        "components": int(m["connected_components_number"]),
-        "faces": int(m["faces_number"]),
-        "vertices": int(m["vertices_number"]),
-        "boundary_edges": int(m["boundary_edges"]),
-        "non_manifold_edges": int(m["non_two_manifold_edges"]),
-        "non_manifold_vertices": int(m["non_two_manifold_vertices"]),
-        "genus": int(m["genus"]),
-        "volume_mm3": signed_volume(vertices, faces) if len(faces) else 0.0,
+        "watertight": len(boundary) == 0,
+        "two_manifold": manifold,
+        "components": components,
+        "faces": n_faces,
+        "vertices": len(verts),
+        "boundary_edges": len(boundary),
+        "non_manifold_edges": bad_edges,
+        "non_manifold_vertices": bad_vertices,
+        "genus": genus,
+        "volume_mm3": signed_volume(verts, tris) if n_faces else 0.0,
     }
+
+
+def _components(
+    n_nodes: int, a: np.ndarray, b: np.ndarray, count_below: int, among: np.ndarray | None = None
+) -> int:
+    """Return how many connected components of the graph (a[i]-b[i] links) hold a node
+    below ``count_below`` (or, with ``among``, one of those nodes)."""
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_nodes, n_nodes))
+    labels = connected_components(graph, directed=False)[1]
+    nodes = np.arange(count_below) if among is None else among
+    return len(np.unique(labels[nodes]))
+
+
+def _non_manifold_vertices(
+    tris: np.ndarray, half: np.ndarray, edges: np.ndarray, edge_of: np.ndarray
+) -> int:
+    """Return how many vertices have their faces in more than one edge-joined fan."""
+    n_corners = tris.size
+    corner = np.arange(n_corners)
+    nxt = corner - corner % 3 + (corner % 3 + 1) % 3
+    # A corner joins the node (edge, end) of both face edges that meet at it.
+    node_from = n_corners + 2 * edge_of + (half[:, 0] != edges[edge_of, 0])
+    node_to = n_corners + 2 * edge_of + (half[:, 1] != edges[edge_of, 0])
+    a = np.concatenate([corner, nxt])
+    b = np.concatenate([node_from, node_to])
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_corners + 2 * len(edges),) * 2)
+    labels = connected_components(graph, directed=False)[1][:n_corners]
+    fans = np.unique(np.stack([tris.reshape(-1), labels], axis=1), axis=0)[:, 0]
+    return int((np.bincount(fans) > 1).sum())
 
 
 def save_ply(
@@ -341,6 +403,16 @@ def stl_bytes(vertices: np.ndarray, faces: np.ndarray, title: str = "Lamina mesh
     # The header must not start with "solid": readers would take the file for ASCII STL.
     head = title.encode("ascii", "replace")[:80].ljust(80, b" ")
     return head + np.uint32(len(tris)).tobytes() + records.tobytes()
+
+
+def obj_bytes(vertices: np.ndarray, faces: np.ndarray, title: str = "Lamina mesh") -> bytes:
+    """Return a Wavefront OBJ file of a triangle mesh: ``v`` lines in mm, 1-based ``f`` lines."""
+    verts = _points3(vertices)
+    tris = np.asarray(faces, dtype=np.int64).reshape(-1, 3) + 1
+    lines = [f"# {title}", f"# {len(verts)} vertices, {len(tris)} faces, mm"]
+    lines += [f"v {x:.6g} {y:.6g} {z:.6g}" for x, y, z in verts]
+    lines += [f"f {a} {b} {c}" for a, b, c in tris]
+    return ("\n".join(lines) + "\n").encode("ascii")
 
 
 def stl_triangles(data: bytes) -> np.ndarray:

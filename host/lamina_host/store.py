@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
-import tempfile
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -36,6 +35,7 @@ import cv2
 import numpy as np
 
 from lamina_host.files import OutputError, tighten, write_new_file
+from lamina_host.mesh import load_ply, obj_bytes, stl_bytes
 from lamina_host.workflow import (
     InputError,
     check_subject,
@@ -656,13 +656,5 @@ def _convert_mesh(ply: bytes, suffix: str) -> bytes:
     """Return a stored PLY mesh in the format ``suffix`` names (.ply, .obj or .stl)."""
     if suffix == ".ply":
         return ply
-    import pymeshlab  # deferred: heavy import, only needed for format conversion
-
-    with tempfile.TemporaryDirectory() as tmp:  # private (0700): the mesh never lies open
-        source = Path(tmp) / "mesh.ply"
-        source.write_bytes(ply)
-        meshes = pymeshlab.MeshSet()
-        meshes.load_new_mesh(str(source))
-        target = Path(tmp) / f"out{suffix}"
-        meshes.save_current_mesh(str(target))
-        return target.read_bytes()
+    vertices, faces = load_ply(ply)
+    return stl_bytes(vertices, faces) if suffix == ".stl" else obj_bytes(vertices, faces)

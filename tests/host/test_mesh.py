@@ -11,6 +11,7 @@ import pytest
 from lamina_host.mesh import (
     ball_pivoting,
     contour_normals,
+    obj_bytes,
     save_ply,
     screened_poisson,
     signed_volume,
@@ -97,3 +98,61 @@ def test_screened_poisson_closes_the_stack() -> None:
     radial = np.hypot(verts[:, 0], verts[:, 1])
     mid = (verts[:, 2] > 1.0) & (verts[:, 2] < 5.0)
     assert np.abs(radial[mid] - R).max() < 0.5
+
+
+def meshlab_topology(verts: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:
+    """Return MeshLab's own topological measures, in topology()'s keys."""
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=np.asarray(faces, np.int32)))
+    m = ms.get_topological_measures()
+    return {
+        "watertight": int(m["boundary_edges"]) == 0,
+        "two_manifold": bool(m["is_mesh_two_manifold"]),
+        "components": int(m["connected_components_number"]),
+        "faces": int(m["faces_number"]),
+        "vertices": int(m["vertices_number"]),
+        "boundary_edges": int(m["boundary_edges"]),
+        "non_manifold_edges": int(m["non_two_manifold_edges"]),
+        "non_manifold_vertices": int(m["non_two_manifold_vertices"]),
+        "genus": int(m["genus"]),
+    }
+
+
+def topology_cases() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Closed, open, two-part, pinched (shared vertex) and finned (3-face edge) meshes."""
+    rings = np.stack([ring(40)] * 5)
+    v, f = tube_mesh(rings, np.arange(5.0) * 2.0)
+    pts, nrm = stacked_cylinder()
+    both_v = np.concatenate([v, v + np.array([30.0, 0.0, 0.0])])
+    both_f = np.concatenate([f, f + len(v)])
+    pinched = both_f.copy()
+    pinched[pinched == len(v)] = 0
+    return {
+        "tube": (v, f),
+        "open tube": (v, f[:-30]),
+        "ball pivoting": ball_pivoting(pts, nrm, 2.0),
+        "two tubes": (both_v, both_f),
+        "pinched": (both_v, pinched),
+        "fin": (both_v, np.concatenate([f, [[0, 1, len(v) + 5]]])),
+    }
+
+
+@pytest.mark.parametrize("name", list(topology_cases()))
+def test_topology_matches_meshlab(name: str) -> None:
+    """The numpy topology (no pymeshlab needed) gives MeshLab's own figures."""
+    verts, faces = topology_cases()[name]
+    ours = topology(verts, faces)
+    ours.pop("volume_mm3")
+    assert ours == meshlab_topology(verts, faces)
+
+
+def test_obj_bytes_load_in_meshlab(tmp_path: Path) -> None:
+    """An OBJ written with numpy loads in MeshLab with the same vertices and faces."""
+    verts, faces = tube_mesh(np.stack([ring(40)] * 3), np.array([0.0, 2.0, 4.0]))
+    path = tmp_path / "tube.obj"
+    path.write_bytes(obj_bytes(verts, faces))
+    ms = pymeshlab.MeshSet()
+    ms.load_new_mesh(str(path))
+    m = ms.current_mesh()
+    assert np.allclose(m.vertex_matrix(), verts, atol=1e-4)
+    assert np.array_equal(m.face_matrix(), faces)

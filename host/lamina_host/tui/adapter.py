@@ -10,9 +10,9 @@ adds the library's and the file system's); anything else is a bug and is logged.
 from __future__ import annotations
 
 import sqlite3
+from contextlib import suppress
 from pathlib import Path
 
-import pymeshlab  # noqa: F401 - see below
 import serial.tools.list_ports
 
 from lamina_host.efd import HARMONIC_RULES
@@ -46,9 +46,12 @@ from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
 from lamina_shared.types import ScanPlan, Segment
 
-# pymeshlab must be first imported on the main thread: when its first import happens in a
-# worker thread (as meshing here does), the process aborts at exit with heap corruption
-# ("malloc_consolidate(): unaligned fastbin chunk detected"), seen with pymeshlab 2025.7.
+# pymeshlab (the optional extra) must be first imported on the main thread: when its first
+# import happens in a worker thread (as meshing here does), the process aborts at exit with
+# heap corruption ("malloc_consolidate(): unaligned fastbin chunk detected"), seen with
+# pymeshlab 2025.7. Without it only ball pivoting and Poisson are unavailable.
+with suppress(ImportError):
+    import pymeshlab  # noqa: F401
 
 __all__ = [
     "EXPORT_NAMES",
