@@ -23,12 +23,14 @@ from lamina_device import __version__
 from lamina_device.acquisition import Progress, acquire, grab_grid
 from lamina_device.config import check_config
 from lamina_device.hardware import Hardware, open_hardware
+from lamina_device.listen import ListeningPort, open_listener
 from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer, PortLost
 from lamina_shared.capture import CaptureError, CaptureWriter
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
+from lamina_shared.local import EndpointError, local_url
 from lamina_shared.ops import ArgsError, Problems, check_plan
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.types import ScanPlan
@@ -73,8 +75,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"lamina-device {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
     sub = parser.add_subparsers(dest="command", required=True)
-    serve = sub.add_parser("serve", help="serve a host over a serial port")
-    serve.add_argument("--port", required=True, help="serial port, e.g. /dev/ttyGS0")
+    serve = sub.add_parser("serve", help="serve a host over a serial port or a local endpoint")
+    where = serve.add_mutually_exclusive_group(required=True)
+    where.add_argument("--port", help="serial port, e.g. /dev/ttyGS0")
+    where.add_argument(
+        "--listen",
+        metavar="ENDPOINT",
+        help=f"serve a host on this machine instead: socket://HOST:PORT or local "
+        f"({local_url()}, what `lamina --device local` opens)",
+    )
     serve.add_argument("--baud", type=int, default=115200)
     _add_hardware_options(serve)
     record = sub.add_parser("record", help="record a raw capture (grid, cylinder, object)")
@@ -118,12 +127,27 @@ def _ask_operator(hardware: Hardware, what: str) -> None:
         input(f"Put the {what} on the turntable, then press Enter: ")
 
 
+def _open_port(args: argparse.Namespace) -> serial.Serial | ListeningPort:
+    """Open the serial port or the local endpoint ``serve`` was given."""
+    if args.listen is None:
+        return serial.Serial(args.port, baudrate=args.baud, timeout=0.05, exclusive=True)
+    listener = open_listener(args.listen)
+    host, port = listener.address
+    print(f"lamina-device: serving on {local_url(port, host)}", file=sys.stderr, flush=True)
+    return listener
+
+
 def serve(args: argparse.Namespace, hardware: Hardware) -> int:
-    """Serve the host on ``args.port`` until it disconnects or asks to stop."""
+    """Serve the host on ``args.port`` (or ``args.listen``) until it asks to stop."""
     try:
-        port = serial.Serial(args.port, baudrate=args.baud, timeout=0.05, exclusive=True)
+        port = _open_port(args)
+    except EndpointError as exc:
+        print(f"lamina-device: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     except (serial.SerialException, OSError) as exc:
-        print(f"lamina-device: cannot open serial port {args.port}: {exc}", file=sys.stderr)
+        what = f"serial port {args.port}" if args.listen is None else f"endpoint {args.listen}"
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        print(f"lamina-device: cannot open {what}: {reason}", file=sys.stderr)
         return EXIT_USAGE
     with port:
         try:

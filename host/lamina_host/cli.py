@@ -37,7 +37,7 @@ from lamina_host.expect import Expectation, parse_expectation
 from lamina_host.exports import export_scan
 from lamina_host.files import prepare_output_folder
 from lamina_host.link import DeviceError
-from lamina_host.mesh import MESH_METHODS
+from lamina_host.mesh import MESH_METHODS, meshlab
 from lamina_host.pipeline import ProcessOptions
 from lamina_host.store import Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
@@ -85,7 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     scan = sub.add_parser("scan", help="calibrate, scan and reconstruct one object")
     scan.add_argument(
-        "--device", required=True, help="serial port path, 'sim', or 'replay:CAPTURE_DIR'"
+        "--device",
+        required=True,
+        help="serial port path, 'local' (the device service on this machine, or "
+        "socket://HOST:PORT), 'sim', or 'replay:CAPTURE_DIR'",
     )
     scan.add_argument(
         "-o", "--out", type=Path, help="new output folder (when resuming: the scan's own)"
@@ -176,7 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_report_parser(sub)
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
     tui.add_argument(
-        "--device", default="sim", help="serial port path, 'sim' (default) or 'replay:DIR'"
+        "--device",
+        default="sim",
+        help="serial port path, 'local' (the device service on this machine, or "
+        "socket://HOST:PORT), 'sim' (default) or 'replay:DIR'",
     )
     tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
     _add_library_option(tui)
@@ -279,6 +285,8 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
         raise UsageError("--distortion needs --calibration ml")
     if options.angle_correction and options.axis != "joint":
         raise UsageError("--angle-correction needs --axis joint")
+    if options.mesh != "contours":
+        meshlab(options.mesh)  # refuse now, one line, rather than after the scan
     return options
 
 

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 import serial
 
+from lamina_host.local import is_endpoint, open_endpoint
 from lamina_host.workflow import scan_identity, spawned_source
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.errors import LaminaError
@@ -754,7 +755,8 @@ def open_device(
     rig: str = "thesis",
     on_notice: Callable[[str], object] | None = None,
 ) -> Iterator[DeviceClient]:
-    """Connect to DEVICE (a port path, ``sim`` or ``replay:DIR``) and handshake.
+    """Connect to DEVICE (a port path, ``local``, ``socket://HOST:PORT``, ``sim`` or
+    ``replay:DIR``) and handshake.
 
     ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
     ``on_notice`` hears about a slow start of a device program started here.
@@ -765,6 +767,12 @@ def open_device(
         return
     if object_spec:
         raise DeviceError("--object only applies to the simulated device (--device sim)")
+    if is_endpoint(device):
+        with open_endpoint(device, DeviceError) as port:
+            client = DeviceClient(Channel(port))
+            client.hello()
+            yield client
+        return
     if not os.path.exists(device):
         raise DeviceError(
             f"serial port {device} does not exist: connect the scanner's USB cable or name its "

@@ -59,8 +59,16 @@ class Terminal:
         subprocess.run(["tmux", "kill-session", "-t", self.name], check=False)
 
 
-def test_keys_drive_the_app_in_tmux(tmp_path: Path) -> None:
-    """Connect, calibrate and scan by keys alone in a real 80 x 24 terminal; quit cleanly."""
+@pytest.mark.parametrize("where", ["sim", "local endpoint"])
+def test_keys_drive_the_app_in_tmux(
+    where: str, tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    """Connect, calibrate and scan by keys alone in a real 80 x 24 terminal; quit cleanly.
+
+    Over the simulated device the app starts itself, and over the local endpoint of the
+    box's device service (issue 14: ``lamina tui --device local`` on the Pi).
+    """
+    device = "sim" if where == "sim" else request.getfixturevalue("device_service")
     env = {
         "PYTHONPATH": os.pathsep.join(str(REPO / p) for p in ("shared", "device", "host")),
         "TERM": "xterm-256color",
@@ -68,7 +76,7 @@ def test_keys_drive_the_app_in_tmux(tmp_path: Path) -> None:
     exports = " ".join(f"{k}={shlex.quote(v)}" for k, v in env.items())
     done = tmp_path / "exit-status"
     command = (
-        f"{exports} {shlex.quote(sys.executable)} -m lamina_host tui --device sim "
+        f"{exports} {shlex.quote(sys.executable)} -m lamina_host tui --device {device} "
         f"--library {shlex.quote(str(tmp_path / 'library.sqlite'))}; echo $? > {done}"
     )
     term = Terminal(command)

@@ -180,7 +180,9 @@ class ScanJob:
         with self._busy():
             name = (device or self.target.device).strip()
             if not name:
-                raise InputError("enter a device: a serial port path, sim, or replay:CAPTURE_DIR")
+                raise InputError(
+                    "enter a device: a serial port path, local, sim, or replay:CAPTURE_DIR"
+                )
             self.target = replace(self.target, device=name)
             self._reopen(on_notice)
             info = self._device().info

@@ -1,0 +1,141 @@
+"""The device's end of the box's local endpoint: a listening TCP socket as a byte stream.
+
+``lamina-device serve --listen 127.0.0.1:5187`` serves the host running on the same Pi
+(``lamina tui --device local``), which opens the address with pyserial's ``socket://``
+handler. :class:`ListeningPort` gives the server the part of ``serial.Serial`` its
+``Channel`` uses, and serves one host at a time: a host that goes away reads as a
+broken link once (the server puts the hardware in its safe state), then the port waits
+for the next host; a second host while one is connected is turned away at once.
+"""
+
+from __future__ import annotations
+
+import array
+import fcntl
+import logging
+import select
+import socket
+import termios
+from types import TracebackType
+
+from lamina_shared.local import is_loopback, parse_endpoint
+
+__all__ = ["ListeningPort", "open_listener"]
+
+log = logging.getLogger(__name__)
+
+
+class ListeningPort:
+    """Serve one host at a time on a listening TCP socket (pyserial's read/write shape)."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.timeout: float | None = 0.05
+        self.write_timeout: float | None = 10.0
+        self._listener = socket.create_server((host, port), backlog=1)
+        self._listener.setblocking(False)
+        self._conn: socket.socket | None = None
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """Return the (host, port) listened on (the port the system chose for port 0)."""
+        host, port = self._listener.getsockname()[:2]
+        return str(host), int(port)
+
+    @property
+    def connected(self) -> bool:
+        """Return True while a host is connected."""
+        return self._conn is not None
+
+    @property
+    def in_waiting(self) -> int:
+        """Return how many received bytes wait to be read (0 with no host)."""
+        if self._conn is None:
+            return 0
+        count = array.array("i", [0])
+        fcntl.ioctl(self._conn.fileno(), termios.FIONREAD, count)
+        return count[0]
+
+    def read(self, size: int = 1) -> bytes:
+        """Return up to ``size`` bytes, b"" after ``timeout`` with nothing to read.
+
+        Raises:
+            ConnectionError: the host closed its end (reported once; then a new host is awaited).
+        """
+        watch = [self._listener] if self._conn is None else [self._listener, self._conn]
+        ready, _, _ = select.select(watch, [], [], self.timeout)
+        if self._listener in ready:
+            self._accept()
+        if self._conn is None or self._conn not in ready:
+            return b""
+        try:
+            data = self._conn.recv(max(size, 1))
+        except OSError:
+            self._drop()
+            raise
+        if not data:
+            self._drop()
+            raise ConnectionResetError("the host closed the connection")
+        return data
+
+    def write(self, data: bytes) -> int:
+        """Send all of ``data`` to the connected host within ``write_timeout``."""
+        if self._conn is None:
+            raise ConnectionError("no host is connected")
+        try:
+            self._conn.sendall(data)
+        except OSError:
+            self._drop()
+            raise
+        return len(data)
+
+    def _accept(self) -> None:
+        try:
+            conn, peer = self._listener.accept()
+        except BlockingIOError:
+            return
+        if self._conn is not None:
+            log.warning("turned away a second host from %s: one host at a time", peer)
+            conn.close()
+            return
+        log.info("host connected from %s", peer)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.settimeout(self.write_timeout)
+        self._conn = conn
+
+    def _drop(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def close(self) -> None:
+        """Close the connection and stop listening."""
+        self._drop()
+        self._listener.close()
+
+    def __enter__(self) -> ListeningPort:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def open_listener(spec: str) -> ListeningPort:
+    """Listen on ``spec`` (``socket://HOST:PORT``, ``HOST:PORT`` or ``local``; port 0: any).
+
+    Raises:
+        EndpointError: the address is malformed.
+        OSError: the address cannot be listened on (in use, not this machine's).
+    """
+    host, port = parse_endpoint(spec, listening=True)
+    if not is_loopback(host):
+        log.warning(
+            "listening on %s: any machine that reaches it can drive the laser and motors; "
+            "use 127.0.0.1 unless the network is the box's own",
+            host,
+        )
+    return ListeningPort(host, port)
