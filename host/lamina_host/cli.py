@@ -186,6 +186,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
     _add_library_option(tui)
+    ui = sub.add_parser("serve-ui", help="serve the terminal UI to a web browser (textual-serve)")
+    ui.add_argument(
+        "--host", default="127.0.0.1", help="address to listen on (default: this machine only)"
+    )
+    ui.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    ui.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a --host other machines can reach (the UI has no login)",
+    )
+    ui.add_argument(
+        "--device", default="sim", help="what each browser session connects to, as for tui"
+    )
+    ui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
+    _add_library_option(ui)
     return parser
 
 
@@ -601,6 +616,24 @@ def tui(args: argparse.Namespace) -> int:
     return 0
 
 
+def serve_ui(args: argparse.Namespace) -> int:
+    """Run ``lamina serve-ui``: the terminal UI in a browser, until interrupted."""
+    if args.object and args.device != "sim":
+        raise UsageError("--object only applies to --device sim")
+    if not 0 < args.port < 65536:
+        raise UsageError(f"--port {args.port} must be from 1 to 65535")
+    from lamina_host.serve_ui import serve_ui as run_server  # deferred: aiohttp is heavy
+
+    try:
+        run_server(args.host, args.port, args.device, args.library, args.object, args.allow_remote)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot serve the UI on {args.host}:{args.port} ({exc.strerror or exc}): "
+            "choose another --port, or stop what uses it"
+        ) from None
+    return 0
+
+
 def clinical_report(args: argparse.Namespace) -> int:
     """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
     from lamina_host.clinical import Thresholds, parse_landmark
@@ -637,6 +670,7 @@ COMMANDS = {
     "report": clinical_report,
     "batch": batch,
     "tui": tui,
+    "serve-ui": serve_ui,
 }
 
 

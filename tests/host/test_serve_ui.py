@@ -1,0 +1,47 @@
+"""`lamina serve-ui` refusals: one line each, non-zero status (the page: tui/test_browser)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+from lamina_host.serve_ui import tui_command
+
+
+def serve_ui(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``lamina serve-ui`` in a fresh process (it must end by itself here)."""
+    return subprocess.run(
+        [sys.executable, "-m", "lamina_host", "serve-ui", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_other_binds_need_allow_remote() -> None:
+    """A bind beyond loopback without --allow-remote is refused before anything listens."""
+    done = serve_ui("--host", "0.0.0.0", "--port", "1")
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0
+    assert len(lines) == 1 and "--allow-remote" in lines[0] and "no login" in lines[0]
+
+
+def test_port_in_use_is_one_line() -> None:
+    """A taken port names itself and what to do."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = serve_ui("--port", str(port))
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0
+    assert len(lines) == 1, done.stderr
+    assert f"cannot serve the UI on 127.0.0.1:{port}" in lines[0]
+
+
+def test_each_browser_session_runs_the_tui_command() -> None:
+    """The served command is ``lamina tui`` with the device and library given."""
+    command = tui_command("local", None, None)
+    assert command.endswith("-m lamina_host tui --device local")
+    assert "--library" not in command
