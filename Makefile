@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    := out
 
-.PHONY: install demo test lint bench tui fuzz clean
+.PHONY: install demo test lint bench tui fuzz arm64-check clean
 
 $(STAMP): shared/pyproject.toml device/pyproject.toml host/pyproject.toml requirements-dev.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Lamina needs Python 3.11 or newer; run: make PYTHON=python3.11 ...")'
@@ -47,6 +47,12 @@ bench: install
 # The normal suite runs a short fuzz; this runs the same properties with many more examples.
 fuzz: install
 	LAMINA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py
+
+# The host and device on an arm64 Debian Bookworm userland under qemu (root; debootstrap and
+# qemu-user-static): installs, a short simulated scan and the device's tests. Takes long the
+# first time (the userland is cached in ~/.cache/lamina-arm64); not part of `make test`.
+arm64-check:
+	hardware/arm64-check.sh
 
 clean:
 	rm -rf $(VENV) $(OUT)

@@ -58,7 +58,7 @@ def test_bill_of_materials_stays_below_150_usd_without_the_pi():
 def test_service_starts_the_device_on_the_gadget_port_and_restarts_it():
     unit = configparser.ConfigParser(strict=False, interpolation=None)
     unit.optionxform = str
-    unit.read(HARDWARE / "lamina-device.service")
+    unit.read(HARDWARE / "systemd" / "lamina-device.service")
     command = shlex.split(unit["Service"]["ExecStart"])
     assert command[0].endswith("/lamina-device")
     assert command[1:] == ["serve", "--port", "/dev/ttyGS0", "--hardware", "pi"]
@@ -66,3 +66,33 @@ def test_service_starts_the_device_on_the_gadget_port_and_restarts_it():
     assert unit["Service"]["Restart"] == "always"
     assert unit["Service"]["KillSignal"] == "SIGTERM"
     assert unit["Install"]["WantedBy"] == "multi-user.target"
+
+
+def read_unit(name: str) -> configparser.ConfigParser:
+    """Return a systemd unit of hardware/systemd/ as sections of keys."""
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.optionxform = str
+    unit.read(HARDWARE / "systemd" / name)
+    return unit
+
+
+def test_box_alone_units_run_commands_the_programs_accept():
+    """The local device service and the browser UI: their command lines parse as written."""
+    from lamina_device.cli import build_parser as device_parser
+    from lamina_host.cli import build_parser as host_parser
+
+    device = read_unit("lamina-device-local.service")
+    command = shlex.split(device["Service"]["ExecStart"])
+    assert command[0].endswith("/lamina-device")
+    args = device_parser().parse_args(command[1:])
+    assert (args.command, args.listen, args.port, args.hardware) == ("serve", "local", None, "pi")
+    assert device["Unit"]["Conflicts"] == "lamina-device.service"
+    assert device["Service"]["Restart"] == "always"
+
+    ui = read_unit("lamina-ui.service")
+    command = shlex.split(ui["Service"]["ExecStart"])
+    assert command[0].endswith("/lamina")
+    args = host_parser().parse_args(command[1:])
+    assert (args.command, args.device, args.host) == ("serve-ui", "local", "127.0.0.1")
+    assert not args.allow_remote
+    assert ui["Unit"]["After"] == "lamina-device-local.service"
