@@ -85,7 +85,9 @@ def _segment(
                    rows.astype(np.float32), ones, np.full(len(cols), 5, np.uint8))  # fmt: skip
 
 
-def synthetic_scan(rig: Rig, scale_mm: float, seed: int = 0) -> dict[str, Any]:
+def synthetic_scan(
+    rig: Rig, scale_mm: float, seed: int = 0, sections: int = SECTIONS, views: int = VIEWS
+) -> dict[str, Any]:
     """Return the board image, cylinder segments and object segments of one scan."""
     rng = np.random.default_rng(seed)
     phi = np.linspace(0.0, 2.0 * np.pi, 4000, endpoint=False)
@@ -96,11 +98,11 @@ def synthetic_scan(rig: Rig, scale_mm: float, seed: int = 0) -> dict[str, Any]:
         if (s := _segment(rig, "cylinder", 0, v, 0.0, 45.0 * v, cyl, rng)) is not None
     ]  # fmt: skip
     segments = []
-    for k in range(SECTIONS):
+    for k in range(sections):
         z = k * PITCH_MM
         outline = radius_mm(phi, z, scale_mm)[:, None] * unit
-        for v in range(VIEWS):
-            s = _segment(rig, "object", k, v, z, 360.0 * v / VIEWS, outline, rng)
+        for v in range(views):
+            s = _segment(rig, "object", k, v, z, 360.0 * v / views, outline, rng)
             if s is not None:
                 segments.append(s)
     grid = SimScene(rig).render("grid", 0.0, 0.0, False)
@@ -108,7 +110,7 @@ def synthetic_scan(rig: Rig, scale_mm: float, seed: int = 0) -> dict[str, Any]:
             "cylinder_mm": rig.cylinder_diameter_mm, "segments": segments}  # fmt: skip
 
 
-def _timed(scan: dict[str, Any], options: ProcessOptions, scale_mm: float) -> dict[str, Any]:
+def timed(scan: dict[str, Any], options: ProcessOptions, scale_mm: float) -> dict[str, Any]:
     """Reconstruct three times; return the best wall time, its stage timings and accuracy."""
     best: dict[str, Any] = {"total_s": np.inf}
     for _ in range(3):
@@ -141,8 +143,8 @@ def run() -> dict[str, Any]:
         # The thesis' methods, but its ball pivoting swapped for the contour mesh (excluded).
         thesis = replace(ProcessOptions.thesis(), mesh="contours")
         out[rig_name] = {
-            "lamina": _timed(scan, ProcessOptions(), scale),
-            "thesis methods": _timed(scan, thesis, scale),
+            "lamina": timed(scan, ProcessOptions(), scale),
+            "thesis methods": timed(scan, thesis, scale),
         }
     return out
 
