@@ -1,4 +1,5 @@
-"""Fixtures shared by every test folder: the box's device service on a local endpoint."""
+"""Fixtures shared by every test folder: a refused command's one line, recording a capture
+on the simulated rig, the box's device service on a local endpoint."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -48,3 +49,34 @@ def _served_url(process: subprocess.Popen[bytes], log: Path) -> str:
             break
         time.sleep(0.05)
     raise AssertionError(f"the device service did not start: {log.read_text()}")
+
+
+def one_line_refusal(done: subprocess.CompletedProcess[str]) -> str:
+    """Return the one line a refused command wrote on stderr; fail unless status is non-zero."""
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0, done.stdout
+    assert len(lines) == 1, done.stderr
+    return lines[0]
+
+
+@pytest.fixture
+def refusal() -> Callable[[subprocess.CompletedProcess[str]], str]:
+    """Return the checker of a refusal: non-zero status and one line, which it returns."""
+    return one_line_refusal
+
+
+Recorder = Callable[..., subprocess.CompletedProcess[str]]
+
+
+def record_capture(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``lamina-device record --hardware sim --out OUT ARGS`` and return what it did."""
+    command = [sys.executable, "-m", "lamina_device", "record", "--hardware", "sim"]
+    return subprocess.run(
+        [*command, "--out", str(out), *args], capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="session")
+def recorder() -> Recorder:
+    """Return :func:`record_capture`, which records a capture on the simulated rig."""
+    return record_capture

@@ -41,26 +41,6 @@ def lamina(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def record(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """Run ``lamina-device record`` on the simulated rig."""
-    return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "lamina_device",
-            "record",
-            "--hardware",
-            "sim",
-            "--out",
-            str(out),
-            *args,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-
-
 def one_line_error(result: subprocess.CompletedProcess[str]) -> str:
     """Assert a clean user-facing failure and return its message."""
     assert result.returncode == 2, result.stdout + result.stderr
@@ -95,9 +75,9 @@ def live_scan(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory) -> Path:
+def capture(tmp_path_factory, recorder) -> Path:
     out = tmp_path_factory.mktemp("capture") / "cylinder"
-    result = record(
+    result = recorder(
         out, "--object", "cylinder:d=19.05", "--sections", "4", "--pitch", "2", "--views", "8"
     )
     assert result.returncode == 0, result.stderr

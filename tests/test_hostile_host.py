@@ -22,7 +22,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -141,32 +141,11 @@ def library_copy(partial: Path, tmp_path: Path) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def capture(tmp_path_factory: pytest.TempPathFactory, recorder: Callable[..., Any]) -> Path:
     """A small recorded capture of another object, for a replay device."""
     out = tmp_path_factory.mktemp("capture") / "sphere"
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "lamina_device",
-            "record",
-            "--hardware",
-            "sim",
-            "--out",
-            str(out),
-            "--object",
-            "sphere:d=25",
-            "--sections",
-            "2",
-            "--views",
-            "8",
-            "--cylinder-views",
-            "8",
-        ],
-        check=True,
-        capture_output=True,
-        timeout=300,
-    )
+    plan = ("--sections", "2", "--views", "8", "--cylinder-views", "8")
+    recorder(out, "--object", "sphere:d=25", *plan).check_returncode()
     return out
 
 

@@ -149,7 +149,7 @@ def serve(args: argparse.Namespace, hardware: Hardware) -> int:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         print(f"lamina-device: cannot open {what}: {reason}", file=sys.stderr)
         return EXIT_USAGE
-    with port:
+    with contextlib.closing(port):
         try:
             DeviceServer(Channel(port), hardware).serve()
         except PortLost as exc:

@@ -16,7 +16,6 @@ import logging
 import select
 import socket
 import termios
-from types import TracebackType
 
 from lamina_shared.local import is_loopback, parse_endpoint
 
@@ -111,17 +110,6 @@ class ListeningPort:
         """Close the connection and stop listening."""
         self._drop()
         self._listener.close()
-
-    def __enter__(self) -> ListeningPort:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def open_listener(spec: str) -> ListeningPort:

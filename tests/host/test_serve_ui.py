@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
+from collections.abc import Callable
 
 from lamina_host.serve_ui import tui_command
 
@@ -19,25 +20,23 @@ def serve_ui(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_other_binds_need_allow_remote() -> None:
+Refusal = Callable[[subprocess.CompletedProcess[str]], str]
+
+
+def test_other_binds_need_allow_remote(refusal: Refusal) -> None:
     """A bind beyond loopback without --allow-remote is refused before anything listens."""
-    done = serve_ui("--host", "0.0.0.0", "--port", "1")
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode != 0
-    assert len(lines) == 1 and "--allow-remote" in lines[0] and "no login" in lines[0]
+    line = refusal(serve_ui("--host", "0.0.0.0", "--port", "1"))
+    assert "--allow-remote" in line and "no login" in line
 
 
-def test_port_in_use_is_one_line() -> None:
+def test_port_in_use_is_one_line(refusal: Refusal) -> None:
     """A taken port names itself and what to do."""
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        done = serve_ui("--port", str(port))
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode != 0
-    assert len(lines) == 1, done.stderr
-    assert f"cannot serve the UI on 127.0.0.1:{port}" in lines[0]
+        line = refusal(serve_ui("--port", str(port)))
+    assert f"cannot serve the UI on 127.0.0.1:{port}" in line
 
 
 def test_each_browser_session_runs_the_tui_command() -> None:

@@ -13,6 +13,18 @@ from lamina_host.tui.app import LaminaApp
 TIMEOUT_S = 60.0
 
 
+def wait_for_text(read: Callable[[], str], text: str, timeout_s: float = TIMEOUT_S) -> str:
+    """Return ``read()`` once it shows ``text`` (a real terminal's or browser's screen);
+    fail with the last screen after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        screen = read()
+        if text in screen:
+            return screen
+        time.sleep(0.1)
+    raise AssertionError(f"{text!r} never appeared; the screen was:\n{read()}")
+
+
 async def wait_for(pilot: Pilot, done: Callable[[], bool], what: str) -> None:
     """Let the app run until ``done()`` holds; fail with the status line after a timeout."""
     app = pilot.app

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from drive import wait_for_text
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(
@@ -91,13 +92,7 @@ class Screen:
 
     def wait_for(self, text: str, timeout_s: float = 90.0) -> str:
         """Return the screen once it shows ``text``; fail with the screen otherwise."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            screen = self.text()
-            if text in screen:
-                return screen
-            time.sleep(0.2)
-        raise AssertionError(f"{text!r} never appeared; the screen was:\n{self.text()}")
+        return wait_for_text(self.text, text, timeout_s)
 
     def press(self, *keys: str) -> None:
         """Press keys (playwright names: c, F4, Escape)."""

@@ -12,6 +12,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+from drive import wait_for_text
 
 pytestmark = pytest.mark.skipif(
     shutil.which("tmux") is None,
@@ -46,13 +47,7 @@ class Terminal:
 
     def wait_for(self, text: str, timeout_s: float = 60.0) -> str:
         """Return the screen once it shows ``text``; fail with the screen otherwise."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            screen = self.screen()
-            if text in screen:
-                return screen
-            time.sleep(0.1)
-        raise AssertionError(f"{text!r} never appeared; the screen was:\n{self.screen()}")
+        return wait_for_text(self.screen, text, timeout_s)
 
     def close(self) -> None:
         """End the session (and the app in it)."""
