@@ -94,7 +94,10 @@ say "scan took $(($(date +%s) - scan_start)) s (emulated)"
 
 say "device tests"
 tests_start=$(date +%s)
-run /bin/sh -c 'cd /opt/lamina/src && python -m pytest -q -p no:cacheprovider tests/device' \
+# One test holds a render to a wall-clock budget (4 s); under ~17x emulation that says
+# nothing about the Pi, so it is left out here (it runs in make test).
+run /bin/sh -c 'cd /opt/lamina/src && python -m pytest -q -p no:cacheprovider tests/device \
+    --deselect tests/device/test_sim_render.py::test_two_thousand_triangle_mesh_renders_quickly' \
     || fail "device tests failed after $(elapsed)"
 say "device tests took $(($(date +%s) - tests_start)) s (emulated)"
 say "PASS in $(elapsed)"
