@@ -448,6 +448,7 @@ class DeviceClient:
             self.dispatcher.close(request_id)
 
     def _resend(self, frame: bytes) -> None:
+        self.channel.sizer.penalise()
         self.channel.send(frame)
         with self._id_lock:
             self.stats.request_retries += 1

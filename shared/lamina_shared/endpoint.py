@@ -483,7 +483,10 @@ class DeviceEndpoint:
             return
         if self._heartbeat.due():
             self.channel.send(encode_json(Kind.HEARTBEAT, self.state()))
-        for seq, segment in self.buffer.overdue():
+        overdue = self.buffer.overdue()
+        if overdue:
+            self.channel.sizer.penalise()
+        for seq, segment in overdue:
             self.channel.send(encode_segment(self.buffer.request_id, seq, segment))
 
     def state(self) -> dict[str, Any]:
@@ -526,7 +529,12 @@ class DeviceEndpoint:
             self._stop_worker()
             self._replies.clear()
             self.session = session
-        self.channel.send(encode_json(Kind.WELCOME, self.welcome()))
+        welcome = self.welcome()
+        if not self.greeted:
+            # A peer of another version may not read fragments: the versions alone go
+            # whole, for it to name the mismatch.
+            welcome = {k: welcome[k] for k in ("protocol", "software") if k in welcome}
+        self.channel.send(encode_json(Kind.WELCOME, welcome))
 
     def _ack(self, body: dict[str, Any]) -> None:
         request_id, seqs, lost = body.get("id"), body.get("seqs"), body.get("lost", [])

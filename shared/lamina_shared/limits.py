@@ -38,6 +38,10 @@ class DeviceLimits:
     window_segments: int = 16
     """Sent, unacknowledged segments the device holds before acquisition waits."""
     heartbeat_s: float = 0.3
+    max_partial_messages: int = 32
+    """Fragmented messages a channel puts together at once (the oldest waits are dropped)."""
+    max_reassembly_bytes: int = 1024 * 1024
+    """Bytes of fragmented messages in progress a channel holds at most."""
     max_z_mm: float = 10_000.0
     """Largest section height a plan or capture may name (the axes' limits are tighter)."""
     max_abs_angle_deg: float = 3_600.0

@@ -23,7 +23,7 @@ import numpy as np
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import CONFIDENCE_SCALE, TARGETS, Segment
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Largest decoded payload either end accepts; longer frames are discarded unread."""
 
