@@ -38,10 +38,11 @@ class DeviceLimits:
     window_segments: int = 16
     """Sent, unacknowledged segments the device holds before acquisition waits."""
     heartbeat_s: float = 0.3
-    max_partial_messages: int = 32
-    """Fragmented messages a channel puts together at once (the oldest waits are dropped)."""
+    max_partial_messages: int = 256
+    """Fragmented messages a channel puts together at once (the oldest waits are dropped),
+    and keeps after sending them, to fill the gaps the peer asks for."""
     max_reassembly_bytes: int = 1024 * 1024
-    """Bytes of fragmented messages in progress a channel holds at most."""
+    """Bytes of such messages a channel holds at most, in each of the two roles."""
     max_z_mm: float = 10_000.0
     """Largest section height a plan or capture may name (the axes' limits are tighter)."""
     max_abs_angle_deg: float = 3_600.0

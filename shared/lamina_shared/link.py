@@ -47,6 +47,12 @@ FRAGMENT_KIND = 10
 It is a framing matter, below :class:`~lamina_shared.protocol.Kind`: a channel joins
 fragments into the message's payload before decoding it."""
 _FRAGMENT_HEAD = struct.Struct("<BIII")
+REPAIR_KIND = 11
+"""Payload kind of a repair request: ``11 || message crc32 || total || (offset, length)...``."""
+_REPAIR_HEAD = struct.Struct("<BII")
+_RANGE = struct.Struct("<II")
+MAX_REPAIR_RANGES = 8
+"""Most byte ranges one repair request names (it stays one small frame)."""
 FRAME_OVERHEAD_BYTES = 24
 """Bytes a fragment frame adds to its data: kind, header, CRC, COBS and delimiters."""
 
@@ -112,13 +118,36 @@ class FrameSizer:
         return int(min(self.max_bytes, max(self.min_bytes, best - FRAME_OVERHEAD_BYTES)))
 
 
-def fragment_frames(payload: bytes, size: int) -> list[bytes]:
-    """Return the FRAGMENT frames of ``payload``, at most ``size`` payload bytes each."""
+def fragment_frames(payload: bytes, size: int, start: int = 0, stop: int | None = None) -> bytes:
+    """Return the FRAGMENT frames of ``payload[start:stop]``, ``size`` payload bytes each."""
     crc, total = zlib.crc32(payload), len(payload)
-    return [
-        encode_frame(_FRAGMENT_HEAD.pack(FRAGMENT_KIND, crc, total, at) + payload[at : at + size])
-        for at in range(0, total, size)
-    ]
+    stop = total if stop is None else min(stop, total)
+    return b"".join(
+        encode_frame(
+            _FRAGMENT_HEAD.pack(FRAGMENT_KIND, crc, total, at) + payload[at : min(at + size, stop)]
+        )
+        for at in range(start, stop, size)
+    )
+
+
+def repair_frame(crc: int, total: int, ranges: list[tuple[int, int]]) -> bytes:
+    """Return a REPAIR frame asking for the byte ``ranges`` of fragmented message ``crc``."""
+    body = b"".join(_RANGE.pack(offset, length) for offset, length in ranges[:MAX_REPAIR_RANGES])
+    return encode_frame(_REPAIR_HEAD.pack(REPAIR_KIND, crc, total) + body)
+
+
+def decode_repair(payload: bytes) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+    """Return ((crc, total), ranges) of a REPAIR payload; raise ProtocolError if malformed."""
+    body = payload[_REPAIR_HEAD.size :]
+    if len(payload) < _REPAIR_HEAD.size or len(body) % _RANGE.size:
+        raise ProtocolError("malformed repair request")
+    if len(body) // _RANGE.size > MAX_REPAIR_RANGES:
+        raise ProtocolError("repair request names too many ranges")
+    _, crc, total = _REPAIR_HEAD.unpack_from(payload)
+    ranges = [_RANGE.unpack_from(body, at) for at in range(0, len(body), _RANGE.size)]
+    if any(length == 0 or offset + length > total for offset, length in ranges):
+        raise ProtocolError("repair range outside its message")
+    return (crc, total), ranges
 
 
 @dataclass
@@ -126,6 +155,16 @@ class _Partial:
     data: bytearray
     have: np.ndarray
     missing: int
+    touched_s: float
+    frame_no: int
+    repairs: int = 0
+    asked_s: float = -math.inf
+
+
+def _gaps(have: np.ndarray) -> list[tuple[int, int]]:
+    """Return the (offset, length) runs where ``have`` is False."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([1], have.view(np.int8), [1]))))
+    return [(int(a), int(b - a)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 @dataclass
@@ -134,14 +173,26 @@ class Reassembly:
 
     Bounded: at most ``max_messages`` messages and ``max_bytes`` of them in progress;
     beyond that the one that waited longest is dropped (its sender repeats it anyway).
+    :meth:`repairs` names the gaps of messages whose fragments stopped coming, for the
+    sender to fill from what it keeps (:class:`SentMessages`).
     """
 
     max_messages: int
     max_bytes: int
+    idle_s: float = 0.05
+    """A message nothing arrived for in this long has lost its missing pieces."""
+    repeat_s: float = 0.25
+    max_repairs: int = 4
     _partials: OrderedDict[tuple[int, int], _Partial] = field(default_factory=OrderedDict)
+    _done: OrderedDict[tuple[int, int], float] = field(default_factory=OrderedDict)
     _held_bytes: int = 0
+    _frames: int = 0
 
-    def take(self, payload: bytes) -> bytes | None:
+    def count_frame(self) -> None:
+        """Note that a valid frame arrived: earlier messages' gaps are losses now."""
+        self._frames += 1
+
+    def take(self, payload: bytes, now_s: float) -> bytes | None:
         """Keep one fragment's payload; return the whole message's once complete.
 
         Raises:
@@ -156,27 +207,52 @@ class Reassembly:
         key = (crc, total)
         partial = self._partials.pop(key, None)
         if partial is None:
-            partial = self._open(total)
+            partial = self._open(total, now_s)
         self._partials[key] = partial  # the most recently touched goes last
         end = offset + len(data)
         partial.missing -= len(data) - int(np.count_nonzero(partial.have[offset:end]))
         partial.have[offset:end] = True
         partial.data[offset:end] = data
+        partial.touched_s, partial.frame_no = now_s, self._frames
         if partial.missing:
             return None
         self._drop(key)
         whole = bytes(partial.data)
         if zlib.crc32(whole) != crc:
             raise ProtocolError("fragments do not make up the message they name")
+        self._done[key] = now_s
+        while len(self._done) > self.max_messages:
+            self._done.popitem(last=False)
         return whole
 
-    def _open(self, total: int) -> _Partial:
+    def repairs(self, now_s: float) -> list[tuple[tuple[int, int], list[tuple[int, int]]]]:
+        """Return the gaps to ask for now: (message key, missing ranges) per message.
+
+        A message whose fragments stopped (a later frame came, or nothing for
+        ``idle_s``) is asked for at most ``max_repairs`` times, ``repeat_s`` apart; one
+        completed a moment ago is not (a late copy of it is no loss).
+        """
+        due = []
+        for key, partial in self._partials.items():
+            stopped = self._frames > partial.frame_no or now_s - partial.touched_s > self.idle_s
+            if (
+                stopped
+                and partial.repairs < self.max_repairs
+                and now_s - partial.asked_s > self.repeat_s
+                and now_s - self._done.get(key, -math.inf) > 2 * self.repeat_s
+            ):
+                partial.repairs += 1
+                partial.asked_s = now_s
+                due.append((key, _gaps(partial.have)))
+        return due
+
+    def _open(self, total: int, now_s: float) -> _Partial:
         while self._partials and (
             len(self._partials) >= self.max_messages or self._held_bytes + total > self.max_bytes
         ):
             self._drop(next(iter(self._partials)))
         self._held_bytes += total
-        return _Partial(bytearray(total), np.zeros(total, bool), total)
+        return _Partial(bytearray(total), np.zeros(total, bool), total, now_s, self._frames)
 
     def _drop(self, key: tuple[int, int]) -> None:
         if self._partials.pop(key, None) is not None:
@@ -189,6 +265,32 @@ class Reassembly:
     def held_bytes(self) -> int:
         """Return the bytes of the messages in progress (bounded by ``max_bytes``)."""
         return self._held_bytes
+
+
+@dataclass
+class SentMessages:
+    """The last fragmented messages sent, kept to fill the gaps the peer asks for; bounded."""
+
+    max_messages: int
+    max_bytes: int
+    _kept: OrderedDict[tuple[int, int], bytes] = field(default_factory=OrderedDict)
+    _held_bytes: int = 0
+
+    def keep(self, payload: bytes) -> None:
+        """Remember ``payload`` (sent in fragments), forgetting the oldest beyond the bounds."""
+        key = (zlib.crc32(payload), len(payload))
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return
+        self._kept[key] = payload
+        self._held_bytes += len(payload)
+        while len(self._kept) > self.max_messages or self._held_bytes > self.max_bytes:
+            _, old = self._kept.popitem(last=False)
+            self._held_bytes -= len(old)
+
+    def get(self, key: tuple[int, int]) -> bytes | None:
+        """Return the payload named ``key``, if still kept."""
+        return self._kept.get(key)
 
 
 class Channel:
@@ -216,6 +318,9 @@ class Channel:
         self.sizer = FrameSizer()
         """Sizes the frames sent from the error rate of what is received."""
         self._reassembly = Reassembly(limits.max_partial_messages, limits.max_reassembly_bytes)
+        self._sent = SentMessages(limits.max_partial_messages, limits.max_reassembly_bytes)
+        self.repairs_asked = 0
+        self.repairs_served = 0
         self._pending: deque[Message] = deque()
         self._send_lock = threading.Lock()
         self.bad_messages = 0
@@ -239,7 +344,13 @@ class Channel:
         size = self.sizer.fragment_bytes
         if len(frame) > size + FRAME_OVERHEAD_BYTES:
             # Our own frame: its delimiters are the first and last bytes.
-            frame = b"".join(fragment_frames(decode_frame(frame[1:-1]), size))
+            payload = decode_frame(frame[1:-1])
+            frame = fragment_frames(payload, size)
+            with self._send_lock:
+                self._sent.keep(payload)
+        self._write(frame)
+
+    def _write(self, frame: bytes) -> None:
         try:
             with self._send_lock:
                 self.stream.write(frame)
@@ -267,18 +378,37 @@ class Channel:
         errors = self._decoder.errors
         payloads = self._decoder.feed(data)
         self.sizer.observe(len(data), self._decoder.errors - errors)
+        now = time.monotonic()
         for payload in payloads:
+            self._reassembly.count_frame()
             try:
+                if payload[0] == REPAIR_KIND:
+                    self._repair(payload)
+                    continue
                 if payload[0] == FRAGMENT_KIND:
-                    self.last_received_s = time.monotonic()  # a piece proves the peer is there
-                    whole = self._reassembly.take(payload)
+                    self.last_received_s = now  # a piece proves the peer is there
+                    whole = self._reassembly.take(payload, now)
                     if whole is None:
                         continue
                     payload = whole
                 self._pending.append(decode_message(payload))
-                self.last_received_s = time.monotonic()
+                self.last_received_s = now
             except ProtocolError:
                 self.bad_messages += 1
+        for (crc, total), ranges in self._reassembly.repairs(now):
+            self.repairs_asked += 1
+            self._write(repair_frame(crc, total, ranges))
+
+    def _repair(self, payload: bytes) -> None:
+        """Send again the pieces of one of our fragmented messages the peer lacks."""
+        key, ranges = decode_repair(payload)
+        with self._send_lock:
+            kept = self._sent.get(key)
+        if kept is None:
+            return  # long gone: the layer above repeats what matters
+        self.repairs_served += 1
+        size = self.sizer.fragment_bytes
+        self._write(b"".join(fragment_frames(kept, size, a, a + n) for a, n in ranges))
 
 
 class Ticker:
@@ -314,15 +444,19 @@ def is_count(value: object, limit: int = 2**32) -> bool:
 
 __all__ = [
     "FRAGMENT_KIND",
+    "REPAIR_KIND",
     "ByteStream",
     "Channel",
     "FrameSizer",
     "Kind",
     "LinkClosed",
     "Reassembly",
+    "SentMessages",
     "Ticker",
+    "decode_repair",
     "error_body",
     "fragment_frames",
     "is_count",
     "ok_body",
+    "repair_frame",
 ]
