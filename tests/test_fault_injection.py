@@ -95,6 +95,29 @@ def test_faulty_line_with_three_cuts_stores_exactly_the_clean_scan(clean, tmp_pa
     assert identical(got.segments, clean.segments)
 
 
+def test_three_byte_errors_in_a_thousand_and_three_2s_cuts_store_exactly_the_clean_scan(
+    clean, tmp_path
+):
+    """Issue 14: flip, drop and duplicate at 1e-3 each from the first byte (the handshake
+    too), and the line dead for 2 s three times; the stored scan equals the clean one."""
+    faults = LineFaults(
+        error_rate=3e-3, cut_after_bytes=(50_000, 175_000, 190_000), cut_s=2.0, seed=14
+    )
+    with Library(tmp_path / "library.sqlite") as library:
+        with open_device("sim", transform=faults) as client:
+            scan_id = _acquire(client, library, tmp_path)
+            sizer = client.channel.sizer
+        got = stored(library, scan_id)
+        assert library.missing(scan_id, "object") == []
+    assert faults.counts["cuts"] == 3
+    assert min(faults.counts[k] for k in ("flipped", "dropped", "duplicated")) > 300
+    # The host measured the line and sent short frames.
+    assert 1e-3 < sizer.error_rate < 1e-2 and sizer.fragment_bytes < 200
+    assert np.array_equal(got.grid, clean.grid)
+    assert identical(got.cylinder, clean.cylinder)
+    assert identical(got.segments, clean.segments)
+
+
 def _held(library_path: Path) -> int:
     try:
         with sqlite3.connect(f"file:{library_path}?mode=ro", uri=True) as db:

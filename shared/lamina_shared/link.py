@@ -53,6 +53,8 @@ _REPAIR_HEAD = struct.Struct("<BII")
 _RANGE = struct.Struct("<II")
 MAX_REPAIR_RANGES = 8
 """Most byte ranges one repair request names (it stays one small frame)."""
+MAX_REPAIR_FRAMES = 32
+"""Most repair requests sent at once for one message."""
 FRAME_OVERHEAD_BYTES = 24
 """Bytes a fragment frame adds to its data: kind, header, CRC, COBS and delimiters."""
 
@@ -182,9 +184,9 @@ class Reassembly:
     idle_s: float = 0.05
     """A message nothing arrived for in this long has lost its missing pieces."""
     repeat_s: float = 0.25
-    max_repairs: int = 4
+    max_repairs: int = 10
     _partials: OrderedDict[tuple[int, int], _Partial] = field(default_factory=OrderedDict)
-    _done: OrderedDict[tuple[int, int], float] = field(default_factory=OrderedDict)
+    _done: OrderedDict[tuple[int, int], None] = field(default_factory=OrderedDict)
     _held_bytes: int = 0
     _frames: int = 0
 
@@ -220,7 +222,8 @@ class Reassembly:
         whole = bytes(partial.data)
         if zlib.crc32(whole) != crc:
             raise ProtocolError("fragments do not make up the message they name")
-        self._done[key] = now_s
+        self._done[key] = None
+        self._done.move_to_end(key)
         while len(self._done) > self.max_messages:
             self._done.popitem(last=False)
         return whole
@@ -230,7 +233,8 @@ class Reassembly:
 
         A message whose fragments stopped (a later frame came, or nothing for
         ``idle_s``) is asked for at most ``max_repairs`` times, ``repeat_s`` apart; one
-        completed a moment ago is not (a late copy of it is no loss).
+        completed before is not (a late copy of it is no loss, and a repeat the sender
+        means to deliver comes whole or with its own repeat).
         """
         due = []
         for key, partial in self._partials.items():
@@ -239,7 +243,7 @@ class Reassembly:
                 stopped
                 and partial.repairs < self.max_repairs
                 and now_s - partial.asked_s > self.repeat_s
-                and now_s - self._done.get(key, -math.inf) > 2 * self.repeat_s
+                and key not in self._done
             ):
                 partial.repairs += 1
                 partial.asked_s = now_s
@@ -395,9 +399,14 @@ class Channel:
                 self.last_received_s = now
             except ProtocolError:
                 self.bad_messages += 1
-        for (crc, total), ranges in self._reassembly.repairs(now):
+        for (crc, total), gaps in self._reassembly.repairs(now):
             self.repairs_asked += 1
-            self._write(repair_frame(crc, total, ranges))
+            asks = range(
+                0, min(len(gaps), MAX_REPAIR_FRAMES * MAX_REPAIR_RANGES), MAX_REPAIR_RANGES
+            )
+            self._write(
+                b"".join(repair_frame(crc, total, gaps[at : at + MAX_REPAIR_RANGES]) for at in asks)
+            )
 
     def _repair(self, payload: bytes) -> None:
         """Send again the pieces of one of our fragmented messages the peer lacks."""
