@@ -76,6 +76,9 @@ SPAWNED_STARTUP_S = 120.0
 capture), as long as it is running."""
 STARTUP_NOTICE_S = 5.0
 """After this long without an answer, say that the device program is still starting."""
+REACK_SEQS = 16
+"""Segments acknowledged again when a heartbeat says the device still holds some (its
+window)."""
 PROCESS_CHECK_S = 0.25
 """How often a request checks that a device program started here is still running."""
 
@@ -402,7 +405,8 @@ class DeviceClient:
 
         Any thread may call this while another thread's request runs: the link's reader
         (:attr:`dispatcher`) hands each thread the messages of its own request, and
-        ``on_event`` runs on the calling thread. ``args`` is the operation's typed
+        ``on_event`` runs on the calling thread (and also hears the device's heartbeats
+        that name this request). ``args`` is the operation's typed
         arguments (a dataclass of :mod:`lamina_shared.ops`) or their JSON object.
         """
         if args is not None and not isinstance(args, dict):
@@ -433,6 +437,8 @@ class DeviceClient:
                 if message.kind is Kind.HEARTBEAT:
                     if request_id_of(message) == request_id:
                         last_related = now
+                        if on_event is not None:
+                            on_event(message)
                     elif now - last_related > 0.3:
                         # The device says it is not working on our request: it never got
                         # it, or its reply was lost. Ask again now rather than after a timeout.
@@ -625,6 +631,14 @@ class DeviceClient:
                 lost = [s for s in expected if s < body.seq and s not in received]
                 ack = {"id": body.request_id, "seqs": [body.seq], "lost": lost[:64]}
                 self.channel.send(encode_json(Kind.ACK, ack))
+            elif message.kind is Kind.HEARTBEAT:
+                # The device still holds segments: if it is one we stored, our ACK was
+                # lost; acknowledging the latest again now beats the device's backoff.
+                unacked = message.body.get("unacked")
+                if isinstance(unacked, int) and unacked > 0 and received:
+                    recent = list(received)[-REACK_SEQS:]
+                    ack = {"id": request_id_of(message), "seqs": recent, "lost": []}
+                    self.channel.send(encode_json(Kind.ACK, ack))
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
