@@ -149,6 +149,9 @@ def decode_repair(payload: bytes) -> tuple[tuple[int, int], list[tuple[int, int]
     ranges = [_RANGE.unpack_from(body, at) for at in range(0, len(body), _RANGE.size)]
     if any(length == 0 or offset + length > total for offset, length in ranges):
         raise ProtocolError("repair range outside its message")
+    if sum(length for _, length in ranges) > total:
+        # Overlapping ranges must not make a short request cost many copies of a message.
+        raise ProtocolError("repair ranges longer than their message")
     return (crc, total), ranges
 
 

@@ -140,6 +140,8 @@ def test_repair_requests_round_trip_and_sent_messages_are_bounded():
     assert key == (7, 200) and got == ranges
     with pytest.raises(ProtocolError):
         decode_repair(payloads_of(repair_frame(7, 120, ranges))[0])  # past the message
+    with pytest.raises(ProtocolError, match="longer than"):
+        decode_repair(payloads_of(repair_frame(7, 200, [(0, 200), (0, 200)]))[0])
     sent = SentMessages(3, 2500)
     kept = [message(1000, seed) for seed in range(4)]
     for payload in kept:
