@@ -215,7 +215,10 @@ class Reassembly:
             partial = self._open(total, now_s)
         self._partials[key] = partial  # the most recently touched goes last
         end = offset + len(data)
-        partial.missing -= len(data) - int(np.count_nonzero(partial.have[offset:end]))
+        new_bytes = len(data) - int(np.count_nonzero(partial.have[offset:end]))
+        if new_bytes:
+            partial.repairs = 0  # repairs bring it on: keep asking
+        partial.missing -= new_bytes
         partial.have[offset:end] = True
         partial.data[offset:end] = data
         partial.touched_s, partial.frame_no = now_s, self._frames
@@ -235,7 +238,8 @@ class Reassembly:
         """Return the gaps to ask for now: (message key, missing ranges) per message.
 
         A message whose fragments stopped (a later frame came, or nothing for
-        ``idle_s``) is asked for at most ``max_repairs`` times, ``repeat_s`` apart; one
+        ``idle_s``) is asked for ``repeat_s`` apart, up to ``max_repairs`` times in a row
+        without a new byte arriving; one
         completed before is not (a late copy of it is no loss, and a repeat the sender
         means to deliver comes whole or with its own repeat).
         """

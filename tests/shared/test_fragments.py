@@ -75,7 +75,7 @@ def test_copies_at_other_sizes_fill_the_gaps_and_duplicates_are_harmless():
     assert reassembly.repairs(2.0) == []
 
 
-def test_repairs_are_asked_once_the_fragments_stop_and_at_most_max_repairs_times():
+def test_repairs_are_asked_once_the_fragments_stop_until_max_repairs_bring_nothing():
     whole = message(1000, seed=3)
     pieces = payloads_of(fragment_frames(whole, 100))
     reassembly = Reassembly(8, 100_000, idle_s=0.05, repeat_s=0.25, max_repairs=2)
@@ -85,7 +85,10 @@ def test_repairs_are_asked_once_the_fragments_stop_and_at_most_max_repairs_times
     assert reassembly.repairs(0.02) == [((zlib.crc32(whole), 1000), [(100, 900)])]
     assert reassembly.repairs(0.1) == []  # asked a moment ago
     assert len(reassembly.repairs(0.3)) == 1
-    assert reassembly.repairs(1.0) == []  # asked max_repairs times: left to the layer above
+    assert reassembly.repairs(1.0) == []  # asked twice for nothing: left to the layer above
+    reassembly.take(pieces[5], 1.1)  # a repair came after all: the count starts again
+    reassembly.count_frame()
+    assert reassembly.repairs(1.2) == [((zlib.crc32(whole), 1000), [(100, 400), (600, 400)])]
 
 
 def test_reassembly_memory_is_bounded_and_the_oldest_wait_is_dropped():
