@@ -131,6 +131,8 @@ class DeviceInfo:
     operations: tuple[str, ...] = ()
     welcome: dict[str, Any] = field(default_factory=dict)
     """The WELCOME body as received (for :func:`lamina_host.workflow.scan_identity`)."""
+    colour: bool = False
+    """The device samples colour per point (WELCOME ``colour``; absent on older devices)."""
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
@@ -163,6 +165,7 @@ class DeviceInfo:
                 dict(data.get("limits") or {}),
                 tuple(str(op) for op in data.get("operations") or ()),
                 dict(data),
+                data.get("colour") is True,
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DeviceError(f"the device's handshake is malformed ({exc})") from None
@@ -294,6 +297,8 @@ class DeviceClient:
         """The link's one reader: hands each reply to the thread waiting for it."""
         self.extract: ExtractChanges | None = None
         """Extraction settings changed for this session's scans (``lamina scan --extract``)."""
+        self.colour = False
+        """Ask for each point's colour in this session's object scans (``lamina scan --colour``)."""
         self.spawned: str | None = None
         """What a device program started here was asked to acquire (``workflow.spawned_source``)."""
         self._process_checked_s = 0.0
@@ -315,7 +320,10 @@ class DeviceClient:
             configured = welcome.get("extract")
             base = configured if isinstance(configured, dict) else {}
             welcome["extract"] = {**base, **self.extract.as_dict()}
-        return scan_identity(welcome, self.spawned)
+        identity = scan_identity(welcome, self.spawned)
+        if self.colour:  # a resume must not mix coloured and uncoloured views
+            identity["colour"] = True
+        return identity
 
     def _device_exit_message(self) -> str | None:
         """Return one line on a device program started here that has exited, else None."""
@@ -627,7 +635,14 @@ class DeviceClient:
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract)
+        # The calibration cylinder needs no colour: only the object's views carry it.
+        colour = self.colour and target == "object"
+        if colour and not (self.info and self.info.colour):
+            raise DeviceError(
+                "this device cannot sample colour (its camera or an older lamina-device): "
+                "scan without --colour"
+            )
+        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract, colour)
         with self._id_lock:
             self._scanning, self._on_notice = True, on_notice
         try:

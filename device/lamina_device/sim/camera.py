@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lamina_device.camera import Stage, check_exposure
+from lamina_device.camera import CameraError, Stage, check_exposure
 from lamina_device.laser import Laser
 from lamina_device.sim.axes import SimLift, SimTurntable
 from lamina_device.sim.render import SimScene
@@ -51,6 +51,27 @@ class SimCamera:
         """Render one frame of the current scene."""
         self.frames_taken += 1
         return self.scene.render(
+            self.stage.target,
+            self.turntable.true_angle_deg,
+            self.lift.true_z_mm,
+            self.laser.is_on,
+            exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
+        )
+
+    @property
+    def has_colour(self) -> bool:
+        """Return True for colour noise models (``harsh``): the thesis camera is monochrome."""
+        return self.scene.noise.laser_rgb is not None
+
+    def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Render one frame and the RGB it was formed from (the Pi's Y plane and its colour)."""
+        if not self.has_colour:
+            raise CameraError(
+                "the simulated camera is monochrome under this noise model: use --noise harsh "
+                "for colour"
+            )
+        self.frames_taken += 1
+        return self.scene.render_colour(
             self.stage.target,
             self.turntable.true_angle_deg,
             self.lift.true_z_mm,

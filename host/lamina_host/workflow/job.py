@@ -87,6 +87,7 @@ class ScanRequest:
         cylinder_mm: the calibration cylinder's diameter; None for the device's.
         options: what the library records with the scan (what a resume must repeat).
         extract: per-scan extraction settings for the device; None leaves the device's own.
+        colour: ask for each object point's colour (the device must say it can).
     """
 
     subject: str
@@ -94,6 +95,7 @@ class ScanRequest:
     cylinder_mm: float | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
     extract: ExtractChanges | None = None
+    colour: bool = False
 
     def __post_init__(self) -> None:
         check_subject(self.subject)
@@ -196,6 +198,20 @@ class ScanJob:
         """
         self._device().extract = changes
         self.extract = changes
+
+    def set_colour(self, colour: bool) -> None:
+        """Ask for (or stop asking for) each object point's colour in this session's scans.
+
+        Raises:
+            InputError: the device cannot sample colour.
+        """
+        client = self._device()
+        if colour and not (client.info and client.info.colour):
+            raise InputError(
+                "this device cannot sample colour (a monochrome camera, the simulator without "
+                "--noise harsh, or an older lamina-device): scan without colour"
+            )
+        client.colour = colour
 
     def attach(self, client: DeviceClient) -> None:
         """Use a client already handshaken elsewhere (an in-process device); closing leaves it."""
