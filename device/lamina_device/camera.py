@@ -251,10 +251,26 @@ class PiCamera:
             return np.array(mapped.array[:height, :width], dtype=np.uint8, copy=True)
 
     def _yuv420(self, request: Any) -> np.ndarray:
-        """Return the whole I420 buffer (Y, then U and V at half resolution) of a frame."""
+        """Return a frame's planes packed as a stride-free I420 buffer (H * 3/2, W).
+
+        The mapped buffer is (H * 3/2, stride): H rows of Y, then U and V, each H/2 rows
+        of stride/2 bytes laid two to a buffer row. Padding beyond the width is dropped.
+        """
         width, height = self.size
         with self._mapped_array(request, "main") as mapped:
-            return np.array(mapped.array[: height * 3 // 2, :width], dtype=np.uint8, copy=True)
+            buffer = mapped.array
+            stride = buffer.shape[1]
+            y = np.array(buffer[:height, :width], dtype=np.uint8, copy=True)
+            quarter = height // 4
+            chroma = [
+                buffer[height + k * quarter : height + (k + 1) * quarter]
+                .reshape(height // 2, stride // 2)[:, : width // 2]
+                .copy()
+                for k in (0, 1)
+            ]
+        return np.concatenate([y.ravel(), chroma[0].ravel(), chroma[1].ravel()]).reshape(
+            height * 3 // 2, width
+        )
 
     @property
     def has_colour(self) -> bool:
@@ -264,15 +280,15 @@ class PiCamera:
     def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
         """Return the Y plane of the next frame and its sRGB image (from the same buffer).
 
-        The chroma planes travel with every frame, so colour costs a conversion
-        (BT.601, ``cv2.COLOR_YUV2RGB_I420``), not another exposure. It assumes the
-        buffer's stride equals the width (640, 1280, 1920... px), as configured.
+        The chroma planes travel with every frame, so colour costs a conversion (OpenCV's
+        BT.601 ``COLOR_YUV2RGB_I420``), not another exposure; the Y plane returned is the
+        one :meth:`capture` would return, so the stripe is found exactly as without colour.
         """
         import cv2  # the device installs opencv; only colour scans need it here
 
-        yuv = self._read(self._yuv420)
+        i420 = self._read(self._yuv420)
         height = self.size[1]
-        return np.ascontiguousarray(yuv[:height]), cv2.cvtColor(yuv, cv2.COLOR_YUV2RGB_I420)
+        return np.ascontiguousarray(i420[:height]), cv2.cvtColor(i420, cv2.COLOR_YUV2RGB_I420)
 
     def capture(self) -> np.ndarray:
         """Return the next frame exposed entirely under the laser's current state."""
