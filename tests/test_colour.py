@@ -24,7 +24,7 @@ from lamina_device.acquisition import acquire
 from lamina_device.extract import sample_colour
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
-from lamina_device.sim.texture import Texture
+from lamina_device.sim.texture import Texture, colour_errors
 from lamina_host.assembly import average_overlap_colours, average_overlaps
 from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
 from lamina_host.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
@@ -200,17 +200,14 @@ def test_colour_is_negotiated_and_an_older_device_still_scans():
     plan = ScanPlan.regular(1, 1.0, 2)
     with served(DeviceServer, "harsh") as client:
         assert client.info is not None and client.info.colour
-        client.colour = True
-        coloured = client.scan("object", plan)
+        coloured = client.scan("object", plan, colour=True)
         assert all(s.has_colour for s in coloured)
-        assert client.identity()["colour"] is True
     with served(OlderServer, "harsh") as client:
         assert client.info is not None and not client.info.colour
         plain = client.scan("object", plan)  # no colour asked: works as before
         assert not any(s.has_colour for s in plain)
-        client.colour = True
         with pytest.raises(DeviceError, match="cannot sample colour"):
-            client.scan("object", plan)
+            client.scan("object", plan, colour=True)
     for a, b in zip(coloured, plain, strict=True):
         assert np.array_equal(a.rows, b.rows)  # the same stripe, with and without colour
 
@@ -259,20 +256,6 @@ def test_the_library_keeps_colour(tmp_path):
 # --- a whole scan -------------------------------------------------------------------------
 
 
-def patch_errors(points: np.ndarray, colours: np.ndarray) -> dict[str, Any]:
-    """Return the white gain (on the skin) and each patch's mean and RMS error, in DN."""
-    texture = Texture()
-    index = texture.patch_index(points, margin_deg=5.0)
-    gain = np.median(colours[index == -1], axis=0) / np.array(texture.base)
-    out: dict[str, Any] = {"gain": gain, "patches": {}}
-    for k, patch in enumerate(texture.patches):
-        mine = colours[index == k].astype(float)
-        truth = gain * np.array(patch.reflectance)
-        out["patches"][patch.name] = (len(mine), mine.mean(axis=0) - truth,
-                                      np.sqrt(((mine - truth) ** 2).mean(axis=0)))  # fmt: skip
-    return out
-
-
 def test_a_colour_scan_writes_ply_and_obj_coloured_like_the_patches(tmp_path):
     out = tmp_path / "out"
     done = subprocess.run(
@@ -284,18 +267,19 @@ def test_a_colour_scan_writes_ply_and_obj_coloured_like_the_patches(tmp_path):
     assert done.returncode == 0, done.stderr
     points, _, colours = load_coloured_ply((out / "colour_points.ply").read_bytes())
     assert colours is not None
-    errors = patch_errors(points, colours)
-    for name, (count, bias, rms) in errors["patches"].items():
-        assert count > 200, name  # every patch is seen in both sections
-        assert np.all(np.abs(bias) < 3.0), (name, bias)
-        assert np.all(rms < 6.0), (name, rms)
+    gain, errors = colour_errors(points, colours)
+    for error in errors:
+        assert error.points > 200, error  # every patch is seen in both sections
+        assert np.all(np.abs(error.bias) < 3.0), error
+        assert np.all(np.array(error.rms) < 6.0), error
+        assert error.mean_delta_e < 6.0, error
     # The mesh's vertices take the nearby points' colours; the OBJ holds the same.
     vertices, faces, vertex_rgb = load_coloured_ply((out / "mesh.ply").read_bytes())
     assert vertex_rgb is not None
     texture = Texture()
     on_patch = texture.patch_index(vertices, margin_deg=8.0)
     for k, patch in enumerate(texture.patches):
-        truth = errors["gain"] * np.array(patch.reflectance)
+        truth = gain * np.array(patch.reflectance)
         assert np.all(np.abs(vertex_rgb[on_patch == k].mean(axis=0) - truth) < 4.0), patch.name
     obj_v, obj_f, obj_rgb = load_obj((out / "mesh.obj").read_bytes())
     assert np.allclose(obj_v, vertices, atol=1e-5) and np.array_equal(obj_f, faces)

@@ -187,6 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--device", default="sim", help="serial port path, 'sim' (default) or 'replay:DIR'"
     )
     tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
+    tui.add_argument(
+        "--noise",
+        choices=NOISE_PRESETS,
+        help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
+    )
     _add_library_option(tui)
     return parser
 
@@ -595,11 +600,11 @@ def batch(args: argparse.Namespace) -> int:
 
 def tui(args: argparse.Namespace) -> int:
     """Run ``lamina tui``: the Textual app on this terminal."""
-    if args.object and args.device != "sim":
-        raise UsageError("--object only applies to --device sim")
+    if (args.object or args.noise) and args.device != "sim":
+        raise UsageError("--object and --noise only apply to --device sim")
     from lamina_host.tui.app import LaminaApp  # deferred: Textual is only needed here
 
-    LaminaApp(args.device, args.library, args.object).run()
+    LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
     return 0
 
 

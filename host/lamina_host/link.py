@@ -297,8 +297,6 @@ class DeviceClient:
         """The link's one reader: hands each reply to the thread waiting for it."""
         self.extract: ExtractChanges | None = None
         """Extraction settings changed for this session's scans (``lamina scan --extract``)."""
-        self.colour = False
-        """Ask for each point's colour in this session's object scans (``lamina scan --colour``)."""
         self.spawned: str | None = None
         """What a device program started here was asked to acquire (``workflow.spawned_source``)."""
         self._process_checked_s = 0.0
@@ -320,10 +318,7 @@ class DeviceClient:
             configured = welcome.get("extract")
             base = configured if isinstance(configured, dict) else {}
             welcome["extract"] = {**base, **self.extract.as_dict()}
-        identity = scan_identity(welcome, self.spawned)
-        if self.colour:  # a resume must not mix coloured and uncoloured views
-            identity["colour"] = True
-        return identity
+        return scan_identity(welcome, self.spawned)
 
     def _device_exit_message(self) -> str | None:
         """Return one line on a device program started here that has exited, else None."""
@@ -591,6 +586,7 @@ class DeviceClient:
         on_segment: SegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
         extract: ExtractChanges | None = None,
+        colour: bool = False,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
 
@@ -607,6 +603,7 @@ class DeviceClient:
             on_notice: receives the one-line text of a refused pause, resume or abort.
             extract: extraction settings to change for this scan (default: :attr:`extract`);
                 the device refuses the scan, naming every problem, if they are unusable.
+            colour: ask for each point's colour (a device whose WELCOME offers it).
 
         Raises:
             ScanStopped: the scan was aborted; it holds the segments received.
@@ -635,8 +632,6 @@ class DeviceClient:
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        # The calibration cylinder needs no colour: only the object's views carry it.
-        colour = self.colour and target == "object"
         if colour and not (self.info and self.info.colour):
             raise DeviceError(
                 "this device cannot sample colour (its camera or an older lamina-device): "

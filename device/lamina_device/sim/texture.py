@@ -17,7 +17,16 @@ import numpy as np
 
 from lamina_device.sim.objects import Cylinder, SceneObject
 
-__all__ = ["PATCHES", "SKIN", "Patch", "Texture", "Textured", "patches_cylinder"]
+__all__ = [
+    "PATCHES",
+    "SKIN",
+    "Patch",
+    "PatchError",
+    "Texture",
+    "Textured",
+    "colour_errors",
+    "patches_cylinder",
+]
 
 SKIN = (0.80, 0.58, 0.46)
 """Reflectance (R, G, B) of the base: a light skin tone."""
@@ -112,3 +121,66 @@ def patches_cylinder(diameter_mm: float = 30.0, height_mm: float = 40.0) -> Text
     if not (math.isfinite(diameter_mm) and diameter_mm > 0):
         raise ValueError(f"patches: d={diameter_mm} must be a positive number")
     return Textured(Cylinder(diameter_mm, height_mm, 0.0, 0.0, -5.0, name="patches"))
+
+
+@dataclass(frozen=True)
+class PatchError:
+    """How far one patch's measured colours lie from its truth, in 8-bit DN and CIE76 dE."""
+
+    name: str
+    points: int
+    truth: tuple[float, float, float]
+    bias: tuple[float, float, float]
+    rms: tuple[float, float, float]
+    mean_delta_e: float
+
+
+def _triple(values: np.ndarray) -> tuple[float, float, float]:
+    """Return three values as plain floats rounded to 0.01."""
+    r, g, b = (round(float(v), 2) for v in values)
+    return r, g, b
+
+
+def _lab(rgb: np.ndarray) -> np.ndarray:
+    """Return CIE L*a*b* of (N, 3) 8-bit sRGB values (OpenCV, D65)."""
+    import cv2  # the device installs opencv
+
+    scaled = np.clip(np.asarray(rgb, np.float32) / 255.0, 0.0, 1.0).reshape(-1, 1, 3)
+    return np.asarray(cv2.cvtColor(scaled, cv2.COLOR_RGB2Lab), float).reshape(-1, 3)
+
+
+def colour_errors(
+    points_mm: np.ndarray,
+    colours: np.ndarray,
+    texture: Texture | None = None,
+    margin_deg: float = 5.0,
+) -> tuple[np.ndarray, list[PatchError]]:
+    """Compare measured colours at object-frame points with the texture's patches.
+
+    A camera's gain per channel (room light, exposure, white balance) is unknown, so one
+    gain per channel is taken from the skin (the median over base points) and each
+    patch's truth is its reflectance times that gain. Points within ``margin_deg`` of a
+    band edge are left out (the edge itself is a mix). Returns the gains and one
+    :class:`PatchError` per patch.
+    """
+    texture = texture or Texture()
+    index = texture.patch_index(points_mm, margin_deg)
+    rgb = np.asarray(colours, float)
+    gain = np.median(rgb[index == -1], axis=0) / np.asarray(texture.base)
+    errors = []
+    for k, patch in enumerate(texture.patches):
+        mine = rgb[index == k]
+        truth = gain * np.asarray(patch.reflectance)
+        diff = mine - truth if len(mine) else np.full((1, 3), np.nan)
+        delta_e = np.linalg.norm(_lab(mine) - _lab(truth[None]), axis=1) if len(mine) else [np.nan]
+        errors.append(
+            PatchError(
+                patch.name,
+                len(mine),
+                _triple(truth),
+                _triple(diff.mean(axis=0)),
+                _triple(np.sqrt((diff**2).mean(axis=0))),
+                float(np.mean(delta_e)),
+            )
+        )
+    return gain, errors

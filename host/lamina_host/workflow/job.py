@@ -128,6 +128,8 @@ class ScanJob:
         self.identity: dict[str, Any] | None = None
         """The identity the scan was recorded under (None before one exists)."""
         self.extract: ExtractChanges | None = None
+        self.colour = False
+        """Ask for each object point's colour (:meth:`set_colour`)."""
         self.pose: dict[str, float] = {"lift": 0.0, "turntable": 0.0}
         self.calibrated_by: dict[str, Any] | None = None
         """The identity of the device the chessboard and cylinder were captured with."""
@@ -211,7 +213,7 @@ class ScanJob:
                 "this device cannot sample colour (a monochrome camera, the simulator without "
                 "--noise harsh, or an older lamina-device): scan without colour"
             )
-        client.colour = colour
+        self.colour = colour
 
     def attach(self, client: DeviceClient) -> None:
         """Use a client already handshaken elsewhere (an in-process device); closing leaves it."""
@@ -543,6 +545,8 @@ class ScanJob:
             missing = min(k for k in range(len(plan.views)) if k not in held)
             report(plan.views[missing].section, starting=True)
         extra: dict[str, Any] = {} if self.extract is None else {"extract": self.extract}
+        if self.colour and target == "object":  # the cylinder needs no colour
+            extra["colour"] = True
         try:
             with self._link() as client:
                 client.scan(
