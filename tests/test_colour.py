@@ -297,3 +297,46 @@ def test_colour_from_a_monochrome_device_is_one_line(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert lines and "cannot sample colour" in lines[-1] and "Traceback" not in done.stderr
     assert not Path(tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+# --- replay ---------------------------------------------------------------------------------
+
+
+def test_replay_samples_colour_from_the_capture_frames(tmp_path):
+    import cv2
+
+    from lamina_device.replay import open_replay
+    from lamina_shared.capture import load_capture
+
+    out = tmp_path / "capture"
+    done = subprocess.run(
+        [sys.executable, "-m", "lamina_device", "record", "--hardware", "sim", "--out", str(out),
+         "--object", "cylinder:d=19.05", "--sections", "1", "--pitch", "2", "--views", "2"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    capture = load_capture(out)
+    grey_frames = {}
+    for view in capture.views("object"):
+        assert view.laser_off is not None
+        grey = cv2.imread(str(view.laser_off), cv2.IMREAD_UNCHANGED)
+        grey_frames[view.spec.angle_deg] = grey
+        # The laser's (red) channel keeps the recorded frame; green is half of it, blue 50.
+        bgr = np.stack([np.full_like(grey, 50), grey // 2, grey], axis=2)
+        assert cv2.imwrite(str(view.laser_off), bgr)
+    hardware = open_replay(out)
+    segments: list[Segment] = []
+    try:
+        assert hardware.camera.has_colour  # type: ignore[attr-defined]
+        plan = capture.plan("object")
+        assert plan is not None
+        acquire(hardware, "object", plan, segments.append, colour=True)
+    finally:
+        hardware.close()
+    assert segments and all(s.has_colour for s in segments)
+    for segment in segments:
+        grey = grey_frames[segment.angle_deg].astype(float)
+        red = sample_colour(np.stack([grey] * 3, axis=2), segment.cols, segment.rows)[:, 0]
+        assert np.array_equal(segment.colour[:, 0], red)  # red is the recorded frame
+        assert np.all(segment.colour[:, 2] == 50)  # blue: the constant, so RGB is not BGR
+        assert np.all(np.abs(segment.colour[:, 1].astype(int) - red.astype(int) // 2) <= 1)

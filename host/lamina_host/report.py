@@ -15,8 +15,9 @@ from lamina_host.mesh import contour_normals, obj_bytes, save_ply
 from lamina_host.pipeline import Reconstruction, coloured_cloud, stack
 from lamina_shared.types import Segment
 
-SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence")
-"""Per-point arrays saved; ``confidence`` may be missing from older files (then unknown)."""
+SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence", "colour")
+"""Per-point arrays saved; ``confidence`` and ``colour`` may be missing from older files
+(then unknown, and no colour)."""
 
 
 def save_segments(path: Path, segments: list[Segment]) -> None:

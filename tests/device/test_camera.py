@@ -131,7 +131,7 @@ def test_missing_picamera2_names_how_to_install_it(monkeypatch, pi_kit):
 
 
 def test_colour_frames_come_from_the_same_yuv420_buffer(pi_camera, pi_kit):
-    camera, laser, fake = pi_camera
+    camera, _, fake = pi_camera
     assert camera.has_colour
     luma, rgb = camera.capture_colour()
     assert luma.shape == (240, 320) and rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
