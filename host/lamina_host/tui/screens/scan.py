@@ -75,6 +75,8 @@ class ScanScreen(LaminaScreen):
         with Horizontal(classes="row"):
             yield Label("Subject ", classes="field-label")
             yield Input(placeholder="e.g. P001-left-leg", id="subject", compact=True)
+            # Colour: each point's colour from the laser-off frames (a colour camera).
+            yield Checkbox("Colour", id="colour", compact=True)
         with Horizontal(classes="row"):
             yield Label("Sections ", classes="field-label")
             yield Input("2", id="sections", type="integer", compact=True, classes="short")
@@ -82,7 +84,6 @@ class ScanScreen(LaminaScreen):
             yield Input("2", id="pitch", type="number", compact=True, classes="short")
             yield Label(" Views ", classes="field-label")
             yield Input("8", id="views", type="integer", compact=True, classes="short")
-            yield Checkbox("Colour", id="colour", compact=True)
             yield Button("Start", id="start", variant="primary", compact=True)
             yield Button("Abort", id="abort", variant="error", compact=True)
         with Horizontal(classes="row"):
