@@ -10,15 +10,11 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.extract import sample_colour
@@ -26,11 +22,10 @@ from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
 from lamina_device.sim.texture import Texture, colour_errors
 from lamina_host.assembly import average_overlap_colours, average_overlaps
-from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
+from lamina_host.link import DeviceError, DeviceInfo
 from lamina_host.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
 from lamina_host.store import Library
 from lamina_shared.limits import DeviceLimits
-from lamina_shared.link import Channel
 from lamina_shared.ops import OPS, ArgsError, ScanArgs, parse_args, request_args
 from lamina_shared.protocol import (
     COLOUR_FLAG,
@@ -42,6 +37,7 @@ from lamina_shared.protocol import (
     segment_bytes_per_point,
 )
 from lamina_shared.types import ScanPlan, Segment
+from tests.test_link import link
 
 PATCH_OBJECT = "patches:d=30"
 
@@ -174,35 +170,15 @@ class OlderServer(DeviceServer):
         return welcome
 
 
-@contextmanager
-def served(server_class: type[DeviceServer], noise: str) -> Iterator[DeviceClient]:
-    bridge = PtyBridge()
-    hardware = open_sim(PATCH_OBJECT, noise=noise)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = server_class(Channel(device_port), hardware)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-    try:
-        client.hello()
-        yield client
-    finally:
-        server.running = False
-        thread.join(timeout=10)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
-
-
 def test_colour_is_negotiated_and_an_older_device_still_scans():
     plan = ScanPlan.regular(1, 1.0, 2)
-    with served(DeviceServer, "harsh") as client:
+    with link(object_spec=PATCH_OBJECT, noise="harsh") as ends:
+        client = ends.client
         assert client.info is not None and client.info.colour
         coloured = client.scan("object", plan, colour=True)
         assert all(s.has_colour for s in coloured)
-    with served(OlderServer, "harsh") as client:
+    with link(object_spec=PATCH_OBJECT, noise="harsh", server_class=OlderServer) as ends:
+        client = ends.client
         assert client.info is not None and not client.info.colour
         plain = client.scan("object", plan)  # no colour asked: works as before
         assert not any(s.has_colour for s in plain)

@@ -390,23 +390,6 @@ class SimScene:
         rgb = self._channels(target, angle_deg, z_mm, laser_on, noise_key, exposure_scale)
         return np.rint(rgb).astype(np.uint8)
 
-    def render_colour(
-        self,
-        target: str,
-        angle_deg: float,
-        z_mm: float,
-        laser_on: bool,
-        noise_key: tuple[object, ...] = (),
-        exposure_scale: float = 1.0,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Return the frame :meth:`render` gives and the uint8 RGB it was formed from.
-
-        One exposure: the luma is bit-identical to :meth:`render`'s, the RGB carries the
-        same noise (only colour models, ``noise.laser_rgb`` set).
-        """
-        rgb = self._channels(target, angle_deg, z_mm, laser_on, noise_key, exposure_scale)
-        return luma(rgb), np.rint(rgb).astype(np.uint8)
-
     def _rng(
         self,
         target: str,
