@@ -38,13 +38,17 @@ class Link:
 
 @contextmanager
 def link(
-    faults: LineFaults | None = None, settings: ServerSettings | None = None
+    faults: LineFaults | None = None,
+    settings: ServerSettings | None = None,
+    object_spec: str = "cylinder:d=19.05",
+    noise: str = "thesis",
+    server_class: type[DeviceServer] = DeviceServer,
 ) -> Iterator[Link]:
-    """A sim device served over a pty bridge, and a handshaken host client."""
+    """A sim device (``server_class`` serving it) over a pty bridge, and a handshaken client."""
     bridge = PtyBridge(faults)
-    hardware = open_sim("cylinder:d=19.05", seed=3)
+    hardware = open_sim(object_spec, seed=3, noise=noise)
     device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port), hardware, settings)
+    server = server_class(Channel(device_port), hardware, settings)
     thread = threading.Thread(target=server.serve, daemon=True)
     thread.start()
     host_port = serial.Serial(bridge.host_port, timeout=0.02)

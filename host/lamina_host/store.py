@@ -17,7 +17,9 @@ source object or capture, calibration, extraction settings; see
 :func:`lamina_host.workflow.scan_identity`). Segments and calibration are only added
 under that identity (:meth:`Library.add_segment`), so one scan never mixes two
 acquisitions. Schema 2 added the identity; a schema-1 library is migrated on opening,
-its scans given a ``legacy`` identity rebuilt from what they recorded.
+its scans given a ``legacy`` identity rebuilt from what they recorded. Schema 3 lets a
+segment's blob carry its points' colour (``_segment_blob``): schema-2 data reads
+unchanged, and an older Lamina refuses the library instead of taking colour for damage.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import cv2
 import numpy as np
 
 from lamina_host.files import OutputError, tighten, write_new_file
+from lamina_host.mesh import load_coloured_ply, obj_bytes
 from lamina_host.workflow import (
     InputError,
     check_subject,
@@ -46,7 +49,7 @@ from lamina_host.workflow import (
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 STATUSES = ("acquiring", "acquired", "processed")
 """A scan is ``acquiring`` until every planned view is held, ``processed`` once it has a result."""
 
@@ -182,7 +185,10 @@ def _now() -> str:
 
 
 def _segment_blob(segment: Segment) -> bytes:
-    """Return the segment's arrays, losslessly: cols u16, rows f32, peak, width, confidence u8."""
+    """Return the segment's arrays, losslessly: cols u16, rows f32, peak, width, confidence u8.
+
+    A coloured segment appends its r, g, b bytes per point (12 bytes a point in all).
+    """
     return b"".join(
         (
             np.ascontiguousarray(segment.cols, "<u2").tobytes(),
@@ -190,16 +196,21 @@ def _segment_blob(segment: Segment) -> bytes:
             np.ascontiguousarray(segment.peak, "u1").tobytes(),
             np.ascontiguousarray(segment.width, "u1").tobytes(),
             np.ascontiguousarray(segment.confidence, "u1").tobytes(),
+            np.ascontiguousarray(segment.colour, "u1").tobytes() if segment.has_colour else b"",
         )
     )
 
 
 def _segment_from_row(row: sqlite3.Row) -> Segment:
     n, data = row["points"], row["data"]
-    # 8 bytes a point before segments carried a confidence (then unknown: zeros), 9 since.
-    if len(data) not in (8 * n, 9 * n):
+    # 8 bytes a point before segments carried a confidence (then unknown: zeros), 9 since,
+    # 12 with colour.
+    if len(data) not in (8 * n, 9 * n, 12 * n):
         raise StoreError(f"stored segment {row['seq']} is damaged: restore the library")
-    confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) == 9 * n else None
+    confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) >= 9 * n else None
+    colour = None
+    if n and len(data) == 12 * n:
+        colour = np.frombuffer(data, "u1", 3 * n, 9 * n).reshape(n, 3).copy()
     return Segment(
         row["target"],
         row["section"],
@@ -211,6 +222,7 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
         np.frombuffer(data, "u1", n, 6 * n).copy(),
         np.frombuffer(data, "u1", n, 7 * n).copy(),
         *(() if confidence is None else (confidence,)),
+        *(() if colour is None else (colour,)),
     )
 
 
@@ -656,6 +668,8 @@ def _convert_mesh(ply: bytes, suffix: str) -> bytes:
     """Return a stored PLY mesh in the format ``suffix`` names (.ply, .obj or .stl)."""
     if suffix == ".ply":
         return ply
+    if suffix == ".obj":
+        return obj_bytes(*load_coloured_ply(ply))  # vertex colours kept, no MeshLab needed
     import pymeshlab  # deferred: heavy import, only needed for format conversion
 
     with tempfile.TemporaryDirectory() as tmp:  # private (0700): the mesh never lies open

@@ -573,6 +573,7 @@ _FORMS = {
     "sphere": ("sphere:d=25", {"d"}, set()),
     "ellipsoid": ("ellipsoid:a=10,b=6.5,c=20", {"a", "b", "c"}, set()),
     "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
+    "patches": ("patches:d=30,h=40", set(), {"d", "h"}),
     **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
@@ -620,8 +621,10 @@ def _number(kind: str, key: str, value: str, form: str) -> float:
 def parse_object(spec: str) -> SceneObject:
     """Build a scene object from ``kind:key=value,...``: a solid, a mesh file or a phantom.
 
-    Kinds: cylinder, sphere, ellipsoid, mesh and the phantoms of
-    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``).
+    Kinds: cylinder, sphere, ellipsoid, mesh, the phantoms of
+    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``)
+    and ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
+    on the axis, so no placement keys).
     """
     kind, colon, body = spec.strip().partition(":")
     kind = kind.strip().lower()
@@ -638,6 +641,10 @@ def parse_object(spec: str) -> SceneObject:
         return sphere(num["d"], x, y, num.get("z", 0.0))
     if kind == "ellipsoid":
         return ellipsoid(num["a"], num["b"], num["c"], x, y, num.get("z", 0.0), yaw)
+    if kind == "patches":
+        from lamina_device.sim.texture import patches_cylinder  # texture builds on this module
+
+        return patches_cylinder(num.get("d", 30.0), num.get("h", 40.0))
     if kind in _PHANTOM_NAMES:
         from lamina_device.sim.phantoms import phantom  # phantoms build on this module
 

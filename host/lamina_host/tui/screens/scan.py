@@ -10,7 +10,7 @@ from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.message import Message
-from textual.widgets import Button, Input, Label, ProgressBar, Static
+from textual.widgets import Button, Checkbox, Input, Label, ProgressBar, Static
 from textual_plotext import PlotextPlot
 
 from lamina_host.tui.adapter import (
@@ -75,6 +75,8 @@ class ScanScreen(LaminaScreen):
         with Horizontal(classes="row"):
             yield Label("Subject ", classes="field-label")
             yield Input(placeholder="e.g. P001-left-leg", id="subject", compact=True)
+            # Colour: each point's colour from the laser-off frames (a colour camera).
+            yield Checkbox("Colour", id="colour", compact=True)
         with Horizontal(classes="row"):
             yield Label("Sections ", classes="field-label")
             yield Input("2", id="sections", type="integer", compact=True, classes="short")
@@ -139,10 +141,10 @@ class ScanScreen(LaminaScreen):
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
         self.query_one("#progress-text", Static).update("starting ...")
         self.say(f"scanning {subject}: {len(plan.sections)} sections, {len(plan.views)} views")
-        self.scan_worker(subject, plan)
+        self.scan_worker(subject, plan, self.query_one("#colour", Checkbox).value)
 
     @work(thread=True, exclusive=True, group="scan")
-    def scan_worker(self, subject: str, plan: ScanPlan) -> None:
+    def scan_worker(self, subject: str, plan: ScanPlan, colour: bool = False) -> None:
         """Run the scan in a thread; segments and progress come back as messages."""
         self.attempt(
             lambda: self.session.scan_object(
@@ -151,6 +153,7 @@ class ScanScreen(LaminaScreen):
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
+                colour=colour,
             ),
             self.finished,
         )
