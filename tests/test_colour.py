@@ -29,6 +29,7 @@ from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import OPS, ArgsError, ScanArgs, parse_args, request_args
 from lamina_shared.protocol import (
     COLOUR_FLAG,
+    PROTOCOL_VERSION,
     ProtocolError,
     confidence_bytes,
     decode_segment_body,
@@ -107,7 +108,7 @@ def test_the_colour_flag_is_only_sent_when_asked():
 
 def test_an_older_device_welcome_offers_no_colour():
     welcome: dict[str, Any] = {
-        "protocol": 3, "hardware": "pi", "image_size": [640, 480],
+        "protocol": PROTOCOL_VERSION, "hardware": "pi", "image_size": [640, 480],
         "segment_encoding": {"row_scale": 64},
     }  # fmt: skip
     assert DeviceInfo.from_dict(welcome).colour is False
