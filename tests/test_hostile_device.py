@@ -25,7 +25,6 @@ import numpy as np
 import pytest
 import serial
 
-from lamina_device.acquisition import acquire
 from lamina_device.camera import CameraError
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
@@ -42,9 +41,9 @@ from lamina_shared.protocol import (
     Message,
     encode_frame,
     encode_json,
-    quantise_segment,
 )
-from lamina_shared.types import ScanPlan, Segment, ViewSpec
+from lamina_shared.types import ScanPlan, ViewSpec
+from tests.helpers.served import Served, link, reference, serve
 
 LIMITS = DeviceLimits()
 BASELINE: dict[str, dict[str, Any]] = {
@@ -119,14 +118,12 @@ def device(
     write_timeout_s: float = 10.0,
 ) -> Iterator[Ends]:
     """A sim device served over a pty bridge, greeted by a host that reads all the time."""
-    bridge = PtyBridge(transform)
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port, write_timeout_s=write_timeout_s), hardware, settings)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    host = Channel(host_port)
+    with serve(transform, settings, write_timeout_s=write_timeout_s) as served:
+        yield from _greeted(served)
+
+
+def _greeted(served: Served) -> Iterator[Ends]:
+    server, host = served.server, Channel(served.host_port)
     inbox: queue.Queue[Message] = queue.Queue()
     reading = threading.Event()
     reading.set()
@@ -143,7 +140,7 @@ def device(
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    ends = Ends(server, hardware, host, inbox, thread)
+    ends = Ends(server, served.hardware, host, inbox, served.thread)
     ends.hello("hostile")
     deadline = time.monotonic() + 10
     while not server.greeted and time.monotonic() < deadline:
@@ -151,14 +148,8 @@ def device(
     try:
         yield ends
     finally:
-        server.running = False
-        thread.join(timeout=15)
         stop.set()
         reader.join(timeout=5)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
 
 
 def _refused(reply: dict[str, Any], *codes: str) -> str:
@@ -442,16 +433,6 @@ def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
 # --- A. every advertised size works end to end -------------------------------------------
 
 
-def _reference(plan: ScanPlan) -> list[Segment]:
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    segments: list[Segment] = []
-    try:
-        acquire(hardware, "object", plan, segments.append)
-    finally:
-        hardware.close()
-    return [quantise_segment(s) for s in segments]
-
-
 @pytest.mark.parametrize(
     ("sections", "pitch_mm", "views"),
     [
@@ -464,16 +445,8 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
     assert len(plan.views) <= LIMITS.max_views and len(plan.views) >= 0.97 * LIMITS.max_views
     assert plan_fits(plan, LIMITS) == []
     have = set(range(len(plan.views) - 2))  # a resume: the request carries ~10,000 indices
-    bridge = PtyBridge()
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port), hardware)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    try:
-        client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-        info = client.hello()
+    with link() as ends:
+        client, info = ends.client, ends.info
         for key in (
             "max_views",
             "max_sections",
@@ -486,7 +459,7 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
         ):
             assert info.limits[key] == getattr(LIMITS, key)
         got = client.scan("object", plan, have=have)
-        expected = _reference(ScanPlan(plan.views[-2:]))
+        expected = reference(ScanPlan(plan.views[-2:]))
         assert len(got) == 2
         for segment, truth, view in zip(got, expected, plan.views[-2:], strict=True):
             assert (segment.section, segment.z_mm, segment.angle_deg) == (
@@ -505,13 +478,6 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
         with pytest.raises(RequestRefused, match="allowed"):
             client.scan("object", bigger)
         assert client.request("status")["state"] == "idle"
-    finally:
-        server.running = False
-        thread.join(timeout=15)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
 
 
 def test_an_irregular_plan_too_long_for_one_message_is_caught_before_sending():

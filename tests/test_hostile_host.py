@@ -20,7 +20,6 @@ import sqlite3
 import stat
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -32,7 +31,6 @@ import pytest
 import serial
 
 from lamina_device.server import DeviceServer, ServerSettings
-from lamina_device.sim import open_sim
 from lamina_host import cli, link
 from lamina_host.link import DeviceClient, DeviceError, PtyBridge, open_device
 from lamina_host.report import load_segments
@@ -49,6 +47,7 @@ from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan, Segment
+from tests.helpers.served import link as served_link
 
 OBJECT = "cylinder:d=19.05"
 PLAN = ScanPlan.regular(2, 2.0, 8)
@@ -929,21 +928,5 @@ def _board() -> Any:
 @contextmanager
 def served(server_class: type[DeviceServer], settings: ServerSettings) -> Iterator[DeviceClient]:
     """A sim device served in this process over a real pty link, and a handshaken client."""
-    bridge = PtyBridge()
-    hardware = open_sim(OBJECT, seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = server_class(Channel(device_port), hardware, settings)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-    try:
-        client.hello()
-        yield client
-    finally:
-        server.running = False
-        thread.join(timeout=10)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
+    with served_link(settings=settings, server_class=server_class) as ends:
+        yield ends.client

@@ -36,14 +36,19 @@ class Mechanics:
     """Error model of the simulated axes; :meth:`ideal` has none."""
 
     angle_scale_error: float = -0.2 / 45.0
+    """Relative turntable undershoot: 0.2 degrees short per 45 degrees (thesis 8.3)."""
     angle_runout_deg: float = 0.02
+    """Amplitude of the once-per-turn angle error, ``runout * sin(commanded)``."""
     angle_jitter_deg: float = 0.01
+    """Largest repeatable angle noise of one commanded position."""
     lift_scale_error: float = 0.002
+    """Relative lift travel error (0.2 % too far)."""
     lift_jitter_mm: float = 0.005
-    # A gear mounted off-centre: the angle error goes round once per turn with its own
-    # amplitude and phase, ``eccentric * sin(commanded + phase)``.
+    """Largest repeatable height noise of one commanded height."""
     angle_eccentric_deg: float = 0.0
+    """Amplitude of an off-centre gear's error, ``eccentric * sin(commanded + phase)``."""
     angle_eccentric_phase_deg: float = 0.0
+    """Phase of the off-centre gear's error."""
 
     @classmethod
     def ideal(cls) -> Mechanics:
