@@ -43,7 +43,7 @@ from lamina_shared.protocol import (
     encode_json,
 )
 from lamina_shared.types import ScanPlan, ViewSpec
-from tests.helpers.served import Served, link, reference, serve
+from tests.helpers.served import Served, SilentStream, link, reference, serve
 
 LIMITS = DeviceLimits()
 BASELINE: dict[str, dict[str, Any]] = {
@@ -398,10 +398,22 @@ def _serve(port: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
-def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
+@contextmanager
+def _device_program() -> Iterator[tuple[PtyBridge, subprocess.Popen[bytes]]]:
+    """``lamina-device serve`` on the sim rig in its own process, behind a pty bridge."""
     bridge = PtyBridge()
     process = _serve(bridge.device_port)
     try:
+        yield bridge, process
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+        bridge.close()
+
+
+def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
+    with _device_program() as (bridge, process):
         with serial.Serial(bridge.host_port, timeout=0.05) as port:
             client = DeviceClient(Channel(port), process)
             client.hello()
@@ -410,24 +422,12 @@ def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
         assert process.stderr is not None
         err = process.stderr.read().decode()
         assert "serial port stays unusable" in err and "Traceback" not in err
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.wait()
-        bridge.close()
-    bridge = PtyBridge()
-    process = _serve(bridge.device_port)
-    try:
+    with _device_program() as (bridge, process):
         with serial.Serial(bridge.host_port, timeout=0.05) as port:
             client = DeviceClient(Channel(port), process)
             client.hello()
             client.close()  # asks the device to shut down
         assert process.returncode == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.wait()
-        bridge.close()
 
 
 # --- A. every advertised size works end to end -------------------------------------------
@@ -497,23 +497,12 @@ def test_a_default_plan_too_long_for_the_welcome_is_left_out_not_fatal():
             tuple(ViewSpec(s, s * 0.1, 7.3 * v + 0.01 * s) for s in range(1000) for v in range(10))
         )
         hardware.default_plans["object"] = irregular
-        server = DeviceServer(Channel(_NullStream()), hardware)
+        server = DeviceServer(Channel(SilentStream()), hardware)
         info = server.info()
         assert "object" not in info["default_plans"] and "cylinder" in info["default_plans"]
         assert len(encode_json(Kind.WELCOME, info)) < MAX_PAYLOAD_BYTES
     finally:
         hardware.close()
-
-
-class _NullStream:
-    timeout: float | None = 0.0
-    in_waiting = 0
-
-    def read(self, size: int = 1) -> bytes:
-        return b""
-
-    def write(self, data: bytes) -> int:
-        return len(data)
 
 
 # --- A. identity ---------------------------------------------------------------------------
@@ -523,7 +512,7 @@ def test_identity_names_the_device_and_what_it_images(tmp_path):
     def identity(**kwargs: Any) -> dict[str, str]:
         hardware = open_sim(**kwargs)
         try:
-            return DeviceServer(Channel(_NullStream()), hardware).info()["identity"]
+            return DeviceServer(Channel(SilentStream()), hardware).info()["identity"]
         finally:
             hardware.close()
 
@@ -557,7 +546,7 @@ def test_welcome_reports_the_extraction_settings():
 
     hardware = open_sim()
     try:
-        info = DeviceServer(Channel(_NullStream()), hardware).info()
+        info = DeviceServer(Channel(SilentStream()), hardware).info()
     finally:
         hardware.close()
     assert ExtractSettings(**info["extract"]) == ExtractSettings()

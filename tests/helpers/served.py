@@ -29,6 +29,21 @@ OBJECT = "cylinder:d=19.05"
 Transform = Callable[[bytes, str], bytes]
 
 
+class SilentStream:
+    """A byte stream that never delivers anything and swallows what is written."""
+
+    timeout: float | None = 0.0
+    in_waiting = 0
+
+    def read(self, size: int = 1) -> bytes:
+        """Return nothing: no peer ever speaks."""
+        return b""
+
+    def write(self, data: bytes) -> int:
+        """Accept ``data`` and drop it."""
+        return len(data)
+
+
 @dataclass
 class Served:
     """The device end of a served rig and the host's still unopened-to-protocol port."""

@@ -23,6 +23,7 @@ from lamina_shared import capture as capture_module
 from lamina_shared.capture import CaptureError, CaptureWriter, load_capture, read_frame
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.types import ScanPlan
+from tests.helpers.captures import write_uniform_capture
 
 
 def png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -318,19 +319,8 @@ def test_links_inside_the_capture_are_fine(capture_dir):
 def test_a_10000_view_capture_is_validated_from_headers(tmp_path, capsys):
     """Validity of a maximal capture; the time is reported here and by bench_capture."""
     root = tmp_path / "max"
-    writer = CaptureWriter(root, (64, 48))
-    png = cv2.imencode(".png", frame())[1].tobytes()
-    (root / "scan").mkdir()
     plan = ScanPlan.regular(1000, 0.2, 10)
-    views = []
-    for k, view in enumerate(plan.views):
-        on, off = f"scan/{k:05d}_on.png", f"scan/{k:05d}_off.png"
-        (root / on).write_bytes(png)
-        (root / off).write_bytes(png)
-        views.append({**view.to_dict(), "laser_on": on, "laser_off": off})
-    data = writer.manifest()
-    data["scan"] = {"views": views}
-    (root / "capture.json").write_text(json.dumps(data))
+    write_uniform_capture(root, plan, (64, 48))
     start = time.perf_counter()
     loaded = load_capture(root)
     elapsed_s = time.perf_counter() - start

@@ -6,7 +6,7 @@ import time
 from collections.abc import Callable
 
 from textual.pilot import Pilot
-from textual.widgets import Input
+from textual.widgets import DataTable, Input
 
 from lamina_host.tui.app import LaminaApp
 
@@ -59,3 +59,21 @@ async def fill_scan_form(pilot: Pilot, subject: str, sections: str, pitch: str, 
         widget.focus()
         await pilot.press(*value)
     await pilot.press("escape")
+
+
+async def open_library(pilot: Pilot, rows: int = 1) -> DataTable:
+    """Go to the Library screen and wait until its table lists ``rows`` scans."""
+    await pilot.press("f7")
+    table = pilot.app.screen.query_one("#scans", DataTable)
+    await wait_for(pilot, lambda: table.row_count == rows, "the scan list")
+    return table
+
+
+async def open_first_scan(pilot: Pilot) -> None:
+    """Open the library's only scan and wait until it is processed."""
+    app = pilot.app
+    assert isinstance(app, LaminaApp)
+    await open_library(pilot)
+    await pilot.press("o")
+    await wait_for(pilot, lambda: app.session.results is not None, "processing")
+    await pilot.pause(0.2)

@@ -14,9 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from drive import calibrate, connect, fill_scan_form, wait_for
+from drive import calibrate, connect, fill_scan_form, open_first_scan, open_library, wait_for
 from textual.pilot import Pilot
-from textual.widgets import DataTable
 
 from lamina_host.tui.app import LaminaApp
 from lamina_host.tui.screens.scan import ScanScreen
@@ -101,9 +100,7 @@ def test_library_screen(layout_compare, scanned_library: Path) -> None:
     """Library, with one processed scan."""
 
     async def run_before(pilot: Pilot) -> None:
-        await pilot.press("f7")
-        table = pilot.app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await open_library(pilot)
 
     app = LaminaApp("sim", scanned_library)
     assert layout_compare(app, run_before, SIZE)
@@ -113,9 +110,7 @@ def test_library_delete_asks_first(layout_compare, scanned_library: Path) -> Non
     """Library, asking before deleting (answered no by the snapshot, so nothing is lost)."""
 
     async def run_before(pilot: Pilot) -> None:
-        await pilot.press("f7")
-        table = pilot.app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await open_library(pilot)
         await pilot.press("d")
 
     app = LaminaApp("sim", scanned_library)
@@ -126,14 +121,7 @@ def test_results_screen(layout_compare, scanned_library: Path) -> None:
     """Results of the library's scan, opened and processed again with 5 harmonics."""
 
     async def run_before(pilot: Pilot) -> None:
-        app = pilot.app
-        assert isinstance(app, LaminaApp)
-        await pilot.press("f7")
-        table = app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
-        await pilot.press("o")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
-        await pilot.pause(0.2)
+        await open_first_scan(pilot)
 
     app = LaminaApp("sim", scanned_library)
     assert layout_compare(app, run_before, SIZE)
