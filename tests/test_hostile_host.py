@@ -347,7 +347,7 @@ def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
         other.connect()
         other.open_scan(1)
         with pytest.raises(StoreError, match="another device or setup"):
-            other.resume_object()
+            other.fetch_object()
         assert dump(path) == before
         # Calibrated with one device, then connected to another: no scan may start.
         other.calibrate_grid()

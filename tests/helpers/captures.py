@@ -32,3 +32,10 @@ def write_uniform_capture(root: Path, plan: ScanPlan, size: tuple[int, int]) -> 
     data = writer.manifest()
     data["scan"] = {"views": views}
     (root / "capture.json").write_text(json.dumps(data))
+
+
+def assert_reports(problems: list[str], *expected: str) -> None:
+    """Assert that every ``expected`` fragment stands in the problems; name all missing ones."""
+    text = "\n".join(problems)
+    missing = [fragment for fragment in expected if fragment not in text]
+    assert not missing, f"not reported: {missing}; reported: {problems}"

@@ -14,10 +14,11 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from lamina_device.motion import ContinuousTurntable, MotionError
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_shared.presets import make_preset
 
 __all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimLift", "SimTurntable"]
 
@@ -69,13 +70,12 @@ class Mechanics:
     @classmethod
     def preset(cls, noise: str) -> Mechanics:
         """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
-        if noise == "thesis":
-            return cls()
-        if noise == "harsh":
-            return cls.harsh()
-        if noise == "none":
-            return cls.ideal()
-        raise ValueError(f"unknown noise {noise!r}; use one of {', '.join(NOISE_PRESETS)}")
+        makers: dict[str, Callable[[], Mechanics]] = {
+            "thesis": cls,
+            "harsh": cls.harsh,
+            "none": cls.ideal,
+        }
+        return make_preset("noise", noise, makers)
 
     def true_angle_deg(self, commanded_deg: float) -> float:
         """Return where the turntable really is when told ``commanded_deg``."""

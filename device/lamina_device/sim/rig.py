@@ -10,11 +10,12 @@ object about 10 cm away.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from lamina_shared.presets import RIG_PRESETS
+from lamina_shared.presets import RIG_PRESETS, make_preset
 from lamina_shared.types import BoardSpec
 
 __all__ = ["RIG_PRESETS", "Rig"]
@@ -68,11 +69,8 @@ class Rig:
     @classmethod
     def preset(cls, name: str) -> Rig:
         """Return the rig named ``name`` (one of ``RIG_PRESETS``)."""
-        if name == "thesis":
-            return cls()
-        if name == "limb":
-            return cls.limb()
-        raise ValueError(f"unknown rig {name!r}; use one of {', '.join(RIG_PRESETS)}")
+        makers: dict[str, Callable[[], Rig]] = {"thesis": cls, "limb": cls.limb}
+        return make_preset("rig", name, makers)
 
     @property
     def principal_point_px(self) -> tuple[float, float]:

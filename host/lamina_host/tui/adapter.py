@@ -155,15 +155,6 @@ class Session(ScanJob):
         if self.axis is None:
             raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
         self.create(request)
-        return self.resume_object(on_segment, on_progress, on_notice)
-
-    def resume_object(
-        self,
-        on_segment: SegmentHandler | None = None,
-        on_progress: ProgressHandler | None = None,
-        on_notice: NoticeHandler | None = None,
-    ) -> list[Segment]:
-        """Scan the views of the current plan not received yet (after an abort or a drop)."""
         return self.fetch_object(on_segment, on_progress, on_notice)
 
     def process(

@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import ClassVar
 
 from rich.text import Text
-from textual import work
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.widgets import DataTable, Static
@@ -45,13 +44,8 @@ class LibraryScreen(LaminaScreen):
         self.action_reload()
 
     def action_reload(self) -> None:
-        """Read the library's scans."""
-        self.list_worker()
-
-    @work(thread=True, exclusive=True, group="library")
-    def list_worker(self) -> None:
-        """Read the list in a thread (the file may be large or on a slow disk)."""
-        self.attempt(self.session.scans, self.listed)
+        """Read the library's scans (in a thread: the file may be large or on a slow disk)."""
+        self.in_thread("library", self.session.scans, self.listed)
 
     def listed(self, scans: list[ScanSummary]) -> None:
         """Fill the table."""
@@ -84,17 +78,16 @@ class LibraryScreen(LaminaScreen):
         scan_id = self._chosen()
         if scan_id is not None:
             self.say(f"opening scan {scan_id} ...")
-            self.open_worker(scan_id)
+            self.in_thread(
+                "library-open",
+                lambda: self._open(scan_id),
+                lambda outcome: self.opened(scan_id, outcome),
+            )
 
-    @work(thread=True, exclusive=True, group="library-open")
-    def open_worker(self, scan_id: int) -> None:
-        """Load and process in a thread."""
-
-        def job() -> Results | int:
-            data = self.session.open_scan(scan_id)
-            return self.session.process() if data.complete else len(data.segments)
-
-        self.attempt(job, lambda outcome: self.opened(scan_id, outcome))
+    def _open(self, scan_id: int) -> Results | int:
+        """Load and process (in a worker); an incomplete scan gives its view count."""
+        data = self.session.open_scan(scan_id)
+        return self.session.process() if data.complete else len(data.segments)
 
     def opened(self, scan_id: int, outcome: Results | int) -> None:
         """Show the processed scan, or say how to finish an incomplete one."""
@@ -112,18 +105,17 @@ class LibraryScreen(LaminaScreen):
 
         def answered(folder: str | None) -> None:
             if folder:
-                self.export_worker(scan_id, Path(folder).expanduser())
+                path = Path(folder).expanduser()
+                self.in_thread(
+                    "library-export",
+                    lambda: self.session.export_scan(scan_id, path),
+                    lambda paths: self.say(
+                        f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"
+                    ),
+                )
 
         self.app.push_screen(
             AskScreen(f"Export scan {scan_id} into folder:", "a new or empty folder"), answered
-        )
-
-    @work(thread=True, exclusive=True, group="library-export")
-    def export_worker(self, scan_id: int, folder: Path) -> None:
-        """Export in a thread."""
-        self.attempt(
-            lambda: self.session.export_scan(scan_id, folder),
-            lambda paths: self.say(f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"),
         )
 
     def action_delete(self) -> None:
@@ -134,18 +126,17 @@ class LibraryScreen(LaminaScreen):
 
         def answered(yes: bool | None) -> None:
             if yes:
-                self.delete_worker(scan_id)
+                self.in_thread(
+                    "library",
+                    lambda: self.session.delete_scan(scan_id),
+                    lambda _: self.deleted(scan_id),
+                )
             else:
                 self.say(f"scan {scan_id} kept")
 
         self.app.push_screen(
             ConfirmScreen(f"Delete scan {scan_id} and everything recorded for it?"), answered
         )
-
-    @work(thread=True, exclusive=True, group="library")
-    def delete_worker(self, scan_id: int) -> None:
-        """Delete in a thread, then list again."""
-        self.attempt(lambda: self.session.delete_scan(scan_id), lambda _: self.deleted(scan_id))
 
     def deleted(self, scan_id: int) -> None:
         """Say so and refresh the list."""
