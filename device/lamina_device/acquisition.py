@@ -54,11 +54,6 @@ class ScanControl:
         """Return True while a pause is requested."""
         return self._paused
 
-    @property
-    def aborted(self) -> bool:
-        """Return True once an abort is requested."""
-        return self._aborted
-
     def pause(self) -> None:
         """Hold the scan at the next view boundary."""
         self._request(paused=True)

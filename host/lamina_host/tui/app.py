@@ -67,14 +67,10 @@ class LaminaApp(App[None]):
     """The latest status line (message, is_error), shown on every screen."""
 
     def __init__(
-        self,
-        device: str = "sim",
-        library: Path | None = None,
-        object_spec: str | None = None,
-        seed: int = 0,
+        self, device: str = "sim", library: Path | None = None, object_spec: str | None = None
     ) -> None:
         super().__init__()
-        self.session = Session(device, library, object_spec, seed)
+        self.session = Session(device, library, object_spec)
 
     def action_help(self) -> None:
         """Show the keys and the workflow."""
