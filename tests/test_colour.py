@@ -38,7 +38,7 @@ from lamina_shared.protocol import (
     segment_bytes_per_point,
 )
 from lamina_shared.types import ScanPlan, Segment
-from tests.test_link import link
+from tests.helpers.served import link
 
 PATCH_OBJECT = "patches:d=30"
 

@@ -55,27 +55,25 @@ class ScanControl:
         """Return True while a pause is requested."""
         return self._paused
 
-    @property
-    def aborted(self) -> bool:
-        """Return True once an abort is requested."""
-        return self._aborted
-
     def pause(self) -> None:
         """Hold the scan at the next view boundary."""
-        with self._changed:
-            self._paused = True
-            self._changed.notify_all()
+        self._request(paused=True)
 
     def resume(self) -> None:
         """Let a paused scan go on."""
-        with self._changed:
-            self._paused = False
-            self._changed.notify_all()
+        self._request(paused=False)
 
     def abort(self) -> None:
         """End the scan at the next view boundary (or at once if it is paused)."""
+        self._request(aborted=True)
+
+    def _request(self, paused: bool | None = None, aborted: bool | None = None) -> None:
+        # One place changes the flags, under the lock, and wakes a waiting checkpoint.
         with self._changed:
-            self._aborted = True
+            if paused is not None:
+                self._paused = paused
+            if aborted is not None:
+                self._aborted = aborted
             self._changed.notify_all()
 
     def checkpoint(self) -> None:

@@ -31,7 +31,6 @@ import tempfile
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import cv2
@@ -47,6 +46,7 @@ from lamina_host.workflow import (
     spawned_source,
 )
 from lamina_shared.errors import LaminaError
+from lamina_shared.scoped import Scoped
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 SCHEMA_VERSION = 3
@@ -254,7 +254,7 @@ def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[st
     return {"legacy": True, **scan_identity(welcome, spawned)}
 
 
-class Library:
+class Library(Scoped):
     """The scan library file; a context manager that closes it."""
 
     def __init__(self, path: Path | None = None) -> None:
@@ -297,15 +297,8 @@ class Library:
                 "UPDATE scans SET identity = ? WHERE id = ?", (json.dumps(identity), row["id"])
             )
 
-    def __enter__(self) -> Library:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
+    def leave(self) -> None:
+        """Close the file at the end of a ``with`` block."""
         self.close()
 
     def close(self) -> None:

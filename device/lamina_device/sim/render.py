@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -28,7 +29,7 @@ import numpy as np
 from lamina_device.sim.objects import SceneObject, cylinder
 from lamina_device.sim.rig import Rig
 from lamina_device.sim.texture import Textured
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_shared.presets import NOISE_PRESETS, make_preset
 
 __all__ = [
     "BT601_LUMA",
@@ -138,10 +139,8 @@ class NoiseModel:
     @classmethod
     def preset(cls, name: str) -> NoiseModel:
         """Return the model named ``name`` (one of ``NOISE_PRESETS``)."""
-        if name not in NOISE_PRESETS:
-            raise ValueError(f"unknown noise {name!r}; use one of {', '.join(NOISE_PRESETS)}")
-        model: NoiseModel = getattr(cls, name)()
-        return model
+        makers: dict[str, Callable[[], NoiseModel]] = {n: getattr(cls, n) for n in NOISE_PRESETS}
+        return make_preset("noise", name, makers)
 
 
 def _stable_seed(*parts: object) -> int:

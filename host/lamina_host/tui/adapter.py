@@ -158,15 +158,6 @@ class Session(ScanJob):
             raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
         self.set_colour(colour)  # before the scan's identity is recorded
         self.create(request)
-        return self.resume_object(on_segment, on_progress, on_notice)
-
-    def resume_object(
-        self,
-        on_segment: SegmentHandler | None = None,
-        on_progress: ProgressHandler | None = None,
-        on_notice: NoticeHandler | None = None,
-    ) -> list[Segment]:
-        """Scan the views of the current plan not received yet (after an abort or a drop)."""
         return self.fetch_object(on_segment, on_progress, on_notice)
 
     def process(

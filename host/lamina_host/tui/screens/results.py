@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from rich.text import Text
-from textual import on, work
+from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal
@@ -165,12 +165,10 @@ class ResultsScreen(LaminaScreen):
         method = str(self.query_one("#mesh-method", Select).value)
         self.query_one("#process", Button).disabled = True
         self.say("processing ...")
-        self.process_worker(harmonics, method, rule)
-
-    @work(thread=True, exclusive=True, group="process")
-    def process_worker(self, harmonics: int | None, method: str, rule: str | None) -> None:
-        """Reconstruct in a thread (calibration, EFD, meshing)."""
-        self.attempt(lambda: self.session.process(harmonics, method, rule), self.processed)
+        # In a thread: calibration, EFD and meshing take seconds.
+        self.in_thread(
+            "process", lambda: self.session.process(harmonics, method, rule), self.processed
+        )
 
     def processed(self, results: Results) -> None:
         """Show the new results."""
@@ -194,12 +192,8 @@ class ResultsScreen(LaminaScreen):
             return
         self.query_one("#export", Button).disabled = True
         self.say(f"exporting to {folder} ...")
-        self.export_worker(Path(folder).expanduser())
-
-    @work(thread=True, exclusive=True, group="export")
-    def export_worker(self, folder: Path) -> None:
-        """Write the files in a thread."""
-        self.attempt(lambda: self.session.export(folder), self.exported)
+        path = Path(folder).expanduser()
+        self.in_thread("export", lambda: self.session.export(path), self.exported)
 
     def exported(self, paths: list[Path]) -> None:
         """Say what was written."""

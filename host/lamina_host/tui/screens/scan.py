@@ -141,12 +141,10 @@ class ScanScreen(LaminaScreen):
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
         self.query_one("#progress-text", Static).update("starting ...")
         self.say(f"scanning {subject}: {len(plan.sections)} sections, {len(plan.views)} views")
-        self.scan_worker(subject, plan, self.query_one("#colour", Checkbox).value)
-
-    @work(thread=True, exclusive=True, group="scan")
-    def scan_worker(self, subject: str, plan: ScanPlan, colour: bool = False) -> None:
-        """Run the scan in a thread; segments and progress come back as messages."""
-        self.attempt(
+        colour = self.query_one("#colour", Checkbox).value
+        # Segments and progress come back from the scan's thread as messages.
+        self.in_thread(
+            "scan",
             lambda: self.session.scan_object(
                 subject,
                 plan,
@@ -240,13 +238,9 @@ class ScanScreen(LaminaScreen):
         self._aborting = False
         self._set_scanning(True)
         self.say(f"resuming: {len(self.session.held)} views held, fetching the rest ...")
-        self.resume_worker()
-
-    @work(thread=True, exclusive=True, group="scan")
-    def resume_worker(self) -> None:
-        """Fetch the missing views in a thread."""
-        self.attempt(
-            lambda: self.session.resume_object(
+        self.in_thread(
+            "scan",
+            lambda: self.session.fetch_object(
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
@@ -269,12 +263,7 @@ class ScanScreen(LaminaScreen):
             self.say("a scan is running: abort it (b) first", error=True)
             return
         self.say(f"reconnecting to {self.session.device} ...")
-        self.reconnect_worker()
-
-    @work(thread=True, exclusive=True, group="connect")
-    def reconnect_worker(self) -> None:
-        """Reconnect in a thread."""
-        self.attempt(self.session.connect, lambda _: self.reconnected())
+        self.in_thread("connect", self.session.connect, lambda _: self.reconnected())
 
     def reconnected(self) -> None:
         """Show the recovered link."""
