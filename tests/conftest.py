@@ -1,5 +1,5 @@
-"""Fixtures shared by every test folder: a refused command's one line, recording a capture
-on the simulated rig, the box's device service on a local endpoint."""
+"""Fixtures shared by every test folder: a refused command's one line, the box's device
+service on a local endpoint."""
 
 from __future__ import annotations
 
@@ -63,20 +63,3 @@ def one_line_refusal(done: subprocess.CompletedProcess[str]) -> str:
 def refusal() -> Callable[[subprocess.CompletedProcess[str]], str]:
     """Return the checker of a refusal: non-zero status and one line, which it returns."""
     return one_line_refusal
-
-
-Recorder = Callable[..., subprocess.CompletedProcess[str]]
-
-
-def record_capture(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """Run ``lamina-device record --hardware sim --out OUT ARGS`` and return what it did."""
-    command = [sys.executable, "-m", "lamina_device", "record", "--hardware", "sim"]
-    return subprocess.run(
-        [*command, "--out", str(out), *args], capture_output=True, text=True, timeout=300
-    )
-
-
-@pytest.fixture(scope="session")
-def recorder() -> Recorder:
-    """Return :func:`record_capture`, which records a capture on the simulated rig."""
-    return record_capture

@@ -25,6 +25,7 @@ from lamina_host.link import PtyBridge
 from lamina_host.report import load_segments
 from lamina_shared.link import Channel
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
+from tests.helpers.cli import device_command
 
 # Scans go into a library in the user's data folder: keep the tests' library out of it.
 TEST_DATA_HOME = tempfile.mkdtemp(prefix="lamina-test-data-")
@@ -38,6 +39,16 @@ def lamina(*args: str) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=300,
         env={**os.environ, "XDG_DATA_HOME": TEST_DATA_HOME},
+    )
+
+
+def record(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``lamina-device record`` on the simulated rig."""
+    return subprocess.run(
+        device_command("record", "--hardware", "sim", "--out", str(out), *args),
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
 
 
@@ -75,9 +86,9 @@ def live_scan(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory, recorder) -> Path:
+def capture(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("capture") / "cylinder"
-    result = recorder(
+    result = record(
         out, "--object", "cylinder:d=19.05", "--sections", "4", "--pitch", "2", "--views", "8"
     )
     assert result.returncode == 0, result.stderr

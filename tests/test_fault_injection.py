@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from lamina_host.store import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_shared.types import Segment
+from tests.helpers.library import held_segments
 
 
 @dataclass
@@ -95,12 +95,27 @@ def test_faulty_line_with_three_cuts_stores_exactly_the_clean_scan(clean, tmp_pa
     assert identical(got.segments, clean.segments)
 
 
-def _held(library_path: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{library_path}?mode=ro", uri=True) as db:
-            return db.execute("SELECT COUNT(*) FROM segments WHERE target='object'").fetchone()[0]
-    except sqlite3.Error:
-        return 0
+def test_three_byte_errors_in_a_thousand_and_three_2s_cuts_store_exactly_the_clean_scan(
+    clean, tmp_path
+):
+    """Issue 14: flip, drop and duplicate at 1e-3 each from the first byte (the handshake
+    too), and the line dead for 2 s three times; the stored scan equals the clean one."""
+    faults = LineFaults(
+        error_rate=3e-3, cut_after_bytes=(50_000, 175_000, 190_000), cut_s=2.0, seed=14
+    )
+    with Library(tmp_path / "library.sqlite") as library:
+        with open_device("sim", transform=faults) as client:
+            scan_id = _acquire(client, library, tmp_path)
+            sizer = client.channel.sizer
+        got = stored(library, scan_id)
+        assert library.missing(scan_id, "object") == []
+    assert faults.counts["cuts"] == 3
+    assert min(faults.counts[k] for k in ("flipped", "dropped", "duplicated")) > 300
+    # The host measured the line and sent short frames.
+    assert 1e-3 < sizer.error_rate < 1e-2 and sizer.fragment_bytes < 200
+    assert np.array_equal(got.grid, clean.grid)
+    assert identical(got.cylinder, clean.cylinder)
+    assert identical(got.segments, clean.segments)
 
 
 def test_host_killed_mid_scan_resumes_without_loss(clean, tmp_path):
@@ -112,12 +127,12 @@ def test_host_killed_mid_scan_resumes_without_loss(clean, tmp_path):
     ]  # fmt: skip
     first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while _held(library_path) < 6 and time.monotonic() < deadline and first.poll() is None:
+    while held_segments(library_path) < 6 and time.monotonic() < deadline and first.poll() is None:
         time.sleep(0.05)
     os.kill(first.pid, signal.SIGKILL)
     first.wait()
     first_out = first.stdout.read() + first.stderr.read() if first.stdout and first.stderr else b""
-    held = _held(library_path)
+    held = held_segments(library_path)
     assert 6 <= held < 32, held
 
     resumed = subprocess.run(

@@ -81,6 +81,19 @@ def section_measurements(result: Reconstruction) -> list[Row]:
     ]
 
 
+def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reconstruction:
+    """Reconstruct a stored scan again; ``options`` None: those its stored result recorded."""
+    chosen = options or ProcessOptions.from_dict(inputs.options)
+    return reconstruct(
+        inputs.grid_image,
+        inputs.board,
+        inputs.cylinder,
+        inputs.cylinder_mm,
+        inputs.segments,
+        chosen,
+    )
+
+
 def measure_scan(
     inputs: ScanInputs,
     measure: Measure = section_measurements,
@@ -90,16 +103,8 @@ def measure_scan(
 
     ``options`` None reprocesses with the options the scan's result recorded.
     """
-    chosen = options or ProcessOptions.from_dict(inputs.options)
     try:
-        result = reconstruct(
-            inputs.grid_image,
-            inputs.board,
-            inputs.cylinder,
-            inputs.cylinder_mm,
-            inputs.segments,
-            chosen,
-        )
+        result = reprocess(inputs, options)
         return ScanOutcome(inputs.scan_id, inputs.subject, measure(result))
     except (LaminaError, ValueError) as exc:
         return ScanOutcome(inputs.scan_id, inputs.subject, error=str(exc))

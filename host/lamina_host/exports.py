@@ -11,9 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from lamina_host.batch import reprocess
 from lamina_host.dicom import DicomContext, dicom_bytes, encapsulated_stl
 from lamina_host.mesh import load_ply
-from lamina_host.pipeline import ProcessOptions, reconstruct
 from lamina_host.record import record_bytes
 from lamina_host.store import EXPORT_FORMATS, Library, StoreError, check_new_file
 
@@ -70,12 +70,5 @@ def record_export(library: Library, scan_id: int) -> bytes:
             f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
         )
     inputs = library.inputs(scan_id)
-    result = reconstruct(
-        inputs.grid_image,
-        inputs.board,
-        inputs.cylinder,
-        inputs.cylinder_mm,
-        inputs.segments,
-        ProcessOptions.from_dict(inputs.options),
-    )
+    result = reprocess(inputs)
     return record_bytes(result, scan_id, inputs.subject, inputs.created)

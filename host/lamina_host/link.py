@@ -77,6 +77,9 @@ SPAWNED_STARTUP_S = 120.0
 capture), as long as it is running."""
 STARTUP_NOTICE_S = 5.0
 """After this long without an answer, say that the device program is still starting."""
+REACK_SEQS = 16
+"""Segments acknowledged again when a heartbeat says the device still holds some (its
+window)."""
 PROCESS_CHECK_S = 0.25
 """How often a request checks that a device program started here is still running."""
 
@@ -132,6 +135,8 @@ class DeviceInfo:
     operations: tuple[str, ...] = ()
     welcome: dict[str, Any] = field(default_factory=dict)
     """The WELCOME body as received (for :func:`lamina_host.workflow.scan_identity`)."""
+    colour: bool = False
+    """The device samples colour per point (WELCOME ``colour``; absent on older devices)."""
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
@@ -164,6 +169,7 @@ class DeviceInfo:
                 dict(data.get("limits") or {}),
                 tuple(str(op) for op in data.get("operations") or ()),
                 dict(data),
+                data.get("colour") is True,
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DeviceError(f"the device's handshake is malformed ({exc})") from None
@@ -403,7 +409,8 @@ class DeviceClient:
 
         Any thread may call this while another thread's request runs: the link's reader
         (:attr:`dispatcher`) hands each thread the messages of its own request, and
-        ``on_event`` runs on the calling thread. ``args`` is the operation's typed
+        ``on_event`` runs on the calling thread (and also hears the device's heartbeats
+        that name this request). ``args`` is the operation's typed
         arguments (a dataclass of :mod:`lamina_shared.ops`) or their JSON object.
         """
         if args is not None and not isinstance(args, dict):
@@ -434,6 +441,8 @@ class DeviceClient:
                 if message.kind is Kind.HEARTBEAT:
                     if request_id_of(message) == request_id:
                         last_related = now
+                        if on_event is not None:
+                            on_event(message)
                     elif now - last_related > 0.3:
                         # The device says it is not working on our request: it never got
                         # it, or its reply was lost. Ask again now rather than after a timeout.
@@ -449,6 +458,7 @@ class DeviceClient:
             self.dispatcher.close(request_id)
 
     def _resend(self, frame: bytes) -> None:
+        self.channel.sizer.penalise()
         self.channel.send(frame)
         with self._id_lock:
             self.stats.request_retries += 1
@@ -584,6 +594,7 @@ class DeviceClient:
         on_segment: SegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
         extract: ExtractChanges | None = None,
+        colour: bool = False,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
 
@@ -600,6 +611,7 @@ class DeviceClient:
             on_notice: receives the one-line text of a refused pause, resume or abort.
             extract: extraction settings to change for this scan (default: :attr:`extract`);
                 the device refuses the scan, naming every problem, if they are unusable.
+            colour: ask for each point's colour (a device whose WELCOME offers it).
 
         Raises:
             ScanStopped: the scan was aborted; it holds the segments received.
@@ -625,10 +637,23 @@ class DeviceClient:
                 lost = [s for s in expected if s < body.seq and s not in received]
                 ack = {"id": body.request_id, "seqs": [body.seq], "lost": lost[:64]}
                 self.channel.send(encode_json(Kind.ACK, ack))
+            elif message.kind is Kind.HEARTBEAT:
+                # The device still holds segments: if it is one we stored, our ACK was
+                # lost; acknowledging the latest again now beats the device's backoff.
+                unacked = message.body.get("unacked")
+                if isinstance(unacked, int) and unacked > 0 and received:
+                    recent = list(received)[-REACK_SEQS:]
+                    ack = {"id": request_id_of(message), "seqs": recent, "lost": []}
+                    self.channel.send(encode_json(Kind.ACK, ack))
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract)
+        if colour and not (self.info and self.info.colour):
+            raise DeviceError(
+                "this device cannot sample colour (its camera or an older lamina-device): "
+                "scan without --colour"
+            )
+        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract, colour)
         with self._id_lock:
             self._scanning, self._on_notice = True, on_notice
         try:

@@ -214,10 +214,15 @@ class ServerSettings:
 
     limits: DeviceLimits = field(default_factory=DeviceLimits)
     rto_min_s: float = 0.25
+    """Shortest retransmission timeout of a segment, however fast the round trips."""
     rto_max_s: float = 2.0
+    """Longest retransmission timeout, also the cap of the doubling on each resend."""
     ack_timeout_s: float = 60.0
+    """How long a capture waits for its last segments to be acknowledged before it ends."""
     kept_transfers: int = 2
+    """Binary transfers kept for the host to fetch again; older ones are dropped."""
     kept_replies: int = 32
+    """Replies kept so a repeated request id is answered again instead of run twice."""
     link_retries: int = 3
     """Consecutive link failures, each 0.5 s apart, before the port counts as lost."""
 
@@ -483,7 +488,10 @@ class DeviceEndpoint:
             return
         if self._heartbeat.due():
             self.channel.send(encode_json(Kind.HEARTBEAT, self.state()))
-        for seq, segment in self.buffer.overdue():
+        overdue = self.buffer.overdue()
+        if overdue:
+            self.channel.sizer.penalise()
+        for seq, segment in overdue:
             self.channel.send(encode_segment(self.buffer.request_id, seq, segment))
 
     def state(self) -> dict[str, Any]:
@@ -526,7 +534,12 @@ class DeviceEndpoint:
             self._stop_worker()
             self._replies.clear()
             self.session = session
-        self.channel.send(encode_json(Kind.WELCOME, self.welcome()))
+        welcome = self.welcome()
+        if not self.greeted:
+            # A peer of another version may not read fragments: the versions alone go
+            # whole, for it to name the mismatch.
+            welcome = {k: welcome[k] for k in ("protocol", "software") if k in welcome}
+        self.channel.send(encode_json(Kind.WELCOME, welcome))
 
     def _ack(self, body: dict[str, Any]) -> None:
         request_id, seqs, lost = body.get("id"), body.get("seqs"), body.get("lost", [])
