@@ -186,19 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_report_parser(sub)
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
-    tui.add_argument(
-        "--device",
-        default="sim",
-        help="serial port path, 'local' (the device service on this machine, or "
-        "socket://HOST:PORT), 'sim' (default) or 'replay:DIR'",
-    )
-    tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
-    tui.add_argument(
-        "--noise",
-        choices=NOISE_PRESETS,
-        help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
-    )
-    _add_library_option(tui)
+    _add_ui_options(tui)
     ui = sub.add_parser("serve-ui", help="serve the terminal UI to a web browser (textual-serve)")
     ui.add_argument(
         "--host", default="127.0.0.1", help="address to listen on (default: this machine only)"
@@ -209,12 +197,35 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="allow a --host other machines can reach (the UI has no login)",
     )
-    ui.add_argument(
-        "--device", default="sim", help="what each browser session connects to, as for tui"
-    )
-    ui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
-    _add_library_option(ui)
+    _add_ui_options(ui)
     return parser
+
+
+def _add_ui_options(parser: argparse.ArgumentParser) -> None:
+    """Add what the terminal UI connects to: ``tui`` and ``serve-ui`` (each browser's tui)."""
+    parser.add_argument(
+        "--device",
+        default="sim",
+        help="serial port path, 'local' (the device service on this machine, or "
+        "socket://HOST:PORT), 'sim' (default) or 'replay:DIR'",
+    )
+    parser.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
+    parser.add_argument(
+        "--noise",
+        choices=NOISE_PRESETS,
+        help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
+    )
+    _add_library_option(parser)
+
+
+def _check_ui_options(args: argparse.Namespace) -> list[str]:
+    """Refuse sim-only options for another device; return them as ``lamina tui`` options."""
+    if (args.object or args.noise) and args.device != "sim":
+        raise UsageError("--object and --noise only apply to --device sim")
+    options = ["--device", args.device]
+    for flag, value in (("--object", args.object), ("--noise", args.noise)):
+        options += [flag, value] if value else []
+    return options + (["--library", str(args.library.resolve())] if args.library else [])
 
 
 def _add_report_parser(sub: Any) -> None:
@@ -623,8 +634,7 @@ def batch(args: argparse.Namespace) -> int:
 
 def tui(args: argparse.Namespace) -> int:
     """Run ``lamina tui``: the Textual app on this terminal."""
-    if (args.object or args.noise) and args.device != "sim":
-        raise UsageError("--object and --noise only apply to --device sim")
+    _check_ui_options(args)
     from lamina_host.tui.app import LaminaApp  # deferred: Textual is only needed here
 
     LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
@@ -633,14 +643,13 @@ def tui(args: argparse.Namespace) -> int:
 
 def serve_ui(args: argparse.Namespace) -> int:
     """Run ``lamina serve-ui``: the terminal UI in a browser, until interrupted."""
-    if args.object and args.device != "sim":
-        raise UsageError("--object only applies to --device sim")
+    tui_options = _check_ui_options(args)
     if not 0 < args.port < 65536:
         raise UsageError(f"--port {args.port} must be from 1 to 65535")
     from lamina_host.serve_ui import serve_ui as run_server  # deferred: aiohttp is heavy
 
     try:
-        run_server(args.host, args.port, args.device, args.library, args.object, args.allow_remote)
+        run_server(args.host, args.port, tui_options, args.allow_remote)
     except OSError as exc:
         raise UsageError(
             f"cannot serve the UI on {args.host}:{args.port} ({exc.strerror or exc}): "

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import shlex
 import sys
-from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 from aiohttp import web
@@ -44,24 +44,12 @@ class UiServer(Server):
         return await super().handle_index(request)
 
 
-def tui_command(device: str, library: Path | None, object_spec: str | None) -> str:
+def tui_command(tui_options: Sequence[str]) -> str:
     """Return the shell command that runs ``lamina tui`` with these options."""
-    words = [sys.executable, "-m", "lamina_host", "tui", "--device", device]
-    if library is not None:
-        words += ["--library", str(library.resolve())]
-    if object_spec:
-        words += ["--object", object_spec]
-    return shlex.join(words)
+    return shlex.join([sys.executable, "-m", "lamina_host", "tui", *tui_options])
 
 
-def serve_ui(
-    host: str,
-    port: int,
-    device: str,
-    library: Path | None = None,
-    object_spec: str | None = None,
-    allow_remote: bool = False,
-) -> None:
+def serve_ui(host: str, port: int, tui_options: Sequence[str], allow_remote: bool = False) -> None:
     """Serve the terminal UI on http://HOST:PORT until interrupted.
 
     Raises:
@@ -81,5 +69,5 @@ def serve_ui(
             file=sys.stderr,
             flush=True,
         )
-    server = UiServer(tui_command(device, library, object_spec), host, port, title="Lamina")
+    server = UiServer(tui_command(tui_options), host, port, title="Lamina")
     server.serve()

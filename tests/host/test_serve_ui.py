@@ -40,7 +40,6 @@ def test_port_in_use_is_one_line(refusal: Refusal) -> None:
 
 
 def test_each_browser_session_runs_the_tui_command() -> None:
-    """The served command is ``lamina tui`` with the device and library given."""
-    command = tui_command("local", None, None)
-    assert command.endswith("-m lamina_host tui --device local")
-    assert "--library" not in command
+    """The served command is ``lamina tui`` with the options given, quoted for the shell."""
+    command = tui_command(["--device", "local", "--library", "/srv/my library.sqlite"])
+    assert command.endswith("-m lamina_host tui --device local --library '/srv/my library.sqlite'")
