@@ -50,8 +50,9 @@ def _run_child(single_thread: bool) -> dict[str, Any]:
         env.pop(name, None)
     if single_thread:
         env.update(SINGLE_THREADED)
-    here = Path(__file__).resolve().parent
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(here), env.get("PYTHONPATH")]))
+    here = Path(__file__).resolve().parent  # the benchmarks, and the repository for tests.*
+    paths = [str(here), str(here.parents[1]), env.get("PYTHONPATH")]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
     done = subprocess.run(
         [sys.executable, str(Path(__file__).resolve()), "--child"],
         capture_output=True,
