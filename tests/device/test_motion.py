@@ -85,6 +85,7 @@ def test_turntable_returns_the_short_way(turntable):
     assert table.angle_deg == 0.0 and table.position_steps == 400
 
 
+@pytest.mark.wall_clock
 def test_turntable_step_timing_follows_the_ramp(turntable, pi_kit):
     table, (step, _, _) = turntable
     table.move_to(0.0)  # take up backlash first

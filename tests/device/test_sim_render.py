@@ -278,6 +278,7 @@ def test_mesh_cylinder_matches_analytic_cylinder(tmp_path):
         assert np.abs(err).max() < 0.3
 
 
+@pytest.mark.wall_clock
 def test_two_thousand_triangle_mesh_renders_quickly(tmp_path):
     """A 2,000-triangle mesh frame renders in about a second (budget: 2 s on one core)."""
     path = tmp_path / "cyl500.stl"
