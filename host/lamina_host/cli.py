@@ -39,7 +39,7 @@ from lamina_host.files import prepare_output_folder
 from lamina_host.link import DeviceError
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.pipeline import ProcessOptions
-from lamina_host.store import Library, ScanRecord, default_library_path
+from lamina_host.store import SIDES, Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
     DEFAULT_PITCH_MM,
     DEFAULT_SECTIONS,
@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--subject",
         help=f"pseudonymous subject code (default anonymous): {SUBJECT_RULE}".replace("%", "%%"),
     )
+    scan.add_argument(
+        "--side", choices=SIDES, help="the limb scanned: left, right or none (default none)"
+    )
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
@@ -135,6 +138,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_processing_options(scan)
     scans = sub.add_parser("scans", help="list the scans in the library")
+    scans.add_argument(
+        "--set-side",
+        nargs=2,
+        metavar=("SCAN", "SIDE"),
+        help="record which limb scan SCAN is (left, right or none), then list",
+    )
     _add_library_option(scans)
     export = sub.add_parser(
         "export",
@@ -324,6 +333,9 @@ def _apply_resume(args: argparse.Namespace, record: ScanRecord) -> None:
             f"scan {record.id} belongs to another subject code; resume it without --subject"
         )
     args.subject = record.subject
+    if args.side is not None and args.side != record.side:
+        raise UsageError(f"scan {record.id} records side {record.side}; resume it without --side")
+    args.side = record.side
     if args.out is None:
         args.out = Path(record.options["out"])
 
@@ -474,6 +486,7 @@ def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
         None if args.cylinder_mm is None else float(args.cylinder_mm),
         _scan_options(args),
         getattr(args, "extract", None),
+        args.side or SIDES[0],
     )
 
 
@@ -533,19 +546,25 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
 def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
     with _open_library(args.library) as library:
+        if args.set_side:
+            scan_id, side = args.set_side
+            if not scan_id.isdigit():
+                raise UsageError(f"--set-side {scan_id[:20]!r}: give a scan id, e.g. 3 left")
+            library.set_side(int(scan_id), side)
         summaries = library.scans()
         if not summaries:
             print(f"no scans in {library.path}")
             return 0
         print(
-            f"{'scan':>5}  {'subject':<12} {'created':<25} {'status':<10} sections  views  result"
+            f"{'scan':>5}  {'subject':<12} {'side':<5}  {'created':<25} {'status':<10} "
+            "sections  views  result"
         )
         for s in summaries:
             views = f"{s.received}/{s.views}"
             # Codes stored by an older Lamina may hold anything: never print it raw.
             subject, created, status = (printable(t) for t in (s.subject, s.created, s.status))
             print(
-                f"{s.id:>5}  {subject:<12} {created:<25} {status:<10} {s.sections:>8}  "
+                f"{s.id:>5}  {subject:<12} {s.side:<5}  {created:<25} {status:<10} {s.sections:>8}  "
                 f"{views:>5}  {'yes' if s.has_result else 'no'}"
             )
     return 0

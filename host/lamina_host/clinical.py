@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -621,9 +622,20 @@ def _flags(c: Comparison, limits: Thresholds) -> list[str]:
     return flags
 
 
+SIDES = ("none", "left", "right")
+"""The limb side a scan records (as :data:`lamina_host.store.SIDES`)."""
+
+_OTHER_SIDE = {"left": "right", "right": "left"}
+
+
 @dataclass(frozen=True)
 class Visit:
-    """One processed scan of a subject: its volume and change from the baseline visit."""
+    """One processed scan of a subject: its volume, change and excess over the other limb.
+
+    ``change_*`` is against the first scan of the same side (the baseline); ``excess_*``
+    is this limb over the other side's scan nearest in time (NaN when there is none, or
+    for side ``none``), measured over the levels both share.
+    """
 
     scan_id: int
     created: str
@@ -631,40 +643,97 @@ class Visit:
     change_ml: float
     change_percent: float
     flags: tuple[str, ...] = ()
+    side: str = SIDES[0]
+    excess_ml: float = math.nan
+    excess_percent: float = math.nan
+    excess_over: int | None = None
+
+
+def _days(created: str) -> float:
+    """Return an ISO 8601 time as days since the epoch (NaN if it cannot be read)."""
+    try:
+        stamp = datetime.fromisoformat(created)
+    except ValueError:
+        return math.nan
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=UTC)
+    return stamp.timestamp() / 86400.0
+
+
+def _change(
+    scan_id: int, created: str, m: LimbMeasurement, baseline: LimbMeasurement,
+    thresholds: Thresholds | None, side: str,
+) -> Visit:  # fmt: skip
+    """Return a visit compared with its side's baseline (NaN and the reason if it cannot be)."""
+    try:
+        c = compare(m, baseline, "visits", thresholds)
+    except ClinicalError as exc:
+        return Visit(scan_id, created, m.volume_mm3 / 1000.0, math.nan, math.nan, (str(exc),),
+                     side)  # fmt: skip
+    return Visit(
+        scan_id, created, m.volume_mm3 / 1000.0, c.difference_ml, c.difference_percent,
+        c.flags, side,
+    )  # fmt: skip
 
 
 def history(
-    scans: Sequence[tuple[int, str, LimbMeasurement]], thresholds: Thresholds | None = None
+    scans: Sequence[tuple[int, str, LimbMeasurement]],
+    thresholds: Thresholds | None = None,
+    sides: Mapping[int, str] | None = None,
 ) -> list[Visit]:
-    """Return the visits in time order, each compared with the first (the baseline).
+    """Return the visits in time order, each compared with its side's first (the baseline).
 
     Args:
         scans: (scan id, creation time ISO 8601, measurement) of one subject's scans.
+        thresholds: when a change or an excess is flagged.
+        sides: each scan's limb side (:data:`SIDES`; a scan not named is ``none``).
 
-    A visit's volume is its whole measured range's; the change is measured between the
-    first and last level it shares with the baseline (scans of one limb may cover more or
-    less of it). A visit sharing fewer than two levels has no change (NaN) and says why.
+    Left and right limbs are followed apart: a visit's change is measured against the
+    first scan of the same side, between the first and last level it shares with it
+    (scans of one limb may cover more or less of it). A left or right visit also gets
+    its excess over the other side's scan nearest in time (the limbs comparison). A
+    visit sharing fewer than two levels has no change (NaN) and says why.
     """
+    side_of = {scan_id: (sides or {}).get(scan_id, SIDES[0]) for scan_id, _, _ in scans}
     ordered = sorted(scans, key=lambda item: (item[1], item[0]))
-    if not ordered:
-        return []
-    base_id, _, baseline = ordered[0]
+    baselines: dict[str, tuple[int, LimbMeasurement]] = {}
     visits = []
     for scan_id, created, m in ordered:
+        side = side_of[scan_id]
+        base_id, baseline = baselines.setdefault(side, (scan_id, m))
         if scan_id == base_id:
-            visits.append(Visit(scan_id, created, m.volume_mm3 / 1000.0, 0.0, 0.0))
-            continue
-        try:
-            c = compare(m, baseline, "visits", thresholds)
-        except ClinicalError as exc:
-            visits.append(
-                Visit(scan_id, created, m.volume_mm3 / 1000.0, math.nan, math.nan, (str(exc),))
-            )
-            continue
-        visits.append(
-            Visit(
-                scan_id, created, m.volume_mm3 / 1000.0, c.difference_ml, c.difference_percent,
-                c.flags,
-            )
-        )  # fmt: skip
+            visit = Visit(scan_id, created, m.volume_mm3 / 1000.0, 0.0, 0.0, (), side)
+        else:
+            visit = _change(scan_id, created, m, baseline, thresholds, side)
+        visits.append(_with_excess(visit, m, ordered, side_of, thresholds))
     return visits
+
+
+def _with_excess(
+    visit: Visit,
+    m: LimbMeasurement,
+    scans: Sequence[tuple[int, str, LimbMeasurement]],
+    side_of: Mapping[int, str],
+    thresholds: Thresholds | None,
+) -> Visit:
+    """Return ``visit`` with its excess over the other side's scan nearest in time."""
+    other = _OTHER_SIDE.get(visit.side)
+    candidates = [item for item in scans if side_of[item[0]] == other]
+    if not candidates:
+        return visit
+    when = _days(visit.created)
+    other_id, _, other_m = min(
+        candidates, key=lambda item: (abs(_days(item[1]) - when), item[1], item[0])
+    )
+    try:
+        c = compare(m, other_m, "limbs", thresholds)
+    except ClinicalError as exc:
+        return replace(visit, flags=(*visit.flags, f"no excess over scan {other_id}: {exc}"))
+    flags = tuple(f"{visit.side} over {other} scan {other_id}: {f}" for f in c.flags)
+    return replace(
+        visit,
+        flags=visit.flags + flags,
+        excess_ml=c.difference_ml,
+        excess_percent=c.difference_percent,
+        excess_over=other_id,
+    )
