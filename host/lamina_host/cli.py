@@ -564,8 +564,8 @@ def list_scans(args: argparse.Namespace) -> int:
             # Codes stored by an older Lamina may hold anything: never print it raw.
             subject, created, status = (printable(t) for t in (s.subject, s.created, s.status))
             print(
-                f"{s.id:>5}  {subject:<12} {s.side:<5}  {created:<25} {status:<10} {s.sections:>8}  "
-                f"{views:>5}  {'yes' if s.has_result else 'no'}"
+                f"{s.id:>5}  {subject:<12} {s.side:<5}  {created:<25} {status:<10} "
+                f"{s.sections:>8}  {views:>5}  {'yes' if s.has_result else 'no'}"
             )
     return 0
 

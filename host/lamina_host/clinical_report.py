@@ -134,7 +134,8 @@ def _header_lines(data: ReportData) -> list[str]:
         what = "excess over" if c.kind == "limbs" else "change from"
         other = f" ({data.reference_side})" if data.reference_side != "none" else ""
         lines.append(
-            f"{what} scan {data.reference_id}{other} (levels {c.span_mm[0]:g}..{c.span_mm[1]:g} mm): "
+            f"{what} scan {data.reference_id}{other} "
+            f"(levels {c.span_mm[0]:g}..{c.span_mm[1]:g} mm): "
             f"{c.difference_ml:+.1f} mL ({c.difference_percent:+.2f} %), "
             f"{c.volume_mm3 / 1000:.1f} vs {c.reference_volume_mm3 / 1000:.1f} mL"
         )
