@@ -54,6 +54,14 @@ OUTLINE_SAMPLES = 1024
 
 _LEVEL_TOLERANCE_MM = 1e-6
 
+CLINICAL_INTERPOLATION = "pchip"
+"""How measurements interpolate the EFD coefficients between sections: PCHIP is
+shape-preserving (no overshoot between sections, so never more girth than the sections
+on either side show) and follows a rounded end, where straight lines between sections
+cut the dome's corners: on a residual limb at limb scale, 10 mm pitch, the volume error
+was -0.55 % with linear coefficients and -0.19 % with PCHIP (tests/benchmarks/bench_limb.py).
+It is evaluated only inside the measured range (no extrapolation)."""
+
 DISTAL_MARGIN = 0.01
 """The top end is taken as distal only when its circumference is this share smaller than
 the bottom end's; a limb of even girth is measured from the bottom."""
@@ -309,22 +317,24 @@ def _circumference(efd: EllipticFourier, z_mm: float, axis: LimbAxis) -> float:
 def stack_volume_mm3(stack: EfdStack, z_lo_mm: float, z_hi_mm: float) -> float:
     """Return the volume between two heights: the enclosed area integrated along z.
 
-    Between sections a linearly interpolated outline's area is quadratic in z (area is
-    bilinear in the coefficients), so Simpson's rule on each slab is exact; other
-    interpolations get eight Simpson panels per slab.
+    Area is bilinear in the EFD coefficients. Between sections linearly interpolated
+    coefficients make it quadratic in z, so Simpson's rule on each slab is exact; PCHIP
+    (and the smoothing spline) are cubic between sections, so the area is of degree 6
+    and 4-point Gauss-Legendre on each slab (exact to degree 7) is exact too.
     """
     if z_hi_mm <= z_lo_mm:
         return 0.0
     inner = stack.z_mm[(stack.z_mm > z_lo_mm) & (stack.z_mm < z_hi_mm)]
     edges = np.concatenate([[z_lo_mm], inner, [z_hi_mm]])
-    panels = 1 if stack.kind == "linear" or len(stack.z_mm) < 3 else 8
+    if stack.kind == "linear" or len(stack.z_mm) < 3:
+        nodes, weights = np.array([-1.0, 0.0, 1.0]), np.array([1.0, 4.0, 1.0]) / 3.0
+    else:
+        nodes, weights = np.polynomial.legendre.leggauss(4)
     total = 0.0
     for a, b in itertools.pairwise(edges):
-        z = np.linspace(a, b, 2 * panels + 1)
+        z = 0.5 * (a + b) + 0.5 * (b - a) * nodes
         area = np.array([abs(efd_area(stack.section(float(v)))) for v in z])
-        weights = np.ones(len(z))
-        weights[1:-1:2], weights[2:-1:2] = 4.0, 2.0
-        total += float((b - a) / (6.0 * panels) * (weights @ area))
+        total += float(0.5 * (b - a) * (weights @ area))
     return total
 
 
@@ -365,7 +375,7 @@ def measure_limb(
     spacing_mm: float = DEFAULT_SPACING_MM,
     landmark: Landmark | None = None,
     axis: str = AXES[0],
-    interpolation: str = "linear",
+    interpolation: str = CLINICAL_INTERPOLATION,
 ) -> LimbMeasurement:
     """Measure a limb: circumferences every ``spacing_mm`` from the landmark, and volumes.
 
@@ -379,7 +389,8 @@ def measure_limb(
         spacing_mm: distance between levels along the axis.
         landmark: level 0 (default: the distal end).
         axis: one of ``AXES``.
-        interpolation: how EFD coefficients are interpolated along z (``INTERPOLATIONS``).
+        interpolation: how EFD coefficients are interpolated along z (``INTERPOLATIONS``;
+            default :data:`CLINICAL_INTERPOLATION`).
 
     Raises:
         ClinicalError: no closed section, a bad spacing, or a landmark outside the range.

@@ -331,13 +331,8 @@ def measure_stored(library: Library, scan_id: int, request: MeasureRequest) -> L
         raise ClinicalError(
             f"scan {scan_id} has not been processed: finish it with lamina scan --resume {scan_id}"
         )
-    interpolation = stored.get("options", {}).get("interpolation", "linear")
     return measure_limb(
-        sections_from_report(stored, scan_id),
-        request.spacing_mm,
-        request.landmark,
-        request.axis,
-        interpolation,
+        sections_from_report(stored, scan_id), request.spacing_mm, request.landmark, request.axis
     )
 
 
