@@ -24,6 +24,7 @@ from typing import Any
 from lamina_host import __version__
 from lamina_host.axis import AXIS_METHODS
 from lamina_host.batch import (
+    ClinicalMeasure,
     check_output,
     check_pattern,
     run_batch,
@@ -171,8 +172,10 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument(
         "--measure",
         action="store_true",
-        help="measure each scan: every outline's perimeter and area, the mesh volume",
+        help="measure each scan as lamina report does: circumferences at levels from the "
+        "landmark, segment, stack, frustum and mesh volumes (one row per level)",
     )
+    _add_measure_options(batch)
     batch.add_argument("-o", "--out", required=True, type=Path, help="new CSV file to write")
     batch.add_argument(
         "--workers", type=int, help="local worker processes (default: all cores; 1: serial)"
@@ -192,9 +195,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_measure_options(parser: argparse.ArgumentParser) -> None:
+    """Add how a limb is measured: level spacing, landmark and axis (report and batch)."""
+    from lamina_host.clinical import AXES
+
+    parser.add_argument(
+        "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
+    )
+    parser.add_argument(
+        "--landmark",
+        default="distal",
+        help="level 0: distal (default, the narrower end), bottom, top or a height in mm",
+    )
+    parser.add_argument(
+        "--limb-axis", choices=AXES, default=AXES[0], help="what distances are measured along"
+    )
+
+
+def _check_spacing(spacing_mm: float) -> float:
+    """Return a usable level spacing, else raise UsageError (one line)."""
+    if not (math.isfinite(spacing_mm) and 1.0 <= spacing_mm <= 1000.0):
+        raise UsageError(f"--spacing-mm {spacing_mm} must be between 1 and 1000 mm")
+    return spacing_mm
+
+
 def _add_report_parser(sub: Any) -> None:
     """Add ``lamina report``: a processed scan's clinical measurements on one page."""
-    from lamina_host.clinical import AXES, COMPARISONS, Thresholds
+    from lamina_host.clinical import COMPARISONS, Thresholds
 
     limits = Thresholds()
     report = sub.add_parser(
@@ -210,17 +237,7 @@ def _add_report_parser(sub: Any) -> None:
         default=COMPARISONS[0],
         help="limbs: excess over the other limb (default); visits: change from a baseline",
     )
-    report.add_argument(
-        "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
-    )
-    report.add_argument(
-        "--landmark",
-        default="distal",
-        help="level 0: distal (default, the narrower end), bottom, top or a height in mm",
-    )
-    report.add_argument(
-        "--limb-axis", choices=AXES, default=AXES[0], help="what distances are measured along"
-    )
+    _add_measure_options(report)
     for name, default, what in (
         ("difference-ml", limits.limb_difference_ml, "inter-limb volume difference in mL"),
         ("difference-percent", limits.limb_difference_percent, "inter-limb difference in %%"),
@@ -590,9 +607,16 @@ def batch(args: argparse.Namespace) -> int:
         check_count("--workers", args.workers, 1, 256)
     check_pattern(args.subjects)
     check_output(args.out)
+    from lamina_host.clinical import parse_landmark
+
+    measure = ClinicalMeasure(
+        _check_spacing(args.spacing_mm), parse_landmark(args.landmark), args.limb_axis
+    )
     with _open_library(args.library) as library:
         scan_ids = select_scans(library, args.subjects)
-        outcomes = run_batch(library, scan_ids, workers=args.workers, address=args.scheduler)
+        outcomes = run_batch(
+            library, scan_ids, measure, workers=args.workers, address=args.scheduler
+        )
     failed = [o for o in outcomes if o.error is not None]
     for outcome in failed:
         print(f"lamina: scan {outcome.scan_id} not measured: {printable(outcome.error or '')}",
@@ -621,8 +645,7 @@ def clinical_report(args: argparse.Namespace) -> int:
     limits += (args.flag_circumference_mm, args.flag_change_percent)
     if not all(math.isfinite(v) and v >= 0 for v in limits):
         raise UsageError("the --flag-... thresholds must be numbers of at least 0")
-    if not (math.isfinite(args.spacing_mm) and 1.0 <= args.spacing_mm <= 1000.0):
-        raise UsageError(f"--spacing-mm {args.spacing_mm} must be between 1 and 1000 mm")
+    _check_spacing(args.spacing_mm)
     outputs = [args.out] + ([args.csv] if args.csv else [])
     for path in outputs:
         if path.suffix.lower() not in (".pdf", ".png", ".csv"):
