@@ -32,7 +32,7 @@ from lamina_host.batch import (
     write_table,
 )
 from lamina_host.calibration import CALIBRATION_METHODS
-from lamina_host.dicom import check_institution
+from lamina_host.dicom import DICOM_SOPS, check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
 from lamina_host.exports import export_scan
@@ -157,6 +157,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--institution",
         default="",
         help="Institution Name written into a .dcm export (default: none)",
+    )
+    export.add_argument(
+        "--dicom-sop",
+        choices=DICOM_SOPS,
+        default=next(iter(DICOM_SOPS)),
+        help="the DICOM object of a .dcm: encapsulated-stl (default) or surface-scan "
+        "(Surface Scan Mesh, experimental: few viewers read it)",
     )
     _add_library_option(export)
     batch = sub.add_parser(
@@ -591,7 +598,7 @@ def export(args: argparse.Namespace) -> int:
     """Run ``lamina export SCAN -o FILE``: the format follows the file's extension."""
     institution = check_institution(args.institution)
     with _open_library(args.library) as library:
-        path = export_scan(library, args.scan, args.out, institution)
+        path = export_scan(library, args.scan, args.out, institution, args.dicom_sop)
     print(f"wrote {path}")
     return 0
 
