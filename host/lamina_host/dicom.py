@@ -101,9 +101,16 @@ def _study_datetime(created: str) -> tuple[str, str]:
     return moment.strftime("%Y%m%d"), moment.strftime("%H%M%S")
 
 
-def _common_modules(ds: Dataset, context: DicomContext, now: datetime) -> None:
-    """Fill the patient, study, frame of reference and equipment modules both IODs share."""
+def _new_dataset(sop: str, context: DicomContext, series: tuple[str, int, str]) -> Dataset:
+    """Return a dataset of SOP class ``sop`` with the modules both IODs share filled.
+
+    ``series``: the series' modality, number and description (its UID follows from them).
+    """
+    modality, number, description = series
+    now = datetime.now(UTC)
     study_date, study_time = _study_datetime(context.created)
+    ds = Dataset()
+    ds.SOPClassUID = sop
     ds.SpecificCharacterSet = "ISO_IR 100"
     ds.SOPInstanceUID = generate_uid()
     ds.InstanceCreationDate = now.strftime("%Y%m%d")
@@ -137,20 +144,18 @@ def _common_modules(ds: Dataset, context: DicomContext, now: datetime) -> None:
     ds.InstanceNumber = 1
     ds.ContentDate = now.strftime("%Y%m%d")
     ds.ContentTime = now.strftime("%H%M%S")
+    # General Series (the Encapsulated Document or Optical Surface Scanner series).
+    ds.Modality = modality
+    ds.SeriesInstanceUID = _uid(context, "series" if number == 1 else f"series-{modality}")
+    ds.SeriesNumber = number
+    ds.SeriesDescription = description
+    return ds
 
 
 def encapsulated_stl(vertices: np.ndarray, faces: np.ndarray, context: DicomContext) -> Dataset:
     """Return the Encapsulated STL dataset (with file meta) of a triangle mesh in mm."""
     stl = stl_bytes(vertices, faces, f"Lamina scan {context.scan_id}")
-    now = datetime.now(UTC)
-    ds = Dataset()
-    ds.SOPClassUID = ENCAPSULATED_STL
-    _common_modules(ds, context, now)
-    # Encapsulated Document Series.
-    ds.Modality = "M3D"
-    ds.SeriesInstanceUID = _uid(context, "series")
-    ds.SeriesNumber = 1
-    ds.SeriesDescription = "Surface mesh (STL)"
+    ds = _new_dataset(ENCAPSULATED_STL, context, ("M3D", 1, "Surface mesh (STL)"))
     # Encapsulated Document.
     ds.AcquisitionDateTime = ds.StudyDate + ds.StudyTime
     ds.BurnedInAnnotation = "NO"
@@ -175,15 +180,9 @@ def surface_scan_mesh(
     ``closed``: the mesh is watertight (the Surface Mesh module's Finite Volume and
     Manifold say YES, else UNKNOWN).
     """
-    now = datetime.now(UTC)
-    ds = Dataset()
-    ds.SOPClassUID = SURFACE_SCAN_MESH
-    _common_modules(ds, context, now)
-    # General and Optical Surface Scanner Series.
-    ds.Modality = "OSS"
-    ds.SeriesInstanceUID = _uid(context, "surface-scan-series")
-    ds.SeriesNumber = 2
-    ds.SeriesDescription = "Surface mesh (Surface Scan Mesh, experimental)"
+    ds = _new_dataset(
+        SURFACE_SCAN_MESH, context, ("OSS", 2, "Surface mesh (Surface Scan Mesh, experimental)")
+    )
     # Scan Procedure: a laser line on a turntable (Lamina's own codes, see the module text).
     ds.SurfaceScanAcquisitionTypeCodeSequence = [
         _code("LIGHT-SECTION", "99LAMINA", "Laser light sectioning")

@@ -40,6 +40,8 @@ import numpy as np
 from lamina_device.sim import Mechanics, parse_object
 from lamina_device.sim.truth import TrueSurface, align_about_axis
 from lamina_host.clinical import measure_limb, sections_from_report
+from lamina_host.measure import perimeter, polygon_area
+from lamina_host.mesh import load_ply
 
 NOISE = "harsh"
 PITCH_MM, VIEWS, SPACING_MM = 10.0, 8, 20.0
@@ -63,20 +65,11 @@ CONFIGS: dict[str, tuple[tuple[str, str, int, str], ...]] = {
 TRUTH_STEP_MM = 0.5
 
 
-def _polygon_area(p: np.ndarray) -> float:
-    x, y = p.T
-    return float(abs(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)))
-
-
-def _polygon_length(p: np.ndarray) -> float:
-    return float(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1).sum())
-
-
 def true_volume_mm3(obj: Any, z_lo: float, z_hi: float) -> float:
     """Return the true volume between two heights (Simpson on the true cross-sections)."""
     n = max(2, int(np.ceil((z_hi - z_lo) / TRUTH_STEP_MM / 2.0)) * 2)
     z = np.linspace(z_lo, z_hi, n + 1)
-    area = np.array([sum(_polygon_area(p) for p in obj.section_outline(float(v))) for v in z])
+    area = np.array([sum(polygon_area(p) for p in obj.section_outline(float(v))) for v in z])
     w = np.ones(n + 1)
     w[1:-1:2], w[2:-1:2] = 4.0, 2.0
     return float((z_hi - z_lo) / (3.0 * n) * (w @ area))
@@ -84,18 +77,7 @@ def true_volume_mm3(obj: Any, z_lo: float, z_hi: float) -> float:
 
 def true_circumference_mm(obj: Any, z_mm: float) -> float:
     """Return the perimeter of the largest true outline at a height (NaN above or below)."""
-    return max((_polygon_length(p) for p in obj.section_outline(z_mm)), default=float("nan"))
-
-
-def read_ply_points(path: Path) -> np.ndarray:
-    """Return the (N, 3) vertices of a binary little-endian float PLY written by the host."""
-    data = path.read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    names = [line.split()[2] for line in header if line.startswith("property float")]
-    rec = np.frombuffer(data, dtype=[(n, "<f4") for n in names], count=count, offset=end)
-    return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(float)
+    return max((perimeter(p) for p in obj.section_outline(z_mm)), default=float("nan"))
 
 
 def _scan(spec: str, sections: int, out: Path, library: Path) -> tuple[float, str]:
@@ -110,6 +92,11 @@ def _scan(spec: str, sections: int, out: Path, library: Path) -> tuple[float, st
     done = subprocess.run(command, capture_output=True, text=True)
     error = "" if done.returncode == 0 else (done.stderr.strip().splitlines() or ["?"])[-1]
     return time.perf_counter() - start, error
+
+
+def points_ply(out: Path) -> np.ndarray:
+    """Return the contour points (points.ply) of a scan's output folder."""
+    return load_ply((out / "points.ply").read_bytes())[0].astype(float)
 
 
 def surface_distance(obj: Any, points: np.ndarray) -> dict[str, float]:
@@ -182,7 +169,7 @@ def run(config: str = "full", keep: Path | None = None) -> dict[str, Any]:
                     row["error"] = error
             if (out / "report.json").is_file():
                 row.update(measure(spec, json.loads((out / "report.json").read_text())))
-                distance = surface_distance(parse_object(spec), read_ply_points(out / "points.ply"))
+                distance = surface_distance(parse_object(spec), points_ply(out))
                 row["surface_distance"] = distance
             results[name] = row
     return results

@@ -47,6 +47,12 @@ def lamina(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def export_scan_1(library: Path, out: Path, *options: str) -> None:
+    """Export scan 1 of ``library`` to ``out`` with ``lamina export``; it must succeed."""
+    done = lamina("export", "1", "-o", str(out), "--library", str(library), *options)
+    assert done.returncode == 0, done.stderr
+
+
 def dciodvfy(path: Path) -> tuple[list[str], list[str]]:
     """Return the errors and warnings ``dciodvfy`` reports for a file."""
     assert DCIODVFY is not None
@@ -91,11 +97,7 @@ def test_every_export_of_a_scan_shares_its_study_and_series() -> None:
 @needs_dciodvfy
 def test_cli_exports_a_scan_as_dicom(scanned_library: Path, tmp_path: Path) -> None:
     out = tmp_path / "scan1.dcm"
-    done = lamina(
-        "export", "1", "-o", str(out), "--library", str(scanned_library),
-        "--institution", "Lamina Test Clinic",
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
+    export_scan_1(scanned_library, out, "--institution", "Lamina Test Clinic")
     assert stat.S_IMODE(out.stat().st_mode) == 0o600
     errors, warnings = dciodvfy(out)
     print("dciodvfy warnings:", warnings)
@@ -120,11 +122,7 @@ def test_cli_exports_a_surface_scan_mesh_that_reads_back_exactly(
     a later one knows it, it must find no error.
     """
     out = tmp_path / "scan1-oss.dcm"
-    done = lamina(
-        "export", "1", "-o", str(out), "--library", str(scanned_library),
-        "--dicom-sop", "surface-scan",
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
+    export_scan_1(scanned_library, out, "--dicom-sop", "surface-scan")
     ds = pydicom.dcmread(out)
     assert ds.SOPClassUID == SURFACE_SCAN_MESH and ds.Modality == "OSS"
     assert ds.PatientID == SUBJECT and str(ds.PatientName) == ""
