@@ -202,3 +202,10 @@ def test_cli_sets_and_lists_the_side(tmp_path):
     bad = lamina("scans", "--library", str(path), "--set-side", str(scan_id), "both")
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1
     assert "must be one of" in bad.stderr
+
+
+def test_lamina_scan_records_the_side_it_is_given(scanned_library):
+    """``lamina scan --side left`` (the shared scanned library) stores side left."""
+    with Library(scanned_library) as lib:
+        assert lib.scan(1).side == "left"
+        assert [s.side for s in lib.scans()] == ["left"]
