@@ -51,7 +51,7 @@ def test_the_stump_volume_and_surface_are_within_the_clinical_limits(stump) -> N
     assert abs(figures["volume_error_percent"]) <= 0.5
     # Straight lines between sections cut the dome's corners (about -0.8 % here).
     assert figures["linear_volume_error_percent"] < figures["volume_error_percent"]
-    distance = bench.surface_distance(parse_object(SPEC), bench.read_ply_points(out / "points.ply"))
+    distance = bench.surface_distance(parse_object(SPEC), bench.points_ply(out))
     assert distance["aligned_mm"] <= 0.08 and distance["direct_mm"] <= 0.08
 
 
