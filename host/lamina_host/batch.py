@@ -42,7 +42,7 @@ from lamina_host.clinical import (
 )
 from lamina_host.files import OutputError, write_new_file
 from lamina_host.mesh import signed_volume
-from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.pipeline import ProcessOptions, Reconstruction, reprocess
 from lamina_host.store import Library, ScanInputs, StoreError, check_new_file
 from lamina_shared.errors import LaminaError
 
@@ -121,16 +121,8 @@ def measure_scan(
 
     ``options`` None reprocesses with the options the scan's result recorded.
     """
-    chosen = options or ProcessOptions.from_dict(inputs.options)
     try:
-        result = reconstruct(
-            inputs.grid_image,
-            inputs.board,
-            inputs.cylinder,
-            inputs.cylinder_mm,
-            inputs.segments,
-            chosen,
-        )
+        result = reprocess(inputs, options)
         return ScanOutcome(inputs.scan_id, inputs.subject, measure(result))
     except (LaminaError, ValueError) as exc:
         return ScanOutcome(inputs.scan_id, inputs.subject, error=str(exc))

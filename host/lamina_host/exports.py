@@ -20,7 +20,7 @@ from lamina_host.dicom import (
     surface_scan_mesh,
 )
 from lamina_host.mesh import load_ply
-from lamina_host.pipeline import ProcessOptions, reconstruct
+from lamina_host.pipeline import reprocess
 from lamina_host.record import record_bytes
 from lamina_host.store import EXPORT_FORMATS, Library, StoreError, check_new_file
 
@@ -91,12 +91,5 @@ def record_export(library: Library, scan_id: int) -> bytes:
             f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
         )
     inputs = library.inputs(scan_id)
-    result = reconstruct(
-        inputs.grid_image,
-        inputs.board,
-        inputs.cylinder,
-        inputs.cylinder_mm,
-        inputs.segments,
-        ProcessOptions.from_dict(inputs.options),
-    )
+    result = reprocess(inputs)
     return record_bytes(result, scan_id, inputs.subject, inputs.created)

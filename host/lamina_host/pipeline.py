@@ -12,7 +12,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -46,6 +46,9 @@ from lamina_host.mesh import (
 )
 from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_shared.types import BoardSpec, Segment
+
+if TYPE_CHECKING:
+    from lamina_host.store import ScanInputs
 
 MIN_SEGMENT_POINTS = 10
 """Segments with fewer points than this after trimming carry no usable outline."""
@@ -700,4 +703,16 @@ def reconstruct(
         )
     return Reconstruction(
         grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected
+    )
+
+
+def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reconstruction:
+    """Reconstruct a library scan from its stored inputs (default: the options it recorded)."""
+    return reconstruct(
+        inputs.grid_image,
+        inputs.board,
+        inputs.cylinder,
+        inputs.cylinder_mm,
+        inputs.segments,
+        options or ProcessOptions.from_dict(inputs.options),
     )
