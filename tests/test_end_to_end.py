@@ -25,6 +25,7 @@ from lamina_host.link import PtyBridge
 from lamina_host.report import load_segments
 from lamina_shared.link import Channel
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
+from tests.helpers.cli import device_command
 
 # Scans go into a library in the user's data folder: keep the tests' library out of it.
 TEST_DATA_HOME = tempfile.mkdtemp(prefix="lamina-test-data-")
@@ -44,17 +45,7 @@ def lamina(*args: str) -> subprocess.CompletedProcess[str]:
 def record(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """Run ``lamina-device record`` on the simulated rig."""
     return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "lamina_device",
-            "record",
-            "--hardware",
-            "sim",
-            "--out",
-            str(out),
-            *args,
-        ],
+        device_command("record", "--hardware", "sim", "--out", str(out), *args),
         capture_output=True,
         text=True,
         timeout=300,

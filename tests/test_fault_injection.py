@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from lamina_host.store import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_shared.types import Segment
+from tests.helpers.library import held_segments
 
 
 @dataclass
@@ -95,14 +95,6 @@ def test_faulty_line_with_three_cuts_stores_exactly_the_clean_scan(clean, tmp_pa
     assert identical(got.segments, clean.segments)
 
 
-def _held(library_path: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{library_path}?mode=ro", uri=True) as db:
-            return db.execute("SELECT COUNT(*) FROM segments WHERE target='object'").fetchone()[0]
-    except sqlite3.Error:
-        return 0
-
-
 def test_host_killed_mid_scan_resumes_without_loss(clean, tmp_path):
     library_path = tmp_path / "library.sqlite"
     subject = "Doe-Jane-1970"
@@ -112,12 +104,12 @@ def test_host_killed_mid_scan_resumes_without_loss(clean, tmp_path):
     ]  # fmt: skip
     first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while _held(library_path) < 6 and time.monotonic() < deadline and first.poll() is None:
+    while held_segments(library_path) < 6 and time.monotonic() < deadline and first.poll() is None:
         time.sleep(0.05)
     os.kill(first.pid, signal.SIGKILL)
     first.wait()
     first_out = first.stdout.read() + first.stderr.read() if first.stdout and first.stderr else b""
-    held = _held(library_path)
+    held = held_segments(library_path)
     assert 6 <= held < 32, held
 
     resumed = subprocess.run(

@@ -54,6 +54,7 @@ from lamina_shared.protocol import (
     encode_segment,
 )
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
+from tests.helpers.served import SilentStream
 
 LIMITS = DeviceLimits()
 
@@ -240,19 +241,6 @@ def test_device_answers_any_request_and_stays_responsive(device, request_id, op,
     server.hardware.laser.off()
 
 
-class _Silent:
-    """A ByteStream that never delivers anything (the host side's fuzz needs no peer)."""
-
-    timeout: float | None = 0.0
-    in_waiting = 0
-
-    def read(self, size: int = 1) -> bytes:
-        return b""
-
-    def write(self, data: bytes) -> int:
-        return len(data)
-
-
 @FUZZ
 @given(st.dictionaries(st.text(max_size=20), JSON, max_size=8), JSON, JSON, JSON)
 def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plans, protocol):
@@ -269,7 +257,7 @@ def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plan
 @FUZZ
 @given(JSON, st.integers(0, 2**32 - 1))
 def test_host_refuses_odd_replies_with_device_error(result, request_id):
-    client = DeviceClient(Channel(_Silent()))
+    client = DeviceClient(Channel(SilentStream()))
     from lamina_host.link import _result
 
     for body in (

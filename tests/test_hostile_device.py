@@ -25,7 +25,6 @@ import numpy as np
 import pytest
 import serial
 
-from lamina_device.acquisition import acquire
 from lamina_device.camera import CameraError
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
@@ -42,9 +41,9 @@ from lamina_shared.protocol import (
     Message,
     encode_frame,
     encode_json,
-    quantise_segment,
 )
-from lamina_shared.types import ScanPlan, Segment, ViewSpec
+from lamina_shared.types import ScanPlan, ViewSpec
+from tests.helpers.served import Served, SilentStream, link, reference, serve
 
 LIMITS = DeviceLimits()
 BASELINE: dict[str, dict[str, Any]] = {
@@ -119,14 +118,12 @@ def device(
     write_timeout_s: float = 10.0,
 ) -> Iterator[Ends]:
     """A sim device served over a pty bridge, greeted by a host that reads all the time."""
-    bridge = PtyBridge(transform)
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port, write_timeout_s=write_timeout_s), hardware, settings)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    host = Channel(host_port)
+    with serve(transform, settings, write_timeout_s=write_timeout_s) as served:
+        yield from _greeted(served)
+
+
+def _greeted(served: Served) -> Iterator[Ends]:
+    server, host = served.server, Channel(served.host_port)
     inbox: queue.Queue[Message] = queue.Queue()
     reading = threading.Event()
     reading.set()
@@ -143,7 +140,7 @@ def device(
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    ends = Ends(server, hardware, host, inbox, thread)
+    ends = Ends(server, served.hardware, host, inbox, served.thread)
     ends.hello("hostile")
     deadline = time.monotonic() + 10
     while not server.greeted and time.monotonic() < deadline:
@@ -151,14 +148,8 @@ def device(
     try:
         yield ends
     finally:
-        server.running = False
-        thread.join(timeout=15)
         stop.set()
         reader.join(timeout=5)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
 
 
 def _refused(reply: dict[str, Any], *codes: str) -> str:
@@ -407,10 +398,22 @@ def _serve(port: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
-def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
+@contextmanager
+def _device_program() -> Iterator[tuple[PtyBridge, subprocess.Popen[bytes]]]:
+    """``lamina-device serve`` on the sim rig in its own process, behind a pty bridge."""
     bridge = PtyBridge()
     process = _serve(bridge.device_port)
     try:
+        yield bridge, process
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+        bridge.close()
+
+
+def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
+    with _device_program() as (bridge, process):
         with serial.Serial(bridge.host_port, timeout=0.05) as port:
             client = DeviceClient(Channel(port), process)
             client.hello()
@@ -419,37 +422,15 @@ def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
         assert process.stderr is not None
         err = process.stderr.read().decode()
         assert "serial port stays unusable" in err and "Traceback" not in err
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.wait()
-        bridge.close()
-    bridge = PtyBridge()
-    process = _serve(bridge.device_port)
-    try:
+    with _device_program() as (bridge, process):
         with serial.Serial(bridge.host_port, timeout=0.05) as port:
             client = DeviceClient(Channel(port), process)
             client.hello()
             client.close()  # asks the device to shut down
         assert process.returncode == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.wait()
-        bridge.close()
 
 
 # --- A. every advertised size works end to end -------------------------------------------
-
-
-def _reference(plan: ScanPlan) -> list[Segment]:
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    segments: list[Segment] = []
-    try:
-        acquire(hardware, "object", plan, segments.append)
-    finally:
-        hardware.close()
-    return [quantise_segment(s) for s in segments]
 
 
 @pytest.mark.parametrize(
@@ -464,16 +445,8 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
     assert len(plan.views) <= LIMITS.max_views and len(plan.views) >= 0.97 * LIMITS.max_views
     assert plan_fits(plan, LIMITS) == []
     have = set(range(len(plan.views) - 2))  # a resume: the request carries ~10,000 indices
-    bridge = PtyBridge()
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port), hardware)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    try:
-        client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-        info = client.hello()
+    with link() as ends:
+        client, info = ends.client, ends.info
         for key in (
             "max_views",
             "max_sections",
@@ -486,7 +459,7 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
         ):
             assert info.limits[key] == getattr(LIMITS, key)
         got = client.scan("object", plan, have=have)
-        expected = _reference(ScanPlan(plan.views[-2:]))
+        expected = reference(ScanPlan(plan.views[-2:]))
         assert len(got) == 2
         for segment, truth, view in zip(got, expected, plan.views[-2:], strict=True):
             assert (segment.section, segment.z_mm, segment.angle_deg) == (
@@ -505,13 +478,6 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
         with pytest.raises(RequestRefused, match="allowed"):
             client.scan("object", bigger)
         assert client.request("status")["state"] == "idle"
-    finally:
-        server.running = False
-        thread.join(timeout=15)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
 
 
 def test_an_irregular_plan_too_long_for_one_message_is_caught_before_sending():
@@ -531,23 +497,12 @@ def test_a_default_plan_too_long_for_the_welcome_is_left_out_not_fatal():
             tuple(ViewSpec(s, s * 0.1, 7.3 * v + 0.01 * s) for s in range(1000) for v in range(10))
         )
         hardware.default_plans["object"] = irregular
-        server = DeviceServer(Channel(_NullStream()), hardware)
+        server = DeviceServer(Channel(SilentStream()), hardware)
         info = server.info()
         assert "object" not in info["default_plans"] and "cylinder" in info["default_plans"]
         assert len(encode_json(Kind.WELCOME, info)) < MAX_PAYLOAD_BYTES
     finally:
         hardware.close()
-
-
-class _NullStream:
-    timeout: float | None = 0.0
-    in_waiting = 0
-
-    def read(self, size: int = 1) -> bytes:
-        return b""
-
-    def write(self, data: bytes) -> int:
-        return len(data)
 
 
 # --- A. identity ---------------------------------------------------------------------------
@@ -557,7 +512,7 @@ def test_identity_names_the_device_and_what_it_images(tmp_path):
     def identity(**kwargs: Any) -> dict[str, str]:
         hardware = open_sim(**kwargs)
         try:
-            return DeviceServer(Channel(_NullStream()), hardware).info()["identity"]
+            return DeviceServer(Channel(SilentStream()), hardware).info()["identity"]
         finally:
             hardware.close()
 
@@ -591,7 +546,7 @@ def test_welcome_reports_the_extraction_settings():
 
     hardware = open_sim()
     try:
-        info = DeviceServer(Channel(_NullStream()), hardware).info()
+        info = DeviceServer(Channel(SilentStream()), hardware).info()
     finally:
         hardware.close()
     assert ExtractSettings(**info["extract"]) == ExtractSettings()

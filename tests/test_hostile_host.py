@@ -20,7 +20,6 @@ import sqlite3
 import stat
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -32,7 +31,6 @@ import pytest
 import serial
 
 from lamina_device.server import DeviceServer, ServerSettings
-from lamina_device.sim import open_sim
 from lamina_host import cli, link
 from lamina_host.link import DeviceClient, DeviceError, PtyBridge, open_device
 from lamina_host.report import load_segments
@@ -49,6 +47,9 @@ from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan, Segment
+from tests.helpers.cli import device_command, host_command
+from tests.helpers.library import held_segments
+from tests.helpers.served import link as served_link
 
 OBJECT = "cylinder:d=19.05"
 PLAN = ScanPlan.regular(2, 2.0, 8)
@@ -144,25 +145,9 @@ def library_copy(partial: Path, tmp_path: Path) -> tuple[Path, Path]:
 def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small recorded capture of another object, for a replay device."""
     out = tmp_path_factory.mktemp("capture") / "sphere"
+    plan = ["--object", "sphere:d=25", "--sections", "2", "--views", "8", "--cylinder-views", "8"]
     subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "lamina_device",
-            "record",
-            "--hardware",
-            "sim",
-            "--out",
-            str(out),
-            "--object",
-            "sphere:d=25",
-            "--sections",
-            "2",
-            "--views",
-            "8",
-            "--cylinder-views",
-            "8",
-        ],
+        device_command("record", "--hardware", "sim", "--out", str(out), *plan),
         check=True,
         capture_output=True,
         timeout=300,
@@ -351,7 +336,7 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
         with pytest.raises(StoreError, match="source"):
             library.check_identity(1, {**same, "source": "sim object=sphere:d=25"})
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 3
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 4  # schema 3: colour, 4: side
 
 
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
@@ -362,7 +347,7 @@ def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
         other.connect()
         other.open_scan(1)
         with pytest.raises(StoreError, match="another device or setup"):
-            other.resume_object()
+            other.fetch_object()
         assert dump(path) == before
         # Calibrated with one device, then connected to another: no scan may start.
         other.calibrate_grid()
@@ -381,20 +366,8 @@ def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
 
 def test_plan_beyond_the_devices_view_limit_creates_no_scan(capsys, tmp_path):
     path = tmp_path / "library.sqlite"
-    line = refused(
-        capsys,
-        "scan",
-        "--device",
-        "sim",
-        "--library",
-        str(path),
-        "-o",
-        str(tmp_path / "out"),
-        "--sections",
-        "500",
-        "--views",
-        "360",
-    )
+    argv = ["scan", "--device", "sim", "--library", str(path), "-o", str(tmp_path / "out")]
+    line = refused(capsys, *argv, "--sections", "500", "--views", "360")
     assert "max_views" in line and "180000" in line
     assert scan_count(path) == 0
 
@@ -575,16 +548,8 @@ def test_output_folders_that_cannot_be_used_are_refused_first(capsys, tmp_path):
 def test_an_unwritable_folder_is_refused_before_the_device_starts(capsys, tmp_path):
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)
-    line = refused(
-        capsys,
-        "scan",
-        "--device",
-        "sim",
-        "--library",
-        str(tmp_path / "l.sqlite"),
-        "-o",
-        str(locked / "out"),
-    )
+    argv = ["scan", "--device", "sim", "--library", str(tmp_path / "l.sqlite")]
+    line = refused(capsys, *argv, "-o", str(locked / "out"))
     assert "cannot write into output folder" in line
 
 
@@ -740,39 +705,17 @@ def _children(pid: int) -> list[int]:
     return found
 
 
-def _held(path: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-            return db.execute("SELECT COUNT(*) FROM segments WHERE target='object'").fetchone()[0]
-    except sqlite3.Error:
-        return 0
-
-
 def _start_long_scan(tmp_path: Path) -> tuple[subprocess.Popen[str], Path, Path]:
     path, out = tmp_path / "library.sqlite", tmp_path / "out"
+    argv = ["scan", "--device", "sim", "--library", str(path), "-o", str(out)]
     host = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "lamina_host",
-            "scan",
-            "--device",
-            "sim",
-            "--library",
-            str(path),
-            "-o",
-            str(out),
-            "--sections",
-            "10",
-            "--views",
-            "8",
-        ],
+        host_command(*argv, "--sections", "10", "--views", "8"),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
     deadline = time.monotonic() + 120
-    while _held(path) < 3 and host.poll() is None and time.monotonic() < deadline:
+    while held_segments(path) < 3 and host.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert host.poll() is None, host.communicate()
     return host, path, out
@@ -798,7 +741,7 @@ def test_a_stopped_scan_says_why_within_seconds_and_keeps_what_arrived(tmp_path,
         assert "lamina scan --resume 1" in lines[0]
     else:
         assert host.returncode == 130, err
-    held = _held(path)
+    held = held_segments(path)
     assert 3 <= held < 80
     kept = load_segments(out / "segments.npz")
     with Library(path) as library:
@@ -929,21 +872,5 @@ def _board() -> Any:
 @contextmanager
 def served(server_class: type[DeviceServer], settings: ServerSettings) -> Iterator[DeviceClient]:
     """A sim device served in this process over a real pty link, and a handshaken client."""
-    bridge = PtyBridge()
-    hardware = open_sim(OBJECT, seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = server_class(Channel(device_port), hardware, settings)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-    try:
-        client.hello()
-        yield client
-    finally:
-        server.running = False
-        thread.join(timeout=10)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
+    with served_link(settings=settings, object_spec=OBJECT, server_class=server_class) as ends:
+        yield ends.client

@@ -6,75 +6,24 @@ tests can compare what crossed the link with what the rig produces directly.
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
-
 import pytest
-import serial
 
-from lamina_device.acquisition import acquire, grab_grid
-from lamina_device.hardware import Hardware
-from lamina_device.server import DeviceServer, ServerSettings
+from lamina_device.acquisition import grab_grid
+from lamina_device.server import ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link import DeviceClient, DeviceError, PtyBridge
+from lamina_host.link import DeviceClient, DeviceError
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
-from lamina_shared.link import Channel
-from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json, quantise_segment
+from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
 from lamina_shared.types import ScanPlan, Segment
+from tests.helpers.served import link, reference
 
 PLAN = ScanPlan.regular(2, 2.0, 4)
 
 
-@dataclass
-class Link:
-    client: DeviceClient
-    server: DeviceServer
-    hardware: Hardware
-    faults: LineFaults | None
-
-
-@contextmanager
-def link(
-    faults: LineFaults | None = None, settings: ServerSettings | None = None
-) -> Iterator[Link]:
-    """A sim device served over a pty bridge, and a handshaken host client."""
-    bridge = PtyBridge(faults)
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    device_port = serial.Serial(bridge.device_port, timeout=0.02)
-    server = DeviceServer(Channel(device_port), hardware, settings)
-    thread = threading.Thread(target=server.serve, daemon=True)
-    thread.start()
-    host_port = serial.Serial(bridge.host_port, timeout=0.02)
-    client = DeviceClient(Channel(host_port), idle_timeout_s=20)
-    try:
-        client.hello()
-        yield Link(client, server, hardware, faults)
-    finally:
-        server.running = False
-        thread.join(timeout=10)
-        host_port.close()
-        device_port.close()
-        hardware.close()
-        bridge.close()
-
-
-def reference(target: str, plan: ScanPlan) -> list[Segment]:
-    """What the same rig produces without any link, as it will arrive (quantised)."""
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    segments: list[Segment] = []
-    try:
-        acquire(hardware, target, plan, segments.append)
-    finally:
-        hardware.close()
-    return [quantise_segment(s) for s in segments]
-
-
 @pytest.fixture(scope="module")
 def expected() -> list[Segment]:
-    return reference("object", PLAN)
+    return reference(PLAN)
 
 
 def same(a: list[Segment], b: list[Segment]) -> bool:

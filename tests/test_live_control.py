@@ -16,7 +16,7 @@ from lamina_device.sim import SIM_EXPOSURE_US, open_sim
 from lamina_host.link import DeviceError, ScanStopped
 from lamina_shared.protocol import quantise_segment
 from lamina_shared.types import ScanPlan, Segment
-from tests.test_link import link
+from tests.helpers.served import link
 
 
 def stripe_peak_dn(exposure_us: int) -> float:

@@ -10,28 +10,16 @@ import numpy as np
 import pytest
 import serial
 
-from lamina_device.acquisition import acquire
 from lamina_device.extract import ExtractSettings
-from lamina_device.sim import open_sim
 from lamina_host import cli
 from lamina_host.link import DeviceClient, RequestRefused, ScanStopped
 from lamina_host.testing import LineFaults
 from lamina_shared.link import Channel
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
-from lamina_shared.protocol import Kind, encode_json, quantise_segment
+from lamina_shared.protocol import Kind, encode_json
 from lamina_shared.types import ScanPlan, Segment
-from tests.test_link import PLAN, link, same
-
-
-def reference(plan: ScanPlan, settings: ExtractSettings) -> list[Segment]:
-    """What the rig gives with ``settings`` and no link at all, quantised as it travels."""
-    hardware = open_sim("cylinder:d=19.05", seed=3)
-    segments: list[Segment] = []
-    try:
-        acquire(hardware, "object", plan, segments.append, settings=settings)
-    finally:
-        hardware.close()
-    return [quantise_segment(s) for s in segments]
+from tests.helpers.served import link, reference
+from tests.test_link import PLAN, same
 
 
 def test_each_thread_gets_its_own_reply_and_events_in_any_order():
@@ -86,7 +74,7 @@ def test_each_thread_gets_its_own_reply_and_events_in_any_order():
 
 def test_pause_resume_abort_and_status_from_another_thread_over_a_faulty_line():
     plan = ScanPlan.regular(3, 2.0, 8)
-    expected = reference(plan, ExtractSettings())
+    expected = reference(plan, settings=ExtractSettings())
     faults = LineFaults(error_rate=1e-3, delay_rate=0.02, delay_s=0.01, seed=7)
     with link(faults) as ends:
         client = ends.client
@@ -131,8 +119,8 @@ def test_pause_resume_abort_and_status_from_another_thread_over_a_faulty_line():
 
 
 def test_a_scan_uses_the_extraction_the_host_asks_for():
-    thinning = reference(PLAN, ExtractSettings(method="thinning"))
-    default = reference(PLAN, ExtractSettings())
+    thinning = reference(PLAN, settings=ExtractSettings(method="thinning"))
+    default = reference(PLAN, settings=ExtractSettings())
     assert not same(thinning, default)
     with link() as ends:
         client = ends.client

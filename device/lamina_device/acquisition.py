@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lamina_device.camera import CameraError, ColourCamera
 from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
@@ -54,27 +55,25 @@ class ScanControl:
         """Return True while a pause is requested."""
         return self._paused
 
-    @property
-    def aborted(self) -> bool:
-        """Return True once an abort is requested."""
-        return self._aborted
-
     def pause(self) -> None:
         """Hold the scan at the next view boundary."""
-        with self._changed:
-            self._paused = True
-            self._changed.notify_all()
+        self._request(paused=True)
 
     def resume(self) -> None:
         """Let a paused scan go on."""
-        with self._changed:
-            self._paused = False
-            self._changed.notify_all()
+        self._request(paused=False)
 
     def abort(self) -> None:
         """End the scan at the next view boundary (or at once if it is paused)."""
+        self._request(aborted=True)
+
+    def _request(self, paused: bool | None = None, aborted: bool | None = None) -> None:
+        # One place changes the flags, under the lock, and wakes a waiting checkpoint.
         with self._changed:
-            self._aborted = True
+            if paused is not None:
+                self._paused = paused
+            if aborted is not None:
+                self._aborted = aborted
             self._changed.notify_all()
 
     def checkpoint(self) -> None:
@@ -114,6 +113,7 @@ class _Captured:
     done: int
     on: np.ndarray
     off: np.ndarray
+    rgb_off: np.ndarray | None = None
 
 
 def grab_grid(hardware: Hardware) -> np.ndarray:
@@ -125,14 +125,33 @@ def grab_grid(hardware: Hardware) -> np.ndarray:
 
 def capture_pair(hardware: Hardware) -> tuple[np.ndarray, np.ndarray]:
     """Capture one view's laser-off then laser-on frame; the laser ends off."""
+    on, off, _ = capture_views(hardware, colour=False)
+    return on, off
+
+
+def capture_views(
+    hardware: Hardware, colour: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Capture one view's laser-off then laser-on frame, and with ``colour`` the off frame's sRGB.
+
+    The colour comes from the laser-off exposure itself (the Pi's YUV420 chroma), so
+    the stripe extraction sees the same frames with or without colour.
+    """
     hardware.laser.off()
-    off = hardware.camera.capture()
+    camera = hardware.camera
+    rgb_off: np.ndarray | None = None
+    if colour:
+        if not isinstance(camera, ColourCamera):
+            raise CameraError("this camera gives no colour: scan without colour")
+        off, rgb_off = camera.capture_colour()
+    else:
+        off = camera.capture()
     try:
         hardware.laser.on()
         on = hardware.camera.capture()
     finally:
         hardware.laser.off()
-    return on, off
+    return on, off, rgb_off
 
 
 class _Stage:
@@ -194,6 +213,7 @@ def acquire(
     sink: FrameSink | None = None,
     control: ScanControl | None = None,
     numbers: Sequence[int] | None = None,
+    colour: bool = False,
 ) -> int:
     """Scan ``target`` along ``plan``; return the number of segments produced.
 
@@ -209,6 +229,7 @@ def acquire(
         numbers: each view's index in its section (:func:`views_in_section` of the
             whole scan when ``plan`` is the part of it still to acquire); by default
             ``plan``'s own numbering.
+        colour: sample each point's sRGB from the view's laser-off frame.
 
     Returns:
         How many segments were handed to ``on_segment``.
@@ -225,7 +246,11 @@ def acquire(
             sink(target, item.view, item.index, item.on, item.off)
         view = item.view
         points = extract(item.on, item.off, settings)
-        on_segment(to_segment(points, target, view.section, item.index, view.z_mm, view.angle_deg))
+        on_segment(
+            to_segment(
+                points, target, view.section, item.index, view.z_mm, view.angle_deg, item.rgb_off
+            )
+        )
         if on_progress is not None:
             on_progress(_progress(target, item, total, started_s, control))
 
@@ -243,8 +268,8 @@ def acquire(
                 hardware.lift.move_to(view.z_mm)
                 hardware.turntable.move_to(view.angle_deg)
                 hardware.settle()
-                on, off = capture_pair(hardware)
-                stage.put(_Captured(view, index_in_section[done - 1], done, on, off))
+                on, off, rgb_off = capture_views(hardware, colour)
+                stage.put(_Captured(view, index_in_section[done - 1], done, on, off, rgb_off))
                 captured = done
         finally:
             hardware.laser.off()

@@ -2,7 +2,8 @@
 
 The acquisition only sees :class:`Camera`. The Pi camera (picamera2) captures the
 luminance plane at fixed exposure and gain and returns only frames exposed entirely
-under the laser's current state. The simulated camera lives with the rest of the
+under the laser's current state; for colour scans (:class:`ColourCamera`) it also
+converts the frame's YUV420 chroma to sRGB. The simulated camera lives with the rest of the
 virtual rig in ``lamina_device/sim/``, the replay of a recorded capture in
 ``lamina_device/replay.py``; whichever produced it, a frame goes through the same
 extraction as a live one.
@@ -13,8 +14,9 @@ from __future__ import annotations
 import importlib
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -68,6 +70,25 @@ class Camera(Protocol):
     def close(self) -> None:
         """Release the camera."""
         ...  # pragma: no cover - protocol
+
+
+@runtime_checkable
+class ColourCamera(Camera, Protocol):
+    """A camera that can also return the sRGB colour of a frame (colour scans)."""
+
+    @property
+    def has_colour(self) -> bool:
+        """Return True when :meth:`capture_colour` can give colour now."""
+        ...  # pragma: no cover - protocol
+
+    def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return one frame as :meth:`capture` would and its (H, W, 3) uint8 sRGB image."""
+        ...  # pragma: no cover - protocol
+
+
+def camera_has_colour(camera: Camera) -> bool:
+    """Return True when ``camera`` can sample colour (WELCOME ``colour``)."""
+    return isinstance(camera, ColourCamera) and camera.has_colour
 
 
 def check_exposure(exposure_us: int, range_us: tuple[int, int]) -> None:
@@ -229,18 +250,60 @@ class PiCamera:
         with self._mapped_array(request, "main") as mapped:
             return np.array(mapped.array[:height, :width], dtype=np.uint8, copy=True)
 
+    def _yuv420(self, request: Any) -> np.ndarray:
+        """Return a frame's planes packed as a stride-free I420 buffer (H * 3/2, W).
+
+        The mapped buffer is (H * 3/2, stride): H rows of Y, then U and V, each H/2 rows
+        of stride/2 bytes laid two to a buffer row. Padding beyond the width is dropped.
+        """
+        width, height = self.size
+        with self._mapped_array(request, "main") as mapped:
+            buffer = mapped.array
+            stride = buffer.shape[1]
+            y = np.array(buffer[:height, :width], dtype=np.uint8, copy=True)
+            quarter = height // 4
+            chroma = [
+                buffer[height + k * quarter : height + (k + 1) * quarter]
+                .reshape(height // 2, stride // 2)[:, : width // 2]
+                .copy()
+                for k in (0, 1)
+            ]
+        return np.concatenate([y.ravel(), chroma[0].ravel(), chroma[1].ravel()]).reshape(
+            height * 3 // 2, width
+        )
+
+    @property
+    def has_colour(self) -> bool:
+        """Return True: the YUV420 stream carries the chroma planes."""
+        return True
+
+    def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the Y plane of the next frame and its sRGB image (from the same buffer).
+
+        The chroma planes travel with every frame, so colour costs a conversion (OpenCV's
+        BT.601 ``COLOR_YUV2RGB_I420``), not another exposure; the Y plane returned is the
+        one :meth:`capture` would return, so the stripe is found exactly as without colour.
+        """
+        import cv2  # the device installs opencv; only colour scans need it here
+
+        i420 = self._read(self._yuv420)
+        height = self.size[1]
+        return np.ascontiguousarray(i420[:height]), cv2.cvtColor(i420, cv2.COLOR_YUV2RGB_I420)
+
     def capture(self) -> np.ndarray:
         """Return the next frame exposed entirely under the laser's current state."""
+        return self._read(self._luminance)
+
+    def _read(self, read: Callable[[Any], np.ndarray]) -> np.ndarray:
+        """Return ``read(request)`` of the next frame exposed under the laser's current state."""
         state, changed_ns = self.laser.is_on, self.laser.changed_ns
         deadline = time.monotonic() + self.config.timeout_s
         while time.monotonic() < deadline:
             request = self._next_request(deadline)
             try:
                 start_ns, _ = exposure_window_ns(request.get_metadata())
-                if start_ns >= changed_ns + _LASER_LATENCY_NS:
-                    frame = self._luminance(request)
-                else:
-                    frame = None
+                fresh = start_ns >= changed_ns + _LASER_LATENCY_NS
+                frame: np.ndarray | None = read(request) if fresh else None
             finally:
                 request.release()
             # The frame was read out before capture_request returned, so if the laser has

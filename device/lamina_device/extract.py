@@ -900,11 +900,47 @@ def _smoothed(cols: np.ndarray, rows: np.ndarray, chain: np.ndarray, sigma_px: f
     return fitted.astype(np.float32)
 
 
+def sample_colour(rgb: np.ndarray, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Return the (N, 3) uint8 colour of an (H, W, 3) image at sub-pixel points, bilinearly.
+
+    ``cols``/``rows`` follow the pixel-centre convention of ``lamina_shared.types``; points
+    beyond the outer pixel centres take the border pixels' colour.
+    """
+    height, width = rgb.shape[:2]
+    u = np.clip(np.asarray(cols, np.float64), 0.0, width - 1.0)
+    v = np.clip(np.asarray(rows, np.float64), 0.0, height - 1.0)
+    # The lower corner stays one pixel inside, so the upper one exists (1-px images aside).
+    u0 = np.clip(np.floor(u).astype(np.intp), 0, max(width - 2, 0))
+    v0 = np.clip(np.floor(v).astype(np.intp), 0, max(height - 2, 0))
+    u1, v1 = np.minimum(u0 + 1, width - 1), np.minimum(v0 + 1, height - 1)
+    fu, fv = (u - u0)[:, None], (v - v0)[:, None]
+    image = np.asarray(rgb, np.float64)
+    top = image[v0, u0] * (1.0 - fu) + image[v0, u1] * fu
+    bottom = image[v1, u0] * (1.0 - fu) + image[v1, u1] * fu
+    mixed = top * (1.0 - fv) + bottom * fv
+    return np.clip(np.rint(mixed), 0, 255).astype(np.uint8).reshape(-1, 3)
+
+
 def to_segment(
-    points: StripePoints, target: str, section: int, view: int, z_mm: float, angle_deg: float
+    points: StripePoints,
+    target: str,
+    section: int,
+    view: int,
+    z_mm: float,
+    angle_deg: float,
+    rgb_off: np.ndarray | None = None,
 ) -> Segment:
-    """Label one view's stripe points with where they were taken (flags stay on-device)."""
+    """Label one view's stripe points with where they were taken (flags stay on-device).
+
+    With ``rgb_off`` (the view's laser-off frame in sRGB) each point carries the colour
+    there, sampled at its sub-pixel stripe centre.
+    """
+    colour = (
+        np.zeros((0, 3), np.uint8)
+        if rgb_off is None or not len(points.cols)
+        else sample_colour(rgb_off, points.cols, points.rows)
+    )
     return Segment(
         target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak,
-        points.width, points.confidence,
+        points.width, points.confidence, colour,
     )  # fmt: skip

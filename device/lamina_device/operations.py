@@ -30,7 +30,7 @@ from lamina_device.acquisition import (
     grab_grid,
     views_in_section,
 )
-from lamina_device.camera import ExposureRefused
+from lamina_device.camera import ExposureRefused, camera_has_colour
 from lamina_device.extract import ExtractSettings, changed_settings, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_shared.endpoint import Abandoned, Handler, RequestError, SegmentBuffer, ServerSettings
@@ -118,9 +118,14 @@ class AxisLimits:
             )
 
 
-def plan_key(target: str, plan: ScanPlan, settings: ExtractSettings) -> tuple[str, str]:
-    """Return what identifies a scan across sessions: its target, plan and extraction."""
-    text = json.dumps([plan.to_dict(), dataclasses.asdict(settings)], sort_keys=True)
+def plan_key(
+    target: str, plan: ScanPlan, settings: ExtractSettings, colour: bool = False
+) -> tuple[str, str]:
+    """Return what identifies a scan across sessions: its target, plan, extraction, colour."""
+    parts: list[Any] = [plan.to_dict(), dataclasses.asdict(settings)]
+    if colour:  # left out without colour: keys of scans buffered before colour stay valid
+        parts.append({"colour": True})
+    text = json.dumps(parts, sort_keys=True)
     return target, hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -210,8 +215,12 @@ class Operations:
                 f"have must list view indices of the plan: {outside[0]} is beyond its "
                 f"{len(plan.views)} views",
             )
+        if args.colour and not camera_has_colour(self.hardware.camera):
+            raise RequestError(
+                "bad-args", "this device's camera gives no colour: scan without colour"
+            )
         have = set(args.have)
-        kept = self.link.buffer.adopt(plan_key(target, plan, settings), request_id)
+        kept = self.link.buffer.adopt(plan_key(target, plan, settings, args.colour), request_id)
         self.link.buffer.ack(request_id, have & set(kept))
         resend = sorted(set(kept) - have)
         if kept:
@@ -221,7 +230,7 @@ class Operations:
             self.link.send_segment(request_id, seq, kept[seq])
         todo = [s for s in range(len(plan.views)) if s not in have and s not in kept]
         if todo:
-            self._acquire(request_id, target, plan, todo, settings)
+            self._acquire(request_id, target, plan, todo, settings, args.colour)
         if not self.link.buffer.wait_empty(self.link.abandoned, self.link.settings.ack_timeout_s):
             raise RequestError(
                 "unacknowledged",
@@ -249,6 +258,7 @@ class Operations:
         plan: ScanPlan,
         todo: list[int],
         settings: ExtractSettings,
+        colour: bool = False,
     ) -> None:
         """Acquire the views ``todo`` (plan indices), numbering them as the full plan does."""
         index = views_in_section(plan)
@@ -283,6 +293,7 @@ class Operations:
                 settings,
                 control=self.control,
                 numbers=[index[s] for s in todo],
+                colour=colour,
             )
         except ScanAborted as exc:
             if self.link.abandoned.is_set():

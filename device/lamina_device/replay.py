@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from lamina_device.motion import Lift, Turntable
 from lamina_device.sim.axes import Mechanics, SimLift, SimTurntable
 from lamina_device.sim.backend import MOCK_LASER_PIN
 from lamina_device.sim.camera import SIM_EXPOSURE_US
-from lamina_shared.capture import MANIFEST, Capture, load_capture, read_frame
+from lamina_shared.capture import MANIFEST, Capture, load_capture, read_colour, read_frame
 from lamina_shared.limits import DeviceLimits
 
 __all__ = ["ReplayCamera", "open_replay"]
@@ -64,24 +65,44 @@ class ReplayCamera:
     def capture(self) -> np.ndarray:
         """Return the recorded frame matching the stage, angle, height and laser state."""
         channel = self.capture_set.laser_channel
+        path = self._frame_path()
+        if path is None:
+            # No laser-off frame recorded: a black frame makes the difference
+            # image equal to the laser-on frame, as the capture spec allows.
+            width, height = self.size
+            return np.zeros((height, width), np.uint8)
+        return read_frame(path, channel)
+
+    def _frame_path(self) -> Path | None:
+        """Return the recorded frame's file for the stage, view and laser state (None: absent)."""
         if self.stage.target == "grid":
             if self.capture_set.grid_image is None:
                 raise CameraError("the capture holds no calibration grid image")
-            return read_frame(self.capture_set.grid_image, channel)
+            return self.capture_set.grid_image
         z_mm, angle = self.lift.z_mm, self.turntable.angle_deg
         for view in self.capture_set.views(self.stage.target):
             if abs(view.spec.z_mm - z_mm) < 1e-6 and abs(view.spec.angle_deg - angle) < 1e-6:
-                if self.laser.is_on:
-                    return read_frame(view.laser_on, channel)
-                if view.laser_off is None:
-                    # No laser-off frame recorded: a black frame makes the difference
-                    # image equal to the laser-on frame, as the capture spec allows.
-                    width, height = self.size
-                    return np.zeros((height, width), np.uint8)
-                return read_frame(view.laser_off, channel)
+                return view.laser_on if self.laser.is_on else view.laser_off
         raise CameraError(
             f"the capture has no {self.stage.target} view at z={z_mm} mm, angle={angle} deg"
         )
+
+    @cached_property
+    def has_colour(self) -> bool:
+        """Return True when the capture's laser-off frames are colour PNGs."""
+        for target in ("object", "cylinder"):
+            for view in self.capture_set.views(target):
+                if view.laser_off is not None:
+                    return read_colour(view.laser_off) is not None
+        return False
+
+    def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the recorded frame as :meth:`capture` does and the same file's sRGB."""
+        path = self._frame_path()
+        rgb = None if path is None else read_colour(path)
+        if path is None or rgb is None:
+            raise CameraError("this capture's frame is not a colour image: scan it without colour")
+        return read_frame(path, self.capture_set.laser_channel), rgb
 
     def close(self) -> None:
         """Nothing to release."""

@@ -16,8 +16,10 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from types import FrameType, TracebackType
+from types import FrameType
 from typing import Protocol
+
+from lamina_shared.scoped import Scoped
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +42,7 @@ class Switchable(Protocol):
         ...  # pragma: no cover - protocol
 
 
-class LaserWatchdog:
+class LaserWatchdog(Scoped):
     """Switch the laser off after ``max_on_s`` on, or after ``link_silence_s`` without the host.
 
     The link is only watched once :meth:`link_alive` has been called (a recording
@@ -143,20 +145,16 @@ class LaserWatchdog:
                 log.exception("safety: watchdog check failed; switching the laser off")
                 self.laser.off()
 
-    def __enter__(self) -> LaserWatchdog:
+    def enter(self) -> None:
+        """Start watching (``with watchdog:``)."""
         self.start()
-        return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
+    def leave(self) -> None:
+        """Stop watching at the end of the ``with`` block."""
         self.stop()
 
 
-class LaserShutdown:
+class LaserShutdown(Scoped):
     """Switch the laser off on SIGTERM, SIGINT and interpreter exit (a context manager).
 
     SIGTERM becomes ``SystemExit(143)`` and SIGINT ``KeyboardInterrupt``, after the
@@ -189,15 +187,11 @@ class LaserShutdown:
         self._previous.clear()
         atexit.unregister(self.laser.off)
 
-    def __enter__(self) -> LaserShutdown:
+    def enter(self) -> None:
+        """Install the handlers (``with LaserShutdown(laser):``)."""
         self.install()
-        return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
+    def leave(self) -> None:
+        """Switch the laser off and restore what was there before."""
         self.laser.off()
         self.uninstall()

@@ -30,7 +30,7 @@ import logging
 from typing import Any
 
 from lamina_device import __version__
-from lamina_device.camera import CameraError
+from lamina_device.camera import CameraError, camera_has_colour
 from lamina_device.hardware import Hardware
 from lamina_device.motion import MotionError
 from lamina_device.operations import Operations
@@ -109,6 +109,7 @@ class DeviceServer(DeviceEndpoint):
             "segment_encoding": {"row_scale": ROW_SCALE},
             "identity": dict(hw.identity),
             "extract": dataclasses.asdict(hw.extract),
+            "colour": camera_has_colour(hw.camera),
         }
 
     def _welcome_plans(self) -> dict[str, Any]:

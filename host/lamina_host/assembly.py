@@ -89,20 +89,61 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
     if not segs:
         raise CalibrationError("the section has no stripe points; check the scan views")
     centre = np.concatenate(segs).mean(axis=0)
-
-    # Per segment: raw angles/radii plus an increasing unwrapped copy for interpolation.
     polar = [_polar(s, centre) for s in segs]
-    tables = []
-    for ang, rad in polar:
-        unwrapped = np.unwrap(ang)
-        order = np.argsort(unwrapped, kind="stable")
-        tables.append((unwrapped[order], rad[order]))
+    ang, rad = _overlap_means(polar, [r[:, None] for _, r in polar])
+    rad = rad[:, 0]
+    return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
 
+
+def average_overlap_colours(
+    segments: list[np.ndarray], colours: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Give every point the mean colour of all the segments that cover its angle.
+
+    The colour counterpart of :func:`average_overlaps` (same polar centre, same cover
+    test, same linear interpolation along each segment): a point seen in two views gets
+    the mean of its own colour and the other view's there.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm, each ordered along its stripe.
+        colours: (K, 3) colours of those points (any numeric scale).
+
+    Returns:
+        The (N, 2) points, sorted by polar angle in (-pi, pi], and their (N, 3) float colours.
+    """
+    pairs = [
+        (np.asarray(s, float).reshape(-1, 2), np.asarray(c, float).reshape(-1, 3))
+        for s, c in zip(segments, colours, strict=True)
+    ]
+    pairs = [(s, c) for s, c in pairs if len(s)]
+    if not pairs:
+        return np.empty((0, 2)), np.empty((0, 3))
+    pts = np.concatenate([s for s, _ in pairs])
+    centre = pts.mean(axis=0)
+    polar = [_polar(s, centre) for s, _ in pairs]
+    _, mean = _overlap_means(polar, [c for _, c in pairs])
+    order = np.argsort(np.concatenate([a for a, _ in polar]), kind="stable")
+    return pts[order], mean
+
+
+def _overlap_means(
+    polar: list[tuple[np.ndarray, np.ndarray]], values: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return every point's angle and the mean of its values with the covering segments'.
+
+    ``polar`` holds each segment's (angles, radii); ``values`` its (K, D) per-point values.
+    Angles are unwrapped along each segment so segments crossing +-pi and segments running
+    clockwise are handled; the result is sorted by angle.
+    """
+    tables = []
+    for (ang_m, _), val in zip(polar, values, strict=True):
+        unwrapped = np.unwrap(ang_m)
+        order = np.argsort(unwrapped, kind="stable")
+        tables.append((unwrapped[order], val[order]))
     ang = np.concatenate([a for a, _ in polar])
-    own = np.concatenate([r for _, r in polar])
+    total = np.concatenate(values).astype(float)
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
-    total = own.copy()
-    count = np.ones_like(own)
+    count = np.ones(len(ang))
     for m, (xp, fp) in enumerate(tables):
         if len(xp) < 2:
             continue
@@ -110,12 +151,12 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
         # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
         shifted = lo + np.mod(ang - lo, TWO_PI)
         covered = (shifted <= hi) & (owner != m)
-        total[covered] += np.interp(shifted[covered], xp, fp)
+        for d in range(total.shape[1]):
+            total[covered, d] += np.interp(shifted[covered], xp, fp[:, d])
         count[covered] += 1.0
-    rad = total / count
+    mean = total / count[:, None]
     order = np.argsort(ang, kind="stable")
-    ang, rad = ang[order], rad[order]
-    return centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
+    return ang[order], mean[order]
 
 
 def split_outlines(

@@ -42,7 +42,7 @@ from lamina_host.clinical import (
 )
 from lamina_host.files import OutputError, write_new_file
 from lamina_host.mesh import signed_volume
-from lamina_host.pipeline import ProcessOptions, Reconstruction, reprocess
+from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_host.store import Library, ScanInputs, StoreError, check_new_file
 from lamina_shared.errors import LaminaError
 
@@ -110,6 +110,19 @@ class ClinicalMeasure:
 LEVEL_COLUMNS = ("offset_mm", "z_mm", "circumference_mm", "area_mm2", "segment_volume_ml",
                  "segment_frustum_ml", "source")  # fmt: skip
 """The columns of a clinical table row (``LimbMeasurement.table``) the batch keeps."""
+
+
+def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reconstruction:
+    """Reconstruct a stored scan again; ``options`` None: those its stored result recorded."""
+    chosen = options or ProcessOptions.from_dict(inputs.options)
+    return reconstruct(
+        inputs.grid_image,
+        inputs.board,
+        inputs.cylinder,
+        inputs.cylinder_mm,
+        inputs.segments,
+        chosen,
+    )
 
 
 def measure_scan(

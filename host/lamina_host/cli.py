@@ -75,6 +75,7 @@ SCAN_DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "noise": "thesis",
     "rig": "thesis",
+    "colour": False,
 }
 """Defaults of scan options a resume must be able to tell from values given (so None)."""
 
@@ -116,6 +117,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=_extract_option,
         metavar="KEY=VALUE[,KEY=VALUE]",
         help="change the device's stripe extraction for this scan, e.g. method=thinning,power=2",
+    )
+    scan.add_argument(
+        "--colour",
+        action="store_const",
+        const=True,
+        help="sample each point's colour from the laser-off frames: coloured mesh.ply, "
+        "mesh.obj and raw_points.ply (a colour camera; the simulator with --noise harsh)",
     )
     scan.add_argument(
         "--expect", help="known shape to measure accuracy against, e.g. cylinder:d=19.05"
@@ -198,6 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--device", default="sim", help="serial port path, 'sim' (default) or 'replay:DIR'"
     )
     tui.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
+    tui.add_argument(
+        "--noise",
+        choices=NOISE_PRESETS,
+        help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
+    )
     _add_library_option(tui)
     return parser
 
@@ -322,7 +335,7 @@ def _add_library_option(parser: argparse.ArgumentParser) -> None:
 
 
 RESUMED_OPTIONS = (
-    "object", "seed", "noise", "trim", "harmonics", "expect", "cylinder_mm", "rig",
+    "object", "seed", "noise", "trim", "harmonics", "expect", "cylinder_mm", "rig", "colour",
 )  # fmt: skip
 """What a resumed scan takes from its library record rather than the command line."""
 
@@ -510,6 +523,7 @@ def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
         None if args.cylinder_mm is None else float(args.cylinder_mm),
         _scan_options(args),
         getattr(args, "extract", None),
+        bool(getattr(args, "colour", False)),
         args.side or SIDES[0],
     )
 
@@ -547,6 +561,7 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     job.connect(on_notice=_notice)
     # Before calibrating: the extraction settings are part of what the scan records.
     job.set_extract(request.extract)
+    job.set_colour(request.colour)
     try:
         return acquire(
             job,
@@ -635,11 +650,11 @@ def batch(args: argparse.Namespace) -> int:
 
 def tui(args: argparse.Namespace) -> int:
     """Run ``lamina tui``: the Textual app on this terminal."""
-    if args.object and args.device != "sim":
-        raise UsageError("--object only applies to --device sim")
+    if (args.object or args.noise) and args.device != "sim":
+        raise UsageError("--object and --noise only apply to --device sim")
     from lamina_host.tui.app import LaminaApp  # deferred: Textual is only needed here
 
-    LaminaApp(args.device, args.library, args.object).run()
+    LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
     return 0
 
 

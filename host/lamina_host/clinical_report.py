@@ -190,14 +190,7 @@ def _draw_table(ax: Any, data: ReportData) -> None:
 
 def _draw_profile(ax: Any, data: ReportData) -> None:
     m = data.measurement
-    sign = _direction(m)
-    ax.plot(
-        sign * (m.axis.position_mm(m.profile_z_mm) - m.axis.position_mm(m.landmark_z_mm)),
-        m.profile_circumference_mm,
-        "-",
-        color="tab:blue",
-        label=f"scan {data.scan_id}",
-    )
+    _plot_profile(ax, m, "-", "tab:blue", f"scan {data.scan_id}")
     ax.plot(
         [lv.offset_mm for lv in m.levels],
         [lv.circumference_mm for lv in m.levels],
@@ -205,16 +198,8 @@ def _draw_profile(ax: Any, data: ReportData) -> None:
         color="tab:blue",
         ms=3,
     )
-    ref = data.reference
-    if ref is not None:
-        rs = _direction(ref)
-        ax.plot(
-            rs * (ref.axis.position_mm(ref.profile_z_mm) - ref.axis.position_mm(ref.landmark_z_mm)),
-            ref.profile_circumference_mm,
-            "--",
-            color="tab:orange",
-            label=f"scan {data.reference_id}",
-        )
+    if data.reference is not None:
+        _plot_profile(ax, data.reference, "--", "tab:orange", f"scan {data.reference_id}")
     low, high = ax.get_ylim()
     if high - low < MIN_PROFILE_RANGE_MM:  # scanner noise must not look like swelling
         mid = 0.5 * (low + high)
@@ -224,6 +209,13 @@ def _draw_profile(ax: Any, data: ReportData) -> None:
     ax.set_title("circumference along the axis", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
+
+
+def _plot_profile(ax: Any, m: LimbMeasurement, style: str, colour: str, label: str) -> None:
+    """Plot a measurement's circumference against the distance from its landmark."""
+    offsets_mm = m.axis.position_mm(m.profile_z_mm) - m.axis.position_mm(m.landmark_z_mm)
+    distance_mm = _direction(m) * offsets_mm
+    ax.plot(distance_mm, m.profile_circumference_mm, style, color=colour, label=label)
 
 
 def _direction(m: LimbMeasurement) -> float:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from lamina_host.batch import reprocess
 from lamina_host.dicom import (
     DICOM_SOPS,
     SURFACE_SCAN_MESH,
@@ -20,7 +21,6 @@ from lamina_host.dicom import (
     surface_scan_mesh,
 )
 from lamina_host.mesh import load_ply
-from lamina_host.pipeline import reprocess
 from lamina_host.record import record_bytes
 from lamina_host.store import EXPORT_FORMATS, Library, StoreError, check_new_file
 

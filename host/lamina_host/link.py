@@ -131,6 +131,8 @@ class DeviceInfo:
     operations: tuple[str, ...] = ()
     welcome: dict[str, Any] = field(default_factory=dict)
     """The WELCOME body as received (for :func:`lamina_host.workflow.scan_identity`)."""
+    colour: bool = False
+    """The device samples colour per point (WELCOME ``colour``; absent on older devices)."""
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
@@ -163,6 +165,7 @@ class DeviceInfo:
                 dict(data.get("limits") or {}),
                 tuple(str(op) for op in data.get("operations") or ()),
                 dict(data),
+                data.get("colour") is True,
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DeviceError(f"the device's handshake is malformed ({exc})") from None
@@ -583,6 +586,7 @@ class DeviceClient:
         on_segment: SegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
         extract: ExtractChanges | None = None,
+        colour: bool = False,
     ) -> list[Segment]:
         """Scan the views of ``plan`` not in ``have``; return the new segments in plan order.
 
@@ -599,6 +603,7 @@ class DeviceClient:
             on_notice: receives the one-line text of a refused pause, resume or abort.
             extract: extraction settings to change for this scan (default: :attr:`extract`);
                 the device refuses the scan, naming every problem, if they are unusable.
+            colour: ask for each point's colour (a device whose WELCOME offers it).
 
         Raises:
             ScanStopped: the scan was aborted; it holds the segments received.
@@ -627,7 +632,12 @@ class DeviceClient:
             elif message.kind is Kind.EVENT and on_progress is not None:
                 on_progress(message.body)
 
-        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract)
+        if colour and not (self.info and self.info.colour):
+            raise DeviceError(
+                "this device cannot sample colour (its camera or an older lamina-device): "
+                "scan without --colour"
+            )
+        args = ScanArgs(target, plan, tuple(sorted(held)), extract or self.extract, colour)
         with self._id_lock:
             self._scanning, self._on_notice = True, on_notice
         try:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -75,15 +75,8 @@ class RadialErrorRow:
     centroid_mm: tuple[float, float]
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the JSON form."""
-        return {
-            "section": self.section,
-            "z_mm": self.z_mm,
-            "rms_own_mm": self.rms_own_mm,
-            "rms_mean_mm": self.rms_mean_mm,
-            "mean_radius_mm": self.mean_radius_mm,
-            "centroid_mm": list(self.centroid_mm),
-        }
+        """Return the JSON form (the fields, the centroid as a list)."""
+        return {**asdict(self), "centroid_mm": list(self.centroid_mm)}
 
 
 @dataclass(frozen=True)

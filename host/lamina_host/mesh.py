@@ -259,8 +259,9 @@ def save_ply(
     vertices: np.ndarray,
     faces: np.ndarray | None = None,
     normals: np.ndarray | None = None,
+    colours: np.ndarray | None = None,
 ) -> None:
-    """Write a binary little-endian PLY: float32 vertices, optional normals and faces.
+    """Write a binary little-endian PLY: float32 vertices, optional normals, colours and faces.
 
     With ``faces`` None the file is a point cloud: no face element at all.
 
@@ -269,23 +270,27 @@ def save_ply(
         vertices: (V, 3) mm.
         faces: optional (F, 3) vertex indices.
         normals: optional (V, 3) or (V, 2) normals.
+        colours: optional (V, 3) uint8 sRGB per vertex (``red``, ``green``, ``blue`` uchar).
     """
     verts = _points3(vertices)
     n = len(verts)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if normals is not None:
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if colours is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     vrec = np.empty(n, dtype=fields)
     vrec["x"], vrec["y"], vrec["z"] = verts.T
     if normals is not None:
         vrec["nx"], vrec["ny"], vrec["nz"] = _normals3(normals, n).T
+    if colours is not None:
+        vrec["red"], vrec["green"], vrec["blue"] = _colours3(colours, n).T
     header = ["ply", "format binary_little_endian 1.0", "comment written by Lamina"]
-    header += [f"element vertex {n}"] + [f"property float {name}" for name, _ in fields]
+    header += [f"element vertex {n}"]
+    header += [f"property {_PLY_TYPES[kind]} {name}" for name, kind in fields]
     body = [vrec.tobytes()]
     if faces is not None:
-        f = np.asarray(faces, dtype=np.int64)
-        if f.ndim != 2 or f.shape[1] != 3 or (f.size and (f.min() < 0 or f.max() >= n)):
-            raise ValueError(f"faces must be (F, 3) indices into {n} vertices")
+        f = _faces(faces, n)
         frec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
         frec["n"] = 3
         frec["idx"] = f
@@ -298,8 +303,40 @@ def save_ply(
             fh.write(chunk)
 
 
+_PLY_TYPES = {"<f4": "float", "u1": "uchar"}
+_PLY_DTYPES = {name: kind for kind, name in _PLY_TYPES.items()}
+
+
+def _colours3(colours: np.ndarray, n: int) -> np.ndarray:
+    """Return validated (n, 3) uint8 colours."""
+    rgb = np.asarray(colours)
+    if rgb.shape != (n, 3):
+        raise ValueError(f"colours must be ({n}, 3), got {rgb.shape}")
+    return rgb.astype(np.uint8)
+
+
+def _faces(faces: np.ndarray, n: int) -> np.ndarray:
+    """Return validated (F, 3) int64 indices into ``n`` vertices."""
+    f = np.asarray(faces, dtype=np.int64)
+    if f.ndim != 2 or f.shape[1] != 3 or (f.size and (f.min() < 0 or f.max() >= n)):
+        raise ValueError(f"faces must be (F, 3) indices into {n} vertices")
+    return f
+
+
 def load_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     """Return the float32 vertices (V, 3) and faces (F, 3) of a PLY written by :func:`save_ply`.
+
+    Raises:
+        ValueError: the bytes are not a binary little-endian triangle PLY of that layout.
+    """
+    vertices, faces, _ = load_coloured_ply(data)
+    return vertices, faces
+
+
+def load_coloured_ply(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Return vertices, faces and the (V, 3) uint8 vertex colours (None if uncoloured).
+
+    Reads the PLY layout :func:`save_ply` writes.
 
     Raises:
         ValueError: the bytes are not a binary little-endian triangle PLY of that layout.
@@ -315,14 +352,76 @@ def load_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
         for words in (line.split() for line in header)
         if len(words) == 3 and words[0] == "element"
     }
-    props = sum(1 for line in header if line.startswith("property float "))
+    fields = [
+        (words[2], _PLY_DTYPES[words[1]])
+        for words in (line.split() for line in header)
+        if len(words) == 3 and words[0] == "property" and words[1] in _PLY_DTYPES
+    ]
     n_vertices, n_faces = counts.get("vertex", 0), counts.get("face", 0)
     offset = end + len(b"end_header\n")
-    vrec = np.frombuffer(data, "<f4", n_vertices * props, offset).reshape(n_vertices, props)
+    vrec = np.frombuffer(data, fields, n_vertices, offset)
     frec = np.frombuffer(data, [("n", "u1"), ("idx", "<i4", (3,))], n_faces, offset + vrec.nbytes)
     if n_faces and not (frec["n"] == 3).all():
         raise ValueError("only triangle meshes are read")
-    return vrec[:, :3].copy(), frec["idx"].astype(np.int64)
+    vertices = np.stack([vrec["x"], vrec["y"], vrec["z"]], axis=1).astype(np.float32)
+    names = vrec.dtype.names or ()
+    colours = (
+        np.stack([vrec["red"], vrec["green"], vrec["blue"]], axis=1).astype(np.uint8)
+        if "red" in names
+        else None
+    )
+    return vertices, frec["idx"].astype(np.int64), colours
+
+
+def obj_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None = None) -> bytes:
+    """Return a Wavefront OBJ of a triangle mesh, with vertex colours ``v x y z r g b`` if given.
+
+    Colours are written as 0..1 fractions, the vertex-colour extension MeshLab, Blender and
+    CloudCompare read; coordinates in mm with 6 decimals (well below a micrometre).
+    """
+    verts = _points3(vertices)
+    f = _faces(faces, len(verts)) + 1  # OBJ counts vertices from 1
+    if colours is not None:
+        rgb = _colours3(colours, len(verts)).astype(float) / 255.0
+        rows = np.column_stack([verts, rgb])
+        v_lines = [
+            f"v {x:.6f} {y:.6f} {z:.6f} {r:.4f} {g:.4f} {b:.4f}" for x, y, z, r, g, b in rows
+        ]
+    else:
+        v_lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in verts]
+    f_lines = [f"f {a} {b} {c}" for a, b, c in f.tolist()]
+    return ("\n".join(["# written by Lamina", *v_lines, *f_lines]) + "\n").encode("ascii")
+
+
+def load_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Return vertices, triangle faces and uint8 vertex colours (None if absent) of an OBJ.
+
+    Reads what :func:`obj_bytes` writes (``v`` and triangular ``f`` lines; ``f a/b/c``
+    index forms too).
+
+    Raises:
+        ValueError: a line it needs cannot be read.
+    """
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    for number, line in enumerate(data.decode("ascii", "replace").splitlines(), start=1):
+        words = line.split()
+        try:
+            if words[:1] == ["v"]:
+                verts.append([float(w) for w in words[1:7]])
+            elif words[:1] == ["f"]:
+                faces.append([int(w.split("/")[0]) - 1 for w in words[1:]])
+        except ValueError:
+            raise ValueError(f"OBJ line {number} cannot be read: {line[:60]!r}") from None
+    if any(len(v) not in (3, 6) for v in verts) or len({len(v) for v in verts}) > 1:
+        raise ValueError("OBJ vertices must all have 3 coordinates, or all 3 and a colour")
+    if any(len(f) != 3 for f in faces):
+        raise ValueError("only triangle OBJ meshes are read")
+    table = np.array(verts, float).reshape(-1, 6 if verts and len(verts[0]) == 6 else 3)
+    colours = None
+    if table.shape[1] == 6:
+        colours = np.clip(np.rint(table[:, 3:] * 255.0), 0, 255).astype(np.uint8)
+    return table[:, :3], np.array(faces, np.int64).reshape(-1, 3), colours
 
 
 STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])

@@ -63,28 +63,25 @@ views is surface: its unconfirmed points are kept even where other views disagre
 
 @dataclass(frozen=True)
 class OutlierRules:
-    """Thresholds of the outlier tests (module docstring); the defaults suit both rigs.
-
-    Attributes:
-        working_radius_mm: furthest a point may be from the axis; None: no limit.
-        spike_mm: distance from the stripe's local median that makes a point a spike.
-        consensus_mm: another view's point this close confirms a point; a point this far
-            from every confirmed radius of its sector contradicts them.
-        min_points: fewest points of an outline.
-        min_views: fewest views that must each see ``min_view_points`` of an outline.
-        min_view_points: points a view must contribute to count as seeing an outline.
-        min_extent_mm: smallest bounding-box diagonal of an outline.
-        min_angle_deg: smallest angle an outline subtends about its fitted circle's centre.
-    """
+    """Thresholds of the outlier tests (module docstring); the defaults suit both rigs."""
 
     working_radius_mm: float | None = None
+    """Furthest a point may be from the axis; None: no limit."""
     spike_mm: float = 1.0
+    """Distance from the stripe's local median that makes a point a spike."""
     consensus_mm: float = 1.0
+    """Another view's point this close confirms a point; a point this far from every
+    confirmed radius of its sector contradicts them."""
     min_points: int = 30
+    """Fewest points of an outline."""
     min_views: int = 2
+    """Fewest views that must each see ``min_view_points`` of an outline."""
     min_view_points: int = 5
+    """Points a view must contribute to count as seeing an outline."""
     min_extent_mm: float = 2.0
+    """Smallest bounding-box diagonal of an outline."""
     min_angle_deg: float = 60.0
+    """Smallest angle an outline subtends about its fitted circle's centre."""
 
 
 @dataclass
@@ -93,11 +90,17 @@ class Rejected:
     (not points) that were not outlines."""
 
     outside_volume: int = 0
+    """Points further from the axis than the working radius."""
     spikes: int = 0
+    """Points too far from their stripe's local median."""
     view_consensus: int = 0
+    """Points the other views of their section contradict."""
     unsupported_clusters: int = 0
+    """Points of clusters too small, too few views or too narrow to be an outline."""
     clusters: int = 0
+    """Clusters (not points) that were not outlines."""
     short_runs: int = 0
+    """Points of one view's stripe runs shorter than ``MIN_RUN_POINTS`` (stray pieces)."""
 
     @property
     def points(self) -> int:

@@ -12,11 +12,17 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from lamina_host.assembly import average_overlaps, split_outlines, to_object_frame, trim
+from lamina_host.assembly import (
+    average_overlap_colours,
+    average_overlaps,
+    split_outlines,
+    to_object_frame,
+    trim,
+)
 from lamina_host.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
 from lamina_host.calibration import (
     CALIBRATION_METHODS,
@@ -46,9 +52,6 @@ from lamina_host.mesh import (
 )
 from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_shared.types import BoardSpec, Segment
-
-if TYPE_CHECKING:
-    from lamina_host.store import ScanInputs
 
 MIN_SEGMENT_POINTS = 10
 """Segments with fewer points than this after trimming carry no usable outline."""
@@ -198,6 +201,10 @@ class Section:
     coverage: Coverage | None = None
     status: str = "measured"
     estimated: np.ndarray | None = None
+    colour_points: np.ndarray | None = None
+    """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
+    colours: np.ndarray | None = None
+    """(M, 3) uint8 sRGB of ``colour_points``, averaged over the views that saw them."""
 
     @property
     def harmonics(self) -> int:
@@ -217,7 +224,10 @@ class Section:
 
 @dataclass
 class Reconstruction:
-    """Everything the processing produced, ready to be written and reported."""
+    """Everything the processing produced, ready to be written and reported.
+
+    ``vertex_colours`` (V, 3) uint8 is set for a colour scan, else None.
+    """
 
     grid: GridCalibration
     axis: AxisCalibration
@@ -229,6 +239,7 @@ class Reconstruction:
     warnings: list[str] = field(default_factory=list)
     options: ProcessOptions = field(default_factory=ProcessOptions)
     rejected: Rejected = field(default_factory=Rejected)
+    vertex_colours: np.ndarray | None = None
 
 
 class Timer:
@@ -249,8 +260,13 @@ class Timer:
 
 def world_points(segment: Segment, grid: GridCalibration, trim_fraction: float) -> np.ndarray:
     """Return a segment's trimmed points in the laser plane, in mm (thesis 6.1)."""
-    order = np.argsort(segment.cols, kind="stable")
-    return trim(grid.homography.apply(segment.uv[order]), trim_fraction)
+    order = trimmed_order(segment, trim_fraction)
+    return grid.homography.apply(segment.uv[order])
+
+
+def trimmed_order(segment: Segment, trim_fraction: float) -> np.ndarray:
+    """Return the indices of a segment's points along the stripe, ends trimmed (thesis 6.1)."""
+    return trim(np.argsort(segment.cols, kind="stable"), trim_fraction)
 
 
 def calibrate_axis(
@@ -302,6 +318,97 @@ def assemble(
         by_section.setdefault(segment.section, []).append(local)
         heights[segment.section] = segment.z_mm
     return by_section, heights, skipped
+
+
+ColourViews = dict[int, list[tuple[np.ndarray, np.ndarray]]]
+"""Per section index, each coloured view's object-frame (K, 2) points and (K, 3) colours."""
+
+COLOUR_GATE_MM = 1.0
+"""A coloured point further than this from its outline's contour (an outlier) lends no colour."""
+
+
+def assemble_colours(
+    segments: list[Segment], grid: GridCalibration, axis: AxisCalibration, trim_fraction: float
+) -> ColourViews:
+    """Return the coloured segments' points in the object frame with their colours, by section.
+
+    The same trimming and transform as :func:`assemble`, so colour and geometry agree.
+    """
+    views: ColourViews = {}
+    for segment in segments:
+        if not segment.has_colour:
+            continue
+        order = trimmed_order(segment, trim_fraction)
+        if len(order) < MIN_SEGMENT_POINTS:
+            continue
+        points = grid.homography.apply(segment.uv[order])
+        angle = axis.true_angle_deg(segment.angle_deg)
+        local = to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
+        views.setdefault(segment.section, []).append((local, segment.colour[order]))
+    return views
+
+
+def colour_section(section: Section, views: list[tuple[np.ndarray, np.ndarray]]) -> Section:
+    """Return ``section`` with the colour of its measured points, overlaps averaged.
+
+    Only points within :data:`COLOUR_GATE_MM` of the section's contour count (outliers
+    and other outlines of the same height lend no colour); each then takes the mean of
+    its own colour and that of every other view covering its angle
+    (:func:`~lamina_host.assembly.average_overlap_colours`).
+    """
+    from scipy.spatial import cKDTree  # deferred: only colour scans need it
+
+    tree = cKDTree(section.contour)
+    pieces, colours = [], []
+    for points, colour in views:
+        near = tree.query(points)[0] <= COLOUR_GATE_MM
+        if np.count_nonzero(near) >= 2:
+            pieces.append(points[near])
+            colours.append(colour[near])
+    if not pieces:
+        return section
+    points, mean = average_overlap_colours(pieces, colours)
+    rgb = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
+    return replace(section, colour_points=points, colours=rgb)
+
+
+def colour_sections(
+    sections: list[Section],
+    segments: list[Segment],
+    grid: GridCalibration,
+    axis: AxisCalibration,
+    trim_fraction: float,
+) -> list[Section]:
+    """Colour every section from the coloured segments (unchanged when none carry colour)."""
+    views = assemble_colours(segments, grid, axis, trim_fraction)
+    if not views:
+        return sections
+    return [colour_section(s, views.get(s.index, [])) for s in sections]
+
+
+def coloured_cloud(sections: list[Section]) -> tuple[np.ndarray, np.ndarray]:
+    """Return all coloured measured points as (N, 3) mm (z = section height) and (N, 3) uint8."""
+    coloured = [s for s in sections if s.colour_points is not None and s.colours is not None]
+    if not coloured:
+        return np.empty((0, 3)), np.empty((0, 3), np.uint8)
+    points = stack([s.colour_points for s in coloured], [s.z_mm for s in coloured])  # type: ignore[misc]
+    return points, np.vstack([s.colours for s in coloured])  # type: ignore[misc]
+
+
+def vertex_colours(
+    vertices: np.ndarray, points: np.ndarray, colours: np.ndarray, neighbours: int = 4
+) -> np.ndarray:
+    """Return each vertex's colour: the inverse-distance mean of its nearest coloured points."""
+    from scipy.spatial import cKDTree  # deferred: only colour scans need it
+
+    k = min(neighbours, len(points))
+    distance, index = cKDTree(points).query(vertices, k=k)
+    distance, index = distance.reshape(len(vertices), k), index.reshape(len(vertices), k)
+    weight = 1.0 / np.maximum(distance, 1e-6)
+    mean = (colours[index].astype(float) * weight[..., None]).sum(axis=1) / weight.sum(axis=1)[
+        :, None
+    ]
+    return np.clip(np.rint(mean), 0, 255).astype(np.uint8)
 
 
 def thin_outline(points: np.ndarray, max_points: int | None) -> np.ndarray:
@@ -662,6 +769,8 @@ def process_segments(
             s for k in sorted(groups) for s in fit_groups(k, heights[k], groups[k], options)
         ]
         sections = fill_gaps(sections, options)
+    with timer.stage("colour"):
+        sections = colour_sections(sections, segments, grid, axis, options.trim_fraction)
     return sections, warnings + gap_warnings(sections), rejected
 
 
@@ -701,18 +810,9 @@ def reconstruct(
             f"the {options.mesh} mesh is not watertight and manifold "
             f"({topo['boundary_edges']} boundary edges); use --mesh contours for a closed mesh"
         )
+    points, colours = coloured_cloud(sections)
+    colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None
     return Reconstruction(
-        grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected
-    )
-
-
-def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reconstruction:
-    """Reconstruct a library scan from its stored inputs (default: the options it recorded)."""
-    return reconstruct(
-        inputs.grid_image,
-        inputs.board,
-        inputs.cylinder,
-        inputs.cylinder_mm,
-        inputs.segments,
-        options or ProcessOptions.from_dict(inputs.options),
-    )
+        grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected,
+        colour,
+    )  # fmt: skip

@@ -11,12 +11,13 @@ import numpy as np
 from lamina_host.expect import Expectation
 from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
-from lamina_host.mesh import contour_normals, save_ply
-from lamina_host.pipeline import Reconstruction, stack
+from lamina_host.mesh import contour_normals, obj_bytes, save_ply
+from lamina_host.pipeline import Reconstruction, coloured_cloud, stack
 from lamina_shared.types import Segment
 
-SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence")
-"""Per-point arrays saved; ``confidence`` may be missing from older files (then unknown)."""
+SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence", "colour")
+"""Per-point arrays saved; ``confidence`` and ``colour`` may be missing from older files
+(then unknown, and no colour)."""
 
 
 def save_segments(path: Path, segments: list[Segment]) -> None:
@@ -154,6 +155,8 @@ def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> 
     """Write the point clouds, the mesh and the report into ``out``; return their paths.
 
     points.ply holds only the measured stretches of the EFD contours (:func:`measured_cloud`).
+    A colour scan adds colour_points.ply (the measured points with their overlap-averaged
+    colours), colours mesh.ply's vertices and writes mesh.obj with vertex colours.
     Each file is private and replaced whole, never written through a link.
     """
     paths = {
@@ -162,14 +165,28 @@ def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> 
     heights = [s.z_mm for s in result.sections]
     raw = stack([s.raw for s in result.sections], heights)
     replace_file(paths["raw_points.ply"], lambda temporary: save_ply(temporary, raw))
+    coloured, colours = coloured_cloud(result.sections)
+    if len(coloured):
+        paths["colour_points.ply"] = out / "colour_points.ply"
+        replace_file(
+            paths["colour_points.ply"],
+            lambda temporary: save_ply(temporary, coloured, colours=colours),
+        )
     points, normals = measured_cloud(result)
     replace_file(
         paths["points.ply"], lambda temporary: save_ply(temporary, points, normals=normals)
     )
+    rgb = result.vertex_colours
     if len(result.faces):
         replace_file(
-            paths["mesh.ply"], lambda temporary: save_ply(temporary, result.vertices, result.faces)
+            paths["mesh.ply"],
+            lambda temporary: save_ply(temporary, result.vertices, result.faces, colours=rgb),
         )
+        if rgb is not None:
+            # Vertex colours in the format most viewers take them from (v x y z r g b).
+            paths["mesh.obj"] = out / "mesh.obj"
+            data = obj_bytes(result.vertices, result.faces, rgb)
+            replace_file(paths["mesh.obj"], lambda temporary: temporary.write_bytes(data))
     else:
         del paths["mesh.ply"]
     text = json.dumps(report, indent=2) + "\n"

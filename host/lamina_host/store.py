@@ -17,10 +17,13 @@ source object or capture, calibration, extraction settings; see
 :func:`lamina_host.workflow.scan_identity`). Segments and calibration are only added
 under that identity (:meth:`Library.add_segment`), so one scan never mixes two
 acquisitions. Schema 2 added the identity; a schema-1 library is migrated on opening,
-its scans given a ``legacy`` identity rebuilt from what they recorded. Schema 3 added the
-limb side of each scan (:data:`SIDES`: a clinic's history must tell the left arm from the
-right); older libraries are migrated on opening, their scans given side ``none`` (nothing
-else changes, so nothing is lost) until set with :meth:`Library.set_side`.
+its scans given a ``legacy`` identity rebuilt from what they recorded. Schema 3 lets a
+segment's blob carry its points' colour (``_segment_blob``): schema-2 data reads
+unchanged, and an older Lamina refuses the library instead of taking colour for damage.
+Schema 4 added the limb side of each scan (:data:`SIDES`: a clinic's history must tell
+the left arm from the right); older libraries are migrated on opening, their scans given
+side ``none`` (nothing else changes, so nothing is lost) until set with
+:meth:`Library.set_side`.
 """
 
 from __future__ import annotations
@@ -32,13 +35,13 @@ import tempfile
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import cv2
 import numpy as np
 
 from lamina_host.files import OutputError, tighten, write_new_file
+from lamina_host.mesh import load_coloured_ply, obj_bytes
 from lamina_host.workflow import (
     InputError,
     check_subject,
@@ -47,9 +50,10 @@ from lamina_host.workflow import (
     spawned_source,
 )
 from lamina_shared.errors import LaminaError
+from lamina_shared.scoped import Scoped
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 SIDES = ("none", "left", "right")
 """The limb side a scan records; ``none`` for anything that is not one of a pair."""
 STATUSES = ("acquiring", "acquired", "processed")
@@ -197,7 +201,10 @@ def _now() -> str:
 
 
 def _segment_blob(segment: Segment) -> bytes:
-    """Return the segment's arrays, losslessly: cols u16, rows f32, peak, width, confidence u8."""
+    """Return the segment's arrays, losslessly: cols u16, rows f32, peak, width, confidence u8.
+
+    A coloured segment appends its r, g, b bytes per point (12 bytes a point in all).
+    """
     return b"".join(
         (
             np.ascontiguousarray(segment.cols, "<u2").tobytes(),
@@ -205,16 +212,21 @@ def _segment_blob(segment: Segment) -> bytes:
             np.ascontiguousarray(segment.peak, "u1").tobytes(),
             np.ascontiguousarray(segment.width, "u1").tobytes(),
             np.ascontiguousarray(segment.confidence, "u1").tobytes(),
+            np.ascontiguousarray(segment.colour, "u1").tobytes() if segment.has_colour else b"",
         )
     )
 
 
 def _segment_from_row(row: sqlite3.Row) -> Segment:
     n, data = row["points"], row["data"]
-    # 8 bytes a point before segments carried a confidence (then unknown: zeros), 9 since.
-    if len(data) not in (8 * n, 9 * n):
+    # 8 bytes a point before segments carried a confidence (then unknown: zeros), 9 since,
+    # 12 with colour.
+    if len(data) not in (8 * n, 9 * n, 12 * n):
         raise StoreError(f"stored segment {row['seq']} is damaged: restore the library")
-    confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) == 9 * n else None
+    confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) >= 9 * n else None
+    colour = None
+    if n and len(data) == 12 * n:
+        colour = np.frombuffer(data, "u1", 3 * n, 9 * n).reshape(n, 3).copy()
     return Segment(
         row["target"],
         row["section"],
@@ -226,6 +238,7 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
         np.frombuffer(data, "u1", n, 6 * n).copy(),
         np.frombuffer(data, "u1", n, 7 * n).copy(),
         *(() if confidence is None else (confidence,)),
+        *(() if colour is None else (colour,)),
     )
 
 
@@ -257,7 +270,7 @@ def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[st
     return {"legacy": True, **scan_identity(welcome, spawned)}
 
 
-class Library:
+class Library(Scoped):
     """The scan library file; a context manager that closes it."""
 
     def __init__(self, path: Path | None = None) -> None:
@@ -285,8 +298,8 @@ class Library:
             with self._db:
                 if version == 1:
                     self._migrate_from_1()
-                if 1 <= version <= 2:
-                    self._migrate_from_2()
+                if 1 <= version <= 3:
+                    self._migrate_side()
                 self._db.executescript(_SCHEMA)
                 self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
         except (sqlite3.Error, OSError) as exc:
@@ -302,22 +315,15 @@ class Library:
                 "UPDATE scans SET identity = ? WHERE id = ?", (json.dumps(identity), row["id"])
             )
 
-    def _migrate_from_2(self) -> None:
+    def _migrate_side(self) -> None:
         """Add the scans' limb side, ``none`` for every scan already recorded."""
         self._db.execute(
             "ALTER TABLE scans ADD COLUMN side TEXT NOT NULL DEFAULT 'none' "
             "CHECK (side IN ('none', 'left', 'right'))"
         )
 
-    def __enter__(self) -> Library:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
+    def leave(self) -> None:
+        """Close the file at the end of a ``with`` block."""
         self.close()
 
     def close(self) -> None:
@@ -693,6 +699,8 @@ def _convert_mesh(ply: bytes, suffix: str) -> bytes:
     """Return a stored PLY mesh in the format ``suffix`` names (.ply, .obj or .stl)."""
     if suffix == ".ply":
         return ply
+    if suffix == ".obj":
+        return obj_bytes(*load_coloured_ply(ply))  # vertex colours kept, no MeshLab needed
     import pymeshlab  # deferred: heavy import, only needed for format conversion
 
     with tempfile.TemporaryDirectory() as tmp:  # private (0700): the mesh never lies open

@@ -121,12 +121,8 @@ def read_png_header(path: Path) -> PngHeader:
     return PngHeader(width, height, depth, colour)
 
 
-def read_frame(path: Path, laser_channel: str = "red") -> np.ndarray:
-    """Return a frame as a 2-D uint8 or uint16 array, the laser's channel for colour PNGs.
-
-    Raises:
-        FrameError: the file is not a PNG OpenCV can decode (damaged, unsupported).
-    """
+def _imread(path: Path) -> np.ndarray:
+    """Return an image file as OpenCV decodes it, unchanged; FrameError if it cannot."""
     import cv2  # the device and host distributions both install opencv
 
     try:
@@ -135,11 +131,33 @@ def read_frame(path: Path, laser_channel: str = "red") -> np.ndarray:
         raise FrameError(f"{path} cannot be decoded as an image ({exc})") from None
     if image is None:
         raise FrameError(f"{path} cannot be decoded as an image")
+    return np.asarray(image)
+
+
+def read_frame(path: Path, laser_channel: str = "red") -> np.ndarray:
+    """Return a frame as a 2-D uint8 or uint16 array, the laser's channel for colour PNGs.
+
+    Raises:
+        FrameError: the file is not a PNG OpenCV can decode (damaged, unsupported).
+    """
+    image = _imread(path)
     if image.ndim == 3:
         image = image[:, :, LASER_CHANNELS[laser_channel]]
     if image.dtype not in (np.uint8, np.uint16):
         raise FrameError(f"{path} has pixel type {image.dtype}; 8- or 16-bit expected")
     return np.ascontiguousarray(image)
+
+
+def read_colour(path: Path) -> np.ndarray | None:
+    """Return an 8-bit colour PNG as (H, W, 3) uint8 sRGB, or None for a grey or 16-bit one.
+
+    Raises:
+        FrameError: the file is not a PNG OpenCV can decode.
+    """
+    image = _imread(path)
+    if image.ndim != 3 or image.dtype != np.uint8:
+        return None
+    return np.ascontiguousarray(image[:, :, 2::-1])  # OpenCV's BGR(A) to RGB
 
 
 def _finite(value: float) -> bool:

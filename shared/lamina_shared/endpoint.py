@@ -214,10 +214,15 @@ class ServerSettings:
 
     limits: DeviceLimits = field(default_factory=DeviceLimits)
     rto_min_s: float = 0.25
+    """Shortest retransmission timeout of a segment, however fast the round trips."""
     rto_max_s: float = 2.0
+    """Longest retransmission timeout, also the cap of the doubling on each resend."""
     ack_timeout_s: float = 60.0
+    """How long a capture waits for its last segments to be acknowledged before it ends."""
     kept_transfers: int = 2
+    """Binary transfers kept for the host to fetch again; older ones are dropped."""
     kept_replies: int = 32
+    """Replies kept so a repeated request id is answered again instead of run twice."""
     link_retries: int = 3
     """Consecutive link failures, each 0.5 s apart, before the port counts as lost."""
 

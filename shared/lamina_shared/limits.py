@@ -29,20 +29,27 @@ class DeviceLimits:
     max_views_per_section: int = 360
     """Views of one section (one per degree)."""
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
+    """Largest payload of one frame on the line."""
     chunk_bytes: int = CHUNK_BYTES
+    """Bytes of one pushed piece of a binary transfer."""
     max_fetch_bytes: int = 256 * 1024
     """Bytes one ``fetch`` request may ask for."""
     max_fetch_ranges: int = 1_024
+    """Byte ranges one ``fetch`` request may name."""
     max_transfer_bytes: int = MAX_TRANSFER_BYTES
+    """Largest binary transfer (a capture archive, a frame)."""
     max_ack_seqs: int = MAX_ACK_SEQS
+    """Segment numbers one acknowledgement may carry."""
     window_segments: int = 16
     """Sent, unacknowledged segments the device holds before acquisition waits."""
     heartbeat_s: float = 0.3
+    """Seconds between the device's heartbeats to a greeted host (idle, busy or paused)."""
     max_z_mm: float = 10_000.0
     """Largest section height a plan or capture may name (the axes' limits are tighter)."""
     max_abs_angle_deg: float = 3_600.0
     """Largest turntable angle magnitude a plan or capture may name (ten turns)."""
     max_exposure_us: int = 10_000_000
+    """Longest exposure a request may ask for, in microseconds (ten seconds)."""
     max_image_side_px: int = 16_384
     """Largest frame side a capture may declare (frames are refused from their header)."""
     max_image_pixels: int = 20_000_000

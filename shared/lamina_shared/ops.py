@@ -390,12 +390,15 @@ class ScanArgs:
     """``scan``: acquire ``plan`` (None: the device's default) except the indices in ``have``.
 
     ``extract`` changes the device's configured extraction settings for this scan.
+    ``colour`` asks for each point's sRGB colour (only of a device whose WELCOME says
+    ``"colour": true``; the host leaves the key out otherwise, so older devices work).
     """
 
     target: str
     plan: ScanPlan | None = None
     have: tuple[int, ...] = ()
     extract: ExtractChanges | None = None
+    colour: bool = False
 
 
 Checker = Callable[[Any, DeviceLimits, Problems], Any]
@@ -448,7 +451,7 @@ def _move(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Mov
 
 
 def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> ScanArgs:
-    check_keys(args, "scan", {"target"}, {"plan", "have", "extract"}, problems)
+    check_keys(args, "scan", {"target"}, {"plan", "have", "extract", "colour"}, problems)
     target = check_choice(args.get("target", MISSING), "scan.target", TARGETS, problems)
     plan = None if args.get("plan") is None else check_plan(args["plan"], limits, problems)
     have: list[int] = []
@@ -463,7 +466,8 @@ def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Sca
         if args.get("extract") is None
         else check_extract(args["extract"], "scan.extract", problems)
     )
-    return ScanArgs(target or "", plan, tuple(have), extract)
+    colour = check_bool(args.get("colour", False), "scan.colour", problems)
+    return ScanArgs(target or "", plan, tuple(have), extract, bool(colour))
 
 
 def _none(op: str) -> Callable[[dict[str, Any], DeviceLimits, Problems], NoArgs]:
@@ -523,12 +527,17 @@ def parse_args(op: Any, args: Any, limits: DeviceLimits) -> Any:
     return parsed
 
 
+OPTIONAL_FLAGS = frozenset({"colour"})
+"""Request flags added after protocol 3 first shipped: sent only when true."""
+
+
 def request_args(args: Any) -> dict[str, Any]:
     """Return the JSON arguments of a request from its typed arguments (host side)."""
     out: dict[str, Any] = {}
     for item in fields(args):
         value = getattr(args, item.name)
-        if value is None:
+        if value is None or (item.name in OPTIONAL_FLAGS and value is False):
+            # Left out, not false: a device from before the flag would refuse the key.
             continue
         if isinstance(value, ScanPlan | ExtractChanges):
             value = value.to_wire()

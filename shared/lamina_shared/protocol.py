@@ -48,6 +48,8 @@ _RICE_MAX_K = 15  # k travels as a 4-bit nibble
 _ROW_LIMIT_Q = 65_536 * ROW_SCALE  # rows stay below 65,536 px
 _SCALE_BITS = 8  # confidence scales travel in 1/256: confidence = peak * scale / 256
 _SCALE_LIMIT = 1 << 20  # above any scale a confidence byte needs (255 * 256 + 128)
+COLOUR_FLAG = 0x80
+"""Set in a SEGMENT's target byte when its points carry sRGB colour (negotiated, PROTOCOL.md)."""
 
 
 class ProtocolError(LaminaError):
@@ -389,10 +391,11 @@ def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
         raise ProtocolError("segment rows must be quantised (quantise_segment) and in range")
     peak, width = segment.peak.astype(np.int64), segment.width.astype(np.int64)
     firsts = (int(rows_q[0]), int(peak[0]), int(width[0])) if n else (0, 0, 0)
+    coloured = segment.has_colour
     head = _SEGMENT_HEAD.pack(
         request_id,
         seq,
-        TARGETS.index(segment.target),
+        TARGETS.index(segment.target) | (COLOUR_FLAG if coloured else 0),
         segment.section,
         segment.view,
         segment.z_mm,
@@ -420,7 +423,10 @@ def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
         change = scale - previous_scale
         _put_varint(out, 2 * change if change >= 0 else -2 * change - 1)  # zigzag
         previous_scale = scale
-    fields = [_zigzag(np.diff(a)) for a in (rows_q, peak, width)] if n else []
+    channels = list(segment.colour.astype(np.int64).T) if coloured else []
+    if coloured:
+        out += bytes(int(c[0]) for c in channels)  # the first point's r, g, b
+    fields = [_zigzag(np.diff(a)) for a in (rows_q, peak, width, *channels)] if n else []
     return bytes(out) + (_rice_encode(fields) if n > 1 else b"")
 
 
@@ -490,25 +496,39 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
         raise ProtocolError("segment message shorter than its header")
     head = _SEGMENT_HEAD.unpack_from(body)
     request_id, seq, target, section, view, z_mm, angle_deg, n, row0, peak0, width0 = head
+    coloured = bool(target & COLOUR_FLAG)
+    target &= ~COLOUR_FLAG
     if target >= len(TARGETS):
         raise ProtocolError(f"unknown segment target code {target}")
     if not (math.isfinite(z_mm) and math.isfinite(angle_deg)):
         raise ProtocolError("segment with a non-finite height or angle")
     cols, at = _decode_columns(body, _SEGMENT_HEAD.size, n)
     scales, at = _decode_scale_runs(body, at, n)
+    if coloured and n == 0:
+        raise ProtocolError("an empty segment cannot carry colour")
+    firsts = [row0, peak0, width0]
+    if coloured:
+        if at + 3 > len(body):
+            raise ProtocolError("segment ends inside its first colour")
+        firsts += list(body[at : at + 3])
+        at += 3
     if n > 1:
-        d_rows, d_peak, d_width = _rice_decode(body, at, [n - 1] * 3)
+        diffs = _rice_decode(body, at, [n - 1] * len(firsts))
     elif at != len(body) or (n == 0 and (row0 or peak0 or width0)):
         raise ProtocolError("segment carries bytes after its last point")
     else:
-        d_rows = d_peak = d_width = np.zeros(0, np.int64)
-    rows_q = np.cumsum(np.concatenate([[row0], _unzigzag(d_rows)]))[:n]
-    peak = np.cumsum(np.concatenate([[peak0], _unzigzag(d_peak)]))[:n]
-    width = np.cumsum(np.concatenate([[width0], _unzigzag(d_width)]))[:n]
+        diffs = [np.zeros(0, np.int64)] * len(firsts)
+    rows_q, peak, width, *channels = (
+        np.cumsum(np.concatenate([[first], _unzigzag(d)]))[:n]
+        for first, d in zip(firsts, diffs, strict=True)
+    )
     if np.any((rows_q < 0) | (rows_q >= _ROW_LIMIT_Q)):
         raise ProtocolError("segment row outside 0..65535 px")
     if np.any((peak < 0) | (peak > 255) | (width < 0) | (width > 255)):
         raise ProtocolError("segment peak or width outside 0..255")
+    colour = np.stack(channels, axis=1) if coloured else np.zeros((0, 3), np.int64)
+    if np.any((colour < 0) | (colour > 255)):
+        raise ProtocolError("segment colour outside 0..255")
     segment = Segment(
         TARGETS[target],
         section,
@@ -520,6 +540,7 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
         peak.astype(np.uint8),
         width.astype(np.uint8),
         _confidence(peak, scales).astype(np.uint8),
+        colour.astype(np.uint8),
     )
     return SegmentEvent(request_id, seq, segment)
 

@@ -163,6 +163,10 @@ def _unknown_confidence() -> np.ndarray:
     return np.zeros(0, np.uint8)
 
 
+def _no_colour() -> np.ndarray:
+    return np.zeros((0, 3), np.uint8)
+
+
 @dataclass(frozen=True, eq=False)
 class Segment:
     """The stripe points the device extracted from one laser-on/laser-off view.
@@ -172,7 +176,9 @@ class Segment:
     ``width`` its length in pixels: per-point quality for the host to judge.
     ``confidence`` (uint8) is the peak over the noise sigma of the view's difference
     image, times :data:`CONFIDENCE_SCALE` and capped at 255; 0 means unknown (segments
-    recorded before the device measured its noise).
+    recorded before the device measured its noise). ``colour`` is either empty (0, 3)
+    (the scan did not ask for colour) or (N, 3) uint8 sRGB sampled from the view's
+    laser-off frame at each stripe centre.
     """
 
     target: str
@@ -185,6 +191,7 @@ class Segment:
     peak: np.ndarray = field(repr=False)
     width: np.ndarray = field(repr=False)
     confidence: np.ndarray = field(default_factory=_unknown_confidence, repr=False)
+    colour: np.ndarray = field(default_factory=_no_colour, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.cols)
@@ -192,6 +199,14 @@ class Segment:
             object.__setattr__(self, "confidence", np.zeros(n, np.uint8))
         if not (len(self.rows) == len(self.peak) == len(self.width) == len(self.confidence) == n):
             raise ValueError("segment arrays differ in length")
+        colour = np.asarray(self.colour)
+        if colour.ndim != 2 or colour.shape[1] != 3 or len(colour) not in (0, n):
+            raise ValueError("segment colour must be (0, 3) or one (r, g, b) row per point")
+
+    @property
+    def has_colour(self) -> bool:
+        """Return True when every point carries an sRGB colour."""
+        return len(self.colour) == len(self.cols) and len(self.cols) > 0
 
     def __len__(self) -> int:
         return len(self.cols)
@@ -215,9 +230,9 @@ class Segment:
             other.z_mm,
             other.angle_deg,
         ) and all(
-            a.dtype == b.dtype and a.tobytes() == b.tobytes()
-            for a, b in zip(  # noqa: B905 - two tuples of five arrays
-                (self.cols, self.rows, self.peak, self.width, self.confidence),
-                (other.cols, other.rows, other.peak, other.width, other.confidence),
+            a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+            for a, b in zip(  # noqa: B905 - two tuples of six arrays
+                (self.cols, self.rows, self.peak, self.width, self.confidence, self.colour),
+                (other.cols, other.rows, other.peak, other.width, other.confidence, other.colour),
             )
         )

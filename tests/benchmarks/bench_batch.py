@@ -14,13 +14,13 @@ import os
 import resource
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from lamina_host.batch import run_batch, select_scans
 from lamina_host.store import Library
+from tests.helpers.cli import host_command
 
 TITLE = "lamina batch: 20 short simulated scans re-measured, 1 worker vs all cores"
 CACHE = Path("out/bench-batch")
@@ -43,30 +43,11 @@ def _make_library(library: Path) -> None:
         batch, pending = pending[:AT_ONCE], pending[AT_ONCE:]
         runs = [
             subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "lamina_host",
-                    "scan",
-                    "--device",
-                    "sim",
-                    "--object",
-                    spec,
-                    "--seed",
-                    str(k),
-                    "--sections",
-                    "3",
-                    "--pitch",
-                    "2",
-                    "--views",
-                    "6",
-                    "--subject",
-                    f"B{k:03d}",
-                    "--library",
-                    str(library),
-                    "-o",
-                    str(CACHE / f"scan{k:02d}"),
-                ],
+                host_command(
+                    *("scan", "--device", "sim", "--object", spec, "--seed", str(k)),
+                    *("--sections", "3", "--pitch", "2", "--views", "6", "--subject", f"B{k:03d}"),
+                    *("--library", str(library), "-o", str(CACHE / f"scan{k:02d}")),
+                ),
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
             )

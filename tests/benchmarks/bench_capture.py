@@ -2,38 +2,17 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-
-from lamina_shared.capture import CaptureWriter, load_capture
+from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.types import ScanPlan
+from tests.helpers.captures import write_uniform_capture
 
 TITLE = "capture validation from PNG headers: a capture of max_views views"
-
-
-def _write(root: Path, plan: ScanPlan, size: tuple[int, int]) -> None:
-    """Write a capture of ``plan`` whose frames are distinct files of one small PNG."""
-    writer = CaptureWriter(root, size)
-    image = np.zeros((size[1], size[0]), np.uint8)
-    image[size[1] // 2, :] = 200
-    png = cv2.imencode(".png", image)[1].tobytes()
-    (root / "scan").mkdir()
-    views = []
-    for k, view in enumerate(plan.views):
-        on, off = f"scan/{k:05d}_on.png", f"scan/{k:05d}_off.png"
-        (root / on).write_bytes(png)
-        (root / off).write_bytes(png)
-        views.append({**view.to_dict(), "laser_on": on, "laser_off": off})
-    data = writer.manifest()
-    data["scan"] = {"views": views}
-    (root / "capture.json").write_text(json.dumps(data))
 
 
 def run() -> dict[str, Any]:
@@ -42,7 +21,7 @@ def run() -> dict[str, Any]:
     plan = ScanPlan.regular(limits.max_sections, 0.2, limits.max_views // limits.max_sections)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "capture"
-        _write(root, plan, (640, 480))
+        write_uniform_capture(root, plan, (640, 480))
         times = []
         for _ in range(3):
             start = time.perf_counter()

@@ -18,6 +18,7 @@ from lamina_host.efd import (
     efd_fit,
     harmonics_thesis,
 )
+from tests.helpers.shapes import regular_polygon
 
 TITLE = "elliptic Fourier descriptors: thesis figs. 6.8 and 6.11, harmonic rules, z interpolation"
 R_MM = 9.525
@@ -29,15 +30,6 @@ TRIALS = 20
 def _circle(n: int, r: float = R_MM) -> np.ndarray:
     t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     return r * np.stack([np.cos(t), np.sin(t)], axis=1)
-
-
-def regular_polygon(sides: int, area_mm2: float, pts_per_side: int = 40) -> np.ndarray:
-    """A regular polygon of the given area, sampled densely along its edges."""
-    circumradius = np.sqrt(2 * area_mm2 / (sides * np.sin(2 * np.pi / sides)))
-    ang = 2 * np.pi * np.arange(sides) / sides + np.pi / sides
-    v = circumradius * np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    s = np.linspace(0.0, 1.0, pts_per_side, endpoint=False)[:, None]
-    return np.concatenate([v[k] + (v[(k + 1) % sides] - v[k]) * s for k in range(sides)])
 
 
 def _shapes() -> dict[str, np.ndarray]:

@@ -20,7 +20,7 @@ import numpy as np
 from lamina_device.sim import Rig, SimScene
 from lamina_host.measure import RadiusModel, centroid, radial_error_table
 from lamina_host.pipeline import ProcessOptions, reconstruct
-from lamina_shared.types import Segment
+from tests.helpers.shapes import circle, view_segment
 
 TITLE = "host processing of a 100-section x 16-view scan (synthetic segments), <= 2 s target"
 SECTIONS, VIEWS, PITCH_MM = 100, 16, 2.0
@@ -56,51 +56,22 @@ def radius_about_centroid(scale_mm: float) -> RadiusModel:
     return model
 
 
-def _segment(
-    rig: Rig, target: str, section: int, view: int, z: float, angle: float, outline: np.ndarray,
-    rng: np.random.Generator,
-) -> Segment | None:  # fmt: skip
-    """Return what the camera sees of ``outline`` (object frame, CCW) at one view."""
-    tangent = np.roll(outline, -1, axis=0) - np.roll(outline, 1, axis=0)
-    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-    world = rig.object_to_world(outline, angle, 0.0)
-    th = np.deg2rad(angle)
-    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-    n_world = normal @ rot.T
-    to_cam = rig.camera_centre_mm[:2] - world[:, :2]
-    to_laser = rig.laser_source_mm[:2] - world[:, :2]
-    keep = (np.sum(n_world * to_cam, 1) > 0) & (np.sum(n_world * to_laser, 1) > 0)
-    if keep.sum() < 20:
-        return None
-    start = int(np.flatnonzero(keep & ~np.roll(keep, 1))[0])  # the run is contiguous (convex)
-    idx = np.roll(np.arange(len(outline)), -start)[: int(keep.sum())]
-    uv = rig.project(world[idx])
-    order = np.argsort(uv[:, 0])
-    u, v = uv[order, 0], uv[order, 1]
-    cols = np.arange(int(np.ceil(u[0])), int(np.floor(u[-1])) + 1)
-    cols = cols[(cols >= 0) & (cols < rig.image_size[0])]
-    rows = np.interp(cols, u, v) + rng.normal(0.0, ROW_NOISE_PX, len(cols))
-    ones = np.full(len(cols), 200, np.uint8)
-    return Segment(target, section, view, z, angle, cols.astype(np.uint16),
-                   rows.astype(np.float32), ones, np.full(len(cols), 5, np.uint8))  # fmt: skip
-
-
 def synthetic_scan(rig: Rig, scale_mm: float, seed: int = 0) -> dict[str, Any]:
     """Return the board image, cylinder segments and object segments of one scan."""
     rng = np.random.default_rng(seed)
     phi = np.linspace(0.0, 2.0 * np.pi, 4000, endpoint=False)
     unit = np.stack([np.cos(phi), np.sin(phi)], axis=1)
-    cyl = np.asarray(rig.cylinder_offset_mm) + rig.cylinder_diameter_mm / 2.0 * unit
-    cylinder = [
-        s for v in range(8)
-        if (s := _segment(rig, "cylinder", 0, v, 0.0, 45.0 * v, cyl, rng)) is not None
-    ]  # fmt: skip
+    cyl = circle(rig.cylinder_offset_mm, rig.cylinder_diameter_mm / 2.0)
+    seen = (view_segment(rig, "cylinder", 0, v, 0.0, 45.0 * v, 45.0 * v, cyl, rng, ROW_NOISE_PX)
+            for v in range(8))  # fmt: skip
+    cylinder = [s for s in seen if s is not None]
     segments = []
     for k in range(SECTIONS):
         z = k * PITCH_MM
         outline = radius_mm(phi, z, scale_mm)[:, None] * unit
         for v in range(VIEWS):
-            s = _segment(rig, "object", k, v, z, 360.0 * v / VIEWS, outline, rng)
+            angle = 360.0 * v / VIEWS
+            s = view_segment(rig, "object", k, v, z, angle, angle, outline, rng, ROW_NOISE_PX)
             if s is not None:
                 segments.append(s)
     grid = SimScene(rig).render("grid", 0.0, 0.0, False)

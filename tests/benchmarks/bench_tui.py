@@ -22,28 +22,12 @@ from textual.widgets import Input
 from textual.worker import Worker
 
 from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.widgets import HelpScreen
+from tests.tui.drive import help_key_latencies_s
 
 PAUSE_S = 0.05
 """Time between one key's answer and the next key, about a fast typist's."""
 
 TITLE = "terminal UI key latency during a 4 x 8 scan and its processing (simulated device)"
-
-
-async def _latencies_s(app: LaminaApp) -> list[float]:
-    """Open the help (F1) and close it (Escape); return both keys' latencies."""
-    assert app._driver is not None
-    start = time.perf_counter()
-    app._driver.send_message(events.Key("f1", None))
-    while not isinstance(app.screen, HelpScreen):
-        await asyncio.sleep(0.0005)
-    opened_s = time.perf_counter() - start
-    await asyncio.sleep(PAUSE_S)
-    closing = time.perf_counter()
-    app._driver.send_message(events.Key("escape", None))
-    while isinstance(app.screen, HelpScreen):
-        await asyncio.sleep(0.0005)
-    return [opened_s, time.perf_counter() - closing]
 
 
 def _running(app: LaminaApp, group: str) -> bool:
@@ -77,7 +61,7 @@ async def _measure(library: Path) -> dict[str, list[float]]:
         app._driver.send_message(events.Key("s", "s"))
         await _until(lambda: _running(app, "scan"))
         while _running(app, "scan"):
-            samples["scan"] += await _latencies_s(app)
+            samples["scan"] += list(await help_key_latencies_s(app, 0.0005, PAUSE_S))
             await asyncio.sleep(0.02)
         await _until(lambda: app.session.data.complete)
         await pilot.press("f6")
@@ -85,7 +69,7 @@ async def _measure(library: Path) -> dict[str, list[float]]:
         app._driver.send_message(events.Key("p", "p"))
         await _until(lambda: _running(app, "process") or app.session.results is not None)
         while _running(app, "process"):
-            samples["processing"] += await _latencies_s(app)
+            samples["processing"] += list(await help_key_latencies_s(app, 0.0005, PAUSE_S))
             await asyncio.sleep(0.01)
         await _until(lambda: app.session.results is not None)
     return samples

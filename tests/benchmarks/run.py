@@ -24,7 +24,9 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("out/bench.json"))
     parser.add_argument("--only", action="append", help="run only this bench (e.g. extraction)")
     args = parser.parse_args()
-    sys.path.insert(0, str(HERE))
+    # Benches import their siblings (harsh_frames, timing) and the shared test builders
+    # (tests.helpers) by name.
+    sys.path[:0] = [str(HERE), str(HERE.parents[1])]
     names = sorted(p.stem.removeprefix("bench_") for p in HERE.glob("bench_*.py"))
     if args.only:
         unknown = set(args.only) - set(names)

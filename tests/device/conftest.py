@@ -28,6 +28,7 @@ from lamina_device.config import DeviceConfig, LiftConfig, load_config
 
 BACKGROUND = 30
 STRIPE = 200
+CHROMA_UV = (90, 160)  # the fake sensor's U and V everywhere: a reddish, slightly green-poor hue
 
 
 def small_config() -> DeviceConfig:
@@ -336,6 +337,11 @@ class FakePicamera2:
         stride = (width + 63) // 64 * 64 + 64  # padded rows, as real buffers have
         buffer = np.full((height * 3 // 2, stride), 77, np.uint8)
         buffer[:height, :width] = BACKGROUND
+        for k, level in enumerate(CHROMA_UV):
+            plane = buffer[height + k * height // 4 : height + (k + 1) * height // 4]
+            chroma = plane.reshape(height // 2, stride // 2)  # a view: writes reach the buffer
+            chroma[:, : width // 2] = level
+            chroma[:, width // 2 :] = 0  # padding: never part of the image
         line_ns = self.frame_us * 1000 / height
         rows = np.arange(height)
         end = frame.end_first_row_ns + (rows * line_ns).astype(np.int64)
@@ -381,4 +387,5 @@ def pi_kit() -> types.SimpleNamespace:
         LiftCarriage=LiftCarriage,
         BACKGROUND=BACKGROUND,
         STRIPE=STRIPE,
+        CHROMA_UV=CHROMA_UV,
     )

@@ -128,3 +128,20 @@ def test_missing_picamera2_names_how_to_install_it(monkeypatch, pi_kit):
         open_hardware("pi", pin_factory=factory)
     # Nothing stays claimed and the laser pin was left low (off).
     assert factory.pin(17).state is False
+
+
+def test_colour_frames_come_from_the_same_yuv420_buffer(pi_camera, pi_kit):
+    camera, _, fake = pi_camera
+    assert camera.has_colour
+    luma, rgb = camera.capture_colour()
+    assert luma.shape == (240, 320) and rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
+    assert np.all(luma == pi_kit.BACKGROUND)  # the Y plane capture() returns
+    # BT.601 (video range, as OpenCV converts I420) of Y = 30, U = 90, V = 160.
+    y, u, v = pi_kit.BACKGROUND - 16.0, pi_kit.CHROMA_UV[0] - 128.0, pi_kit.CHROMA_UV[1] - 128.0
+    expected = np.array(
+        [1.164 * y + 1.596 * v, 1.164 * y - 0.391 * u - 0.813 * v, 1.164 * y + 2.018 * u]
+    )
+    expected = np.clip(expected, 0, 255)
+    # Every pixel alike: the row padding (zeros) never leaks into the chroma.
+    assert np.all(np.abs(rgb.reshape(-1, 3) - expected) <= 2.0)
+    assert all(f.released for f in fake.frames)

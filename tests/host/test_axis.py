@@ -122,6 +122,22 @@ def test_find_axis_needs_three_arcs() -> None:
         find_axis(arcs, -1.0)
 
 
+def turned_centres(
+    axis: tuple[float, float], offset: tuple[float, float], angles_deg: list[float], scale: float
+) -> list[tuple[float, float]]:
+    """Return where a cylinder at object-frame ``offset`` stands at each commanded angle.
+
+    The turntable really turns ``scale`` x the commanded angle (undershoot when < 1).
+    """
+    centres = []
+    for angle in angles_deg:
+        th = np.deg2rad(scale * angle)
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        x, y = np.asarray(axis) + rot @ np.asarray(offset)
+        centres.append((float(x), float(y)))
+    return centres
+
+
 def world_arcs(
     axis: tuple[float, float],
     offset: tuple[float, float],
@@ -130,17 +146,9 @@ def world_arcs(
     scale: float,
     rng: np.random.Generator,
 ) -> list[np.ndarray]:
-    """Camera-facing arcs of a cylinder at object-frame ``offset``, turned to each angle.
-
-    The turntable really turns ``scale`` x the commanded angle (undershoot when < 1).
-    """
-    arcs = []
-    for angle in angles_deg:
-        th = np.deg2rad(scale * angle)
-        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        centre = np.asarray(axis) + rot @ np.asarray(offset)
-        arcs.append(trim(arc(tuple(centre), r, -170.0, 160.0, 300, 0.02, rng)))
-    return arcs
+    """Camera-facing arcs of a cylinder at object-frame ``offset``, turned to each angle."""
+    centres = turned_centres(axis, offset, angles_deg, scale)
+    return [trim(arc(c, r, -170.0, 160.0, 300, 0.02, rng)) for c in centres]
 
 
 def test_joint_fit_beats_centroid_on_uneven_views() -> None:
@@ -179,24 +187,6 @@ def test_joint_fit_recovers_turntable_undershoot() -> None:
         find_axis_joint(arcs, angles[:-1], 2 * R_CYL)
 
 
-def front_arcs(
-    axis: tuple[float, float],
-    offset: tuple[float, float],
-    r: float,
-    angles_deg: list[float],
-    sigma: float,
-    rng: np.random.Generator,
-) -> list[np.ndarray]:
-    """Arcs of +-50 degrees on the side facing the camera (-y), as the rig sees them."""
-    arcs = []
-    for angle in angles_deg:
-        th = np.deg2rad(angle)
-        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        centre = np.asarray(axis) + rot @ np.asarray(offset)
-        arcs.append(arc(tuple(centre), r, -140.0, 100.0, 250, sigma, rng))
-    return arcs
-
-
 def test_known_radius_keeps_stripe_noise_out_of_the_axis() -> None:
     """Front-only arcs: a free radius drags the axis along y; the known radius does not.
 
@@ -208,7 +198,10 @@ def test_known_radius_keeps_stripe_noise_out_of_the_axis() -> None:
     angles = [45.0 * k for k in range(8)]
     free_err, held_err, radius_err = [], [], []
     for seed in range(12):
-        arcs = front_arcs(axis, offset, r, angles, 0.18, np.random.default_rng(100 + seed))
+        rng = np.random.default_rng(100 + seed)
+        # Arcs of +-50 degrees on the side facing the camera (-y), as the rig sees them.
+        centres = turned_centres(axis, offset, angles, 1.0)
+        arcs = [arc(c, r, -140.0, 100.0, 250, 0.18, rng) for c in centres]
         free = find_axis_joint(arcs, angles, 2 * r, fit_angle_scale=True)
         held = find_axis_joint(arcs, angles, 2 * r, fit_angle_scale=True, fit_radius=False)
         free_err.append(free.axis_xy_mm[1] - axis[1])

@@ -18,6 +18,7 @@ from lamina_host.efd import (
     shift_start,
 )
 from lamina_host.measure import signed_area
+from tests.helpers.shapes import regular_polygon
 
 R = 9.525
 
@@ -34,15 +35,6 @@ def nearest_mm(points: np.ndarray, dense: np.ndarray) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     return cKDTree(dense).query(points)[0]
-
-
-def regular_polygon(sides: int, area_mm2: float, pts_per_side: int = 40) -> np.ndarray:
-    """A regular polygon of the given area, sampled densely along its edges."""
-    circumradius = np.sqrt(2 * area_mm2 / (sides * np.sin(2 * np.pi / sides)))
-    ang = 2 * np.pi * np.arange(sides) / sides + np.pi / sides
-    v = circumradius * np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    s = np.linspace(0.0, 1.0, pts_per_side, endpoint=False)[:, None]
-    return np.concatenate([v[k] + (v[(k + 1) % sides] - v[k]) * s for k in range(sides)])
 
 
 @pytest.mark.parametrize("order", [1, 5, 12])

@@ -17,19 +17,14 @@ from lamina_host.mesh import (
     topology,
     tube_mesh,
 )
+from tests.helpers.shapes import circle
 
 R = 9.525
 
 
-def ring(n: int = 120) -> np.ndarray:
-    """Counter-clockwise circle of radius R."""
-    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    return R * np.stack([np.cos(t), np.sin(t)], axis=1)
-
-
 def test_contour_normals_point_outward_either_orientation() -> None:
     """Normals of a circle are radial whichever way it runs."""
-    c = ring()
+    c = circle((0.0, 0.0), R, 120)
     radial = c / np.linalg.norm(c, axis=1, keepdims=True)
     assert np.allclose(contour_normals(c), radial, atol=1e-12)
     assert np.allclose(contour_normals(c[::-1]), radial[::-1], atol=1e-12)
@@ -37,7 +32,7 @@ def test_contour_normals_point_outward_either_orientation() -> None:
 
 def stacked_cylinder() -> tuple[np.ndarray, np.ndarray]:
     """Four rings 2 mm apart (thesis Prototype II test cylinder) with xy normals."""
-    c = ring()
+    c = circle((0.0, 0.0), R, 120)
     pts = np.concatenate([np.column_stack([c, np.full(len(c), 2.0 * k)]) for k in range(4)])
     nrm = np.concatenate([contour_normals(c)] * 4)
     return pts, nrm
@@ -78,7 +73,7 @@ def test_save_ply_round_trip(tmp_path: Path) -> None:
 
 def test_tube_mesh_is_closed_manifold_and_outward() -> None:
     """Rings joined and capped: watertight, 2-manifold, genus 0, the cylinder's volume."""
-    rings = np.stack([ring(200)] * 4)
+    rings = np.stack([circle((0.0, 0.0), R, 200)] * 4)
     verts, faces = tube_mesh(rings, np.array([0.0, 2.0, 4.0, 6.0]))
     topo = topology(verts, faces)
     print(f"tube mesh: {topo}")

@@ -7,7 +7,6 @@ simulator's known shapes; the thesis' methods are re-run on the same segments.
 from __future__ import annotations
 
 import json
-import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +20,7 @@ from lamina_host.expect import parse_expectation
 from lamina_host.measure import radial_error_table
 from lamina_host.pipeline import ProcessOptions, reconstruct
 from lamina_host.report import load_segments
+from tests.helpers.shapes import posts_stl
 
 RIG_BOARD = Rig().board
 
@@ -86,27 +86,10 @@ def test_report_gives_coverage_closure_and_rejections(cylinder_scan: Path) -> No
     assert f"element vertex {report['point_counts']['outline_points']}" in header
 
 
-def two_cylinders_stl(path: Path) -> None:
-    """Write a binary STL of two separate 10 mm cylinders 14 mm apart (two legs)."""
-    t = np.linspace(0.0, 2.0 * np.pi, 96, endpoint=False)
-    tris = []
-    for cx in (-7.0, 7.0):
-        ring = np.stack([cx + 5.0 * np.cos(t), 5.0 * np.sin(t)], axis=1)
-        for k in range(len(t)):
-            a, b = ring[k], ring[(k + 1) % len(t)]
-            a0, b0, a1, b1 = [*a, -5.0], [*b, -5.0], [*a, 15.0], [*b, 15.0]
-            tris += [[a0, b0, b1], [a0, b1, a1], [[cx, 0, -5.0], b0, a0], [[cx, 0, 15.0], a1, b1]]
-    data = np.asarray(tris, dtype=float)
-    with open(path, "wb") as fh:
-        fh.write(b"\0" * 80 + struct.pack("<I", len(data)))
-        for tri in data:
-            fh.write(struct.pack("<12fH", 0.0, 0.0, 0.0, *tri.ravel(), 0))
-
-
 def test_two_separate_outlines_are_fitted_and_meshed_apart(tmp_path: Path) -> None:
     """Two legs: two outlines per section, each a 5 mm circle; two closed mesh components."""
     stl = tmp_path / "legs.stl"
-    two_cylinders_stl(stl)
+    posts_stl(stl, [(-7.0, 0.0, 5.0), (7.0, 0.0, 5.0)])  # two legs, 14 mm apart
     report = scan(tmp_path, "legs", "--object", f"mesh:path={stl}", "--sections", "3",
                   "--views", "8")  # fmt: skip
     parts = [(s["section"], s["part"]) for s in report["sections"]]

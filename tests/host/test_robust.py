@@ -10,7 +10,6 @@ finder makes them: one row per column, the wrong run picked.
 
 from __future__ import annotations
 
-import struct
 import subprocess
 import sys
 from dataclasses import replace
@@ -35,49 +34,7 @@ from lamina_host.pipeline import (
 )
 from lamina_host.report import load_segments, measured_cloud
 from lamina_shared.types import Segment
-
-Outline = np.ndarray
-"""(M, 2) counter-clockwise object-frame points of one convex outline, in mm."""
-
-
-def circle(centre: tuple[float, float], radius_mm: float, n: int = 4000) -> Outline:
-    """Return a dense counter-clockwise circle."""
-    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    return np.asarray(centre) + radius_mm * np.stack([np.cos(t), np.sin(t)], axis=1)
-
-
-def ellipse(centre: tuple[float, float], a_mm: float, b_mm: float, n: int = 4000) -> Outline:
-    """Return a dense counter-clockwise ellipse with semi-axes a (x) and b (y)."""
-    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    return np.asarray(centre) + np.stack([a_mm * np.cos(t), b_mm * np.sin(t)], axis=1)
-
-
-def view_segment(
-    rig: Rig, target: str, section: int, view: int, z_mm: float, commanded_deg: float,
-    true_deg: float, outline: Outline, rng: np.random.Generator, noise_px: float,
-) -> Segment | None:  # fmt: skip
-    """Return what the camera sees of a convex outline turned to ``true_deg``."""
-    tangent = np.roll(outline, -1, axis=0) - np.roll(outline, 1, axis=0)
-    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-    world = rig.object_to_world(outline, true_deg, 0.0)
-    th = np.deg2rad(true_deg)
-    n_world = normal @ np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]).T
-    to_cam = rig.camera_centre_mm[:2] - world[:, :2]
-    to_laser = rig.laser_source_mm[:2] - world[:, :2]
-    keep = (np.sum(n_world * to_cam, 1) > 0) & (np.sum(n_world * to_laser, 1) > 0)
-    if keep.sum() < 20:
-        return None
-    start = int(np.flatnonzero(keep & ~np.roll(keep, 1))[0])  # one run: the outline is convex
-    idx = np.roll(np.arange(len(outline)), -start)[: int(keep.sum())]
-    uv = rig.project(world[idx])
-    order = np.argsort(uv[:, 0])
-    u, v = uv[order, 0], uv[order, 1]
-    cols = np.arange(int(np.ceil(u[0])), int(np.floor(u[-1])) + 1)
-    cols = cols[(cols >= 0) & (cols < rig.image_size[0])]
-    rows = np.interp(cols, u, v) + rng.normal(0.0, noise_px, len(cols))
-    return Segment(target, section, view, z_mm, commanded_deg, cols.astype(np.uint16),
-                   rows.astype(np.float32), np.full(len(cols), 200, np.uint8),
-                   np.full(len(cols), 5, np.uint8))  # fmt: skip
+from tests.helpers.shapes import Outline, circle, ellipse, posts_stl, view_segment
 
 
 def synthetic_scan(
@@ -418,28 +375,10 @@ POSTS = ((-6.0, 0.0, 5.0), (5.0, 0.0, 2.0))
 """(x, y, radius) in mm of a thick and a thin post (a finger beside a thumb)."""
 
 
-def posts_stl(path: Path) -> None:
-    """Write a binary STL of the two vertical posts, z -5..15 mm, 96-gons."""
-    t = np.linspace(0.0, 2.0 * np.pi, 96, endpoint=False)
-    tris = []
-    for cx, cy, r in POSTS:
-        ring = np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1)
-        for k in range(len(t)):
-            a, b = ring[k], ring[(k + 1) % len(t)]
-            a0, b0, a1, b1 = [*a, -5.0], [*b, -5.0], [*a, 15.0], [*b, 15.0]
-            tris += [[a0, b0, b1], [a0, b1, a1], [[cx, cy, -5.0], b0, a0],
-                     [[cx, cy, 15.0], a1, b1]]  # fmt: skip
-    data = np.asarray(tris, dtype=float)
-    with open(path, "wb") as fh:
-        fh.write(b"\0" * 80 + struct.pack("<I", len(data)))
-        for tri in data:
-            fh.write(struct.pack("<12fH", 0.0, 0.0, 0.0, *tri.ravel(), 0))
-
-
 def test_two_posts_with_phantoms_give_exactly_two_contours(tmp_path: Path) -> None:
     """Rendered scan of a thick and a thin post plus phantoms: two outlines, right size."""
     stl = tmp_path / "posts.stl"
-    posts_stl(stl)
+    posts_stl(stl, POSTS)
     out = tmp_path / "posts"
     done = subprocess.run(
         [sys.executable, "-m", "lamina_host", "scan", "--library", str(tmp_path / "lib.db"),

@@ -8,6 +8,7 @@ import pytest
 
 from lamina_shared.capture import CaptureError, CaptureWriter, load_capture, read_frame
 from lamina_shared.types import BoardSpec, ScanPlan
+from tests.helpers.captures import assert_reports
 
 BOARD = BoardSpec((9, 7), 3.0, (-12.0, -9.0))
 
@@ -68,13 +69,15 @@ def test_every_problem_is_reported_at_once(capture_dir):
     with pytest.raises(CaptureError) as info:
         load_capture(capture_dir)
     problems = info.value.problems
-    text = "\n".join(problems)
-    assert "scan.views[0].laser_on: file scan/missing.png is missing" in text
-    assert "scan.views[1].angle_deg" in text
-    assert "scan.views[4]: duplicate (section 0, angle 240.0 deg)" in text
-    assert "calibration_grid.pattern: unknown pattern 'circles'" in text
-    assert "scan.views[3].laser_off: '../outside.png' must stay inside" in text
-    assert "scan.views[5].laser_on: scan/s001_v02_on.png is unreadable" in text
+    assert_reports(
+        problems,
+        "scan.views[0].laser_on: file scan/missing.png is missing",
+        "scan.views[1].angle_deg",
+        "scan.views[4]: duplicate (section 0, angle 240.0 deg)",
+        "calibration_grid.pattern: unknown pattern 'circles'",
+        "scan.views[3].laser_off: '../outside.png' must stay inside",
+        "scan.views[5].laser_on: scan/s001_v02_on.png is unreadable",
+    )
     assert len(problems) == 6, problems
 
 

@@ -23,6 +23,7 @@ from lamina_shared import capture as capture_module
 from lamina_shared.capture import CaptureError, CaptureWriter, load_capture, read_frame
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.types import ScanPlan
+from tests.helpers.captures import assert_reports, write_uniform_capture
 
 
 def png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -189,15 +190,18 @@ def test_every_bad_view_is_found_at_once(capture_dir):
 
     edit(capture_dir, break_it)
     problems = problems_of(capture_dir)
-    text = "\n".join(problems)
-    assert "scan.views[0].z_mm: -2.0 is outside 0..10000" in text
-    assert "scan.views[1].z_mm: 1e+300 is outside 0..10000" in text
-    assert "scan.views[2].section" in text and "outside 0..999" in text
-    assert "scan.views[4].z_mm: a finite number is required" in text
-    assert "scan.views[5].section: 5000 is outside 0..999" in text
-    assert "scan.views[4].z_mm: a finite number is required, found a huge integer" in text
-    # Section 5000 also sits at section 1's height: a second problem of the same view.
-    assert "scan.views[5]: section 5000 is at z_mm 2.0, the height of section 1" in text
+    assert_reports(
+        problems,
+        "scan.views[0].z_mm: -2.0 is outside 0..10000",
+        "scan.views[1].z_mm: 1e+300 is outside 0..10000",
+        "scan.views[2].section",
+        "outside 0..999",
+        "scan.views[4].z_mm: a finite number is required",
+        "scan.views[5].section: 5000 is outside 0..999",
+        "scan.views[4].z_mm: a finite number is required, found a huge integer",
+        # Section 5000 also sits at section 1's height: a second problem of the same view.
+        "scan.views[5]: section 5000 is at z_mm 2.0, the height of section 1",
+    )
     # views[3] at 360 deg stands for 0 deg, which section 1 no longer holds otherwise:
     # no duplicate, so only the six problems above are reported.
     assert len(problems) == 6, problems
@@ -318,19 +322,8 @@ def test_links_inside_the_capture_are_fine(capture_dir):
 def test_a_10000_view_capture_is_validated_from_headers(tmp_path, capsys):
     """Validity of a maximal capture; the time is reported here and by bench_capture."""
     root = tmp_path / "max"
-    writer = CaptureWriter(root, (64, 48))
-    png = cv2.imencode(".png", frame())[1].tobytes()
-    (root / "scan").mkdir()
     plan = ScanPlan.regular(1000, 0.2, 10)
-    views = []
-    for k, view in enumerate(plan.views):
-        on, off = f"scan/{k:05d}_on.png", f"scan/{k:05d}_off.png"
-        (root / on).write_bytes(png)
-        (root / off).write_bytes(png)
-        views.append({**view.to_dict(), "laser_on": on, "laser_off": off})
-    data = writer.manifest()
-    data["scan"] = {"views": views}
-    (root / "capture.json").write_text(json.dumps(data))
+    write_uniform_capture(root, plan, (64, 48))
     start = time.perf_counter()
     loaded = load_capture(root)
     elapsed_s = time.perf_counter() - start

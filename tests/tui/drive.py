@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 
+from textual import events
 from textual.pilot import Pilot
-from textual.widgets import Input
+from textual.widgets import DataTable, Input
 
 from lamina_host.tui.app import LaminaApp
+from lamina_host.tui.widgets import HelpScreen
 
 TIMEOUT_S = 60.0
 
@@ -45,6 +48,15 @@ async def calibrate(pilot: Pilot) -> None:
     await wait_for(pilot, lambda: app.session.axis is not None, "the cylinder axis")
 
 
+async def connect_and_calibrate(pilot: Pilot) -> LaminaApp:
+    """Connect to the simulated device and calibrate; return the app."""
+    app = pilot.app
+    assert isinstance(app, LaminaApp)
+    await connect(pilot)
+    await calibrate(pilot)
+    return app
+
+
 async def fill_scan_form(pilot: Pilot, subject: str, sections: str, pitch: str, views: str) -> None:
     """Type the subject and the plan on the Scan screen, leaving the fields."""
     await pilot.press("f5")
@@ -59,3 +71,44 @@ async def fill_scan_form(pilot: Pilot, subject: str, sections: str, pitch: str, 
         widget.focus()
         await pilot.press(*value)
     await pilot.press("escape")
+
+
+async def open_library(pilot: Pilot, rows: int = 1) -> DataTable:
+    """Go to the Library screen and wait until its table lists ``rows`` scans."""
+    await pilot.press("f7")
+    table = pilot.app.screen.query_one("#scans", DataTable)
+    await wait_for(pilot, lambda: table.row_count == rows, "the scan list")
+    return table
+
+
+async def open_first_scan(pilot: Pilot) -> None:
+    """Open the library's only scan and wait until it is processed."""
+    app = pilot.app
+    assert isinstance(app, LaminaApp)
+    await open_library(pilot)
+    await pilot.press("o")
+    await wait_for(pilot, lambda: app.session.results is not None, "processing")
+    await pilot.pause(0.2)
+
+
+async def help_key_latencies_s(
+    app: LaminaApp, poll_s: float = 0.001, pause_s: float = 0.0
+) -> tuple[float, float]:
+    """Send F1, then Escape ``pause_s`` after the help is up, as the terminal driver would.
+
+    Return the seconds until the help screen is up and until it is gone again. Pilot's
+    own ``press`` waits for the whole process to go idle, which a scan in a worker thread
+    never is, so the keys go straight into the driver's queue instead.
+    """
+    assert app._driver is not None
+    start = time.perf_counter()
+    app._driver.send_message(events.Key("f1", None))
+    while not isinstance(app.screen, HelpScreen):
+        await asyncio.sleep(poll_s)
+    opened_s = time.perf_counter() - start
+    await asyncio.sleep(pause_s)
+    closing = time.perf_counter()
+    app._driver.send_message(events.Key("escape", None))
+    while isinstance(app.screen, HelpScreen):
+        await asyncio.sleep(poll_s)
+    return opened_s, time.perf_counter() - closing

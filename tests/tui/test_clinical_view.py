@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from drive import wait_for
+from drive import open_first_scan, wait_for
 from textual.widgets import DataTable, Input, Static
 from textual_plotext import PlotextPlot
 
@@ -24,12 +24,7 @@ async def test_measure_key_shows_circumferences_of_the_processed_scan(
     """Open the library's scan, press m: levels at the cylinder's true circumference."""
     app = LaminaApp("sim", scanned_library)
     async with app.run_test(size=(100, 30)) as pilot:
-        await pilot.press("f7")
-        table = app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
-        await pilot.press("o")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
-        await pilot.pause(0.2)
+        await open_first_scan(pilot)
         await pilot.press("m")
         await wait_for(pilot, lambda: isinstance(app.screen, ClinicalView), "the clinical view")
         view = app.screen

@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from drive import calibrate, connect, fill_scan_form, wait_for
+from drive import calibrate, connect, fill_scan_form, open_library, wait_for
 from textual.widgets import DataTable, Input, Static
 
 from lamina_host.pipeline import assemble
@@ -85,9 +85,7 @@ async def test_library_screen_shows_the_stored_scan(scanned_library: Path) -> No
     """The Library row shows the library's own summary of the processed scan."""
     app = LaminaApp("sim", scanned_library)
     async with app.run_test(size=(80, 24)) as pilot:
-        await pilot.press("f7")
-        table = app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        table = await open_library(pilot)
         (summary,) = app.session.scans()
         row = [str(c) for c in table.get_row_at(0)]
         assert row[0] == str(summary.id) and row[1] == summary.subject == "CYL-1"

@@ -11,12 +11,12 @@ result objects in test_screen_numbers.py. Update the snapshots with
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
-from drive import calibrate, connect, fill_scan_form, wait_for
+from drive import connect_and_calibrate, fill_scan_form, open_first_scan, open_library, wait_for
 from textual.pilot import Pilot
-from textual.widgets import DataTable
 
 from lamina_host.tui.app import LaminaApp
 from lamina_host.tui.screens.scan import ScanScreen
@@ -55,9 +55,8 @@ def test_calibrate_screen(layout_compare, tmp_path: Path) -> None:
     """Calibrate after the chessboard and the cylinder, on the simulated device."""
 
     async def run_before(pilot: Pilot) -> None:
-        await connect(pilot)
-        await calibrate(pilot)
-        pilot.app.clear_notifications()
+        app = await connect_and_calibrate(pilot)
+        app.clear_notifications()
 
     app = LaminaApp("sim", tmp_path / "l.sqlite")
     assert layout_compare(app, run_before, SIZE)
@@ -67,10 +66,7 @@ def test_live_screen(layout_compare, tmp_path: Path) -> None:
     """Live: a preview frame with the last cylinder view's stripe over it."""
 
     async def run_before(pilot: Pilot) -> None:
-        app = pilot.app
-        assert isinstance(app, LaminaApp)
-        await connect(pilot)
-        await calibrate(pilot)
+        app = await connect_and_calibrate(pilot)
         await pilot.press("f3", "g")
         await wait_for(pilot, lambda: "frame 640 x 480" in app.status[0], "the frame")
 
@@ -82,10 +78,7 @@ def test_scan_screen_after_scan(layout_compare, tmp_path: Path) -> None:
     """Scan, complete: progress at the end and the last section's points."""
 
     async def run_before(pilot: Pilot) -> None:
-        app = pilot.app
-        assert isinstance(app, LaminaApp)
-        await connect(pilot)
-        await calibrate(pilot)
+        app = await connect_and_calibrate(pilot)
         await fill_scan_form(pilot, "P001", "2", "2", "8")
         await pilot.press("s")
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
@@ -97,43 +90,25 @@ def test_scan_screen_after_scan(layout_compare, tmp_path: Path) -> None:
     assert layout_compare(app, run_before, SIZE)
 
 
-def test_library_screen(layout_compare, scanned_library: Path) -> None:
-    """Library, with one processed scan."""
-
-    async def run_before(pilot: Pilot) -> None:
-        await pilot.press("f7")
-        table = pilot.app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
-
-    app = LaminaApp("sim", scanned_library)
-    assert layout_compare(app, run_before, SIZE)
+async def asking_to_delete(pilot: Pilot) -> None:
+    """Show the library and ask to delete its scan (the snapshot answers no: nothing is lost)."""
+    await open_library(pilot)
+    await pilot.press("d")
 
 
-def test_library_delete_asks_first(layout_compare, scanned_library: Path) -> None:
-    """Library, asking before deleting (answered no by the snapshot, so nothing is lost)."""
-
-    async def run_before(pilot: Pilot) -> None:
-        await pilot.press("f7")
-        table = pilot.app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
-        await pilot.press("d")
-
-    app = LaminaApp("sim", scanned_library)
-    assert layout_compare(app, run_before, SIZE)
+@pytest.mark.parametrize("shown", [open_library, asking_to_delete], ids=["list", "delete"])
+def test_library_screen(
+    layout_compare, scanned_library: Path, shown: Callable[[Pilot], Awaitable[object]]
+) -> None:
+    """Library, with one processed scan; then asking before deleting it."""
+    assert layout_compare(LaminaApp("sim", scanned_library), shown, SIZE)
 
 
 def test_results_screen(layout_compare, scanned_library: Path) -> None:
     """Results of the library's scan, opened and processed again with 5 harmonics."""
 
     async def run_before(pilot: Pilot) -> None:
-        app = pilot.app
-        assert isinstance(app, LaminaApp)
-        await pilot.press("f7")
-        table = app.screen.query_one("#scans", DataTable)
-        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
-        await pilot.press("o")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
-        await pilot.pause(0.2)
+        await open_first_scan(pilot)
 
     app = LaminaApp("sim", scanned_library)
     assert layout_compare(app, run_before, SIZE)

@@ -14,10 +14,11 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from lamina_device.motion import ContinuousTurntable, MotionError
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_shared.presets import make_preset
 
 __all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimLift", "SimTurntable"]
 
@@ -36,14 +37,19 @@ class Mechanics:
     """Error model of the simulated axes; :meth:`ideal` has none."""
 
     angle_scale_error: float = -0.2 / 45.0
+    """Relative turntable undershoot: 0.2 degrees short per 45 degrees (thesis 8.3)."""
     angle_runout_deg: float = 0.02
+    """Amplitude of the once-per-turn angle error, ``runout * sin(commanded)``."""
     angle_jitter_deg: float = 0.01
+    """Largest repeatable angle noise of one commanded position."""
     lift_scale_error: float = 0.002
+    """Relative lift travel error (0.2 % too far)."""
     lift_jitter_mm: float = 0.005
-    # A gear mounted off-centre: the angle error goes round once per turn with its own
-    # amplitude and phase, ``eccentric * sin(commanded + phase)``.
+    """Largest repeatable height noise of one commanded height."""
     angle_eccentric_deg: float = 0.0
+    """Amplitude of an off-centre gear's error, ``eccentric * sin(commanded + phase)``."""
     angle_eccentric_phase_deg: float = 0.0
+    """Phase of the off-centre gear's error."""
 
     @classmethod
     def ideal(cls) -> Mechanics:
@@ -64,13 +70,12 @@ class Mechanics:
     @classmethod
     def preset(cls, noise: str) -> Mechanics:
         """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
-        if noise == "thesis":
-            return cls()
-        if noise == "harsh":
-            return cls.harsh()
-        if noise == "none":
-            return cls.ideal()
-        raise ValueError(f"unknown noise {noise!r}; use one of {', '.join(NOISE_PRESETS)}")
+        makers: dict[str, Callable[[], Mechanics]] = {
+            "thesis": cls,
+            "harsh": cls.harsh,
+            "none": cls.ideal,
+        }
+        return make_preset("noise", noise, makers)
 
     def true_angle_deg(self, commanded_deg: float) -> float:
         """Return where the turntable really is when told ``commanded_deg``."""

@@ -7,11 +7,12 @@ the host meet the same errors as on a real scanner.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from lamina_device.camera import Stage, check_exposure
+from lamina_device.camera import CameraError, Stage, check_exposure
 from lamina_device.laser import Laser
 from lamina_device.sim.axes import SimLift, SimTurntable
 from lamina_device.sim.render import SimScene
@@ -50,7 +51,30 @@ class SimCamera:
     def capture(self) -> np.ndarray:
         """Render one frame of the current scene."""
         self.frames_taken += 1
-        return self.scene.render(
+        return self._render(self.scene.render)
+
+    @property
+    def has_colour(self) -> bool:
+        """Return True for colour noise models (``harsh``): the thesis camera is monochrome."""
+        return self.scene.noise.laser_rgb is not None
+
+    def capture_colour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Render one frame and the RGB it was formed from (the Pi's Y plane and its colour).
+
+        Both come from one exposure: the scene draws a frame's noise from the frame's own
+        key, so the luma and the RGB carry the same noise.
+        """
+        if not self.has_colour:
+            raise CameraError(
+                "the simulated camera is monochrome under this noise model: use --noise harsh "
+                "for colour"
+            )
+        self.frames_taken += 1
+        return self._render(self.scene.render), self._render(self.scene.render_rgb)
+
+    def _render(self, render: Callable[..., np.ndarray]) -> np.ndarray:
+        """Return ``render`` of the scene at the true axis positions and laser state."""
+        return render(
             self.stage.target,
             self.turntable.true_angle_deg,
             self.lift.true_z_mm,

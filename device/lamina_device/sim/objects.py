@@ -64,6 +64,23 @@ def _yaw_matrix(yaw_deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where a mesh object stands: scaled about its origin, yawed, then shifted."""
+
+    scale: float = 1.0
+    yaw_deg: float = 0.0
+    shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def apply(self, tris: np.ndarray) -> np.ndarray:
+        """Return triangles (F, 3, 3) given in the object's own frame, placed."""
+        return (tris * self.scale) @ _yaw_matrix(self.yaw_deg).T + np.asarray(self.shift_mm)
+
+
+AS_BUILT = Placement()
+"""No scale, yaw or shift: the object where its own frame puts it."""
+
+
 def _smallest_positive(*candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return the smallest candidate t > eps per ray and which candidate it was."""
     stack = np.stack([np.where(c > _EPS_T_MM, c, np.inf) for c in candidates])
@@ -517,15 +534,8 @@ def _read_obj(text: str) -> np.ndarray:
     return np.array(verts)[_fan(polys)]
 
 
-def load_mesh(
-    path: str | Path,
-    scale: float = 1.0,
-    x_mm: float = 0.0,
-    y_mm: float = 0.0,
-    z_mm: float = 0.0,
-    yaw_deg: float = 0.0,
-) -> TriangleMesh:
-    """Load an STL, ASCII PLY or OBJ file, scale it, yaw it and move its origin to (x, y, z)."""
+def load_mesh(path: str | Path, placement: Placement = AS_BUILT) -> TriangleMesh:
+    """Load an STL, ASCII PLY or OBJ file and place it (scale, yaw, then move its origin)."""
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"mesh: file not found: {p}")
@@ -541,8 +551,7 @@ def load_mesh(
         raise ValueError(f"mesh: unknown file type {suffix!r}; expected .stl, .ply or .obj")
     if tris.size == 0:
         raise ValueError(f"mesh: {p} holds no triangles")
-    placed = (tris * scale) @ _yaw_matrix(yaw_deg).T + np.array([x_mm, y_mm, z_mm])
-    return TriangleMesh.from_triangles(placed, name=f"mesh:{p.name}")
+    return TriangleMesh.from_triangles(placement.apply(tris), name=f"mesh:{p.name}")
 
 
 # ----------------------------------------------------------------------------- builders
@@ -573,6 +582,7 @@ _FORMS = {
     "sphere": ("sphere:d=25", {"d"}, set()),
     "ellipsoid": ("ellipsoid:a=10,b=6.5,c=20", {"a", "b", "c"}, set()),
     "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
+    "patches": ("patches:d=30,h=40", set(), {"d", "h"}),
     **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
@@ -620,8 +630,10 @@ def _number(kind: str, key: str, value: str, form: str) -> float:
 def parse_object(spec: str) -> SceneObject:
     """Build a scene object from ``kind:key=value,...``: a solid, a mesh file or a phantom.
 
-    Kinds: cylinder, sphere, ellipsoid, mesh and the phantoms of
-    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``).
+    Kinds: cylinder, sphere, ellipsoid, mesh, the phantoms of
+    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``)
+    and ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
+    on the axis, so no placement keys).
     """
     kind, colon, body = spec.strip().partition(":")
     kind = kind.strip().lower()
@@ -638,8 +650,13 @@ def parse_object(spec: str) -> SceneObject:
         return sphere(num["d"], x, y, num.get("z", 0.0))
     if kind == "ellipsoid":
         return ellipsoid(num["a"], num["b"], num["c"], x, y, num.get("z", 0.0), yaw)
+    if kind == "patches":
+        from lamina_device.sim.texture import patches_cylinder  # texture builds on this module
+
+        return patches_cylinder(num.get("d", 30.0), num.get("h", 40.0))
+    placement = Placement(num.get("scale", 1.0), yaw, (x, y, num.get("z", 0.0)))
     if kind in _PHANTOM_NAMES:
         from lamina_device.sim.phantoms import phantom  # phantoms build on this module
 
-        return phantom(kind, num.get("scale", 1.0), x, y, num.get("z", 0.0), yaw)
-    return load_mesh(fields["path"], num.get("scale", 1.0), x, y, num.get("z", 0.0), yaw)
+        return phantom(kind, placement)
+    return load_mesh(fields["path"], placement)

@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lamina_device.sim.objects import _PHANTOM_NAMES, TriangleMesh
+from lamina_device.sim.objects import _PHANTOM_NAMES, AS_BUILT, Placement, TriangleMesh
 
 __all__ = ["PHANTOMS", "phantom"]
 
@@ -251,18 +251,8 @@ PHANTOMS = _PHANTOM_NAMES
 """Names of the built-in phantoms, usable as ``--object NAME[:scale=S,x=,y=,z=,yaw=]``."""
 
 
-def phantom(
-    name: str,
-    scale: float = 1.0,
-    x_mm: float = 0.0,
-    y_mm: float = 0.0,
-    z_mm: float = 0.0,
-    yaw_deg: float = 0.0,
-) -> TriangleMesh:
-    """Return phantom ``name`` scaled about the object origin, yawed, then moved."""
+def phantom(name: str, placement: Placement = AS_BUILT) -> TriangleMesh:
+    """Return phantom ``name`` placed (scaled about the object origin, yawed, then moved)."""
     if name not in PHANTOMS:
         raise ValueError(f"unknown phantom {name!r}; use one of {', '.join(PHANTOMS)}")
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    tris = (_BUILDERS[name]() * scale) @ rot.T + np.array([x_mm, y_mm, z_mm])
-    return TriangleMesh.from_triangles(tris, name=name)
+    return TriangleMesh.from_triangles(placement.apply(_BUILDERS[name]()), name=name)

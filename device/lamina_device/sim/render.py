@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -27,7 +28,8 @@ import numpy as np
 
 from lamina_device.sim.objects import SceneObject, cylinder
 from lamina_device.sim.rig import Rig
-from lamina_shared.presets import NOISE_PRESETS
+from lamina_device.sim.texture import Textured
+from lamina_shared.presets import NOISE_PRESETS, make_preset
 
 __all__ = [
     "BT601_LUMA",
@@ -137,10 +139,8 @@ class NoiseModel:
     @classmethod
     def preset(cls, name: str) -> NoiseModel:
         """Return the model named ``name`` (one of ``NOISE_PRESETS``)."""
-        if name not in NOISE_PRESETS:
-            raise ValueError(f"unknown noise {name!r}; use one of {', '.join(NOISE_PRESETS)}")
-        model: NoiseModel = getattr(cls, name)()
-        return model
+        makers: dict[str, Callable[[], NoiseModel]] = {n: getattr(cls, n) for n in NOISE_PRESETS}
+        return make_preset("noise", name, makers)
 
 
 def _stable_seed(*parts: object) -> int:
@@ -293,6 +293,8 @@ class _View:
     ambient_dn: np.ndarray
     laser_dn: np.ndarray
     halo_dn: np.ndarray | None = None
+    tint: np.ndarray | None = None
+    """(H, W, 3) surface reflectance over the plain albedo (a textured object), else None."""
 
 
 class SimScene:
@@ -359,7 +361,9 @@ class SimScene:
         if target == "grid":
             return _expose(rng, self._grid_expected(), self.noise)
         view = self._view(target, float(angle_deg), float(z_mm))
-        expected = view.ambient_dn
+        expected = (
+            view.ambient_dn if view.tint is None else view.ambient_dn * (view.tint @ BT601_LUMA)
+        )
         if laser_on:
             n = self.noise
             speckle = speckle_field(rng, self._shape, n.speckle_contrast, n.speckle_grain_px)
@@ -412,11 +416,12 @@ class SimScene:
             raise ValueError("this noise model renders one grey channel; use render()")
         rng = self._rng(target, angle_deg, z_mm, laser_on, noise_key)
         laser: np.ndarray | None = None
+        tint: np.ndarray | None = None
         if target == "grid":
             ambient = self._grid_expected()
         else:
             view = self._view(target, float(angle_deg), float(z_mm))
-            ambient = view.ambient_dn
+            ambient, tint = view.ambient_dn, view.tint
             if laser_on:
                 grain = n.speckle_grain_px
                 speckle = speckle_field(
@@ -428,6 +433,8 @@ class SimScene:
         out = np.empty((*self._shape, 3))
         for c in range(3):
             expected = ambient * n.ambient_rgb[c]
+            if tint is not None:
+                expected = expected * tint[..., c]
             if laser is not None:
                 expected = expected + laser * n.laser_rgb[c]
             out[..., c] = _noisy(rng, expected * exposure_scale, n)
@@ -464,6 +471,14 @@ class SimScene:
         laser = np.zeros_like(ambient)
         laser[np.flatnonzero(hit)] = self._laser_term(obj, p, normal, angle_deg, z_mm)
         laser_img = laser.reshape(self._shape)
+        tint: np.ndarray | None = None
+        if isinstance(obj, Textured):
+            surface = (
+                to_obj @ (self._centre - axis) + lift + t[hit, None] * (self._dirs[hit] @ to_obj.T)
+            )
+            flat = np.ones((len(field), 3))
+            flat[hit] = obj.texture.reflectance(surface) / n.albedo
+            tint = flat.reshape(*self._shape, 3)
         halo = None
         if n.halo_fraction > 0.0:
             # Light scattered in the surface and the lens: a sum-normalised blur keeps its
@@ -471,7 +486,7 @@ class SimScene:
             s = n.halo_sigma_px
             k = 2 * math.ceil(3.0 * s) + 1
             halo = n.halo_fraction * cv2.GaussianBlur(laser_img, (k, k), s)
-        return _View(ambient.reshape(self._shape), laser_img, halo)
+        return _View(ambient.reshape(self._shape), laser_img, halo, tint)
 
     def _laser_term(
         self, obj: SceneObject, p: np.ndarray, normal: np.ndarray, angle_deg: float, z_mm: float

@@ -10,11 +10,12 @@ object about 10 cm away.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from lamina_shared.presets import RIG_PRESETS
+from lamina_shared.presets import RIG_PRESETS, make_preset
 from lamina_shared.types import BoardSpec
 
 __all__ = ["RIG_PRESETS", "Rig"]
@@ -68,11 +69,8 @@ class Rig:
     @classmethod
     def preset(cls, name: str) -> Rig:
         """Return the rig named ``name`` (one of ``RIG_PRESETS``)."""
-        if name == "thesis":
-            return cls()
-        if name == "limb":
-            return cls.limb()
-        raise ValueError(f"unknown rig {name!r}; use one of {', '.join(RIG_PRESETS)}")
+        makers: dict[str, Callable[[], Rig]] = {"thesis": cls, "limb": cls.limb}
+        return make_preset("rig", name, makers)
 
     @property
     def principal_point_px(self) -> tuple[float, float]:
@@ -92,14 +90,19 @@ class Rig:
         w, h = self.image_size
         return math.hypot(w - 1, h - 1) / 2.0
 
+    def _from_centre(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the principal point, ``uv``'s offsets from it and their squared radius
+        in units of the distortion radius."""
+        c = np.asarray(self.principal_point_px)
+        d = uv - c
+        return c, d, np.sum(d * d, axis=-1, keepdims=True) / self.distortion_radius_px**2
+
     def undistort_px(self, uv: np.ndarray) -> np.ndarray:
         """Map observed (distorted) pixel coordinates (..., 2) to ideal pinhole ones."""
         uv = np.asarray(uv, dtype=float)
         if self.division_k == 0.0:
             return uv
-        c = np.asarray(self.principal_point_px)
-        d = uv - c
-        r2 = np.sum(d * d, axis=-1, keepdims=True) / self.distortion_radius_px**2
+        c, d, r2 = self._from_centre(uv)
         return c + d / (1.0 + self.division_k * r2)
 
     def distort_px(self, uv: np.ndarray) -> np.ndarray:
@@ -107,9 +110,7 @@ class Rig:
         uv = np.asarray(uv, dtype=float)
         if self.division_k == 0.0:
             return uv
-        c = np.asarray(self.principal_point_px)
-        d = uv - c
-        ru2 = np.sum(d * d, axis=-1, keepdims=True) / self.distortion_radius_px**2
+        c, d, ru2 = self._from_centre(uv)
         # r_u = r_d / (1 + k r_d^2) solved for the root that tends to r_u as k -> 0.
         return c + d * (2.0 / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * self.division_k * ru2, 0.0))))
 

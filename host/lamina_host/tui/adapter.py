@@ -139,8 +139,9 @@ class Session(ScanJob):
         library_path: Path | None = None,
         object_spec: str | None = None,
         seed: int = 0,
+        noise: str = "thesis",
     ) -> None:
-        super().__init__(DeviceTarget(device, object_spec, seed), library_path)
+        super().__init__(DeviceTarget(device, object_spec, seed, noise), library_path)
 
     def scan_object(
         self,
@@ -149,21 +150,14 @@ class Session(ScanJob):
         on_segment: SegmentHandler | None = None,
         on_progress: ProgressHandler | None = None,
         on_notice: NoticeHandler | None = None,
+        colour: bool = False,
     ) -> list[Segment]:
-        """Start scanning the subject along ``plan``; every view received is kept."""
-        request = ScanRequest(check_subject(subject_id), plan)
+        """Start scanning the subject along ``plan`` (with each point's colour if asked)."""
+        request = ScanRequest(check_subject(subject_id), plan, colour=colour)
         if self.axis is None:
             raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
+        self.set_colour(colour)  # before the scan's identity is recorded
         self.create(request)
-        return self.resume_object(on_segment, on_progress, on_notice)
-
-    def resume_object(
-        self,
-        on_segment: SegmentHandler | None = None,
-        on_progress: ProgressHandler | None = None,
-        on_notice: NoticeHandler | None = None,
-    ) -> list[Segment]:
-        """Scan the views of the current plan not received yet (after an abort or a drop)."""
         return self.fetch_object(on_segment, on_progress, on_notice)
 
     def process(

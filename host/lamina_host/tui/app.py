@@ -71,10 +71,10 @@ class LaminaApp(App[None]):
         device: str = "sim",
         library: Path | None = None,
         object_spec: str | None = None,
-        seed: int = 0,
+        noise: str = "thesis",
     ) -> None:
         super().__init__()
-        self.session = Session(device, library, object_spec, seed)
+        self.session = Session(device, library, object_spec, noise=noise)
 
     def action_help(self) -> None:
         """Show the keys and the workflow."""

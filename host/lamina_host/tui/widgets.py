@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import ClassVar, TypeVar
 
 import numpy as np
@@ -161,6 +162,14 @@ class LaminaScreen(Screen[None]):
             )
             return
         self.app.call_from_thread(done, value)
+
+    def in_thread(self, group: str, job: Callable[[], T], done: Callable[[T], None]) -> None:
+        """Run ``job`` in a thread worker (a new one cancels the running one of its ``group``).
+
+        ``done`` gets the result on the UI thread; failures go to :meth:`failed`, as
+        :meth:`attempt` says.
+        """
+        self.run_worker(partial(self.attempt, job, done), thread=True, exclusive=True, group=group)
 
     def failed(self, message: str) -> None:
         """Show a worker's failure; screens extend this to reset their controls."""

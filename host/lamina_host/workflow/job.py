@@ -87,6 +87,7 @@ class ScanRequest:
         cylinder_mm: the calibration cylinder's diameter; None for the device's.
         options: what the library records with the scan (what a resume must repeat).
         extract: per-scan extraction settings for the device; None leaves the device's own.
+        colour: ask for each object point's colour (the device must say it can).
         side: the limb scanned, one of :data:`lamina_host.store.SIDES`.
     """
 
@@ -95,6 +96,7 @@ class ScanRequest:
     cylinder_mm: float | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
     extract: ExtractChanges | None = None
+    colour: bool = False
     side: str = SIDES[0]
 
     def __post_init__(self) -> None:
@@ -129,6 +131,8 @@ class ScanJob:
         self.identity: dict[str, Any] | None = None
         """The identity the scan was recorded under (None before one exists)."""
         self.extract: ExtractChanges | None = None
+        self.colour = False
+        """Ask for each object point's colour (:meth:`set_colour`)."""
         self.pose: dict[str, float] = {"lift": 0.0, "turntable": 0.0}
         self.calibrated_by: dict[str, Any] | None = None
         """The identity of the device the chessboard and cylinder were captured with."""
@@ -199,6 +203,20 @@ class ScanJob:
         """
         self._device().extract = changes
         self.extract = changes
+
+    def set_colour(self, colour: bool) -> None:
+        """Ask for (or stop asking for) each object point's colour in this session's scans.
+
+        Raises:
+            InputError: the device cannot sample colour.
+        """
+        client = self._device()
+        if colour and not (client.info and client.info.colour):
+            raise InputError(
+                "this device cannot sample colour (a monochrome camera, the simulator without "
+                "--noise harsh, or an older lamina-device): scan without colour"
+            )
+        self.colour = colour
 
     def attach(self, client: DeviceClient) -> None:
         """Use a client already handshaken elsewhere (an in-process device); closing leaves it."""
@@ -530,6 +548,8 @@ class ScanJob:
             missing = min(k for k in range(len(plan.views)) if k not in held)
             report(plan.views[missing].section, starting=True)
         extra: dict[str, Any] = {} if self.extract is None else {"extract": self.extract}
+        if self.colour and target == "object":  # the cylinder needs no colour
+            extra["colour"] = True
         try:
             with self._link() as client:
                 client.scan(

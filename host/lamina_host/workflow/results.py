@@ -15,7 +15,7 @@ import numpy as np
 
 from lamina_host.link import DeviceInfo
 from lamina_host.measure import perimeter, polygon_area
-from lamina_host.pipeline import Reconstruction
+from lamina_host.pipeline import Reconstruction, Section
 from lamina_shared.types import BoardSpec, Segment
 
 
@@ -98,6 +98,23 @@ class Results:
     mesh_method: str
     paths: dict[str, Any] = field(default_factory=dict)
     """The files written for the scan (empty when they went only into the library)."""
+
+
+def colour_bins(section: Section, bins: int = 32) -> np.ndarray | None:
+    """Return the section's mean colour in ``bins`` equal angular sectors, or None uncoloured.
+
+    Angles are taken about the centroid of the coloured points, from +x counter-clockwise;
+    a sector no coloured point falls in is -1 in every channel.
+    """
+    points, colours = section.colour_points, section.colours
+    if points is None or colours is None or not len(points):
+        return None
+    d = points - points.mean(axis=0)
+    sector = np.floor((np.arctan2(d[:, 1], d[:, 0]) % (2 * math.pi)) / (2 * math.pi) * bins)
+    sector = np.minimum(sector.astype(int), bins - 1)
+    counts = np.bincount(sector, minlength=bins)
+    sums = np.stack([np.bincount(sector, colours[:, c].astype(float), bins) for c in range(3)], 1)
+    return np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], -1.0)
 
 
 def roundness(contour: np.ndarray) -> float:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from textual import on, work
+from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
@@ -86,12 +86,7 @@ class CalibrateScreen(LaminaScreen):
     def action_capture(self) -> None:
         """Capture the chessboard and fit the homography."""
         self.say("capturing the chessboard ...")
-        self.capture_worker()
-
-    @work(thread=True, exclusive=True, group="grid")
-    def capture_worker(self) -> None:
-        """Grab and calibrate in a thread."""
-        self.attempt(self.session.calibrate_grid, lambda _: self.calibrated())
+        self.in_thread("grid", self.session.calibrate_grid, lambda _: self.calibrated())
 
     def calibrated(self) -> None:
         """Show the chessboard result."""
@@ -123,12 +118,8 @@ class CalibrateScreen(LaminaScreen):
         """Scan the calibration cylinder and find the axis."""
         self.query_one("#cylinder-progress", ProgressBar).update(total=1, progress=0)
         self.say("scanning the calibration cylinder ...")
-        self.cylinder_worker()
-
-    @work(thread=True, exclusive=True, group="cylinder")
-    def cylinder_worker(self) -> None:
-        """Scan the cylinder in a thread, reporting each view."""
-        self.attempt(
+        self.in_thread(
+            "cylinder",
             lambda: self.session.calibrate_axis(lambda p: self.post_message(CylinderProgress(p))),
             self.axis_found,
         )

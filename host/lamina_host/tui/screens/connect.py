@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from textual import on, work
+from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
@@ -90,12 +90,8 @@ class ConnectScreen(LaminaScreen):
         device = self.query_one("#device", Input).value.strip()
         self.say(f"connecting to {device} ...")
         self.query_one("#device-info", Static).update("connecting ...")
-        self.connect_worker(device)
-
-    @work(thread=True, exclusive=True, group="connect")
-    def connect_worker(self, device: str) -> None:
-        """Connect in a thread (handshake and device start-up take seconds)."""
-        self.attempt(lambda: self.session.connect(device), self.connected)
+        # In a thread: the handshake and the device's start-up take seconds.
+        self.in_thread("connect", lambda: self.session.connect(device), self.connected)
 
     def connected(self, info: DeviceInfo) -> None:
         """Show the device that answered."""
@@ -108,13 +104,8 @@ class ConnectScreen(LaminaScreen):
         super().failed(message)
 
     def action_disconnect(self) -> None:
-        """Close the link."""
-        self.disconnect_worker()
-
-    @work(thread=True, exclusive=True, group="connect")
-    def disconnect_worker(self) -> None:
-        """Disconnect in a thread (waits for the device program to stop)."""
-        self.attempt(self.session.close, lambda _: self.disconnected())
+        """Close the link (in a thread: it waits for the device program to stop)."""
+        self.in_thread("connect", self.session.close, lambda _: self.disconnected())
 
     def disconnected(self) -> None:
         """Show that no device is connected."""

@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 from rich.text import Text
-from textual import work
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
+from textual.screen import ModalScreen
 from textual.widgets import DataTable, Static
 
 from lamina_host.store import ScanSummary
 from lamina_host.tui.adapter import Results
 from lamina_host.tui.widgets import AskScreen, ConfirmScreen, LaminaScreen
 from lamina_host.workflow import printable
+
+T = TypeVar("T")
 
 COLUMNS = ("scan", "subject", "created", "status", "sections", "views", "result")
 
@@ -45,13 +48,8 @@ class LibraryScreen(LaminaScreen):
         self.action_reload()
 
     def action_reload(self) -> None:
-        """Read the library's scans."""
-        self.list_worker()
-
-    @work(thread=True, exclusive=True, group="library")
-    def list_worker(self) -> None:
-        """Read the list in a thread (the file may be large or on a slow disk)."""
-        self.attempt(self.session.scans, self.listed)
+        """Read the library's scans (in a thread: the file may be large or on a slow disk)."""
+        self.in_thread("library", self.session.scans, self.listed)
 
     def listed(self, scans: list[ScanSummary]) -> None:
         """Fill the table."""
@@ -84,17 +82,16 @@ class LibraryScreen(LaminaScreen):
         scan_id = self._chosen()
         if scan_id is not None:
             self.say(f"opening scan {scan_id} ...")
-            self.open_worker(scan_id)
+            self.in_thread(
+                "library-open",
+                lambda: self._open(scan_id),
+                lambda outcome: self.opened(scan_id, outcome),
+            )
 
-    @work(thread=True, exclusive=True, group="library-open")
-    def open_worker(self, scan_id: int) -> None:
-        """Load and process in a thread."""
-
-        def job() -> Results | int:
-            data = self.session.open_scan(scan_id)
-            return self.session.process() if data.complete else len(data.segments)
-
-        self.attempt(job, lambda outcome: self.opened(scan_id, outcome))
+    def _open(self, scan_id: int) -> Results | int:
+        """Load and process (in a worker); an incomplete scan gives its view count."""
+        data = self.session.open_scan(scan_id)
+        return self.session.process() if data.complete else len(data.segments)
 
     def opened(self, scan_id: int, outcome: Results | int) -> None:
         """Show the processed scan, or say how to finish an incomplete one."""
@@ -104,48 +101,50 @@ class LibraryScreen(LaminaScreen):
         else:
             self.say(f"scan {scan_id} is incomplete ({outcome} views): connect and resume (F5, p)")
 
+    def _ask_about_chosen(
+        self, dialog: Callable[[int], ModalScreen[T]], answered: Callable[[int, T | None], None]
+    ) -> None:
+        """Ask ``dialog(scan_id)`` about the chosen scan; hand the answer to ``answered``."""
+        scan_id = self._chosen()
+        if scan_id is not None:
+            self.app.push_screen(dialog(scan_id), lambda answer: answered(scan_id, answer))
+
     def action_export(self) -> None:
         """Ask for a folder and export the chosen scan into it."""
-        scan_id = self._chosen()
-        if scan_id is None:
-            return
-
-        def answered(folder: str | None) -> None:
-            if folder:
-                self.export_worker(scan_id, Path(folder).expanduser())
-
-        self.app.push_screen(
-            AskScreen(f"Export scan {scan_id} into folder:", "a new or empty folder"), answered
+        self._ask_about_chosen(
+            lambda scan_id: AskScreen(
+                f"Export scan {scan_id} into folder:", "a new or empty folder"
+            ),
+            self._export_into,
         )
 
-    @work(thread=True, exclusive=True, group="library-export")
-    def export_worker(self, scan_id: int, folder: Path) -> None:
-        """Export in a thread."""
-        self.attempt(
-            lambda: self.session.export_scan(scan_id, folder),
-            lambda paths: self.say(f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"),
-        )
+    def _export_into(self, scan_id: int, folder: str | None) -> None:
+        """Export the scan into the folder answered (none: the user cancelled)."""
+        if folder:
+            path = Path(folder).expanduser()
+            self.in_thread(
+                "library-export",
+                lambda: self.session.export_scan(scan_id, path),
+                lambda paths: self.say(
+                    f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"
+                ),
+            )
 
     def action_delete(self) -> None:
         """Delete the chosen scan after asking."""
-        scan_id = self._chosen()
-        if scan_id is None:
-            return
-
-        def answered(yes: bool | None) -> None:
-            if yes:
-                self.delete_worker(scan_id)
-            else:
-                self.say(f"scan {scan_id} kept")
-
-        self.app.push_screen(
-            ConfirmScreen(f"Delete scan {scan_id} and everything recorded for it?"), answered
+        self._ask_about_chosen(
+            lambda scan_id: ConfirmScreen(f"Delete scan {scan_id} and everything recorded for it?"),
+            self._delete_if,
         )
 
-    @work(thread=True, exclusive=True, group="library")
-    def delete_worker(self, scan_id: int) -> None:
-        """Delete in a thread, then list again."""
-        self.attempt(lambda: self.session.delete_scan(scan_id), lambda _: self.deleted(scan_id))
+    def _delete_if(self, scan_id: int, yes: bool | None) -> None:
+        """Delete the scan if the user confirmed; else say it is kept."""
+        if not yes:
+            self.say(f"scan {scan_id} kept")
+            return
+        self.in_thread(
+            "library", lambda: self.session.delete_scan(scan_id), lambda _: self.deleted(scan_id)
+        )
 
     def deleted(self, scan_id: int) -> None:
         """Say so and refresh the list."""

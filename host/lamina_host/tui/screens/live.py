@@ -68,18 +68,15 @@ class LiveScreen(LaminaScreen):
     def action_grab(self) -> None:
         """Fetch a preview frame from the device."""
         self.say(f"grabbing a frame, laser {'on' if self.laser else 'off'} ...")
-        self.grab_worker(self.laser)
+        laser = self.laser
+        # In a thread: the frame crosses the serial link in chunks.
+        self.in_thread("grab", lambda: self.session.preview(laser), self.grabbed)
 
     def action_laser(self) -> None:
         """Switch the laser for the next preview frames and grab one."""
         self.laser = not self.laser
         self._show_axes()
         self.action_grab()
-
-    @work(thread=True, exclusive=True, group="grab")
-    def grab_worker(self, laser: bool) -> None:
-        """Grab in a thread: the frame crosses the serial link in chunks."""
-        self.attempt(lambda: self.session.preview(laser), self.grabbed)
 
     def grabbed(self, preview: Preview) -> None:
         """Show the new frame and the stripe the device found in it."""

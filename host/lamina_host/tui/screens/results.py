@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import ClassVar
 
-from textual import on, work
+from rich.text import Text
+from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal
@@ -18,7 +19,7 @@ from lamina_host.mesh import MESH_METHODS
 from lamina_host.store import Library
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
-from lamina_host.workflow.results import SectionRow
+from lamina_host.workflow.results import SectionRow, colour_bins
 from lamina_shared.errors import LaminaError
 
 COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
@@ -51,6 +52,29 @@ def parse_harmonics(text: str) -> tuple[int | None, str | None]:
         raise UserError(
             f"harmonics {text!r} must be a whole number, a rule ({rules}) or blank for auto"
         ) from None
+
+
+COLOUR_SECTORS = 32
+"""Angular sectors of each section's colour strip on the Results screen."""
+
+
+def colour_strip(results: Results | None) -> Text | None:
+    """Return one strip per coloured outline: its mean colour round the section, or None.
+
+    Each block is one of :data:`COLOUR_SECTORS` sectors counter-clockwise from +x; a
+    sector no coloured point fell in is a blank.
+    """
+    if results is None:
+        return None
+    text = Text()
+    for section in results.reconstruction.sections:
+        bins = colour_bins(section, COLOUR_SECTORS)
+        if bins is None:
+            continue
+        text.append(f"\ncolour {section.index}.{section.part} z {section.z_mm:6.2f} ")
+        for r, g, b in bins.round().astype(int).tolist():
+            text.append(" " if r < 0 else "\u2588", style="" if r < 0 else f"rgb({r},{g},{b})")
+    return text if text else None
 
 
 def summary_text(results: Results | None) -> str:
@@ -159,12 +183,10 @@ class ResultsScreen(LaminaScreen):
         method = str(self.query_one("#mesh-method", Select).value)
         self.query_one("#process", Button).disabled = True
         self.say("processing ...")
-        self.process_worker(harmonics, method, rule)
-
-    @work(thread=True, exclusive=True, group="process")
-    def process_worker(self, harmonics: int | None, method: str, rule: str | None) -> None:
-        """Reconstruct in a thread (calibration, EFD, meshing)."""
-        self.attempt(lambda: self.session.process(harmonics, method, rule), self.processed)
+        # In a thread: calibration, EFD and meshing take seconds.
+        self.in_thread(
+            "process", lambda: self.session.process(harmonics, method, rule), self.processed
+        )
 
     def processed(self, results: Results) -> None:
         """Show the new results."""
@@ -188,12 +210,8 @@ class ResultsScreen(LaminaScreen):
             return
         self.query_one("#export", Button).disabled = True
         self.say(f"exporting to {folder} ...")
-        self.export_worker(Path(folder).expanduser())
-
-    @work(thread=True, exclusive=True, group="export")
-    def export_worker(self, folder: Path) -> None:
-        """Write the files in a thread."""
-        self.attempt(lambda: self.session.export(folder), self.exported)
+        path = Path(folder).expanduser()
+        self.in_thread("export", lambda: self.session.export(path), self.exported)
 
     def exported(self, paths: list[Path]) -> None:
         """Say what was written."""
@@ -228,4 +246,8 @@ class ResultsScreen(LaminaScreen):
                 str(r.harmonics),
             )
         self._draw_profile(results)
-        self.query_one("#summary", Static).update(summary_text(results))
+        summary: str | Text = summary_text(results)
+        strip = colour_strip(results)
+        if strip is not None:
+            summary = Text(str(summary)) + strip
+        self.query_one("#summary", Static).update(summary)

@@ -10,7 +10,7 @@ from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.message import Message
-from textual.widgets import Button, Input, Label, ProgressBar, Static
+from textual.widgets import Button, Checkbox, Input, Label, ProgressBar, Static
 from textual_plotext import PlotextPlot
 
 from lamina_host.tui.adapter import (
@@ -75,6 +75,8 @@ class ScanScreen(LaminaScreen):
         with Horizontal(classes="row"):
             yield Label("Subject ", classes="field-label")
             yield Input(placeholder="e.g. P001-left-leg", id="subject", compact=True)
+            # Colour: each point's colour from the laser-off frames (a colour camera).
+            yield Checkbox("Colour", id="colour", compact=True)
         with Horizontal(classes="row"):
             yield Label("Sections ", classes="field-label")
             yield Input("2", id="sections", type="integer", compact=True, classes="short")
@@ -139,18 +141,17 @@ class ScanScreen(LaminaScreen):
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
         self.query_one("#progress-text", Static).update("starting ...")
         self.say(f"scanning {subject}: {len(plan.sections)} sections, {len(plan.views)} views")
-        self.scan_worker(subject, plan)
-
-    @work(thread=True, exclusive=True, group="scan")
-    def scan_worker(self, subject: str, plan: ScanPlan) -> None:
-        """Run the scan in a thread; segments and progress come back as messages."""
-        self.attempt(
+        colour = self.query_one("#colour", Checkbox).value
+        # Segments and progress come back from the scan's thread as messages.
+        self.in_thread(
+            "scan",
             lambda: self.session.scan_object(
                 subject,
                 plan,
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
+                colour=colour,
             ),
             self.finished,
         )
@@ -237,13 +238,9 @@ class ScanScreen(LaminaScreen):
         self._aborting = False
         self._set_scanning(True)
         self.say(f"resuming: {len(self.session.held)} views held, fetching the rest ...")
-        self.resume_worker()
-
-    @work(thread=True, exclusive=True, group="scan")
-    def resume_worker(self) -> None:
-        """Fetch the missing views in a thread."""
-        self.attempt(
-            lambda: self.session.resume_object(
+        self.in_thread(
+            "scan",
+            lambda: self.session.fetch_object(
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
@@ -266,12 +263,7 @@ class ScanScreen(LaminaScreen):
             self.say("a scan is running: abort it (b) first", error=True)
             return
         self.say(f"reconnecting to {self.session.device} ...")
-        self.reconnect_worker()
-
-    @work(thread=True, exclusive=True, group="connect")
-    def reconnect_worker(self) -> None:
-        """Reconnect in a thread."""
-        self.attempt(self.session.connect, lambda _: self.reconnected())
+        self.in_thread("connect", self.session.connect, lambda _: self.reconnected())
 
     def reconnected(self) -> None:
         """Show the recovered link."""
