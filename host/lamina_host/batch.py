@@ -10,9 +10,9 @@ tasks. Scans are submitted in chunks so the parent never holds a whole cohort's
 segments at once.
 
 ``measure`` is any picklable ``Reconstruction -> rows`` function; the default,
-:func:`section_measurements`, gives each outline's perimeter and area
-(:mod:`lamina_host.measure`) and the mesh volume. A clinical measurement (levels along
-the limb axis, frustum volumes) plugs in the same way.
+:class:`ClinicalMeasure`, gives the clinical measurements of :mod:`lamina_host.clinical`
+(``lamina report``'s table: circumferences at levels from the landmark, segment volumes,
+the scan's contour-stack, frustum and mesh volumes), one row per level.
 """
 
 from __future__ import annotations
@@ -33,8 +33,14 @@ from typing import Any
 
 import dask
 
+from lamina_host.clinical import (
+    AXES,
+    DEFAULT_SPACING_MM,
+    Landmark,
+    measure_limb,
+    sections_from_reconstruction,
+)
 from lamina_host.files import OutputError, write_new_file
-from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import signed_volume
 from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_host.store import Library, ScanInputs, StoreError, check_new_file
@@ -65,20 +71,45 @@ class ScanOutcome:
     error: str | None = None
 
 
-def section_measurements(result: Reconstruction) -> list[Row]:
-    """Return one row per outline: height, perimeter, area, and the scan's mesh volume."""
-    volume = signed_volume(result.vertices, result.faces) if len(result.faces) else float("nan")
-    return [
-        {
-            "section": s.index,
-            "part": s.part,
-            "z_mm": s.z_mm,
-            "perimeter_mm": perimeter(s.contour),
-            "area_mm2": polygon_area(s.contour),
-            "mesh_volume_mm3": volume,
+@dataclass(frozen=True)
+class ClinicalMeasure:
+    """The clinical measurements of a reconstructed limb as table rows (picklable).
+
+    One row per level: its distance from the landmark, height, circumference, area, the
+    segment volumes up to the next level and whether it rests on measured outlines; each
+    row also carries the scan's volumes (mL) so one table holds the whole cohort.
+    """
+
+    spacing_mm: float = DEFAULT_SPACING_MM
+    landmark: Landmark = field(default_factory=Landmark)
+    axis: str = AXES[0]
+
+    def __call__(self, result: Reconstruction) -> list[Row]:
+        """Measure ``result`` (ClinicalError, one line, when it cannot be)."""
+        m = measure_limb(
+            sections_from_reconstruction(result), self.spacing_mm, self.landmark, self.axis
+        )
+        mesh_ml = (
+            signed_volume(result.vertices, result.faces) / 1000.0
+            if len(result.faces)
+            else float("nan")
+        )
+        scan = {
+            "range_lo_mm": m.coverage_mm[0],
+            "range_hi_mm": m.coverage_mm[1],
+            "volume_ml": m.volume_mm3 / 1000.0,
+            "frustum_volume_ml": m.frustum_volume_mm3 / 1000.0,
+            "mesh_volume_ml": mesh_ml,
         }
-        for s in result.sections
-    ]
+        return [
+            {"level": k, **{key: row[key] for key in LEVEL_COLUMNS}, **scan}
+            for k, row in enumerate(m.table())
+        ]
+
+
+LEVEL_COLUMNS = ("offset_mm", "z_mm", "circumference_mm", "area_mm2", "segment_volume_ml",
+                 "segment_frustum_ml", "source")  # fmt: skip
+"""The columns of a clinical table row (``LimbMeasurement.table``) the batch keeps."""
 
 
 def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reconstruction:
@@ -96,7 +127,7 @@ def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reco
 
 def measure_scan(
     inputs: ScanInputs,
-    measure: Measure = section_measurements,
+    measure: Measure = ClinicalMeasure(),
     options: ProcessOptions | None = None,
 ) -> ScanOutcome:
     """Reprocess one scan and measure it (runs in a worker; touches no file).
@@ -202,7 +233,7 @@ def _client(address: str) -> Iterator[Any]:
 def run_batch(
     library: Library,
     scan_ids: Sequence[int],
-    measure: Measure = section_measurements,
+    measure: Measure = ClinicalMeasure(),
     workers: int | None = None,
     address: str | None = None,
     options: ProcessOptions | None = None,

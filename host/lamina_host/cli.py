@@ -24,6 +24,7 @@ from typing import Any
 from lamina_host import __version__
 from lamina_host.axis import AXIS_METHODS
 from lamina_host.batch import (
+    ClinicalMeasure,
     check_output,
     check_pattern,
     run_batch,
@@ -31,7 +32,7 @@ from lamina_host.batch import (
     write_table,
 )
 from lamina_host.calibration import CALIBRATION_METHODS
-from lamina_host.dicom import check_institution
+from lamina_host.dicom import DICOM_SOPS, check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
 from lamina_host.exports import export_scan
@@ -39,7 +40,7 @@ from lamina_host.files import prepare_output_folder
 from lamina_host.link import DeviceError
 from lamina_host.mesh import MESH_METHODS, meshlab
 from lamina_host.pipeline import ProcessOptions
-from lamina_host.store import Library, ScanRecord, default_library_path
+from lamina_host.store import SIDES, Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
     DEFAULT_PITCH_MM,
     DEFAULT_SECTIONS,
@@ -98,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--subject",
         help=f"pseudonymous subject code (default anonymous): {SUBJECT_RULE}".replace("%", "%%"),
     )
+    scan.add_argument(
+        "--side", choices=SIDES, help="the limb scanned: left, right or none (default none)"
+    )
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
@@ -146,6 +150,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_processing_options(scan)
     scans = sub.add_parser("scans", help="list the scans in the library")
+    scans.add_argument(
+        "--set-side",
+        nargs=2,
+        metavar=("SCAN", "SIDE"),
+        help="record which limb scan SCAN is (left, right or none), then list",
+    )
     _add_library_option(scans)
     export = sub.add_parser(
         "export",
@@ -158,6 +168,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--institution",
         default="",
         help="Institution Name written into a .dcm export (default: none)",
+    )
+    export.add_argument(
+        "--dicom-sop",
+        choices=DICOM_SOPS,
+        default=next(iter(DICOM_SOPS)),
+        help="the DICOM object of a .dcm: encapsulated-stl (default) or surface-scan "
+        "(Surface Scan Mesh, experimental: few viewers read it)",
     )
     _add_library_option(export)
     batch = sub.add_parser(
@@ -173,8 +190,10 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument(
         "--measure",
         action="store_true",
-        help="measure each scan: every outline's perimeter and area, the mesh volume",
+        help="measure each scan as lamina report does: circumferences at levels from the "
+        "landmark, segment, stack, frustum and mesh volumes (one row per level)",
     )
+    _add_measure_options(batch)
     batch.add_argument("-o", "--out", required=True, type=Path, help="new CSV file to write")
     batch.add_argument(
         "--workers", type=int, help="local worker processes (default: all cores; 1: serial)"
@@ -228,9 +247,33 @@ def _check_ui_options(args: argparse.Namespace) -> list[str]:
     return options + (["--library", str(args.library.resolve())] if args.library else [])
 
 
+def _add_measure_options(parser: argparse.ArgumentParser) -> None:
+    """Add how a limb is measured: level spacing, landmark and axis (report and batch)."""
+    from lamina_host.clinical import AXES
+
+    parser.add_argument(
+        "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
+    )
+    parser.add_argument(
+        "--landmark",
+        default="distal",
+        help="level 0: distal (default, the narrower end), bottom, top or a height in mm",
+    )
+    parser.add_argument(
+        "--limb-axis", choices=AXES, default=AXES[0], help="what distances are measured along"
+    )
+
+
+def _check_spacing(spacing_mm: float) -> float:
+    """Return a usable level spacing, else raise UsageError (one line)."""
+    if not (math.isfinite(spacing_mm) and 1.0 <= spacing_mm <= 1000.0):
+        raise UsageError(f"--spacing-mm {spacing_mm} must be between 1 and 1000 mm")
+    return spacing_mm
+
+
 def _add_report_parser(sub: Any) -> None:
     """Add ``lamina report``: a processed scan's clinical measurements on one page."""
-    from lamina_host.clinical import AXES, COMPARISONS, Thresholds
+    from lamina_host.clinical import COMPARISONS, Thresholds
 
     limits = Thresholds()
     report = sub.add_parser(
@@ -246,17 +289,7 @@ def _add_report_parser(sub: Any) -> None:
         default=COMPARISONS[0],
         help="limbs: excess over the other limb (default); visits: change from a baseline",
     )
-    report.add_argument(
-        "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
-    )
-    report.add_argument(
-        "--landmark",
-        default="distal",
-        help="level 0: distal (default, the narrower end), bottom, top or a height in mm",
-    )
-    report.add_argument(
-        "--limb-axis", choices=AXES, default=AXES[0], help="what distances are measured along"
-    )
+    _add_measure_options(report)
     for name, default, what in (
         ("difference-ml", limits.limb_difference_ml, "inter-limb volume difference in mL"),
         ("difference-percent", limits.limb_difference_percent, "inter-limb difference in %%"),
@@ -371,6 +404,9 @@ def _apply_resume(args: argparse.Namespace, record: ScanRecord) -> None:
             f"scan {record.id} belongs to another subject code; resume it without --subject"
         )
     args.subject = record.subject
+    if args.side is not None and args.side != record.side:
+        raise UsageError(f"scan {record.id} records side {record.side}; resume it without --side")
+    args.side = record.side
     if args.out is None:
         args.out = Path(record.options["out"])
 
@@ -522,6 +558,7 @@ def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
         _scan_options(args),
         getattr(args, "extract", None),
         bool(getattr(args, "colour", False)),
+        args.side or SIDES[0],
     )
 
 
@@ -582,20 +619,26 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
 def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
     with _open_library(args.library) as library:
+        if args.set_side:
+            scan_id, side = args.set_side
+            if not scan_id.isdigit():
+                raise UsageError(f"--set-side {scan_id[:20]!r}: give a scan id, e.g. 3 left")
+            library.set_side(int(scan_id), side)
         summaries = library.scans()
         if not summaries:
             print(f"no scans in {library.path}")
             return 0
         print(
-            f"{'scan':>5}  {'subject':<12} {'created':<25} {'status':<10} sections  views  result"
+            f"{'scan':>5}  {'subject':<12} {'side':<5}  {'created':<25} {'status':<10} "
+            "sections  views  result"
         )
         for s in summaries:
             views = f"{s.received}/{s.views}"
             # Codes stored by an older Lamina may hold anything: never print it raw.
             subject, created, status = (printable(t) for t in (s.subject, s.created, s.status))
             print(
-                f"{s.id:>5}  {subject:<12} {created:<25} {status:<10} {s.sections:>8}  "
-                f"{views:>5}  {'yes' if s.has_result else 'no'}"
+                f"{s.id:>5}  {subject:<12} {s.side:<5}  {created:<25} {status:<10} "
+                f"{s.sections:>8}  {views:>5}  {'yes' if s.has_result else 'no'}"
             )
     return 0
 
@@ -604,7 +647,7 @@ def export(args: argparse.Namespace) -> int:
     """Run ``lamina export SCAN -o FILE``: the format follows the file's extension."""
     institution = check_institution(args.institution)
     with _open_library(args.library) as library:
-        path = export_scan(library, args.scan, args.out, institution)
+        path = export_scan(library, args.scan, args.out, institution, args.dicom_sop)
     print(f"wrote {path}")
     return 0
 
@@ -620,9 +663,16 @@ def batch(args: argparse.Namespace) -> int:
         check_count("--workers", args.workers, 1, 256)
     check_pattern(args.subjects)
     check_output(args.out)
+    from lamina_host.clinical import parse_landmark
+
+    measure = ClinicalMeasure(
+        _check_spacing(args.spacing_mm), parse_landmark(args.landmark), args.limb_axis
+    )
     with _open_library(args.library) as library:
         scan_ids = select_scans(library, args.subjects)
-        outcomes = run_batch(library, scan_ids, workers=args.workers, address=args.scheduler)
+        outcomes = run_batch(
+            library, scan_ids, measure, workers=args.workers, address=args.scheduler
+        )
     failed = [o for o in outcomes if o.error is not None]
     for outcome in failed:
         print(f"lamina: scan {outcome.scan_id} not measured: {printable(outcome.error or '')}",
@@ -667,8 +717,7 @@ def clinical_report(args: argparse.Namespace) -> int:
     limits += (args.flag_circumference_mm, args.flag_change_percent)
     if not all(math.isfinite(v) and v >= 0 for v in limits):
         raise UsageError("the --flag-... thresholds must be numbers of at least 0")
-    if not (math.isfinite(args.spacing_mm) and 1.0 <= args.spacing_mm <= 1000.0):
-        raise UsageError(f"--spacing-mm {args.spacing_mm} must be between 1 and 1000 mm")
+    _check_spacing(args.spacing_mm)
     outputs = [args.out] + ([args.csv] if args.csv else [])
     for path in outputs:
         if path.suffix.lower() not in (".pdf", ".png", ".csv"):

@@ -65,6 +65,8 @@ class ReportData:
     reference: LimbMeasurement | None = None
     comparison: Comparison | None = None
     visits: list[Visit] = field(default_factory=list)
+    side: str = "none"
+    reference_side: str = "none"
 
 
 def table_rows(m: LimbMeasurement, comparison: Comparison | None = None) -> list[dict[str, Any]]:
@@ -114,7 +116,7 @@ def _header_lines(data: ReportData) -> list[str]:
     device = data.device
     dev = " ".join(str(device.get(k, "")) for k in ("software", "hardware")).strip() or "unknown"
     lines = [
-        f"subject {printable(data.subject)}    scan {data.scan_id}    "
+        f"subject {printable(data.subject)}    side {data.side}    scan {data.scan_id}    "
         f"date {printable(data.created)[:19]}",
         f"device: {printable(dev)}",
         _calibration_line(data),
@@ -130,8 +132,10 @@ def _header_lines(data: ReportData) -> list[str]:
     c = data.comparison
     if c is not None:
         what = "excess over" if c.kind == "limbs" else "change from"
+        other = f" ({data.reference_side})" if data.reference_side != "none" else ""
         lines.append(
-            f"{what} scan {data.reference_id} (levels {c.span_mm[0]:g}..{c.span_mm[1]:g} mm): "
+            f"{what} scan {data.reference_id}{other} "
+            f"(levels {c.span_mm[0]:g}..{c.span_mm[1]:g} mm): "
             f"{c.difference_ml:+.1f} mL ({c.difference_percent:+.2f} %), "
             f"{c.volume_mm3 / 1000:.1f} vs {c.reference_volume_mm3 / 1000:.1f} mL"
         )
@@ -241,8 +245,15 @@ def _draw_visits(ax: Any, data: ReportData) -> None:
         ax.text(0.5, 0.5, "no other visit", ha="center", va="center", transform=ax.transAxes)
         return
     x = np.arange(len(data.visits))
-    ax.plot(x, [v.volume_ml for v in data.visits], "o-", color="tab:green")
+    colours = {"left": "tab:blue", "right": "tab:orange", "none": "tab:green"}
+    for side, colour in colours.items():
+        at = [k for k, v in enumerate(data.visits) if v.side == side]
+        if at:
+            volumes = [data.visits[k].volume_ml for k in at]
+            ax.plot(x[at], volumes, "o-", color=colour, label=side)
     ax.set_xticks(x, [f"{v.created[:10]}\n#{v.scan_id}" for v in data.visits], fontsize=6)
+    if len({v.side for v in data.visits}) > 1:
+        ax.legend(fontsize=6, loc="best")
     ax.grid(alpha=0.3)
 
 
@@ -312,13 +323,8 @@ def measure_stored(library: Library, scan_id: int, request: MeasureRequest) -> L
         raise ClinicalError(
             f"scan {scan_id} has not been processed: finish it with lamina scan --resume {scan_id}"
         )
-    interpolation = stored.get("options", {}).get("interpolation", "linear")
     return measure_limb(
-        sections_from_report(stored, scan_id),
-        request.spacing_mm,
-        request.landmark,
-        request.axis,
-        interpolation,
+        sections_from_report(stored, scan_id), request.spacing_mm, request.landmark, request.axis
     )
 
 
@@ -329,7 +335,7 @@ def subject_visits(library: Library, subject: str, request: MeasureRequest) -> l
     """
     if subject == "anonymous":
         return []
-    scans = []
+    scans, sides = [], {}
     for summary in library.scans():
         if summary.subject != subject or not summary.has_result:
             continue
@@ -339,7 +345,28 @@ def subject_visits(library: Library, subject: str, request: MeasureRequest) -> l
             )
         except ClinicalError:
             continue  # processed by an older Lamina, or not measurable at this landmark
-    return history(scans, request.thresholds)
+        sides[summary.id] = summary.side
+    return history(scans, request.thresholds, sides)
+
+
+def check_sides(kind: str, scan: tuple[int, str], reference: tuple[int, str]) -> None:
+    """Refuse (one line) comparing limbs of one side, or visits of two sides.
+
+    ``scan`` and ``reference`` are (scan id, side); side ``none`` is never refused.
+    """
+    (a_id, a_side), (b_id, b_side) = scan, reference
+    if "none" in (a_side, b_side):
+        return
+    if kind == "limbs" and a_side == b_side:
+        raise ClinicalError(
+            f"scans {a_id} and {b_id} are both {a_side} limbs: compare with a scan of the "
+            "other side, or use --compare-as visits"
+        )
+    if kind == "visits" and a_side != b_side:
+        raise ClinicalError(
+            f"scan {a_id} is a {a_side} limb and scan {b_id} a {b_side} one: compare visits "
+            "of one side, or use --compare-as limbs"
+        )
 
 
 def build_report_data(
@@ -354,9 +381,12 @@ def build_report_data(
     m = measure_stored(library, scan_id, request)
     stored = library.result(scan_id) or {}
     reference = comparison = None
+    reference_side = "none"
     if compare_id is not None:
         if compare_id == scan_id:
             raise ClinicalError("compare the scan with another scan, not with itself")
+        reference_side = library.scan(compare_id).side
+        check_sides(compare_as, (scan_id, record.side), (compare_id, reference_side))
         reference = measure_stored(library, compare_id, request)
         comparison = compare(m, reference, compare_as, request.thresholds)
     return ReportData(
@@ -370,4 +400,6 @@ def build_report_data(
         reference=reference,
         comparison=comparison,
         visits=subject_visits(library, record.subject, request),
+        side=record.side,
+        reference_side=reference_side,
     )

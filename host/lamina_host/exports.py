@@ -12,7 +12,14 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host.batch import reprocess
-from lamina_host.dicom import DicomContext, dicom_bytes, encapsulated_stl
+from lamina_host.dicom import (
+    DICOM_SOPS,
+    SURFACE_SCAN_MESH,
+    DicomContext,
+    dicom_bytes,
+    encapsulated_stl,
+    surface_scan_mesh,
+)
 from lamina_host.mesh import load_ply
 from lamina_host.record import record_bytes
 from lamina_host.store import EXPORT_FORMATS, Library, StoreError, check_new_file
@@ -21,8 +28,16 @@ EXPORTERS = (".dcm", ".lrec")
 """Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
 
 
-def export_scan(library: Library, scan_id: int, path: Path, institution: str = "") -> Path:
+def export_scan(
+    library: Library,
+    scan_id: int,
+    path: Path,
+    institution: str = "",
+    dicom_sop: str = next(iter(DICOM_SOPS)),
+) -> Path:
     """Write scan ``scan_id`` to the new file ``path`` in the format its extension names.
+
+    ``dicom_sop`` chooses the DICOM object of a ``.dcm`` (:data:`DICOM_SOPS`).
 
     Raises:
         StoreError: unknown extension, an existing file, or a scan without a result.
@@ -37,7 +52,7 @@ def export_scan(library: Library, scan_id: int, path: Path, institution: str = "
         )
     check_new_file(path)
     if suffix == ".dcm":
-        data = dicom_export(library, scan_id, institution)
+        data = dicom_export(library, scan_id, institution, dicom_sop)
     else:
         data = record_export(library, scan_id)
     return library.write_export(scan_id, path, data)
@@ -47,8 +62,10 @@ def _serial(identity: dict[str, Any]) -> str:
     return str(identity.get("serial") or identity.get("source") or "unknown")
 
 
-def dicom_export(library: Library, scan_id: int, institution: str = "") -> bytes:
-    """Return the scan's stored mesh as a DICOM Encapsulated STL file."""
+def dicom_export(
+    library: Library, scan_id: int, institution: str = "", sop: str = next(iter(DICOM_SOPS))
+) -> bytes:
+    """Return the scan's stored mesh as a DICOM file: Encapsulated STL or Surface Scan Mesh."""
     vertices, faces = load_ply(library.result_mesh(scan_id))
     record = library.scan(scan_id)
     context = DicomContext(
@@ -59,6 +76,10 @@ def dicom_export(library: Library, scan_id: int, institution: str = "") -> bytes
         _serial(record.identity),
         str(record.device.get("software", "")),
     )
+    if DICOM_SOPS[sop] == SURFACE_SCAN_MESH:
+        topology = (library.result(scan_id) or {}).get("mesh", {}).get("topology", {})
+        closed = bool(topology.get("watertight")) and bool(topology.get("two_manifold"))
+        return dicom_bytes(surface_scan_mesh(vertices, faces, context, closed))
     return dicom_bytes(encapsulated_stl(vertices, faces, context))
 
 

@@ -20,6 +20,10 @@ acquisitions. Schema 2 added the identity; a schema-1 library is migrated on ope
 its scans given a ``legacy`` identity rebuilt from what they recorded. Schema 3 lets a
 segment's blob carry its points' colour (``_segment_blob``): schema-2 data reads
 unchanged, and an older Lamina refuses the library instead of taking colour for damage.
+Schema 4 added the limb side of each scan (:data:`SIDES`: a clinic's history must tell
+the left arm from the right); older libraries are migrated on opening, their scans given
+side ``none`` (nothing else changes, so nothing is lost) until set with
+:meth:`Library.set_side`.
 """
 
 from __future__ import annotations
@@ -48,7 +52,9 @@ from lamina_shared.errors import LaminaError
 from lamina_shared.scoped import Scoped
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
+SIDES = ("none", "left", "right")
+"""The limb side a scan records; ``none`` for anything that is not one of a pair."""
 STATUSES = ("acquiring", "acquired", "processed")
 """A scan is ``acquiring`` until every planned view is held, ``processed`` once it has a result."""
 
@@ -66,7 +72,8 @@ CREATE TABLE IF NOT EXISTS scans (
     device TEXT NOT NULL,
     options TEXT NOT NULL,
     plans TEXT NOT NULL,
-    identity TEXT NOT NULL DEFAULT '{}'
+    identity TEXT NOT NULL DEFAULT '{}',
+    side TEXT NOT NULL DEFAULT 'none' CHECK (side IN ('none', 'left', 'right'))
 );
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,
@@ -129,6 +136,7 @@ class ScanSummary:
     views: int
     received: int
     has_result: bool
+    side: str = SIDES[0]
 
 
 @dataclass(frozen=True)
@@ -143,6 +151,7 @@ class ScanRecord:
     options: dict[str, Any]
     device: dict[str, Any]
     identity: dict[str, Any]
+    side: str = SIDES[0]
 
 
 @dataclass(frozen=True)
@@ -171,6 +180,13 @@ class ScanInputs:
     segments: list[Segment]
     options: dict[str, Any]
     device: dict[str, Any]
+
+
+def check_side(side: str) -> str:
+    """Return ``side`` if it is one of :data:`SIDES`, else raise StoreError (one line)."""
+    if side not in SIDES:
+        raise StoreError(f"limb side {side[:20]!r} must be one of {', '.join(SIDES)}")
+    return side
 
 
 def default_library_path() -> Path:
@@ -281,6 +297,8 @@ class Library(Scoped):
             with self._db:
                 if version == 1:
                     self._migrate_from_1()
+                if 1 <= version <= 3:
+                    self._migrate_side()
                 self._db.executescript(_SCHEMA)
                 self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
         except (sqlite3.Error, OSError) as exc:
@@ -295,6 +313,13 @@ class Library(Scoped):
             self._db.execute(
                 "UPDATE scans SET identity = ? WHERE id = ?", (json.dumps(identity), row["id"])
             )
+
+    def _migrate_side(self) -> None:
+        """Add the scans' limb side, ``none`` for every scan already recorded."""
+        self._db.execute(
+            "ALTER TABLE scans ADD COLUMN side TEXT NOT NULL DEFAULT 'none' "
+            "CHECK (side IN ('none', 'left', 'right'))"
+        )
 
     def leave(self) -> None:
         """Close the file at the end of a ``with`` block."""
@@ -313,16 +338,19 @@ class Library(Scoped):
         options: dict[str, Any] | None = None,
         device: dict[str, Any] | None = None,
         identity: dict[str, Any] | None = None,
+        side: str = SIDES[0],
     ) -> int:
         """Record a new scan of ``subject`` (a pseudonymous code); return its id.
 
         ``identity`` (:func:`lamina_host.workflow.scan_identity`) is what acquires it;
-        segments are then only accepted under the same identity.
+        segments are then only accepted under the same identity. ``side`` is the limb
+        scanned (:data:`SIDES`).
         """
         try:
             check_subject(subject)
         except InputError as exc:
             raise StoreError(str(exc)) from None
+        check_side(side)
         with self._db:
             self._db.execute(
                 "INSERT OR IGNORE INTO subjects (code, created) VALUES (?, ?)", (subject, _now())
@@ -331,8 +359,8 @@ class Library(Scoped):
                 "SELECT id FROM subjects WHERE code = ?", (subject,)
             ).fetchone()
             cursor = self._db.execute(
-                "INSERT INTO scans (subject_id, created, status, device, options, plans, identity) "
-                "VALUES (?, ?, 'acquiring', ?, ?, ?, ?)",
+                "INSERT INTO scans (subject_id, created, status, device, options, plans, identity, "
+                "side) VALUES (?, ?, 'acquiring', ?, ?, ?, ?, ?)",
                 (
                     subject_id,
                     _now(),
@@ -340,6 +368,7 @@ class Library(Scoped):
                     json.dumps(options or {}),
                     json.dumps({t: p.to_dict() for t, p in plans.items()}),
                     json.dumps(identity or {}, sort_keys=True),
+                    side,
                 ),
             )
         assert cursor.lastrowid is not None
@@ -364,6 +393,7 @@ class Library(Scoped):
             json.loads(row["options"]),
             json.loads(row["device"]),
             json.loads(row["identity"]),
+            row["side"],
         )
 
     def check_identity(self, scan_id: int, identity: dict[str, Any] | None) -> None:
@@ -397,7 +427,7 @@ class Library(Scoped):
     def scans(self) -> list[ScanSummary]:
         """Return every scan, oldest first."""
         rows = self._db.execute(
-            "SELECT scans.id, code, scans.created, status, plans, "
+            "SELECT scans.id, code, scans.created, status, plans, side, "
             "(SELECT COUNT(*) FROM segments WHERE scan_id = scans.id AND target = 'object') "
             "AS received, (SELECT COUNT(*) FROM results WHERE scan_id = scans.id) AS results "
             "FROM scans JOIN subjects ON subjects.id = subject_id ORDER BY scans.id"
@@ -417,9 +447,17 @@ class Library(Scoped):
                     len(views),
                     row["received"],
                     row["results"] > 0,
+                    row["side"],
                 )
             )
         return out
+
+    def set_side(self, scan_id: int, side: str) -> None:
+        """Record which limb scan ``scan_id`` is (:data:`SIDES`)."""
+        check_side(side)
+        self.scan(scan_id)
+        with self._db:
+            self._db.execute("UPDATE scans SET side = ? WHERE id = ?", (side, scan_id))
 
     def set_status(self, scan_id: int, status: str) -> None:
         """Set the scan's status (one of :data:`STATUSES`)."""

@@ -20,7 +20,7 @@ def scanned_library(tmp_path_factory: pytest.TempPathFactory) -> Path:
         [
             sys.executable, "-m", "lamina_host", "scan", "--device", "sim",
             "--object", "ellipsoid:a=10,b=6.5,c=20,z=-1", "--sections", "4", "--pitch", "2",
-            "--views", "6", "--subject", SUBJECT, "--library", str(library),
+            "--views", "6", "--subject", SUBJECT, "--side", "left", "--library", str(library),
             "-o", str(tmp / "scan"),
         ],
         capture_output=True,

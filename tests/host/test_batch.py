@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lamina_host.batch import BatchError, measure_scan, run_batch, select_scans
+from lamina_device.sim import parse_object
+from lamina_host.batch import BatchError, ClinicalMeasure, measure_scan, run_batch, select_scans
+from lamina_host.clinical import Landmark
 from lamina_host.store import Library
 
 COHORT = 20
@@ -71,14 +73,16 @@ def test_batch_matches_serial_measurements(cohort: Path, tmp_path: Path) -> None
     out = tmp_path / "table.csv"
     done = lamina(
         "batch", "--library", str(cohort), "--subjects", "P*", "--measure", "-o", str(out),
-        "--workers", "2",
+        "--workers", "2", "--spacing-mm", "2", "--landmark", "bottom",
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert stat.S_IMODE(out.stat().st_mode) == 0o600
     rows = read_table(out)
     with Library(cohort) as library:
         ids = select_scans(library, "P*")
-        serial = [measure_scan(library.inputs(scan_id)) for scan_id in ids]
+        measure = ClinicalMeasure(2.0, Landmark("bottom"))
+        serial = [measure_scan(library.inputs(scan_id), measure) for scan_id in ids]
+        truth = parse_object(library.scan(ids[0]).options["object"])
     assert len(ids) == COHORT  # the Q scans and the incomplete P999 are left out
     expected = [{"scan": o.scan_id, "subject": o.subject, **row} for o in serial for row in o.rows]
     assert len(rows) == len(expected) >= 4 * COHORT
@@ -89,10 +93,24 @@ def test_batch_matches_serial_measurements(cohort: Path, tmp_path: Path) -> None
             if isinstance(value, float):
                 assert math.isclose(float(got[key]), value, rel_tol=1e-9), key
             else:
-                assert got[key] == str(value)
+                assert got[key] == ("" if value is None else str(value))
+    # The clinical table: levels 2 mm apart from the lowest section, each scan's volumes.
+    assert [float(r["offset_mm"]) for r in rows if r["subject"] == "P000"] == [0, 2, 4, 6]
+    # The unscaled scan's circumferences are the true ellipsoid's (its surface at the level).
+    for row in (r for r in rows if r["subject"] == "P000"):
+        outline = truth.section_outline(float(row["z_mm"]))[0]
+        true_mm = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1).sum()
+        assert float(row["circumference_mm"]) == pytest.approx(true_mm, abs=0.1)
     # The scans really differ: the scaled rows give growing outlines.
-    first = [float(r["perimeter_mm"]) for r in rows if r["section"] == "0"]
+    first = [float(r["circumference_mm"]) for r in rows if r["level"] == "0"]
     assert len(first) == COHORT and first[-1] > first[0] * 1.01
+    volumes = [float(r["volume_ml"]) for r in rows if r["level"] == "0"]
+    assert all(
+        math.isclose(v, m, rel_tol=0.01)
+        for v, m in zip(
+            volumes, [float(r["mesh_volume_ml"]) for r in rows if r["level"] == "0"], strict=True
+        )
+    )
 
 
 def test_batch_on_a_distributed_cluster_gives_the_same_rows(cohort: Path) -> None:
@@ -109,7 +127,11 @@ def test_batch_on_a_distributed_cluster_gives_the_same_rows(cohort: Path) -> Non
         assert got.error is None and len(got.rows) == len(want.rows)
         for a, b in zip(got.rows, want.rows, strict=True):
             assert a.keys() == b.keys()
-            assert all(math.isclose(a[k], b[k], rel_tol=1e-9) for k in a)
+            for k in a:
+                if isinstance(b[k], float):
+                    assert math.isclose(a[k], b[k], rel_tol=1e-9), k
+                else:
+                    assert a[k] == b[k], k
 
 
 def test_select_refuses_bad_patterns_and_empty_matches(cohort: Path) -> None:

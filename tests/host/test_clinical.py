@@ -227,6 +227,34 @@ def test_history_orders_visits_and_measures_change_from_baseline() -> None:
     assert visits[1].flags
 
 
+def test_history_follows_each_side_and_gives_the_excess_over_the_other() -> None:
+    """Left and right have their own baselines; each visit's excess is over the other limb."""
+    right = measure_limb(cone(40.0, 50.0, 300.0, 10.0))
+    left_1 = measure_limb(cone(40.0 * 1.05, 50.0 * 1.05, 300.0, 10.0))
+    left_2 = measure_limb(cone(40.0 * 1.10, 50.0 * 1.10, 300.0, 10.0))
+    visits = history(
+        [
+            (5, "2026-04-01T10:00:00", left_2),
+            (1, "2026-01-05T09:00:00", right),
+            (2, "2026-01-05T09:30:00", left_1),
+        ],
+        sides={1: "right", 2: "left", 5: "left"},
+    )
+    assert [(v.scan_id, v.side) for v in visits] == [(1, "right"), (2, "left"), (5, "left")]
+    # Each side is its own baseline: the first left scan has no change.
+    assert visits[0].change_ml == 0.0 and visits[1].change_ml == 0.0
+    assert visits[2].change_percent == pytest.approx(100 * ((1.10 / 1.05) ** 2 - 1), rel=1e-4)
+    # Excess of the left limb over the (only) right scan: 1.05^2 and 1.10^2 of its volume.
+    assert visits[1].excess_over == 1
+    assert visits[1].excess_percent == pytest.approx(100 * (1.05**2 - 1), rel=1e-4)
+    assert visits[2].excess_percent == pytest.approx(100 * (1.10**2 - 1), rel=1e-4)
+    assert visits[0].excess_over == 2  # the right limb against the left scan nearest in time
+    assert visits[0].excess_percent == pytest.approx(100 * (1 / 1.05**2 - 1), rel=1e-4)
+    assert any(f.startswith("left over right scan 1") for f in visits[2].flags)
+    unsided = history([(1, "2026-01-05T09:00:00", right), (2, "2026-01-06T09:00:00", left_1)])
+    assert math.isnan(unsided[1].excess_ml) and unsided[1].change_percent > 0
+
+
 def test_landmark_parsing_and_reports_without_efd() -> None:
     """Landmarks by name or height; a report without EFD coefficients is refused."""
     assert parse_landmark("distal") == Landmark("distal")

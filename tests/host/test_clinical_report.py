@@ -195,3 +195,30 @@ def test_report_from_an_older_library_asks_for_reprocessing(tmp_path: Path, caps
     assert "process it again" in capsys.readouterr().err
     with sqlite3.connect(path) as db:
         assert db.execute("SELECT COUNT(*) FROM scans").fetchone()[0] == 1
+
+
+def test_sides_steer_the_comparison_and_the_history(library_path: Path, tmp_path: Path, capsys):
+    """Scan 1 right, 2 and 3 left: limbs compare across sides, visits within one side."""
+    with Library(library_path) as library:
+        library.set_side(1, "right")
+        library.set_side(2, "left")
+        library.set_side(3, "left")
+    out = tmp_path / "report.pdf"
+    argv = ["report", "2", "--compare", "1", "--library", str(library_path), "-o", str(out)]
+    assert main(argv) == 0
+    text = pdf_text(out.read_bytes())
+    assert "side left" in text and "excess over scan 1 (right)" in text
+    same = ["report", "3", "--compare", "2", "--library", str(library_path)]
+    assert main([*same, "-o", str(tmp_path / "same.pdf")]) == 2
+    assert "both left limbs" in capsys.readouterr().err
+    assert main([*same, "--compare-as", "visits", "-o", str(tmp_path / "visit.pdf")]) == 0
+    with Library(library_path) as library:
+        data = build_report_data(library, 3, MeasureRequest(landmark=Landmark("bottom")))
+        left_1 = measure_limb(sections_from_report(library.result(2) or {}))
+        right = measure_limb(sections_from_report(library.result(1) or {}))
+    visits = {v.scan_id: v for v in data.visits}
+    assert visits[2].change_ml == 0.0  # the first left scan is the left baseline
+    assert visits[3].change_ml == pytest.approx(compare(data.measurement, left_1).difference_ml)
+    # Scan 3 (April) is compared with the only right scan (January); scan 1 with scan 2.
+    assert visits[3].excess_over == 1 and visits[1].excess_over == 2
+    assert visits[3].excess_ml == pytest.approx(compare(data.measurement, right).difference_ml)

@@ -19,10 +19,12 @@ import pytest
 
 from lamina_host.dicom import (
     ENCAPSULATED_STL,
+    SURFACE_SCAN_MESH,
     DicomContext,
     dicom_bytes,
     encapsulated_stl,
     read_stl_triangles,
+    read_surface_mesh,
 )
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import load_ply, tube_mesh
@@ -43,6 +45,12 @@ def lamina(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "lamina_host", *args], capture_output=True, text=True, timeout=300
     )
+
+
+def export_scan_1(library: Path, out: Path, *options: str) -> None:
+    """Export scan 1 of ``library`` to ``out`` with ``lamina export``; it must succeed."""
+    done = lamina("export", "1", "-o", str(out), "--library", str(library), *options)
+    assert done.returncode == 0, done.stderr
 
 
 def dciodvfy(path: Path) -> tuple[list[str], list[str]]:
@@ -89,11 +97,7 @@ def test_every_export_of_a_scan_shares_its_study_and_series() -> None:
 @needs_dciodvfy
 def test_cli_exports_a_scan_as_dicom(scanned_library: Path, tmp_path: Path) -> None:
     out = tmp_path / "scan1.dcm"
-    done = lamina(
-        "export", "1", "-o", str(out), "--library", str(scanned_library),
-        "--institution", "Lamina Test Clinic",
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
+    export_scan_1(scanned_library, out, "--institution", "Lamina Test Clinic")
     assert stat.S_IMODE(out.stat().st_mode) == 0o600
     errors, warnings = dciodvfy(out)
     print("dciodvfy warnings:", warnings)
@@ -107,6 +111,39 @@ def test_cli_exports_a_scan_as_dicom(scanned_library: Path, tmp_path: Path) -> N
         vertices, faces = load_ply(library.result_mesh(1))
     triangles = read_stl_triangles(str(out))
     assert len(faces) > 100 and np.array_equal(triangles, vertices[faces])
+
+
+def test_cli_exports_a_surface_scan_mesh_that_reads_back_exactly(
+    scanned_library: Path, tmp_path: Path
+) -> None:
+    """``--dicom-sop surface-scan``: the experimental Surface Scan Mesh, the mesh kept exactly.
+
+    dciodvfy (dicom3tools 2022) has no definition of this IOD, so it can only say so; if
+    a later one knows it, it must find no error.
+    """
+    out = tmp_path / "scan1-oss.dcm"
+    export_scan_1(scanned_library, out, "--dicom-sop", "surface-scan")
+    ds = pydicom.dcmread(out)
+    assert ds.SOPClassUID == SURFACE_SCAN_MESH and ds.Modality == "OSS"
+    assert ds.PatientID == SUBJECT and str(ds.PatientName) == ""
+    surface = ds.SurfaceSequence[0]
+    assert ds.NumberOfSurfaces == 1 and surface.SurfaceNumber == 1
+    with Library(scanned_library) as library:
+        vertices, faces = load_ply(library.result_mesh(1))
+        topology = (library.result(1) or {})["mesh"]["topology"]
+    watertight = topology["watertight"] and topology["two_manifold"]
+    assert surface.FiniteVolume == ("YES" if watertight else "UNKNOWN")
+    got_vertices, got_faces = read_surface_mesh(str(out))
+    assert np.array_equal(got_vertices, vertices.astype(np.float32))
+    assert np.array_equal(got_faces, faces) and len(faces) > 100
+    # DICOM numbers surface points from 1.
+    index = np.frombuffer(
+        surface.SurfaceMeshPrimitivesSequence[0].LongTrianglePointIndexList, "<u4"
+    )
+    assert index.min() == 1 and index.max() == len(vertices)
+    if DCIODVFY is not None:
+        errors, _ = dciodvfy(out)
+        assert errors in ([], ["Error - Information Object Not found"]), errors
 
 
 def test_cli_refuses_bad_export_requests_in_one_line(scanned_library: Path, tmp_path: Path) -> None:

@@ -8,18 +8,24 @@ record holds what a real limb scan gives it.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from lamina_host.axis import AxisCalibration
 from lamina_host.calibration import GridCalibration, Homography
-from lamina_host.efd import align
+from lamina_host.clinical import LimbSection, measure_limb, sections_from_reconstruction
+from lamina_host.efd import EllipticFourier, align
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.mesh import signed_volume
 from lamina_host.outliers import OutlierRules
 from lamina_host.pipeline import (
     ProcessOptions,
     Reconstruction,
+    Section,
     build_mesh,
     fit_groups,
     outline_groups,
@@ -118,3 +124,59 @@ def test_damaged_or_foreign_bytes_are_refused_in_one_line(limb) -> None:
         assert "\n" not in str(info.value)
     with pytest.raises(RecordError, match="newer Lamina"):
         load_record(data[:4] + b"\x09" + data[5:])
+
+
+SIMULATED_SCAN = Path(__file__).resolve().parent / "data" / "arm40_sections.json"
+"""The outlines of a real simulated limb scan, taken from its report.json: ``lamina scan
+--device sim --rig limb --object arm:scale=5,z=20 --noise harsh --distortion --sections 40
+--pitch 3 --views 8`` (each outline's EFD as the pipeline fitted it, height, status and
+segment count; the scan's calibration, axis and processing options)."""
+
+
+def simulated_scan() -> tuple[Reconstruction, dict]:
+    """Return the simulated scan as a reconstruction (outlines and contour mesh) and its report."""
+    report = json.loads(SIMULATED_SCAN.read_text())
+    options = ProcessOptions.from_dict(report["options"])
+    sections = []
+    for row in report["sections"]:
+        efd = EllipticFourier.from_dict(row["efd"])
+        contour = efd.evaluate(options.outline_points)
+        sections.append(
+            Section(row["section"], row["z_mm"], row["segments"], np.empty((0, 2)), efd,
+                    contour, row["part"], status=row["status"])
+        )  # fmt: skip
+    vertices, faces, _ = build_mesh(sections, options)
+    grid = SimpleNamespace(to_dict=lambda: report["calibration"])
+    axis = SimpleNamespace(to_dict=lambda: report["axis"])
+    result = Reconstruction(grid, axis, sections, vertices, faces, {}, options=options)  # type: ignore[arg-type]
+    return result, report
+
+
+def test_a_real_40_section_simulated_limb_scan_fits_10_kb_and_remeasures_within_0_1_percent():
+    """The record of a real simulated 40-section forearm scan: within 10 KB, and the clinical
+    measurements (lamina report's) and the mesh volume rebuilt from it within 0.1 %."""
+    result, report = simulated_scan()
+    assert len(result.sections) == 40
+    data = record_bytes(result, 40, "P040", "2026-11-29T15:30:00+00:00")
+    harmonics = [s.harmonics for s in result.sections]
+    print(f"simulated scan record {len(data)} bytes, harmonics {min(harmonics)}-{max(harmonics)}")
+    assert len(data) <= 10 * 1024
+    record = load_record(data)
+    assert record.calibration["matrix"] == report["calibration"]["matrix"]
+    assert record.axis["axis_xy_mm"] == report["axis"]["axis_xy_mm"]
+    original = measure_limb(sections_from_reconstruction(result), 40.0)
+    rebuilt = measure_limb(
+        [LimbSection(s.z_mm, s.efd, s.status) for s in record.sections() if s.part == 0], 40.0
+    )
+    assert rebuilt.volume_mm3 == pytest.approx(original.volume_mm3, rel=1e-3)
+    assert rebuilt.frustum_volume_mm3 == pytest.approx(original.frustum_volume_mm3, rel=1e-3)
+    assert [lv.offset_mm for lv in rebuilt.levels] == [lv.offset_mm for lv in original.levels]
+    assert len(original.levels) >= 3
+    for again, first in zip(rebuilt.levels, original.levels, strict=True):
+        assert again.circumference_mm == pytest.approx(first.circumference_mm, rel=1e-3)
+    for again, first in zip(rebuilt.segments, original.segments, strict=True):
+        assert again.volume_mm3 == pytest.approx(first.volume_mm3, rel=1e-3)
+    volume = signed_volume(result.vertices, result.faces)
+    assert record.mesh_volume_mm3() == pytest.approx(volume, rel=1e-3)
+    # The measurements are the forearm's: the scan's own stack volume, as the pipeline stored it.
+    assert volume == pytest.approx(report["mesh"]["topology"]["volume_mm3"], rel=1e-3)

@@ -158,3 +158,54 @@ def test_cli_lists_and_refuses_with_one_line(tmp_path):
     assert refused.stderr.strip().splitlines() == [
         "lamina: scan 1 has no result yet: finish it with lamina scan --resume 1"
     ]
+
+
+def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):
+    """Opening a schema-2 library adds side ``none`` to every scan; segments stay intact."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as lib:
+        first = lib.create_scan("P-01", PLANS)
+        lib.add_segment(first, 0, segment(0))
+        second = lib.create_scan("P-01", PLANS)
+    with sqlite3.connect(path) as db:  # back to schema 2: no side column
+        db.execute("ALTER TABLE scans DROP COLUMN side")
+        db.execute("PRAGMA user_version=2")
+        before = [tuple(r) for r in db.execute("SELECT * FROM scans ORDER BY id")]
+        held = db.execute("SELECT data FROM segments").fetchall()
+    with Library(path) as lib:
+        assert [(s.id, s.side) for s in lib.scans()] == [(first, "none"), (second, "none")]
+        assert lib.scan(first).side == "none"
+        kept = lib.segments(first, "object")
+        assert len(kept) == 1 and np.array_equal(kept[0].rows, segment(0).rows)
+        lib.set_side(second, "right")
+        third = lib.create_scan("P-01", PLANS, side="left")
+        assert [s.side for s in lib.scans()] == ["none", "right", "left"]
+        with pytest.raises(StoreError, match="must be one of none, left, right"):
+            lib.create_scan("P-01", PLANS, side="both")
+        with pytest.raises(StoreError, match="no scan"):
+            lib.set_side(99, "left")
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 4
+        after = [tuple(r)[:-1] for r in db.execute("SELECT * FROM scans WHERE id < ?", (third,))]
+        assert after == before
+        assert db.execute("SELECT data FROM segments").fetchall() == held
+
+
+def test_cli_sets_and_lists_the_side(tmp_path):
+    """``lamina scans --set-side SCAN SIDE`` records it; a bad side is one line."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as lib:
+        scan_id = lib.create_scan("P-02", PLANS)
+    done = lamina("scans", "--library", str(path), "--set-side", str(scan_id), "left")
+    assert done.returncode == 0, done.stderr
+    assert "P-02         left" in done.stdout
+    bad = lamina("scans", "--library", str(path), "--set-side", str(scan_id), "both")
+    assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1
+    assert "must be one of" in bad.stderr
+
+
+def test_lamina_scan_records_the_side_it_is_given(scanned_library):
+    """``lamina scan --side left`` (the shared scanned library) stores side left."""
+    with Library(scanned_library) as lib:
+        assert lib.scan(1).side == "left"
+        assert [s.side for s in lib.scans()] == ["left"]

@@ -5,9 +5,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from drive import open_first_scan, wait_for
 from textual.widgets import DataTable, Input, Static
+from textual_plotext import PlotextPlot
 
 from lamina_host.tui.app import LaminaApp
 from lamina_host.tui.clinical_view import ClinicalView
@@ -31,6 +33,15 @@ async def test_measure_key_shows_circumferences_of_the_processed_scan(
         assert levels.row_count == len(view.measurement.levels) >= 1
         for level in view.measurement.levels:
             assert level.circumference_mm == pytest.approx(math.pi * DIAMETER_MM, abs=0.1)
+        # The report's other plots: the outlines at the levels, the subject's visits.
+        outlines = view.query_one("#clinical-outlines", PlotextPlot).plt
+        drawn = list(zip(outlines.monitor.x, outlines.monitor.y, strict=True))
+        assert len(drawn) == len(view.measurement.levels)
+        for xs, ys in drawn:
+            x, y = np.asarray(xs)[:-1], np.asarray(ys)[:-1]  # drawn closed: first point twice
+            radius = np.hypot(x - x.mean(), y - y.mean())
+            assert radius == pytest.approx(DIAMETER_MM / 2.0, abs=0.1)
+        assert [v.scan_id for v in view.visits] == [1]  # the library's one scan
         # A landmark outside the scan is refused in one line; the table is kept.
         view.query_one("#landmark", Input).value = "500"
         view.set_focus(view.query_one("#landmark", Input))

@@ -1,9 +1,10 @@
 """The clinical measurements of the processed scan on the Results screen (key ``m``).
 
-A modal view over the Results screen: the circumference profile along the axis
-(textual-plotext), the table of levels from the landmark, and the volumes. The landmark
-is typed (distal, bottom, top or a height in mm) or taken from the section picked in the
-Results table (key ``k``).
+A modal view over the Results screen: the table of levels from the landmark, the volumes
+and the report's three plots (textual-plotext): the circumference profile along the axis,
+the outlines at the levels, and the volume over the subject's visits (per side). The
+landmark is typed (distal, bottom, top or a height in mm) or taken from the section picked
+in the Results table (key ``k``).
 """
 
 from __future__ import annotations
@@ -25,9 +26,13 @@ from lamina_host.clinical import (
     ClinicalError,
     LimbMeasurement,
     LimbSection,
+    Visit,
     measure_limb,
     parse_landmark,
 )
+
+OUTLINE_POINTS = 90
+"""Samples per outline in the terminal plot (a few per character cell)."""
 
 LEVEL_COLUMNS = ("from mark mm", "z mm", "circ mm", "segment mL", "frustum mL", "source")
 
@@ -57,13 +62,21 @@ class ClinicalView(ModalScreen[None]):
     #clinical-main { height: 1fr; }
     #levels { width: 66; height: 1fr; }
     #clinical-profile { width: 1fr; height: 1fr; }
+    #clinical-plots { height: 1fr; }
+    #clinical-outlines, #clinical-visits { width: 1fr; height: 1fr; }
     #clinical-summary { height: auto; }
     """
 
-    def __init__(self, sections: Sequence[LimbSection], picked_z_mm: float | None = None) -> None:
+    def __init__(
+        self,
+        sections: Sequence[LimbSection],
+        picked_z_mm: float | None = None,
+        visits: Sequence[Visit] = (),
+    ) -> None:
         super().__init__()
         self.sections = list(sections)
         self.picked_z_mm = picked_z_mm
+        self.visits = list(visits)
         self.measurement: LimbMeasurement | None = None
 
     def compose(self) -> ComposeResult:
@@ -77,11 +90,15 @@ class ClinicalView(ModalScreen[None]):
             with Horizontal(id="clinical-main"):
                 yield DataTable(id="levels", cursor_type="row", zebra_stripes=True)
                 yield PlotextPlot(id="clinical-profile")
+            with Horizontal(id="clinical-plots"):
+                yield PlotextPlot(id="clinical-outlines")
+                yield PlotextPlot(id="clinical-visits")
             yield Static("", id="clinical-summary")
 
     def on_mount(self) -> None:
         """Measure with the defaults."""
         self.query_one("#levels", DataTable).add_columns(*LEVEL_COLUMNS)
+        self._draw_visits()
         self.remeasure()
 
     def action_use_picked(self) -> None:
@@ -135,4 +152,30 @@ class ClinicalView(ModalScreen[None]):
             [lv.z_mm for lv in m.levels], [lv.circumference_mm for lv in m.levels], marker="o"
         )
         plot.refresh()
+        self._draw_outlines(m)
         self.query_one("#clinical-summary", Static).update(summary_lines(m))
+
+    def _draw_outlines(self, m: LimbMeasurement) -> None:
+        """Draw the outline at every level, as the report does."""
+        plot = self.query_one("#clinical-outlines", PlotextPlot)
+        plt = plot.plt
+        plt.clear_data()
+        plt.title("outlines at the levels")
+        for level in m.levels:
+            xy = m.stack.section(level.z_mm).evaluate(OUTLINE_POINTS)
+            closed = [*xy, xy[0]]
+            plt.plot([p[0] for p in closed], [p[1] for p in closed], marker="braille",
+                     label=f"{level.offset_mm:g}")  # fmt: skip
+        plot.refresh()
+
+    def _draw_visits(self) -> None:
+        """Draw the volume over the subject's visits, one line per side."""
+        plot = self.query_one("#clinical-visits", PlotextPlot)
+        plt = plot.plt
+        plt.clear_data()
+        plt.title("volume over visits (mL)")
+        for side in ("left", "right", "none"):
+            at = [(k, v) for k, v in enumerate(self.visits) if v.side == side]
+            if at:
+                plt.plot([k for k, _ in at], [v.volume_ml for _, v in at], marker="o", label=side)
+        plot.refresh()

@@ -30,7 +30,7 @@ from lamina_host.files import PRIVATE_FOLDER, OutputError, replace_file
 from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
 from lamina_host.pipeline import ProcessOptions, assemble, calibrate_axis, reconstruct
 from lamina_host.report import build_report, save_segments, write_outputs
-from lamina_host.store import Library, ScanSummary
+from lamina_host.store import SIDES, Library, ScanSummary, check_side
 from lamina_host.workflow.checks import (
     InputError,
     check_plan_limits,
@@ -88,6 +88,7 @@ class ScanRequest:
         options: what the library records with the scan (what a resume must repeat).
         extract: per-scan extraction settings for the device; None leaves the device's own.
         colour: ask for each object point's colour (the device must say it can).
+        side: the limb scanned, one of :data:`lamina_host.store.SIDES`.
     """
 
     subject: str
@@ -96,9 +97,11 @@ class ScanRequest:
     options: Mapping[str, Any] = field(default_factory=dict)
     extract: ExtractChanges | None = None
     colour: bool = False
+    side: str = SIDES[0]
 
     def __post_init__(self) -> None:
         check_subject(self.subject)
+        check_side(self.side)
         if self.cylinder_mm is not None:
             check_positive_mm("cylinder diameter", self.cylinder_mm, 1000.0)
 
@@ -424,7 +427,7 @@ class ScanJob:
         data = self.data
         with self._library() as library:
             scan_id = library.create_scan(
-                request.subject, plans, dict(request.options), data.device, identity
+                request.subject, plans, dict(request.options), data.device, identity, request.side
             )
             if data.grid_image is not None and data.board is not None:
                 library.save_calibration(scan_id, data.grid_image, data.board, diameter, identity)

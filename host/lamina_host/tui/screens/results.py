@@ -13,11 +13,14 @@ from textual.containers import Horizontal
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 from textual_plotext import PlotextPlot
 
+from lamina_host.clinical import Visit
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
+from lamina_host.store import Library
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins
+from lamina_shared.errors import LaminaError
 
 COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
@@ -146,8 +149,23 @@ class ResultsScreen(LaminaScreen):
         row = self.query_one("#sections", DataTable).cursor_row
         picked = results.rows[row].z_mm if 0 <= row < len(results.rows) else None
         self.app.push_screen(
-            ClinicalView(sections_from_reconstruction(results.reconstruction), picked)
+            ClinicalView(
+                sections_from_reconstruction(results.reconstruction), picked, self._visits()
+            )
         )
+
+    def _visits(self) -> list[Visit]:
+        """Return the visits of the open scan's subject in the library (none if unsaved)."""
+        from lamina_host.clinical_report import MeasureRequest, subject_visits
+
+        scan_id, path = self.session.scan_id, self.session.library_path
+        if scan_id is None:
+            return []
+        try:
+            with Library(path) as library:
+                return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
+        except LaminaError:
+            return []  # the view still measures this scan; only the history is missing
 
     def action_leave_field(self) -> None:
         """Leave the text field so the screen's keys work again."""

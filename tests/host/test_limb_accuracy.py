@@ -1,0 +1,76 @@
+"""Limb-scale accuracy (issue #13): a residual limb's rounded end, scanned end to end.
+
+The stump phantom at limb scale (``stump:scale=5``) moved down 50 mm so that six sections
+10 mm apart cover the last straight centimetre and the whole rounded end, on the limb rig
+with the harsh preset and 8 views: the same geometry as the top of ``bench_limb``'s full
+stump, at half its size. The measurements are compared with the simulator's truth by the
+bench's own functions (``tests/benchmarks/bench_limb.py``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from lamina_device.sim import parse_object
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_limb.py"
+SPEC, SECTIONS = "stump:scale=5,z=-50", 6
+
+
+def bench_limb() -> ModuleType:
+    """Load the limb bench module (its truths and measurements)."""
+    spec = importlib.util.spec_from_file_location("bench_limb", BENCH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bench_limb", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def stump(tmp_path_factory: pytest.TempPathFactory) -> tuple[ModuleType, dict, Path]:
+    """Scan the stump's end once; return the bench module, the figures and the output."""
+    bench = bench_limb()
+    tmp = tmp_path_factory.mktemp("stump")
+    _, error = bench._scan(SPEC, SECTIONS, tmp / "scan", tmp / "library.sqlite")
+    assert error == ""
+    report = json.loads((tmp / "scan" / "report.json").read_text())
+    return bench, bench.measure(SPEC, report), tmp / "scan"
+
+
+def test_the_stump_volume_and_surface_are_within_the_clinical_limits(stump) -> None:
+    """Volume within 0.5 % of the truth over the scanned range; contours within 0.08 mm."""
+    bench, figures, out = stump
+    print({k: v for k, v in figures.items() if k != "levels"})
+    assert abs(figures["volume_error_percent"]) <= 0.5
+    # Straight lines between sections cut the dome's corners (about -0.8 % here).
+    assert figures["linear_volume_error_percent"] < figures["volume_error_percent"]
+    distance = bench.surface_distance(parse_object(SPEC), bench.points_ply(out))
+    assert distance["aligned_mm"] <= 0.08 and distance["direct_mm"] <= 0.08
+
+
+def test_circumferences_below_the_grazing_top_section_are_within_1_mm(stump) -> None:
+    """Every level but the distal one (the top section, 5 mm below the apex) within 1 mm."""
+    _, figures, _ = stump
+    levels = figures["levels"]
+    assert levels[0]["offset_mm"] == 0.0 and levels[0]["z_mm"] == 50.0  # the distal end
+    assert len(levels) == 3
+    for level in levels[1:]:
+        assert abs(level["error_mm"]) <= 1.0, level
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: the section 5 mm below the apex, lit at grazing incidence, reads about "
+    "1.6 mm too large in circumference (README, Accuracy at limb scale)",
+)
+def test_the_distal_level_on_the_grazing_top_section_is_within_1_mm(stump) -> None:
+    """The distal level sits on the top section; its circumference should be within 1 mm."""
+    _, figures, _ = stump
+    assert abs(figures["levels"][0]["error_mm"]) <= 1.0
