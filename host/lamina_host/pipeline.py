@@ -30,6 +30,7 @@ from lamina_host.calibration import (
     GridCalibration,
     calibrate_grid,
 )
+from lamina_host.clinical import CLINICAL_INTERPOLATION
 from lamina_host.coverage import Coverage, measure_coverage
 from lamina_host.efd import (
     HARMONIC_RULES,
@@ -82,7 +83,8 @@ class ProcessOptions:
         split_gap_mm: outlines further apart than this are fitted separately; None keeps
             one outline per section (thesis).
         mesh: one of ``MESH_METHODS``.
-        interpolation: how the contour mesh interpolates EFD coefficients along z.
+        interpolation: how the contour mesh interpolates EFD coefficients along z (default:
+            the clinical measurements' own, so mesh and contour-stack volumes agree).
         reject_outliers: reject points outside the working volume, stripe spikes, points
             the overlapping views contradict and outlines too poorly supported
             (``lamina_host.outliers``); False assembles every point (thesis).
@@ -107,7 +109,7 @@ class ProcessOptions:
     efd_parameter: str = PARAMETERS[0]
     split_gap_mm: float | None = DEFAULT_SPLIT_GAP_MM
     mesh: str = MESH_METHODS[0]
-    interpolation: str = INTERPOLATIONS[0]
+    interpolation: str = CLINICAL_INTERPOLATION
     per_view_angles: bool = True
     reject_outliers: bool = True
     working_radius_mm: float | None = None
@@ -627,13 +629,19 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
 def mesh_contours(
     sections: list[Section], points: int, interpolation: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh each chain of outlines as a closed tube of aligned EFD contours."""
+    """Mesh each chain of outlines as a closed tube of aligned EFD contours.
+
+    Between sections the tube follows ``interpolation``: where it curves along z (PCHIP
+    over a rounded end) rings interpolated by it are inserted (``EfdStack.ring_heights``),
+    so the mesh encloses the volume the clinical measurements integrate.
+    """
     verts, faces, offset = [], [], 0
     for chain in chain_outlines(sections):
         stack_ = EfdStack.from_sections(
             [s.z_mm for s in chain], [s.efd for s in chain], interpolation
         )
-        v, f = tube_mesh(stack_.sample(points), stack_.z_mm)
+        heights, _ = stack_.ring_heights()
+        v, f = tube_mesh(stack_.sample(points, heights), heights)
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)
