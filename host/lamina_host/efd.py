@@ -416,15 +416,17 @@ SMOOTH_MIN_SECTIONS = 5
 """Cross-validated smoothing needs at least this many sections; fewer are interpolated."""
 
 RING_SAG_MM = 0.01
-"""How far a contour mesh may stray from the interpolated surface between its rings.
+"""How far, on average round the outline, a contour mesh may fall inside the interpolated
+surface between its rings.
 
 A mesh is straight along z between rings, so where the interpolation curves (PCHIP or the
 smoothing spline over a rounded end) it cuts inside the curve by the sagitta; the volume
-it loses in a slab is about 2/3 of the sagitta times the outline's perimeter and height.
-Against the slab's own volume that is 4 sag / (3 r) for an outline of radius r: at
-0.01 mm, 0.03 % for a 40 mm radius, within the 0.05 % the mesh must agree with the stack
-(issue #13), and far below the scanner's own noise, so the rings follow the measurements'
-surface rather than add detail of their own."""
+it loses in a slab is about 2/3 of the sagitta times the outline's perimeter and the
+slab's height, a share 4 sag / (3 r) of the slab for an outline of radius r: at 0.01 mm,
+0.03 % for a 40 mm radius, within the 0.05 % the mesh must agree with the stack
+(issue #13). On the simulated stump (``stump:scale=5``, 11 sections at 10 mm) the mesh
+holds -0.014 % against the stack with 36 000 faces (0.02 mm: -0.024 %, 27 000 faces;
+straight joins: -0.37 %, 11 000 faces)."""
 
 MAX_RINGS_PER_SLAB = 16
 """Cap on the sub-slabs between two sections (a sagitta of 2.5 mm still meets RING_SAG_MM)."""

@@ -8,7 +8,7 @@ the EFD sections stored in report.json (PCHIP along z, the clinical default):
 - ``vol %``: the contour-stack volume over the scanned range against the true volume
   over the same range (the true shape's cross-section areas integrated between the true
   heights of the first and last section, 0.5 mm Simpson steps); ``linear %`` is the same
-  with the EFD coefficients interpolated linearly (what the contour mesh does);
+  with the EFD coefficients interpolated linearly (straight joins between sections);
 - ``lift %``: the scanned range as the host knows it (commanded heights) against the true
   range: the lift's scale error, which the host trusts (it has no reference along z);
   ``vol - lift %`` is the volume error with that share taken out, the host's own;
