@@ -26,7 +26,7 @@ from lamina_host.clinical import (
 )
 from lamina_host.efd import efd_fit
 from lamina_host.mesh import signed_volume, topology, tube_mesh
-from lamina_host.pipeline import Section, mesh_contours
+from lamina_host.pipeline import Section, mesh_contours, vertex_colours
 
 
 def ellipse_section(
@@ -169,6 +169,26 @@ def test_contour_mesh_follows_the_pchip_stack_over_a_dome() -> None:
     assert set(zs) <= set(heights) and set(heights[measured]) == set(zs)
     assert (heights[~measured] < 55.0).all() and (~measured).any()
     assert np.unique(vertices[:, 2]).tolist() == heights.tolist()
+
+
+def test_inserted_rings_take_the_nearest_measured_colour() -> None:
+    """Vertex colours on a mesh with PCHIP rings come from the nearest measured points:
+    red sections up to z=25 mm, blue above, so rings over the dome below 20 mm are red."""
+    r = 50.0
+    zs = np.arange(5.0, 66.0, 10.0)
+    radii = np.sqrt(r * r - np.clip(r - zs, 0.0, None) ** 2)
+    built = pipeline_sections(
+        [ellipse_section(z, q, q) for z, q in zip(zs, radii, strict=True)], 200
+    )
+    vertices, _ = mesh_contours(built, 200, "pchip")
+    points = np.vstack([np.column_stack([s.contour, np.full(200, s.z_mm)]) for s in built])
+    red = np.repeat(zs <= 25.0, 200)
+    colours = np.where(red[:, None], [255, 0, 0], [0, 0, 255]).astype(np.uint8)
+    rgb = vertex_colours(vertices, points, colours)
+    inserted = ~np.isin(vertices[:, 2], zs)
+    assert (inserted & (vertices[:, 2] < 20.0)).any()
+    assert (rgb[inserted & (vertices[:, 2] < 20.0)] == [255, 0, 0]).all()
+    assert (rgb[vertices[:, 2] > 30.0] == [0, 0, 255]).all()
 
 
 def test_contour_mesh_adds_no_ring_to_a_cylinder() -> None:
