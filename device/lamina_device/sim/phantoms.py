@@ -53,9 +53,7 @@ def _levels(z0: float, z1: float, step: float) -> np.ndarray:
     return np.linspace(z0, z1, max(2, math.ceil(abs(z1 - z0) / step) + 1))
 
 
-def _dome(
-    z_base: float, height: float, rings: int = _DOME_RINGS
-) -> tuple[np.ndarray, np.ndarray]:
+def _dome(z_base: float, height: float, rings: int = _DOME_RINGS) -> tuple[np.ndarray, np.ndarray]:
     """Return heights and radius scales of a rounded end (a quarter ellipse) from z_base.
 
     ``height`` < 0 builds the end downwards. The last level has scale 0 (the apex);
