@@ -705,6 +705,13 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    # A shell starts background jobs (make test &, CI runners) with SIGINT ignored, and
+    # Python then installs no KeyboardInterrupt handler: the host would rightly ignore the
+    # signal. A user's Ctrl-C comes to a foreground program, whose SIGINT is the default.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_long_scan(tmp_path: Path) -> tuple[subprocess.Popen[str], Path, Path]:
     path, out = tmp_path / "library.sqlite", tmp_path / "out"
     argv = ["scan", "--device", "sim", "--library", str(path), "-o", str(out)]
@@ -713,6 +720,7 @@ def _start_long_scan(tmp_path: Path) -> tuple[subprocess.Popen[str], Path, Path]
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal,
     )
     deadline = time.monotonic() + 120
     while held_segments(path) < 3 and host.poll() is None and time.monotonic() < deadline:

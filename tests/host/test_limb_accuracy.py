@@ -55,22 +55,16 @@ def test_the_stump_volume_and_surface_are_within_the_clinical_limits(stump) -> N
     assert distance["aligned_mm"] <= 0.08 and distance["direct_mm"] <= 0.08
 
 
-def test_circumferences_below_the_grazing_top_section_are_within_1_mm(stump) -> None:
-    """Every level but the distal one (the top section, 5 mm below the apex) within 1 mm."""
+def test_every_level_circumference_is_within_1_mm(stump) -> None:
+    """Every level within 1 mm, the distal one too (the top section, 5 mm below the apex).
+
+    The distal level sits on the top section, where the sheet meets the dome at grazing
+    incidence; it read 1.1 mm too large while the phantom's dome was faceted in 9 degree
+    steps (README, Accuracy at limb scale).
+    """
     _, figures, _ = stump
     levels = figures["levels"]
     assert levels[0]["offset_mm"] == 0.0 and levels[0]["z_mm"] == 50.0  # the distal end
     assert len(levels) == 3
-    for level in levels[1:]:
+    for level in levels:
         assert abs(level["error_mm"]) <= 1.0, level
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="known: the section 5 mm below the apex, lit at grazing incidence, reads about "
-    "1.6 mm too large in circumference (README, Accuracy at limb scale)",
-)
-def test_the_distal_level_on_the_grazing_top_section_is_within_1_mm(stump) -> None:
-    """The distal level sits on the top section; its circumference should be within 1 mm."""
-    _, figures, _ = stump
-    assert abs(figures["levels"][0]["error_mm"]) <= 1.0

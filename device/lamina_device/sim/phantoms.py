@@ -38,6 +38,11 @@ __all__ = ["PHANTOMS", "phantom"]
 _N_PHI = 72  # vertices per ring: ~1 mm edges on a 24 mm outline
 _RING_STEP_MM = 0.6  # vertical spacing of rings on straight parts (thesis scale)
 _DOME_RINGS = 10
+# The stump's end is the limb bench's grazing case: with 10 rings its facets meet at 9
+# degree creases, and a crease a fraction of the sheet's thickness above a measured
+# section lights the two halves of the stripe unequally (Lambert), which biased that
+# section's outline outwards by ~0.15 mm. 40 rings (2.25 degrees) is nearer a smooth limb.
+_STUMP_DOME_RINGS = 40
 
 RadiusFn = Callable[[np.ndarray, float], np.ndarray]
 """r(phi, z): the outline's radius at polar angles ``phi`` about its centre, at height z."""
@@ -48,12 +53,13 @@ def _levels(z0: float, z1: float, step: float) -> np.ndarray:
     return np.linspace(z0, z1, max(2, math.ceil(abs(z1 - z0) / step) + 1))
 
 
-def _dome(z_base: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+def _dome(z_base: float, height: float, rings: int = _DOME_RINGS) -> tuple[np.ndarray, np.ndarray]:
     """Return heights and radius scales of a rounded end (a quarter ellipse) from z_base.
 
-    ``height`` < 0 builds the end downwards. The last level has scale 0 (the apex).
+    ``height`` < 0 builds the end downwards. The last level has scale 0 (the apex);
+    ``rings`` levels turn the surface by 90 / rings degrees each.
     """
-    theta = np.linspace(0.0, 0.5 * math.pi, _DOME_RINGS + 1)[1:]
+    theta = np.linspace(0.0, 0.5 * math.pi, rings + 1)[1:]
     return z_base + height * np.sin(theta), np.cos(theta)
 
 
@@ -218,7 +224,7 @@ def _stump() -> np.ndarray:
         return taper * (1.0 + 0.06 * np.cos(2.0 * phi) + 0.02 * np.sin(3.0 * phi))
 
     top = 12.0
-    z, s = _profile(_straight(-5.0, top), _dome(top, 9.0))
+    z, s = _profile(_straight(-5.0, top), _dome(top, 9.0, _STUMP_DOME_RINGS))
     return _loft(z, s, radius)
 
 
