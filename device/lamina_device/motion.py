@@ -137,7 +137,10 @@ class StepperDriver:
     """One step/dir driver: STEP, DIR and EN lines as gpiozero outputs.
 
     Drivers count STEP edges, so timing jitter from Python changes the speed but
-    never the step count; deadlines are absolute, so jitter does not accumulate.
+    never the step count. Each pulse waits its planned interval after the previous
+    pulse: a late pulse makes the move longer, never the next interval shorter, because
+    catching up (a burst of pulses after a stall) would ask the motor for a speed the
+    ramp never planned, and a stepper that cannot follow loses steps silently.
     """
 
     def __init__(
@@ -184,14 +187,15 @@ class StepperDriver:
             self._enable.on()
             _wait_until(self._clock() + _ENABLE_SETTLE_S, self._clock)
         self._dir.value = (direction > 0) == self._dir_high_positive
-        deadline_s = self._clock()
+        pulse_s = self._clock()
         for interval_s in intervals_s.tolist():
-            deadline_s += interval_s
-            _wait_until(deadline_s, self._clock)
+            _wait_until(pulse_s + interval_s, self._clock)
             if stop_when is not None and stop_when():
                 break
             # Each gpiozero call takes longer than the drivers' minimum pulse (<= 2 us).
             self._step.on()
+            # Read after the edge, so the next interval is timed from no earlier than it.
+            pulse_s = self._clock()
             self._step.off()
             self.last_run_steps += 1
         return self.last_run_steps
