@@ -238,6 +238,9 @@ def run_confirmed_share(
     wider than ``gap_mm``. The far side of a thin part, seen by one view only, continues
     a run the other views confirm; a reflection is a run of its own.
     """
+    if len(points) == 0:
+        # np.diff of nothing is nothing, but the leading break would still make one run.
+        return np.zeros(0), np.zeros(0, dtype=np.int64)
     step = np.hypot(*np.diff(points, axis=0).T)
     breaks = np.concatenate([[True], (np.diff(views) != 0) | (step > gap_mm)])
     run = np.cumsum(breaks) - 1

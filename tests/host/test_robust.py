@@ -196,6 +196,15 @@ def test_clean_section_keeps_a_thin_outline_and_its_far_side() -> None:
     assert rejected.points == len(reflection)
 
 
+def test_a_section_whose_every_cluster_is_unsupported_gives_no_outline() -> None:
+    """A section where only one view saw a small blob, or a few stray points: every
+    cluster is rejected, nothing is left, and that is an empty result, not an error."""
+    blob = arc((5.0, 0.0), 0.5, 0.0, 90.0, 12)
+    outlines, rejected = clean_section([blob, np.zeros((0, 2))], 2.0, OutlierRules())
+    assert outlines == []
+    assert rejected.unsupported_clusters == len(blob)
+
+
 def test_an_outline_needs_points_views_size_and_angle() -> None:
     """Cluster support: a 70-degree arc seen by two views is an outline; a straight
     stroke two views share, an arc one view saw and a short blob are not."""
