@@ -56,3 +56,4 @@ arm64-check:
 
 clean:
 	rm -rf $(VENV) $(OUT)
+	rm -rf shared/build device/build host/build */*.egg-info
