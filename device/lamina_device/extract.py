@@ -54,6 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from lamina_shared.centreline import chain_starts
 from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
@@ -73,7 +74,6 @@ _MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
-_MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
 # The noise estimate of one frame scatters by ~3 % (a few thousand samples); the gate
 # allows for two of those, else an underestimated frame lets several times the rate in.
 _NOISE_MARGIN = 1.06
@@ -794,7 +794,7 @@ def _trust(
         strong = peak >= noise_dn * k * _NOISE_MARGIN
     chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
     if cols.size and (chained or strong is not None):
-        starts = _chain_starts(cols, rows, width, settings.max_row_jump_px)
+        starts = chain_starts(cols, rows, width, settings.max_row_jump_px)
         kept = _kept_chains(starts, strong, cols.size, settings.min_chain_px)
         if kept is not None:
             index = kept if isinstance(index, slice) else index[kept]
@@ -839,28 +839,6 @@ def _kept_chains(
 def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:
     """Return ``first & second``, or ``second`` when there is no first condition yet."""
     return second if first is None else first & second
-
-
-def _chain_starts(
-    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, max_row_jump_px: float
-) -> np.ndarray:
-    """Return the index of each chain's first point (0 first).
-
-    Neighbouring points (one column may be skipped) whose runs come within
-    ``max_row_jump_px`` rows of each other share a chain; a run of ``w`` rows spans its
-    centre +- (w - 1) / 2, so a steep stripe, whose runs are long, stays one chain.
-    """
-    twice_apart = rows[1:] - rows[:-1]
-    np.abs(twice_apart, out=twice_apart)
-    twice_apart += twice_apart
-    twice_reach = np.add(width[1:], width[:-1], dtype=np.float32)
-    twice_reach += 2 * max_row_jump_px - 2
-    broken = twice_apart > twice_reach
-    if int(cols[-1]) - int(cols[0]) != cols.size - 1:  # not every column: look for gaps
-        broken |= (cols[1:] - cols[:-1]) > 1 + _MAX_COL_GAP
-    starts = np.flatnonzero(broken)
-    starts += 1
-    return np.concatenate(([0], starts))
 
 
 @cache
