@@ -71,6 +71,7 @@ FLAG_SATURATED = 4
 
 _FULL_SCALE = 255
 _MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
+_MAX_MARGIN_PX = 16  # pixels beyond a run's ends its centre may weigh in
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
@@ -105,7 +106,10 @@ class ExtractSettings:
     (1 keeps isolated columns), its fainter points with it; runs longer than
     ``max_width_px`` rows (or shorter than ``min_width_px``) are no laser profile.
     ``smooth_sigma_px`` > 0 smooths the centres along each chain (a local line fit with
-    Gaussian weights of that many columns). :meth:`thesis` turns all of this off.
+    Gaussian weights of that many columns). ``margin_px`` > 0 weighs that many pixels
+    beyond each end of the run into its centre (``p`` = 1 without ``subtract_threshold``
+    only): the centre no longer jumps as the run's edge pixels cross the threshold (the
+    sub-pixel bench, issue 21). :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -122,6 +126,7 @@ class ExtractSettings:
     min_width_px: int = 1
     max_width_px: int = 64
     smooth_sigma_px: float = 0.0
+    margin_px: int = 0
 
     def __post_init__(self) -> None:
         problems = settings_problems(self)
@@ -133,6 +138,7 @@ class ExtractSettings:
         """Return the thesis's method alone: no noise gate, no chains, any run width."""
         plain: dict[str, object] = {
             "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
+            "margin_px": 0,
         }  # fmt: skip
         return cls(**{**plain, **changes})  # type: ignore[arg-type]
 
@@ -197,6 +203,8 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         )
     if not 0 <= settings.smooth_sigma_px <= 50:
         problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
+    if not 0 <= settings.margin_px <= _MAX_MARGIN_PX:
+        problems.append(f"margin_px {settings.margin_px} is not in 0..{_MAX_MARGIN_PX}")
     return problems
 
 
@@ -592,14 +600,60 @@ def _points(
 
 
 def _centres(
-    bright: _Bright, threshold: float, power: float, subtract_threshold: bool, run_choice: str
+    bright: _Bright,
+    threshold: float,
+    power: float,
+    subtract_threshold: bool,
+    run_choice: str,
+    margin: tuple[np.ndarray, int] | None = None,
 ) -> StripePoints:
-    """Return the eq. 5.1 centre of the kept run of every column with one."""
+    """Return the eq. 5.1 centre of the kept run of every column with one.
+
+    With ``margin`` (the 8-bit difference image and a number of pixels) the centre also
+    weighs that many pixels beyond each end of the run (:func:`_margin_centres`; eq. 5.1
+    with ``p`` = 1 and intensity weights only).
+    """
     runs = _find_runs(bright, threshold, power, subtract_threshold)
     if runs is None:
         return _empty_points()
     chosen, flags = _choose_runs(runs, run_choice)
-    return _points(runs, chosen, runs.centre[chosen], flags)
+    if margin is None or margin[1] == 0 or subtract_threshold or power != 1.0:
+        return _points(runs, chosen, runs.centre[chosen], flags)
+    return _points(runs, chosen, _margin_centres(runs, chosen, *margin, threshold), flags)
+
+
+def _margin_centres(
+    runs: _Runs, chosen: np.ndarray | slice, diff: np.ndarray, margin_px: int, threshold: float
+) -> np.ndarray:
+    """Return the chosen runs' centres with ``margin_px`` pixels beyond each end weighed in.
+
+    Otsu's cut keeps only the profile's core, and which pixels it keeps changes with the
+    stripe's sub-pixel phase: the centre jumps as an edge pixel crosses the threshold,
+    and along a gently sloping stripe these jumps add up to a slow ripple that no fit
+    along the stripe removes. The pixels just beyond the run lie below the threshold by
+    definition (or belong to a neighbouring run, which is left out), so they weigh
+    little and change smoothly. Eq. 5.1 with ``p`` = 1 over the widened run.
+    """
+    height = runs.height
+    col = runs.col[chosen]
+    top = runs.point_index[runs.start[chosen]] - col * height  # the run's first row
+    rows = np.empty((col.size, 2 * margin_px), np.intp)
+    steps = np.arange(1, margin_px + 1)
+    np.subtract(top[:, None], steps, out=rows[:, :margin_px])
+    np.add((top + runs.length[chosen] - 1)[:, None], steps, out=rows[:, margin_px:])
+    clipped = int(top.min()) < margin_px or int(rows[:, -1].max()) >= height
+    flat = np.clip(rows, 0, height - 1) if clipped else rows.copy()
+    flat *= diff.shape[1]
+    flat += col[:, None]
+    levels = diff.reshape(-1)[flat].astype(np.float64)
+    if clipped:
+        levels[(rows < 0) | (rows >= height)] = 0.0
+    if runs.several:  # a pixel above the threshold out there is another run's
+        levels[levels > threshold] = 0.0
+    run_weight = runs.weight[chosen]
+    weight = run_weight + levels.sum(axis=1)
+    moment = runs.centre[chosen] * run_weight + np.einsum("ij,ij->i", levels, rows)
+    return moment / weight
 
 
 def centre_of_gravity(
@@ -758,8 +812,9 @@ def extract(
         points = _thinning(diff, bright, threshold, settings.run_choice)
     else:
         points = _centres(
-            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
-        )
+            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice,
+            (diff, settings.margin_px),
+        )  # fmt: skip
     return _trust(points, noise_dn, settings, diff.shape)
 
 

@@ -20,13 +20,11 @@ output is biased toward the top of runs an even number of pixels thick (figs. 5.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from typing import Any
 
 import numpy as np
-
-import dataclasses
-import math
-
 import subpixel_cases as cases
 from bench_extraction import stripe_pair as timing_pair
 from timing import best_time_s
@@ -143,7 +141,9 @@ def case_table() -> dict[str, Any]:
     """Return bias (noise-free), RMS and share beyond 1 px (noisy) per preset, case, method."""
     table: dict[str, Any] = {}
     for preset, model in cases.PRESETS.items():
-        clean = dataclasses.replace(model, read_noise_dn=0.0, shot_gain_dn=0.0, speckle_contrast=0.0)
+        clean = dataclasses.replace(
+            model, read_noise_dn=0.0, shot_gain_dn=0.0, speckle_contrast=0.0
+        )
         table[preset] = {}
         for case in cases.CASES:
             exact = cases.render(case, preset, model=clean)

@@ -285,7 +285,5 @@ def _nearest_mm(view: View, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
         known = np.isfinite(true_rows)
         if known.any():
             true_mm = _plane_mm(view.rig, cols[known], true_rows[known])
-            best[known] = np.minimum(
-                best[known], np.linalg.norm(found_mm[known] - true_mm, axis=1)
-            )
+            best[known] = np.minimum(best[known], np.linalg.norm(found_mm[known] - true_mm, axis=1))
     return best

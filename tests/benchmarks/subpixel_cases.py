@@ -12,7 +12,9 @@ centre, so a method's own bias on curves, steps or saturation shows.
 Methods: the device's centre of gravity (eq. 5.1, p = 1 and 2); Gaussian and parabolic
 three-point peak fits and a Hessian normal-direction centre (Steger-like), each started
 from the device's points; the device's line fit along chains; the host's quadratic fit
-along chains (``lamina_shared.centreline``); and the Horus-style baseline.
+along chains (``lamina_shared.centreline``); the device's centre with 3 pixels beyond
+each end of the run weighed in (``margin_px``), alone and with the host's fit; and the
+Horus-style baseline.
 """
 
 from __future__ import annotations
@@ -215,10 +217,14 @@ def _device(settings: ExtractSettings) -> Method:
     return run
 
 
-def host_refined(on: np.ndarray, off: np.ndarray) -> Found:
-    """Return the device's default points refined on the host along their chains."""
-    points = extract(on, off)
-    return points.cols, refine_rows(points.cols, points.rows, points.width)
+def _host_refined(settings: ExtractSettings) -> Method:
+    """Return the device's points (with ``settings``) refined on the host along their chains."""
+
+    def run(on: np.ndarray, off: np.ndarray) -> Found:
+        points = extract(on, off, settings)
+        return points.cols, refine_rows(points.cols, points.rows, points.width)
+
+    return run
 
 
 def _peak_fit(kind: str) -> Method:
@@ -237,7 +243,8 @@ def _peak_fit(kind: str) -> Method:
         if kind == "gaussian":
             a, b, c = (np.log(np.maximum(v, 1.0)) for v in (a, b, c))
         denominator = a - 2 * b + c
-        shift = np.where(denominator < 0, 0.5 * (a - c) / np.where(denominator < 0, denominator, -1), 0)
+        curved = denominator < 0  # a maximum: the parabola opens downward
+        shift = np.where(curved, 0.5 * (a - c) / np.where(curved, denominator, -1.0), 0.0)
         return points.cols, peak + np.clip(shift, -1.0, 1.0)
 
     return run
@@ -287,7 +294,9 @@ METHODS: dict[str, Method] = {
     "parabola 3-pt": _peak_fit("parabolic"),
     "Hessian (Steger)": steger,
     "line fit s2 (dev.)": _device(ExtractSettings(smooth_sigma_px=2.0)),
-    "quad. fit (host)": host_refined,
+    "quad. fit (host)": _host_refined(ExtractSettings()),
+    "COG margin 3": _device(ExtractSettings(margin_px=3)),
+    "margin 3 + fit": _host_refined(ExtractSettings(margin_px=3)),
     "Horus-style": lambda on, off: horus_extract(on, off),
 }
 
@@ -319,10 +328,8 @@ def score(frames: Frames, found: Found) -> Scored:
         return Scored(math.nan, math.nan, 1.0, 0.0)
     side = frames.step_side[cols.astype(np.intp)][scored]
     if np.any(side != 0):
-        bias = max(
-            (abs(float(np.mean(error[good & (side == s)]))) for s in (-1, 1) if (good & (side == s)).any()),
-            default=math.nan,
-        )
+        kinds = [good & (side == s) for s in (-1, 1)]
+        bias = max((abs(float(np.mean(error[k]))) for k in kinds if k.any()), default=math.nan)
     elif np.any(frames.bend != 0):  # signed toward the centre of curvature
         bend = frames.bend[cols.astype(np.intp)][scored]
         bias = abs(float(np.mean((error * bend)[good])))
@@ -332,21 +339,3 @@ def score(frames: Frames, found: Found) -> Scored:
         bias, float(np.sqrt(np.mean(error[good] ** 2))), 1.0 - float(good.mean()),
         float(good.sum()) / max(columns, 1),
     )  # fmt: skip
-
-
-def study(seeds: int = 2) -> dict[str, dict[str, dict[str, Scored]]]:
-    """Return every method's score on every case under every preset (averaged over seeds)."""
-    table: dict[str, dict[str, dict[str, Scored]]] = {}
-    for preset in PRESETS:
-        table[preset] = {}
-        for case in CASES:
-            runs = [render(case, preset, seed) for seed in range(seeds)]
-            table[preset][case.name] = {}
-            for name, method in METHODS.items():
-                scores = [score(f, method(f.on, f.off)) for f in runs]
-                table[preset][case.name][name] = Scored(
-                    *(float(np.nanmean([getattr(s, k) for s in scores])) for k in
-                      ("bias_px", "rms_px", "beyond_1px", "found"))  # fmt: skip
-                )
-    return table
-
