@@ -25,9 +25,6 @@ import math
 from typing import Any
 
 import numpy as np
-import subpixel_cases as cases
-from bench_extraction import stripe_pair as timing_pair
-from timing import best_time_s
 
 from lamina_device.extract import ExtractSettings, extract
 from lamina_device.sim.render import speckle_field
@@ -137,8 +134,14 @@ def noise_report(results: dict[str, Any]) -> list[str]:
 NOISY_SEEDS = 2
 
 
+# The second study imports its sibling modules when it runs (run.py puts this folder on
+# the path), so the first stays importable on its own, as tests/device loads it.
+
+
 def case_table() -> dict[str, Any]:
     """Return bias (noise-free), RMS and share beyond 1 px (noisy) per preset, case, method."""
+    import subpixel_cases as cases
+
     table: dict[str, Any] = {}
     for preset, model in cases.PRESETS.items():
         clean = dataclasses.replace(
@@ -164,6 +167,10 @@ def case_table() -> dict[str, Any]:
 
 def method_times(rounds: int = 3) -> dict[str, dict[str, float]]:
     """Return each method's time per 640x480 frame (ms) and its ratio to one subtraction."""
+    import subpixel_cases as cases
+    from bench_extraction import stripe_pair as timing_pair
+    from timing import best_time_s
+
     on, off = timing_pair(640, 480)
     times = {}
     for name, method in cases.METHODS.items():
@@ -182,6 +189,8 @@ def run() -> dict[str, Any]:
 
 def report(results: dict[str, Any]) -> list[str]:
     """Return both studies' tables."""
+    import subpixel_cases as cases
+
     lines = noise_report(results["noise"])
     names = list(cases.METHODS)
     short = [n[:13] for n in names]
