@@ -34,6 +34,7 @@ from lamina_shared.centreline import refine_rows
 
 WIDTH, HEIGHT = 640, 160
 _SUPER = 4  # samples per pixel side
+_STEP_PERIOD_PX = 80.0  # columns between two brightness steps
 _EDGE_PX = 3  # columns next to a stripe end or gap are not scored (no centre line there)
 
 
@@ -84,8 +85,8 @@ class Frames:
     off: np.ndarray
     truth: np.ndarray
     step_side: np.ndarray
-    """Per column: +1 / -1 where a brightness step lies inside the profile with the
-    bright side above / below, 0 elsewhere."""
+    """Per column: 1 where a brightness step lies inside the profile (bright side
+    above), 0 elsewhere."""
     bend: np.ndarray
     """Per column: +1 on a hill (centre of curvature below), -1 in a valley, 0 straight."""
 
@@ -167,15 +168,15 @@ def render(case: Case, preset: str, seed: int = 0, model: NoiseModel | None = No
     light = _profile(case, distance)
     step_side = np.zeros(WIDTH)
     if case.step_ratio != 1.0:
-        # Steep edges (2 rows per column) every 40 columns, alternately bright above
-        # and bright below where they cross the stripe.
-        phase = np.mod(x + 0.5 * (y - HEIGHT / 2), 40.0)
-        light = light * np.where(phase < 20.0, 1.0, case.step_ratio)
-        # Where an edge crosses the stripe within half its width the step lies inside
-        # the profile: at q = 20 the bright side is above, at q = 0 (40) below.
-        q = np.mod(np.arange(WIDTH) + 0.5 * (np.nan_to_num(truth) - HEIGHT / 2), 40.0)
-        step_side = np.where(np.abs(q - 20.0) <= case.fwhm_px / 2, 1.0, 0.0)
-        step_side[np.minimum(q, 40.0 - q) <= case.fwhm_px / 2] = -1.0
+        # A sawtooth of reflectance: it climbs slowly from the dim level back to 1 over
+        # 80 columns, then drops along a steep edge (2 rows per column). Every edge has
+        # its bright side above where it crosses the stripe, so a fit along the stripe
+        # cannot average one step's pull against the next one's.
+        phase = np.mod(x + 0.5 * (y - HEIGHT / 2), _STEP_PERIOD_PX) / _STEP_PERIOD_PX
+        light = light * (case.step_ratio + (1.0 - case.step_ratio) * phase)
+        q = np.mod(np.arange(WIDTH) + 0.5 * (np.nan_to_num(truth) - HEIGHT / 2), _STEP_PERIOD_PX)
+        near = np.minimum(q, _STEP_PERIOD_PX - q)
+        step_side = np.where(near <= case.fwhm_px / 2, 1.0, 0.0)
     laser = light.reshape(HEIGHT, _SUPER, WIDTH, _SUPER).mean(axis=(1, 3))
     if case.gaps:
         gaps = np.zeros(WIDTH, bool)
@@ -314,9 +315,9 @@ class Scored:
 def score(frames: Frames, found: Found) -> Scored:
     """Return the bias and RMS of the points within 1 px, the share beyond, and coverage.
 
-    On brightness steps the bias is the larger of the mean errors of the two step kinds
-    (bright side above, bright side below), taken over the columns where the step lies
-    inside the profile; elsewhere it is the mean error over every scored column.
+    On brightness steps the bias is the mean error over the columns where the step lies
+    inside the profile; on arcs the mean error toward the centre of curvature; elsewhere
+    the mean error over every scored column.
     """
     cols, rows = found
     truth = frames.truth[cols.astype(np.intp)]
@@ -328,8 +329,8 @@ def score(frames: Frames, found: Found) -> Scored:
         return Scored(math.nan, math.nan, 1.0, 0.0)
     side = frames.step_side[cols.astype(np.intp)][scored]
     if np.any(side != 0):
-        kinds = [good & (side == s) for s in (-1, 1)]
-        bias = max((abs(float(np.mean(error[k]))) for k in kinds if k.any()), default=math.nan)
+        at_step = good & (side != 0)
+        bias = abs(float(np.mean(error[at_step]))) if at_step.any() else math.nan
     elif np.any(frames.bend != 0):  # signed toward the centre of curvature
         bend = frames.bend[cols.astype(np.intp)][scored]
         bias = abs(float(np.mean((error * bend)[good])))
