@@ -63,3 +63,26 @@ def test_short_chains_and_fixed_reach():
         refine_rows(np.arange(50), line, np.full(50, 3, np.uint8), sigma_px=4.0), line, atol=1e-9
     )
     assert refine_rows(np.arange(50), line, np.full(50, 3), sigma_px=0.0) is not line
+
+
+def test_a_segment_is_fitted_in_its_own_point_order():
+    from lamina_shared.centreline import refined_uv
+    from lamina_shared.types import Segment
+
+    rng = np.random.default_rng(2)
+    cols = np.arange(100, 200, dtype=np.uint16)
+    truth = 80.0 + 0.2 * np.arange(100)
+    rows = (truth + rng.normal(0.0, 0.3, 100)).astype(np.float32)
+    order = rng.permutation(100)  # a segment need not list its points by column
+    segment = Segment(
+        "object", 0, 0, 0.0, 0.0, cols[order], rows[order],
+        np.full(100, 150, np.uint8), np.full(100, 4, np.uint8),
+    )  # fmt: skip
+    uv = refined_uv(segment)
+    assert np.array_equal(uv[:, 0], cols[order])
+    assert np.sqrt(np.mean((uv[:, 1] - truth[order]) ** 2)) < 0.5 * 0.3
+    doubled = Segment(
+        "object", 0, 0, 0.0, 0.0, np.array([5, 5, 6], np.uint16),
+        np.array([1.0, 9.0, 1.0], np.float32), np.full(3, 99, np.uint8), np.full(3, 2, np.uint8),
+    )  # fmt: skip
+    np.testing.assert_array_equal(refined_uv(doubled), doubled.uv)  # not one point per column
