@@ -205,6 +205,10 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
     if not 0 <= settings.margin_px <= _MAX_MARGIN_PX:
         problems.append(f"margin_px {settings.margin_px} is not in 0..{_MAX_MARGIN_PX}")
+    elif settings.margin_px and (
+        settings.power != 1.0 or settings.subtract_threshold or settings.method != "cog"
+    ):
+        problems.append("margin_px > 0 needs method cog with power 1 and subtract_threshold false")
     return problems
 
 
@@ -611,13 +615,13 @@ def _centres(
 
     With ``margin`` (the 8-bit difference image and a number of pixels) the centre also
     weighs that many pixels beyond each end of the run (:func:`_margin_centres`; eq. 5.1
-    with ``p`` = 1 and intensity weights only).
+    with ``p`` = 1 and intensity weights only, as the settings check).
     """
     runs = _find_runs(bright, threshold, power, subtract_threshold)
     if runs is None:
         return _empty_points()
     chosen, flags = _choose_runs(runs, run_choice)
-    if margin is None or margin[1] == 0 or subtract_threshold or power != 1.0:
+    if margin is None or margin[1] == 0:
         return _points(runs, chosen, runs.centre[chosen], flags)
     return _points(runs, chosen, _margin_centres(runs, chosen, *margin, threshold), flags)
 

@@ -62,4 +62,7 @@ def test_margin_is_range_checked_and_off_in_the_thesis_method():
         ExtractSettings(margin_px=-1)
     with pytest.raises(ValueError, match="margin_px"):
         ExtractSettings(margin_px=17)
+    for other in ({"power": 2.0}, {"subtract_threshold": True}, {"method": "thinning"}):
+        with pytest.raises(ValueError, match="margin_px > 0 needs"):
+            ExtractSettings(margin_px=2, **other)
     assert ExtractSettings.thesis().margin_px == 0 and ExtractSettings().margin_px == 0
