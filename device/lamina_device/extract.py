@@ -641,22 +641,21 @@ def _margin_centres(
     height = runs.height
     col = runs.col[chosen]
     top = runs.point_index[runs.start[chosen]] - col * height  # the run's first row
-    rows = np.empty((col.size, 2 * margin_px), np.intp)
-    steps = np.arange(1, margin_px + 1)
-    np.subtract(top[:, None], steps, out=rows[:, :margin_px])
-    np.add((top + runs.length[chosen] - 1)[:, None], steps, out=rows[:, margin_px:])
-    clipped = int(top.min()) < margin_px or int(rows[:, -1].max()) >= height
+    # (2 margin, N): the long axis innermost, so every operation runs over the points.
+    steps = np.arange(1, margin_px + 1)[:, None]
+    rows = np.concatenate([top - steps, (top + runs.length[chosen] - 1) + steps])
+    clipped = int(top.min()) < margin_px or int(rows[-1].max()) >= height
     flat = np.clip(rows, 0, height - 1) if clipped else rows.copy()
     flat *= diff.shape[1]
-    flat += col[:, None]
-    levels = diff.reshape(-1)[flat].astype(np.float64)
+    flat += col
+    levels = diff.reshape(-1)[flat]
     if clipped:
-        levels[(rows < 0) | (rows >= height)] = 0.0
+        levels[(rows < 0) | (rows >= height)] = 0
     if runs.several:  # a pixel above the threshold out there is another run's
-        levels[levels > threshold] = 0.0
+        levels[levels > threshold] = 0
     run_weight = runs.weight[chosen]
-    weight = run_weight + levels.sum(axis=1)
-    moment = runs.centre[chosen] * run_weight + np.einsum("ij,ij->i", levels, rows)
+    weight = run_weight + levels.sum(axis=0, dtype=np.int64)
+    moment = runs.centre[chosen] * run_weight + (rows * levels).sum(axis=0)
     return moment / weight
 
 
