@@ -14,6 +14,12 @@ how many points are noise (off every true stripe band), how many lie more than 1
 from the true centre (noise plus speckle scatter), how much of the stripe is found,
 and the RMS error of the points within 1 px, in px and in mm in the laser plane.
 
+Issue 21's rows: the default with the host's fit along chains
+(``lamina_shared.centreline.refine_rows``; its time is device plus host), the same with
+``margin_px=3``, and against the Horus-style baseline the good points (within 0.25 mm
+in the laser plane), their RMS, the RMS of the points within 1 px and the points beyond
+1 mm, on the harsh and the thesis presets.
+
 The Horus-style baseline (the open 3D scanner Ciclop's software, as issue 10 describes
 it) lives here only, for comparison: saturating subtraction, a fixed threshold of 50 DN,
 a 5x5 box blur, a window of +-8 rows about each column's peak, the centre of mass in
