@@ -54,6 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from lamina_shared.centreline import chain_starts
 from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
@@ -70,10 +71,10 @@ FLAG_SATURATED = 4
 
 _FULL_SCALE = 255
 _MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
+_MAX_MARGIN_PX = 16  # pixels beyond a run's ends its centre may weigh in
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
-_MAX_COL_GAP = 1  # a chain may skip one column (a speckle dropout) and stay one chain
 # The noise estimate of one frame scatters by ~3 % (a few thousand samples); the gate
 # allows for two of those, else an underestimated frame lets several times the rate in.
 _NOISE_MARGIN = 1.06
@@ -105,7 +106,10 @@ class ExtractSettings:
     (1 keeps isolated columns), its fainter points with it; runs longer than
     ``max_width_px`` rows (or shorter than ``min_width_px``) are no laser profile.
     ``smooth_sigma_px`` > 0 smooths the centres along each chain (a local line fit with
-    Gaussian weights of that many columns). :meth:`thesis` turns all of this off.
+    Gaussian weights of that many columns). ``margin_px`` > 0 weighs that many pixels
+    beyond each end of the run into its centre (``p`` = 1 without ``subtract_threshold``
+    only): the centre no longer jumps as the run's edge pixels cross the threshold (the
+    sub-pixel bench, issue 21). :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -122,6 +126,7 @@ class ExtractSettings:
     min_width_px: int = 1
     max_width_px: int = 64
     smooth_sigma_px: float = 0.0
+    margin_px: int = 0
 
     def __post_init__(self) -> None:
         problems = settings_problems(self)
@@ -133,6 +138,7 @@ class ExtractSettings:
         """Return the thesis's method alone: no noise gate, no chains, any run width."""
         plain: dict[str, object] = {
             "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
+            "margin_px": 0,
         }  # fmt: skip
         return cls(**{**plain, **changes})  # type: ignore[arg-type]
 
@@ -197,6 +203,12 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         )
     if not 0 <= settings.smooth_sigma_px <= 50:
         problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
+    if not 0 <= settings.margin_px <= _MAX_MARGIN_PX:
+        problems.append(f"margin_px {settings.margin_px} is not in 0..{_MAX_MARGIN_PX}")
+    elif settings.margin_px and (
+        settings.power != 1.0 or settings.subtract_threshold or settings.method != "cog"
+    ):
+        problems.append("margin_px > 0 needs method cog with power 1 and subtract_threshold false")
     return problems
 
 
@@ -592,14 +604,59 @@ def _points(
 
 
 def _centres(
-    bright: _Bright, threshold: float, power: float, subtract_threshold: bool, run_choice: str
+    bright: _Bright,
+    threshold: float,
+    power: float,
+    subtract_threshold: bool,
+    run_choice: str,
+    margin: tuple[np.ndarray, int] | None = None,
 ) -> StripePoints:
-    """Return the eq. 5.1 centre of the kept run of every column with one."""
+    """Return the eq. 5.1 centre of the kept run of every column with one.
+
+    With ``margin`` (the 8-bit difference image and a number of pixels) the centre also
+    weighs that many pixels beyond each end of the run (:func:`_margin_centres`; eq. 5.1
+    with ``p`` = 1 and intensity weights only, as the settings check).
+    """
     runs = _find_runs(bright, threshold, power, subtract_threshold)
     if runs is None:
         return _empty_points()
     chosen, flags = _choose_runs(runs, run_choice)
-    return _points(runs, chosen, runs.centre[chosen], flags)
+    if margin is None or margin[1] == 0:
+        return _points(runs, chosen, runs.centre[chosen], flags)
+    return _points(runs, chosen, _margin_centres(runs, chosen, *margin, threshold), flags)
+
+
+def _margin_centres(
+    runs: _Runs, chosen: np.ndarray | slice, diff: np.ndarray, margin_px: int, threshold: float
+) -> np.ndarray:
+    """Return the chosen runs' centres with ``margin_px`` pixels beyond each end weighed in.
+
+    Otsu's cut keeps only the profile's core, and which pixels it keeps changes with the
+    stripe's sub-pixel phase: the centre jumps as an edge pixel crosses the threshold,
+    and along a gently sloping stripe these jumps add up to a slow ripple that no fit
+    along the stripe removes. The pixels just beyond the run lie below the threshold by
+    definition (or belong to a neighbouring run, which is left out), so they weigh
+    little and change smoothly. Eq. 5.1 with ``p`` = 1 over the widened run.
+    """
+    height = runs.height
+    col = runs.col[chosen]
+    top = runs.point_index[runs.start[chosen]] - col * height  # the run's first row
+    # (2 margin, N): the long axis innermost, so every operation runs over the points.
+    steps = np.arange(1, margin_px + 1)[:, None]
+    rows = np.concatenate([top - steps, (top + runs.length[chosen] - 1) + steps])
+    clipped = int(top.min()) < margin_px or int(rows[-1].max()) >= height
+    flat = np.clip(rows, 0, height - 1) if clipped else rows.copy()
+    flat *= diff.shape[1]
+    flat += col
+    levels = diff.reshape(-1)[flat]
+    if clipped:
+        levels[(rows < 0) | (rows >= height)] = 0
+    if runs.several:  # a pixel above the threshold out there is another run's
+        levels[levels > threshold] = 0
+    run_weight = runs.weight[chosen]
+    weight = run_weight + levels.sum(axis=0, dtype=np.int64)
+    moment = runs.centre[chosen] * run_weight + (rows * levels).sum(axis=0)
+    return moment / weight
 
 
 def centre_of_gravity(
@@ -758,8 +815,9 @@ def extract(
         points = _thinning(diff, bright, threshold, settings.run_choice)
     else:
         points = _centres(
-            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice
-        )
+            bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice,
+            (diff, settings.margin_px),
+        )  # fmt: skip
     return _trust(points, noise_dn, settings, diff.shape)
 
 
@@ -794,7 +852,7 @@ def _trust(
         strong = peak >= noise_dn * k * _NOISE_MARGIN
     chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
     if cols.size and (chained or strong is not None):
-        starts = _chain_starts(cols, rows, width, settings.max_row_jump_px)
+        starts = chain_starts(cols, rows, width, settings.max_row_jump_px)
         kept = _kept_chains(starts, strong, cols.size, settings.min_chain_px)
         if kept is not None:
             index = kept if isinstance(index, slice) else index[kept]
@@ -839,28 +897,6 @@ def _kept_chains(
 def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:
     """Return ``first & second``, or ``second`` when there is no first condition yet."""
     return second if first is None else first & second
-
-
-def _chain_starts(
-    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, max_row_jump_px: float
-) -> np.ndarray:
-    """Return the index of each chain's first point (0 first).
-
-    Neighbouring points (one column may be skipped) whose runs come within
-    ``max_row_jump_px`` rows of each other share a chain; a run of ``w`` rows spans its
-    centre +- (w - 1) / 2, so a steep stripe, whose runs are long, stays one chain.
-    """
-    twice_apart = rows[1:] - rows[:-1]
-    np.abs(twice_apart, out=twice_apart)
-    twice_apart += twice_apart
-    twice_reach = np.add(width[1:], width[:-1], dtype=np.float32)
-    twice_reach += 2 * max_row_jump_px - 2
-    broken = twice_apart > twice_reach
-    if int(cols[-1]) - int(cols[0]) != cols.size - 1:  # not every column: look for gaps
-        broken |= (cols[1:] - cols[:-1]) > 1 + _MAX_COL_GAP
-    starts = np.flatnonzero(broken)
-    starts += 1
-    return np.concatenate(([0], starts))
 
 
 @cache

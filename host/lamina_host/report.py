@@ -12,7 +12,8 @@ from lamina_host.expect import Expectation
 from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import contour_normals, obj_bytes, save_ply
-from lamina_host.pipeline import Reconstruction, coloured_cloud, stack
+from lamina_host.pipeline import Reconstruction, assemble, coloured_cloud, stack
+from lamina_host.precision import section_precision_mm
 from lamina_shared.types import Segment
 
 SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence", "colour")
@@ -68,6 +69,7 @@ def build_report(
     acquisition_s: dict[str, float],
 ) -> dict[str, Any]:
     """Return the JSON-ready report of one scan."""
+    precision = _precision_mm(result, segments)
     report: dict[str, Any] = {
         "device": device,
         "options": result.options.to_dict(),
@@ -83,6 +85,7 @@ def build_report(
                 "raw_points": len(s.raw),
                 "outline_points": len(s.contour),
                 "harmonics": s.harmonics,
+                "precision_mm": precision.get(s.index),
                 "perimeter_mm": perimeter(s.contour),
                 "area_mm2": polygon_area(s.contour),
                 "efd": s.efd.to_dict(),
@@ -126,6 +129,18 @@ def build_report(
                 "contours": sphere_probing(_points3d(main, raw=False), 2 * expect.a_mm).to_dict(),
             }
     return report
+
+
+def _precision_mm(result: Reconstruction, segments: list[Segment]) -> dict[int, float | None]:
+    """Return each section's per-point precision from its views' overlaps (one outline only).
+
+    A section of several outlines (two legs) gets none: its views' polar overlaps about
+    one centroid would pair different outlines.
+    """
+    objects = [s for s in segments if s.target == "object"]
+    by_section, _, _ = assemble(objects, result.grid, result.axis, result.options.trim_fraction)
+    several = {s.index for s in result.sections if s.part > 0}
+    return {k: None if k in several else section_precision_mm(v) for k, v in by_section.items()}
 
 
 def _points3d(sections: list[Any], raw: bool) -> np.ndarray:

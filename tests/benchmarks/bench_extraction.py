@@ -14,6 +14,12 @@ how many points are noise (off every true stripe band), how many lie more than 1
 from the true centre (noise plus speckle scatter), how much of the stripe is found,
 and the RMS error of the points within 1 px, in px and in mm in the laser plane.
 
+Issue 21's rows: the default with the host's fit along chains
+(``lamina_shared.centreline.refine_rows``; its time is device plus host), the same with
+``margin_px=3``, and against the Horus-style baseline the good points (within 0.25 mm
+in the laser plane), their RMS, the RMS of the points within 1 px and the points beyond
+1 mm, on the harsh and the thesis presets.
+
 The Horus-style baseline (the open 3D scanner Ciclop's software, as issue 10 describes
 it) lives here only, for comparison: saturating subtraction, a fixed threshold of 50 DN,
 a 5x5 box blur, a window of +-8 rows about each column's peak, the centre of mass in
@@ -31,6 +37,7 @@ import numpy as np
 from timing import best_time_s
 
 from lamina_device.extract import ExtractSettings, extract
+from lamina_shared.centreline import refine_rows
 
 TITLE = "speed (x one subtraction) and noise points on harsh frames"
 RESOLUTIONS = ((640, 480), (1536, 864), (2304, 1296))
@@ -42,6 +49,7 @@ VARIANTS = {
     "thesis's method alone (no gate, no chains)": (ExtractSettings.thesis(), False),
     "run continuity, with reflections": (ExtractSettings(run_choice="continuity"), True),
     "default + smoothing along chains (sigma 2)": (ExtractSettings(smooth_sigma_px=2.0), False),
+    "default + 3 px margin beyond each run (margin_px=3)": (ExtractSettings(margin_px=3), False),
     "line thinning (thesis 5.2.3)": (ExtractSettings(method="thinning"), False),
 }
 HORUS_THRESHOLD_DN = 50
@@ -109,6 +117,21 @@ def _smooth_runs(cols: np.ndarray, rows: np.ndarray, sigma_px: float) -> np.ndar
     return out
 
 
+HOST_FIT = "default + the host's fit along chains (device + host time)"
+HOST_FIT_MARGIN = "margin_px=3 + the host's fit along chains (device + host time)"
+
+
+MARGIN = ExtractSettings(margin_px=3)
+
+
+def host_fitted(
+    on: np.ndarray, off: np.ndarray, settings: ExtractSettings = DEFAULT
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the extraction's points with the host's fit along their chains."""
+    points = extract(on, off, settings)
+    return points.cols, refine_rows(points.cols, points.rows, points.width)
+
+
 def speed(rounds: int = 3) -> list[dict[str, Any]]:
     """Time every variant and the Horus-style pipeline against one subtraction.
 
@@ -125,6 +148,8 @@ def speed(rounds: int = 3) -> list[dict[str, Any]]:
                 if with_reflections == reflections
             }
             if not reflections:
+                runs[HOST_FIT] = lambda on=on, off=off: host_fitted(on, off)
+                runs[HOST_FIT_MARGIN] = lambda on=on, off=off: host_fitted(on, off, MARGIN)
                 runs["Horus-style (threshold 50, 5x5 blur, window, smoothing)"] = (
                     lambda on=on, off=off: horus_extract(on, off)
                 )
@@ -162,9 +187,14 @@ def _methods() -> dict[str, Any]:
         "thesis alone": ours(ExtractSettings.thesis()),
         "default": ours(DEFAULT),
         "default + smoothing": ours(ExtractSettings(smooth_sigma_px=2.0)),
+        "default + host fit": host_fitted,
+        "margin 3 + host fit": lambda on, off: host_fitted(on, off, MARGIN),
         "Horus-style, 50 DN": horus_extract,
         "Horus-style, 25 DN": lambda on, off: horus_extract(on, off, 25),
     }
+
+
+ACCURACY_PRESETS = ("harsh", "thesis")
 
 
 def accuracy(preset: str = harsh_frames.DEFAULT_PRESET, free_views: int = 20) -> dict[str, Any]:
@@ -187,13 +217,16 @@ def accuracy(preset: str = harsh_frames.DEFAULT_PRESET, free_views: int = 20) ->
                 "rms_px": scored.rms_px,
                 "rms_mm": scored.rms_mm,
                 "points_per_view": scored.points / len(views),
+                "beyond_1mm_fraction": scored.beyond_1mm / scored.points if scored.points else 0.0,
+                "good_mm": scored.good_mm,
+                "rms_good_mm": scored.rms_good_mm,
             }
     return {"preset": preset, "methods": table}
 
 
 def run() -> dict[str, Any]:
     """Measure speed and harsh-frame accuracy."""
-    return {"speed": speed(), "accuracy": accuracy()}
+    return {"speed": speed(), "accuracy": [accuracy(p) for p in ACCURACY_PRESETS]}
 
 
 def report(results: dict[str, Any]) -> list[str]:
@@ -216,17 +249,24 @@ def report(results: dict[str, Any]) -> list[str]:
     horus = next(v for k, v in by_variant.items() if k.startswith("Horus"))
     slower = (f"{r['resolution']} {r['extract_ms'] / default[r['resolution']]:.0f}x" for r in horus)
     lines.append("  Horus-style / default: " + ", ".join(slower))
-    accuracy_table = results["accuracy"]
-    lines.append(
+    for accuracy_table in results["accuracy"]:
+        lines += _accuracy_lines(accuracy_table)
+    lines += _acceptance_lines(results)
+    return lines
+
+
+def _accuracy_lines(accuracy_table: dict[str, Any]) -> list[str]:
+    """Return one preset's accuracy table."""
+    lines = [
         f"  harsh frames (preset {accuracy_table['preset']}): noise = points off every true "
-        "stripe band; >1px includes speckle scatter"
-    )
-    lines.append(
+        "stripe band; >1px includes speckle scatter; good = within 0.25 mm in the laser plane",
         "    method                 set    points  noise %   >1px %  found %   RMS px   RMS mm"
-    )
+        "   >1mm %    good  RMS good mm",
+    ]
     for method, sets in accuracy_table["methods"].items():
         for name, s in sets.items():
-            rms = f"{s['rms_px']:8.3f} {s['rms_mm']:8.4f}" if s["rms_px"] == s["rms_px"] else ""
+            has_rms = s["rms_px"] == s["rms_px"]
+            rms = f"{s['rms_px']:8.3f} {s['rms_mm']:8.4f}" if has_rms else " " * 17
             if name == "free":
                 lines.append(
                     f"    {method:<22} {name:<5} {s['points']:7d}  "
@@ -236,5 +276,50 @@ def report(results: dict[str, Any]) -> list[str]:
             lines.append(
                 f"    {method:<22} {name:<5} {s['points']:7d} {100 * s['noise_fraction']:8.2f}"
                 f" {100 * s['beyond_1px_fraction']:8.2f} {100 * s['found_fraction']:8.1f} {rms}"
+                f" {100 * s['beyond_1mm_fraction']:8.2f} {s['good_mm']:7d} {s['rms_good_mm']:12.4f}"
             )
+    return lines
+
+
+def _acceptance_lines(results: dict[str, Any]) -> list[str]:
+    """Return issue 21's figures: the default with the host's fit against Horus-style."""
+    lines = ["  issue 21: ours against Horus-style (50 DN), weak + good sets"]
+    for table, ours_name in (
+        (t, m) for m in ("default + host fit", "margin 3 + host fit") for t in results["accuracy"]
+    ):
+        ours, horus = (table["methods"][m] for m in (ours_name, "Horus-style, 50 DN"))
+        figures = []
+        for m in (ours, horus):
+            sets = [m["weak"], m["good"]]
+            good = sum(s["good_mm"] for s in sets)
+            points = sum(s["points"] for s in sets)
+            squares = sum(s["good_mm"] * s["rms_good_mm"] ** 2 for s in sets if s["good_mm"])
+            beyond = sum(s["beyond_1mm_fraction"] * s["points"] for s in sets)
+            px = [s for s in sets if s["rms_px"] == s["rms_px"]]
+            within = sum(s["points"] * (1 - s["beyond_1px_fraction"]) for s in px)
+            px_squares = sum(
+                s["points"] * (1 - s["beyond_1px_fraction"]) * s["rms_px"] ** 2 for s in px
+            )
+            figures.append(
+                (good, math.sqrt(squares / good) if good else math.nan,
+                 beyond / points if points else 0.0,
+                 math.sqrt(px_squares / within) if within else math.nan)
+            )  # fmt: skip
+        (g0, r0, b0, p0), (g1, r1, b1, p1) = figures
+        lines.append(
+            f"    {ours_name:<20} {table['preset']:<7} good points {g0} vs {g1};"
+            f" RMS of good points {r0:.4f} vs"
+            f" {r1:.4f} mm ({r0 / r1:.2f}x); RMS within 1 px {p0:.3f} vs {p1:.3f} px"
+            f" ({p0 / p1:.2f}x); beyond 1 mm {100 * b0:.2f} % vs {100 * b1:.2f} %"
+        )
+    by_variant: dict[str, dict[str, float]] = {}
+    for row in results["speed"]:
+        by_variant.setdefault(row["variant"], {})[row["resolution"]] = row["extract_ms"]
+    horus = next(v for k, v in by_variant.items() if k.startswith("Horus"))
+    for name in (HOST_FIT, HOST_FIT_MARGIN):
+        fitted = by_variant[name]
+        lines.append(
+            f"    Horus-style / ({name.split(' (')[0]}) time: "
+            + ", ".join(f"{r} {horus[r] / fitted[r]:.0f}x" for r in fitted)
+        )
     return lines

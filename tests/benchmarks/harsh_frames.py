@@ -188,6 +188,13 @@ class Score:
     """RMS error of the points that are not outliers, px."""
     rms_mm: float
     """The same in the laser plane, mm."""
+    beyond_1mm: int = 0
+    """Points more than 1 mm from the true stripe point of their column in the laser plane
+    (points without a true stripe in their column among them)."""
+    good_mm: int = 0
+    """Points within :data:`GOOD_MM` of the true stripe point in the laser plane."""
+    rms_good_mm: float = float("nan")
+    """RMS error of those points, mm."""
 
     @property
     def outlier_fraction(self) -> float:
@@ -203,6 +210,10 @@ class Score:
     def found_fraction(self) -> float:
         """Return good points over the columns with a true stripe."""
         return (self.points - self.outliers) / self.truth_columns if self.truth_columns else 0.0
+
+
+GOOD_MM = 0.25
+"""A point this close to the truth in the laser plane counts as good (issue 21's measure)."""
 
 
 def errors_px(view: View, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -229,9 +240,10 @@ def score(
     views: list[View], found: list[tuple[np.ndarray, np.ndarray]], tolerance_px: float = 1.0
 ) -> Score:
     """Score the (cols, rows) found in each view against its truth."""
-    points = outliers = off_stripe = columns = 0
+    points = outliers = off_stripe = columns = beyond_1mm = 0
     squares_px: list[np.ndarray] = []
     squares_mm: list[np.ndarray] = []
+    good_squares_mm: list[np.ndarray] = []
     for view, (cols, rows) in zip(views, found, strict=True):
         error = errors_px(view, cols, rows)
         good = error <= tolerance_px
@@ -246,7 +258,32 @@ def score(
         found_mm = _plane_mm(view.rig, cols[good], rows[good])
         true_mm = _plane_mm(view.rig, cols[good], true_rows)
         squares_mm.append(np.sum((found_mm - true_mm) ** 2, axis=1))
+        # Every point against its nearest true row, in mm; no true row: beyond 1 mm.
+        has_truth = np.isfinite(error)
+        beyond_1mm += int((~has_truth).sum())
+        distance_mm = _nearest_mm(view, cols[has_truth], rows[has_truth])
+        beyond_1mm += int((distance_mm > 1.0).sum())
+        good_squares_mm.append(distance_mm[distance_mm <= GOOD_MM] ** 2)
     all_px, all_mm = np.concatenate(squares_px), np.concatenate(squares_mm)
+    good_mm = np.concatenate(good_squares_mm)
     rms_px = float(np.sqrt(all_px.mean())) if all_px.size else float("nan")
     rms_mm = float(np.sqrt(all_mm.mean())) if all_mm.size else float("nan")
-    return Score(points, outliers, off_stripe, columns, rms_px, rms_mm)
+    rms_good = float(np.sqrt(good_mm.mean())) if good_mm.size else float("nan")
+    return Score(
+        points, outliers, off_stripe, columns, rms_px, rms_mm, beyond_1mm, good_mm.size, rms_good
+    )
+
+
+def _nearest_mm(view: View, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Return each point's distance (mm, laser plane) to the nearest true point of its column."""
+    if cols.size == 0:
+        return np.zeros(0)
+    found_mm = _plane_mm(view.rig, cols, rows)
+    best = np.full(cols.size, np.inf)
+    for truth_rows in view.truth_rows:
+        true_rows = truth_rows[cols.astype(np.intp)]
+        known = np.isfinite(true_rows)
+        if known.any():
+            true_mm = _plane_mm(view.rig, cols[known], true_rows[known])
+            best[known] = np.minimum(best[known], np.linalg.norm(found_mm[known] - true_mm, axis=1))
+    return best

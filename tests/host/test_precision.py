@@ -1,0 +1,44 @@
+"""The per-point precision of a section, from where its views overlap."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lamina_host.precision import overlap_differences, section_precision_mm
+
+
+def circle_views(noise_mm: float, views: int = 6, seed: int = 0, radius_mm: float = 20.0):
+    """Return overlapping arcs of one circle, each seen with its own noise (mm)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(views):
+        start = 2 * np.pi * k / views
+        angle = start + np.linspace(0.0, 2 * np.pi / views * 1.8, 300)  # 80 % overlap
+        r = radius_mm + rng.normal(0.0, noise_mm, angle.size)
+        points = np.stack([r * np.cos(angle), r * np.sin(angle)], axis=1)
+        out.append(points + np.array([3.0, -2.0]))
+    return out
+
+
+@pytest.mark.parametrize("noise_mm", [0.01, 0.05, 0.2])
+def test_precision_matches_the_point_noise(noise_mm):
+    estimate = section_precision_mm(circle_views(noise_mm))
+    assert estimate == pytest.approx(noise_mm, rel=0.15)
+
+
+def test_an_offset_between_views_counts_and_gaps_are_skipped():
+    views = circle_views(0.02, seed=1)
+    views[2] = views[2] * 1.01  # one view 0.2 mm too far out: worse than the noise alone
+    assert section_precision_mm(views) > 0.02 * 1.3
+    holey = circle_views(0.02, seed=2)
+    holey[1] = np.delete(holey[1], range(100, 160), axis=0)  # a gap is not an overlap
+    full = overlap_differences(circle_views(0.02, seed=2)).size
+    assert overlap_differences(holey).size < full
+
+
+def test_without_overlap_there_is_no_estimate():
+    assert section_precision_mm(circle_views(0.05, views=1)) is None
+    angle = np.linspace(0.0, 1.0, 50)
+    apart = [np.stack([np.cos(angle + s), np.sin(angle + s)], axis=1) for s in (0.0, 3.0)]
+    assert section_precision_mm(apart) is None
