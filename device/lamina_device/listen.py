@@ -5,7 +5,7 @@
 handler. :class:`ListeningPort` gives the server the part of ``serial.Serial`` its
 ``Channel`` uses, and serves one host at a time: a host that goes away reads as a
 broken link once (the server puts the hardware in its safe state), then the port waits
-for the next host; a second host while one is connected is turned away at once.
+for the next host; a second host while one is connected is told so and turned away.
 """
 
 from __future__ import annotations
@@ -16,12 +16,25 @@ import logging
 import select
 import socket
 import termios
+import time
+from contextlib import suppress
 
 from lamina_shared.local import is_loopback, parse_endpoint
+from lamina_shared.protocol import Kind, encode_json
 
 __all__ = ["ListeningPort", "open_listener"]
 
 log = logging.getLogger(__name__)
+
+REFUSAL = {
+    "refused": {
+        "code": "in-use",
+        "message": "another host is connected to this device; one host at a time",
+    }
+}
+"""The WELCOME a second host gets before its connection is closed."""
+TURN_AWAY_S = 1.0
+"""How long a turned-away connection stays half-open so the host reads the refusal."""
 
 
 class ListeningPort:
@@ -33,6 +46,7 @@ class ListeningPort:
         self._listener = socket.create_server((host, port), backlog=1)
         self._listener.setblocking(False)
         self._conn: socket.socket | None = None
+        self._turned_away: list[tuple[socket.socket, float]] = []
 
     @property
     def address(self) -> tuple[str, int]:
@@ -60,6 +74,8 @@ class ListeningPort:
         Raises:
             ConnectionError: the host closed its end (reported once; then a new host is awaited).
         """
+        if self._turned_away:
+            self._close_turned_away()
         watch = [self._listener] if self._conn is None else [self._listener, self._conn]
         ready, _, _ = select.select(watch, [], [], self.timeout)
         if self._listener in ready:
@@ -94,12 +110,41 @@ class ListeningPort:
             return
         if self._conn is not None:
             log.warning("turned away a second host from %s: one host at a time", peer)
-            conn.close()
+            self._turn_away(conn)
             return
         log.info("host connected from %s", peer)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         conn.settimeout(self.write_timeout)
         self._conn = conn
+
+    def _turn_away(self, conn: socket.socket) -> None:
+        """Tell a second host why it is refused, then close its connection.
+
+        The refusal is a WELCOME with ``refused`` (``shared/PROTOCOL.md``), so the host
+        can say the device is in use rather than that the link broke. Closing with the
+        host's HELLO unread would reset the connection and could lose the refusal: the
+        write side is shut at once, the connection closed after :data:`TURN_AWAY_S`.
+        """
+        with suppress(OSError):
+            conn.settimeout(0.5)
+            conn.sendall(encode_json(Kind.WELCOME, REFUSAL))
+            conn.shutdown(socket.SHUT_WR)
+        self._turned_away.append((conn, time.monotonic() + TURN_AWAY_S))
+
+    def _close_turned_away(self, force: bool = False) -> None:
+        """Close turned-away connections whose time is up (all with ``force``)."""
+        now = time.monotonic()
+        keep: list[tuple[socket.socket, float]] = []
+        for conn, until in self._turned_away:
+            if force or now >= until:
+                with suppress(OSError):
+                    conn.setblocking(False)
+                    while conn.recv(4096):  # what the host sent: closing unread resets
+                        pass
+                conn.close()
+            else:
+                keep.append((conn, until))
+        self._turned_away = keep
 
     def _drop(self) -> None:
         if self._conn is not None:
@@ -108,6 +153,7 @@ class ListeningPort:
 
     def close(self) -> None:
         """Close the connection and stop listening."""
+        self._close_turned_away(force=True)
         self._drop()
         self._listener.close()
 

@@ -82,17 +82,29 @@ class AxisLimits:
     lift_max_mm: float
     turntable_min_deg: float | None = None
     turntable_max_deg: float | None = None
+    lift_step_mm: float | None = None
+    """The lift's smallest move (one microstep); None for a lift without steps."""
 
     @classmethod
     def of(cls, hardware: Hardware) -> AxisLimits:
         """Return the limits the hardware's axes declare."""
         lift, turntable = hardware.lift, hardware.turntable
-        return cls(lift.min_mm, lift.max_mm, turntable.min_deg, turntable.max_deg)
+        step = getattr(lift, "step_mm", None)  # only stepper lifts have one
+        return cls(
+            lift.min_mm,
+            lift.max_mm,
+            turntable.min_deg,
+            turntable.max_deg,
+            float(step) if isinstance(step, int | float) else None,
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the WELCOME form."""
+        """Return the WELCOME form (the lift's ``step`` only when it has one)."""
+        lift: dict[str, Any] = {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm}
+        if self.lift_step_mm is not None:
+            lift["step"] = self.lift_step_mm
         return {
-            "lift": {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm},
+            "lift": lift,
             "turntable": {
                 "unit": "deg",
                 "min": self.turntable_min_deg,
