@@ -46,7 +46,8 @@ class ListeningPort:
         self._listener = socket.create_server((host, port), backlog=1)
         self._listener.setblocking(False)
         self._conn: socket.socket | None = None
-        self._turned_away: list[tuple[socket.socket, float]] = []
+        self._turned_away: dict[socket.socket, tuple[float, bool]] = {}
+        """Second hosts' connections: when each is closed, and whether it was told why."""
 
     @property
     def address(self) -> tuple[str, int]:
@@ -74,10 +75,10 @@ class ListeningPort:
         Raises:
             ConnectionError: the host closed its end (reported once; then a new host is awaited).
         """
-        if self._turned_away:
-            self._close_turned_away()
         watch = [self._listener] if self._conn is None else [self._listener, self._conn]
-        ready, _, _ = select.select(watch, [], [], self.timeout)
+        ready, _, _ = select.select([*watch, *self._turned_away], [], [], self.timeout)
+        if self._turned_away:
+            self._serve_turned_away(ready)
         if self._listener in ready:
             self._accept()
         if self._conn is None or self._conn not in ready:
@@ -118,33 +119,39 @@ class ListeningPort:
         self._conn = conn
 
     def _turn_away(self, conn: socket.socket) -> None:
-        """Tell a second host why it is refused, then close its connection.
+        """Keep a second host's connection until it speaks, to tell it why it is refused.
 
         The refusal is a WELCOME with ``refused`` (``shared/PROTOCOL.md``), so the host
-        can say the device is in use rather than that the link broke. Closing with the
-        host's HELLO unread would reset the connection and could lose the refusal: the
-        write side is shut at once, the connection closed after :data:`TURN_AWAY_S`.
+        can say the device is in use rather than that the link broke. It answers the
+        host's first bytes (its HELLO): sent at once, it could arrive before the host
+        opened its port, and pyserial empties the input buffer on opening.
         """
-        with suppress(OSError):
-            conn.settimeout(0.5)
-            conn.sendall(encode_json(Kind.WELCOME, REFUSAL))
-            conn.shutdown(socket.SHUT_WR)
-        self._turned_away.append((conn, time.monotonic() + TURN_AWAY_S))
+        conn.setblocking(False)
+        self._turned_away[conn] = (time.monotonic() + 5 * TURN_AWAY_S, False)
 
-    def _close_turned_away(self, force: bool = False) -> None:
-        """Close turned-away connections whose time is up (all with ``force``)."""
+    def _serve_turned_away(self, ready: list[socket.socket]) -> None:
+        """Answer turned-away hosts that spoke; close those whose time is up."""
         now = time.monotonic()
-        keep: list[tuple[socket.socket, float]] = []
-        for conn, until in self._turned_away:
-            if force or now >= until:
+        for conn, (until, refused) in list(self._turned_away.items()):
+            if conn in ready:
+                data = b""
                 with suppress(OSError):
-                    conn.setblocking(False)
-                    while conn.recv(4096):  # what the host sent: closing unread resets
-                        pass
+                    data = conn.recv(4096)  # what the host sent: closing unread would reset
+                if not data:
+                    until = now  # the host hung up (or the socket failed)
+                elif not refused:
+                    with suppress(OSError):
+                        conn.setblocking(True)
+                        conn.settimeout(0.5)
+                        conn.sendall(encode_json(Kind.WELCOME, REFUSAL))
+                        conn.shutdown(socket.SHUT_WR)
+                        conn.setblocking(False)
+                    until, refused = now + TURN_AWAY_S, True
+            if now >= until:
                 conn.close()
+                del self._turned_away[conn]
             else:
-                keep.append((conn, until))
-        self._turned_away = keep
+                self._turned_away[conn] = (until, refused)
 
     def _drop(self) -> None:
         if self._conn is not None:
@@ -153,7 +160,9 @@ class ListeningPort:
 
     def close(self) -> None:
         """Close the connection and stop listening."""
-        self._close_turned_away(force=True)
+        for conn in self._turned_away:
+            conn.close()
+        self._turned_away.clear()
         self._drop()
         self._listener.close()
 

@@ -406,19 +406,19 @@ class DeviceClient:
             if slow and self.process is not None and not noticed and on_notice is not None:
                 on_notice(f"waiting for the device program to start (up to {timeout_s:.0f} s)")
                 noticed = True
-            # Repeat HELLO: a device that opened its port late flushed the earlier ones.
-            self.channel.send(encode_json(Kind.HELLO, hello))
             try:
-                body = self._welcomes.get(timeout=0.5).body
-            except queue.Empty:
-                body = None
-            self._raise_refusal()
-            if body is not None:
-                return self._welcome(body)
-            try:
+                # Repeat HELLO: a device that opened its port late flushed the earlier ones.
+                self.channel.send(encode_json(Kind.HELLO, hello))
+                try:
+                    body = self._welcomes.get(timeout=0.5).body
+                except queue.Empty:
+                    body = None
+                self._raise_refusal()
+                if body is not None:
+                    return self._welcome(body)
                 self.dispatcher.raise_failure()
             except LinkClosed:
-                self._raise_refusal()  # it came just before the device hung up
+                self._await_refusal()  # a refusal came just before the device hung up
                 raise
             if (exit_message := self._device_exit_message()) is not None:
                 raise DeviceError(exit_message)
@@ -454,6 +454,15 @@ class DeviceClient:
                 self._refusal = printable(str(reason or "no reason given"))[:200]
                 return
             self._welcomes.put(message)
+
+    def _await_refusal(self, wait_s: float = 1.0) -> None:
+        """Raise DeviceError if a refusal arrives before the reader meets the hang-up."""
+        deadline = time.monotonic() + wait_s
+        while self._refusal is None and self.dispatcher.failure is None:
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.02)
+        self._raise_refusal()
 
     def _raise_refusal(self) -> None:
         """Raise DeviceError if the device turned this host away."""
