@@ -38,6 +38,9 @@ WILDCARDS = frozenset({"", "0.0.0.0", "::"})
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 """What a browser on this machine may call a loopback server."""
 
+CHECKED_HOST = web.RequestKey("lamina_checked_host", str)
+"""The request's ``Host`` as :meth:`UiServer.checked_host` accepted it."""
+
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
@@ -47,7 +50,7 @@ class RemoteRefused(LaminaError):
 
 def _canonical(name: str) -> str:
     """Return a host name or address in one form: lower case, an IPv6 address compressed."""
-    name = name.strip().lower().rstrip(".")
+    name = name.lower()
     try:
         return str(ipaddress.ip_address(name))
     except ValueError:
@@ -147,7 +150,7 @@ class UiServer(Server):
             raise web.HTTPForbidden(text="the UI's websocket needs an Origin\n")
         if origin is not None and origin.lower() not in (f"http://{host}", f"https://{host}"):
             raise web.HTTPForbidden(text="this Lamina UI is driven only from its own page\n")
-        request["lamina_host"] = host
+        request[CHECKED_HOST] = host
         return await handler(request)
 
     async def _make_app(self) -> web.Application:
@@ -161,7 +164,7 @@ class UiServer(Server):
 
     async def handle_index(self, request: web.Request) -> Any:
         """Serve the page that opens the app's websocket on the checked host."""
-        self.public_url = f"http://{request.get('lamina_host') or self.checked_host(request)}"
+        self.public_url = f"http://{request.get(CHECKED_HOST) or self.checked_host(request)}"
         return await super().handle_index(request)
 
     def serve(self, debug: bool = False) -> None:
@@ -180,8 +183,7 @@ class UiServer(Server):
         try:
             await web.TCPSite(runner, self.host, self.port).start()
             print(
-                f"lamina: serving the terminal UI on http://{self.host}:{self.port} "
-                "(Ctrl+C stops)",
+                f"lamina: serving the terminal UI on http://{self.host}:{self.port} (Ctrl+C stops)",
                 flush=True,
             )
             stop = asyncio.Event()
