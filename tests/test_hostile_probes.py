@@ -198,7 +198,7 @@ def test_a_device_refusing_the_plan_mid_scan_is_not_advised_to_be_resumed(monkey
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("capture") / "rod"
-    plan = ["--sections", "2", "--views", "4", "--cylinder-views", "4"]
+    plan = ["--sections", "1", "--views", "3", "--cylinder-views", "3"]
     subprocess.run(
         device_command("record", "--hardware", "sim", "--out", str(out), *plan),
         check=True,
