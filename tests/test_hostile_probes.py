@@ -321,6 +321,24 @@ def test_the_calibration_image_is_written_to_any_path_the_file_system_takes(tmp_
     assert np.array_equal(image, (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64))
 
 
+def test_capture_frames_are_written_and_read_under_any_file_name(tmp_path):
+    """The capture format's PNGs go through Python's file API too (OpenCV took text)."""
+    code = (
+        "import os, sys, numpy as np\n"
+        "from pathlib import Path\n"
+        "from lamina_shared.capture import CaptureWriter, read_frame\n"
+        "image = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)\n"
+        "folder = Path(sys.argv[1]) / os.fsdecode(b'capture-\\xff')\n"
+        "writer = CaptureWriter(folder, (64, 48))\n"
+        "rel = writer._write_png('calib/grid.png', image)\n"
+        "assert np.array_equal(read_frame(folder / rel), image)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, (done.returncode, done.stderr)
+
+
 # --- SIGTERM and SIGHUP -------------------------------------------------------------------
 
 

@@ -630,7 +630,16 @@ def _scan(args: argparse.Namespace) -> int:
             raise
         finally:
             job.close()
-    results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+    try:
+        results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+    except (sqlite3.Error, OutputError) as exc:
+        if not _disk_full(exc):
+            raise
+        raise DiskFull(
+            f"{_filled(exc, job)}: the disk is full; the scan is acquired and kept: free space "
+            f"on it, then process it with lamina scan --resume {acquired.scan_id} "
+            f"--device {args.device}"
+        ) from None
     print_summary(results.report, results.paths)
     return 0
 
@@ -661,11 +670,9 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     except (sqlite3.Error, OutputError) as exc:
         if job.scan_id is None or not _disk_full(exc):
             raise
-        where = f"the scan library {job.library_path or default_library_path()}"
         raise DiskFull(
-            f"{exc if isinstance(exc, OutputError) else f'{where} cannot grow ({exc})'}: the "
-            f"disk is full; free space on it, then finish with lamina scan --resume "
-            f"{job.scan_id} --device {args.device} (what was stored is kept)"
+            f"{_filled(exc, job)}: the disk is full; what was stored is kept: free space on "
+            f"it, then finish with lamina scan --resume {job.scan_id} --device {args.device}"
         ) from None
     except (DeviceError, LinkClosed, ProtocolError) as exc:
         if job.scan_id is None:
@@ -684,6 +691,13 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
 
 class DiskFull(LaminaError):
     """A disk filled during a scan; the text names the file and how to finish the scan."""
+
+
+def _filled(exc: sqlite3.Error | OutputError, job: ScanJob) -> str:
+    """Return what could not be written: the output file the error names, or the library."""
+    if isinstance(exc, OutputError):
+        return str(exc)
+    return f"the scan library {job.library_path or default_library_path()} cannot grow ({exc})"
 
 
 def _disk_full(exc: BaseException) -> bool:
@@ -866,6 +880,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except sqlite3.Error as exc:
         library = getattr(args, "library", None) or default_library_path()
+        if _disk_full(exc):
+            print(
+                f"lamina: the disk holding the scan library {library} is full ({exc}): "
+                "free space on it, then run the command again",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
         print(
             f"lamina: the scan library {library} cannot be used ({exc}): if it is damaged, "
             "restore it from a backup",

@@ -176,7 +176,6 @@ def check_plan_limits(
     Raises:
         InputError: naming the limit, the plan's figure and the device's.
     """
-    check_plan_axes(target, plan, axes or {})
     per_section: dict[int, int] = {}
     for view in plan.views:
         per_section[view.section] = per_section.get(view.section, 0) + 1
@@ -192,6 +191,7 @@ def check_plan_limits(
                 f"the {target} plan has {figure} {what}, beyond the device's limit of {limit} "
                 f"({key}): plan a smaller scan"
             )
+    check_plan_axes(target, plan, axes or {})
     # The counts above name the limit; the shared check adds what only the wire knows
     # (an irregular plan too long for one request, heights and angles out of range).
     problems = plan_fits(plan, DeviceLimits.from_welcome(dict(limits)))
