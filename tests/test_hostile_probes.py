@@ -129,7 +129,8 @@ def test_a_stepper_lift_advertises_its_step():
     from gpiozero.pins.mock import MockFactory
 
     from lamina_device.config import load_config
-    from lamina_device.operations import AxisLimits
+    from lamina_device.operations import AxisLimits, check_section_gaps
+    from lamina_device.server import RequestError
 
     config = load_config()
     lift = StepperLift(config.lift, MockFactory())
@@ -139,6 +140,10 @@ def test_a_stepper_lift_advertises_its_step():
         limits = AxisLimits(lift.min_mm, lift.max_mm, None, None, lift.step_mm)
         assert limits.to_dict()["lift"]["step"] == step
         assert "step" not in AxisLimits(0.0, 200.0).to_dict()["lift"]  # a lift without steps
+        check_section_gaps(limits, [0.0, step, 2 * step, 40.0])
+        with pytest.raises(RequestError, match="finer than the lift's step"):
+            check_section_gaps(limits, [0.0, step / 2])  # the device refuses it too
+        check_section_gaps(AxisLimits(0.0, 200.0), [0.0, 1e-9])  # no step: not checked
     finally:
         lift.close()
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 import threading
@@ -130,6 +131,20 @@ class AxisLimits:
             )
 
 
+def check_section_gaps(limits: AxisLimits, heights: list[float]) -> None:
+    """Raise RequestError(``limit``) if sorted ``heights`` are closer than the lift's step.
+
+    Two sections less than a microstep apart would be scanned at one lift position.
+    """
+    step = limits.lift_step_mm
+    gaps = [b - a for a, b in itertools.pairwise(heights)]
+    if step is not None and gaps and min(gaps) < step * (1 - 1e-9):
+        raise RequestError(
+            "limit",
+            f"sections {min(gaps):g} mm apart are finer than the lift's step of {step:g} mm",
+        )
+
+
 def plan_key(
     target: str, plan: ScanPlan, settings: ExtractSettings, colour: bool = False
 ) -> tuple[str, str]:
@@ -213,6 +228,7 @@ class Operations:
         for axis, values in (("lift", lifts), ("turntable", angles)):
             self.limits.check(axis, values[0])
             self.limits.check(axis, values[-1])
+        check_section_gaps(self.limits, lifts)
         return plan
 
     def scan(self, request_id: int, args: ScanArgs) -> dict[str, Any]:
