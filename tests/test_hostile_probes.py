@@ -522,3 +522,17 @@ def test_a_full_disk_names_what_filled_and_how_to_finish(capsys, monkeypatch, tm
     with Library(path) as library:
         assert library.scans()[0].id == 1
     assert held_segments(path) == (4 if full == "outputs" else 10 - 8)  # 8 cylinder views
+
+
+def test_the_terminal_ui_says_a_full_disk_is_full_not_damaged():
+    from lamina_host.files import OutputError, disk_full
+    from lamina_host.tui.adapter import user_message
+
+    full = sqlite3.OperationalError("database or disk is full")
+    assert disk_full(full) and disk_full(OSError(errno.ENOSPC, "No space left on device"))
+    assert disk_full(OutputError("cannot write x.npz (No space left on device)", errno.ENOSPC))
+    assert not disk_full(sqlite3.DatabaseError("database disk image is malformed"))
+    assert not disk_full(OSError(errno.EACCES, "Permission denied"))
+    message = user_message(full)
+    assert "disk holding the scan library is full" in message and "backup" not in message
+    assert "restore a backup" in user_message(sqlite3.DatabaseError("malformed"))

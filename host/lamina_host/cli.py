@@ -11,7 +11,6 @@ began with.
 from __future__ import annotations
 
 import argparse
-import errno
 import math
 import signal
 import sqlite3
@@ -38,7 +37,7 @@ from lamina_host.dicom import DICOM_SOPS, check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
 from lamina_host.exports import export_scan
-from lamina_host.files import OutputError, prepare_output_folder
+from lamina_host.files import OutputError, disk_full, prepare_output_folder
 from lamina_host.link import DeviceError, RequestRefused
 from lamina_host.mesh import MESH_METHODS, meshlab
 from lamina_host.pipeline import ProcessOptions
@@ -633,7 +632,7 @@ def _scan(args: argparse.Namespace) -> int:
     try:
         results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
     except (sqlite3.Error, OutputError) as exc:
-        if not _disk_full(exc):
+        if not disk_full(exc):
             raise
         raise DiskFull(
             f"{_filled(exc, job)}: the disk is full; the scan is acquired and kept: free space "
@@ -668,7 +667,7 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
             f"finish with lamina scan --resume {job.scan_id} --device {args.device}"
         ) from None
     except (sqlite3.Error, OutputError) as exc:
-        if job.scan_id is None or not _disk_full(exc):
+        if job.scan_id is None or not disk_full(exc):
             raise
         raise DiskFull(
             f"{_filled(exc, job)}: the disk is full; what was stored is kept: free space on "
@@ -698,16 +697,6 @@ def _filled(exc: sqlite3.Error | OutputError, job: ScanJob) -> str:
     if isinstance(exc, OutputError):
         return str(exc)
     return f"the scan library {job.library_path or default_library_path()} cannot grow ({exc})"
-
-
-def _disk_full(exc: BaseException) -> bool:
-    """Return True if ``exc`` says a disk (or the library's file system) is full."""
-    if isinstance(exc, OutputError | OSError):
-        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
-    if isinstance(exc, sqlite3.Error):
-        code = getattr(exc, "sqlite_errorcode", None)
-        return code == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
-    return False
 
 
 def list_scans(args: argparse.Namespace) -> int:
@@ -880,7 +869,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except sqlite3.Error as exc:
         library = getattr(args, "library", None) or default_library_path()
-        if _disk_full(exc):
+        if disk_full(exc):
             print(
                 f"lamina: the disk holding the scan library {library} is full ({exc}): "
                 "free space on it, then run the command again",

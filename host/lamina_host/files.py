@@ -10,9 +10,11 @@ refused rather than overwritten.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import sqlite3
 import stat
 import tempfile
 from collections.abc import Callable
@@ -36,6 +38,23 @@ class OutputError(LaminaError, RuntimeError):
     def __init__(self, message: str, errno: int | None = None) -> None:
         super().__init__(message)
         self.errno = errno
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Return True if ``exc`` says a disk is full (a file's or the scan library's).
+
+    Args:
+        exc: an OSError, an :class:`OutputError` or a ``sqlite3.Error``.
+
+    Returns:
+        True for ENOSPC and EDQUOT, and SQLite's "database or disk is full".
+    """
+    if isinstance(exc, OutputError | OSError):
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorcode", None)
+        return code == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
+    return False
 
 
 def _cannot_write(path: Path, exc: OSError) -> OutputError:
