@@ -419,8 +419,8 @@ def test_serve_exits_non_zero_when_its_port_is_gone_and_zero_on_shutdown():
             client.hello()
         bridge.close()  # the cable and the port go away for good
         assert process.wait(timeout=30) == 1
-        assert process.stderr is not None
-        err = process.stderr.read().decode()
+        assert client.stderr_tail is not None  # the client reads the program's stderr
+        err = "\n".join(client.stderr_tail.lines())
         assert "serial port stays unusable" in err and "Traceback" not in err
     with _device_program() as (bridge, process):
         with serial.Serial(bridge.host_port, timeout=0.05) as port:

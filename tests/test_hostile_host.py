@@ -882,3 +882,38 @@ def served(server_class: type[DeviceServer], settings: ServerSettings) -> Iterat
     """A sim device served in this process over a real pty link, and a handshaken client."""
     with served_link(settings=settings, object_spec=OBJECT, server_class=server_class) as ends:
         yield ends.client
+
+
+# --- issue 19: probes that need this module's scans -------------------------------------
+
+
+def strict_json(text: str) -> Any:
+    """Parse ``text`` as a strict JSON parser does: NaN and Infinity are not JSON."""
+
+    def refuse(name: str) -> Any:
+        raise ValueError(f"{name} is not JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_resuming_a_tui_scan_without_an_output_folder_is_one_line(capsys, partial, tmp_path):
+    """The TUI records no output folder: KeyError 'out' on lamina scan --resume."""
+    path = tmp_path / "library.sqlite"
+    path.write_bytes((partial / "library.sqlite").read_bytes())
+    path.chmod(0o600)
+    before = held_segments(path)
+    argv = ["scan", "--device", "sim", "--library", str(path), "--resume", "1"]
+    line = refused(capsys, *argv)
+    assert "scan 1 has no output folder" in line and "-o NEW_FOLDER" in line
+    assert held_segments(path) == before
+
+
+def test_reports_are_strict_json(processed, capsys, tmp_path):
+    """view_offset_sd_deg was written NaN, which strict parsers reject."""
+    report = strict_json((processed / "out" / "report.json").read_text())
+    assert report["axis"]["view_offset_sd_deg"] is None
+    exported = tmp_path / "report.json"
+    status, _, err = run(capsys, "export", "1", "-o", str(exported),
+                         "--library", str(processed / "library.sqlite"))  # fmt: skip
+    assert status == 0, err
+    assert strict_json(exported.read_text())["axis"]["view_offset_sd_deg"] is None

@@ -37,6 +37,8 @@ from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
 EXIT_PORT_LOST = 1
+LISTED_PROBLEMS = 10
+"""Problems of a refused capture listed one per line (all are counted in the summary)."""
 
 
 def _terminate(signum: int, frame: FrameType | None) -> None:
@@ -284,10 +286,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
         )
     except CaptureError as exc:
-        # One line per problem, then the summary last: a host that started this program
-        # shows its last line, which names the first problems and counts the rest.
-        for problem in exc.problems:
+        # The first problems one per line, then the summary last: a host that started this
+        # program shows its last line, which names the first problems and counts the rest.
+        # Thousands of lines would only bury them (and fill a pipe nobody reads yet).
+        for problem in exc.problems[:LISTED_PROBLEMS]:
             print(f"  - {problem}", file=sys.stderr)
+        if len(exc.problems) > LISTED_PROBLEMS:
+            print(f"  - ... and {len(exc.problems) - LISTED_PROBLEMS} more", file=sys.stderr)
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except LaminaError as exc:

@@ -5,7 +5,7 @@
 handler. :class:`ListeningPort` gives the server the part of ``serial.Serial`` its
 ``Channel`` uses, and serves one host at a time: a host that goes away reads as a
 broken link once (the server puts the hardware in its safe state), then the port waits
-for the next host; a second host while one is connected is turned away at once.
+for the next host; a second host while one is connected is told so and turned away.
 """
 
 from __future__ import annotations
@@ -16,12 +16,25 @@ import logging
 import select
 import socket
 import termios
+import time
+from contextlib import suppress
 
 from lamina_shared.local import is_loopback, parse_endpoint
+from lamina_shared.protocol import Kind, encode_json
 
 __all__ = ["ListeningPort", "open_listener"]
 
 log = logging.getLogger(__name__)
+
+REFUSAL = {
+    "refused": {
+        "code": "in-use",
+        "message": "another host is connected to this device; one host at a time",
+    }
+}
+"""The WELCOME a second host gets before its connection is closed."""
+TURN_AWAY_S = 1.0
+"""How long a turned-away connection stays half-open so the host reads the refusal."""
 
 
 class ListeningPort:
@@ -33,6 +46,8 @@ class ListeningPort:
         self._listener = socket.create_server((host, port), backlog=1)
         self._listener.setblocking(False)
         self._conn: socket.socket | None = None
+        self._turned_away: dict[socket.socket, tuple[float, bool]] = {}
+        """Second hosts' connections: when each is closed, and whether it was told why."""
 
     @property
     def address(self) -> tuple[str, int]:
@@ -61,7 +76,9 @@ class ListeningPort:
             ConnectionError: the host closed its end (reported once; then a new host is awaited).
         """
         watch = [self._listener] if self._conn is None else [self._listener, self._conn]
-        ready, _, _ = select.select(watch, [], [], self.timeout)
+        ready, _, _ = select.select([*watch, *self._turned_away], [], [], self.timeout)
+        if self._turned_away:
+            self._serve_turned_away(ready)
         if self._listener in ready:
             self._accept()
         if self._conn is None or self._conn not in ready:
@@ -94,12 +111,47 @@ class ListeningPort:
             return
         if self._conn is not None:
             log.warning("turned away a second host from %s: one host at a time", peer)
-            conn.close()
+            self._turn_away(conn)
             return
         log.info("host connected from %s", peer)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         conn.settimeout(self.write_timeout)
         self._conn = conn
+
+    def _turn_away(self, conn: socket.socket) -> None:
+        """Keep a second host's connection until it speaks, to tell it why it is refused.
+
+        The refusal is a WELCOME with ``refused`` (``shared/PROTOCOL.md``), so the host
+        can say the device is in use rather than that the link broke. It answers the
+        host's first bytes (its HELLO): sent at once, it could arrive before the host
+        opened its port, and pyserial empties the input buffer on opening.
+        """
+        conn.setblocking(False)
+        self._turned_away[conn] = (time.monotonic() + 5 * TURN_AWAY_S, False)
+
+    def _serve_turned_away(self, ready: list[socket.socket]) -> None:
+        """Answer turned-away hosts that spoke; close those whose time is up."""
+        now = time.monotonic()
+        for conn, (until, refused) in list(self._turned_away.items()):
+            if conn in ready:
+                data = b""
+                with suppress(OSError):
+                    data = conn.recv(4096)  # what the host sent: closing unread would reset
+                if not data:
+                    until = now  # the host hung up (or the socket failed)
+                elif not refused:
+                    with suppress(OSError):
+                        conn.setblocking(True)
+                        conn.settimeout(0.5)
+                        conn.sendall(encode_json(Kind.WELCOME, REFUSAL))
+                        conn.shutdown(socket.SHUT_WR)
+                        conn.setblocking(False)
+                    until, refused = now + TURN_AWAY_S, True
+            if now >= until:
+                conn.close()
+                del self._turned_away[conn]
+            else:
+                self._turned_away[conn] = (until, refused)
 
     def _drop(self) -> None:
         if self._conn is not None:
@@ -108,6 +160,9 @@ class ListeningPort:
 
     def close(self) -> None:
         """Close the connection and stop listening."""
+        for conn in self._turned_away:
+            conn.close()
+        self._turned_away.clear()
         self._drop()
         self._listener.close()
 

@@ -313,6 +313,11 @@ class StepperLift:
         self._homed = False
 
     @property
+    def step_mm(self) -> float:
+        """Return the height of one microstep (the finest section pitch the lift makes)."""
+        return 1.0 / self.steps_per_mm
+
+    @property
     def min_mm(self) -> float:
         """Return the lower soft limit, ``[lift] min_mm``."""
         return self.config.min_mm

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 import threading
@@ -82,17 +83,29 @@ class AxisLimits:
     lift_max_mm: float
     turntable_min_deg: float | None = None
     turntable_max_deg: float | None = None
+    lift_step_mm: float | None = None
+    """The lift's smallest move (one microstep); None for a lift without steps."""
 
     @classmethod
     def of(cls, hardware: Hardware) -> AxisLimits:
         """Return the limits the hardware's axes declare."""
         lift, turntable = hardware.lift, hardware.turntable
-        return cls(lift.min_mm, lift.max_mm, turntable.min_deg, turntable.max_deg)
+        step = getattr(lift, "step_mm", None)  # only stepper lifts have one
+        return cls(
+            lift.min_mm,
+            lift.max_mm,
+            turntable.min_deg,
+            turntable.max_deg,
+            float(step) if isinstance(step, int | float) else None,
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the WELCOME form."""
+        """Return the WELCOME form (the lift's ``step`` only when it has one)."""
+        lift: dict[str, Any] = {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm}
+        if self.lift_step_mm is not None:
+            lift["step"] = self.lift_step_mm
         return {
-            "lift": {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm},
+            "lift": lift,
             "turntable": {
                 "unit": "deg",
                 "min": self.turntable_min_deg,
@@ -116,6 +129,20 @@ class AxisLimits:
                 "limit",
                 f"{axis} position {position} {unit} is outside its soft limits {low}..{high}",
             )
+
+
+def check_section_gaps(limits: AxisLimits, heights: list[float]) -> None:
+    """Raise RequestError(``limit``) if sorted ``heights`` are closer than the lift's step.
+
+    Two sections less than a microstep apart would be scanned at one lift position.
+    """
+    step = limits.lift_step_mm
+    gaps = [b - a for a, b in itertools.pairwise(heights)]
+    if step is not None and gaps and min(gaps) < step * (1 - 1e-9):
+        raise RequestError(
+            "limit",
+            f"sections {min(gaps):g} mm apart are finer than the lift's step of {step:g} mm",
+        )
 
 
 def plan_key(
@@ -201,6 +228,7 @@ class Operations:
         for axis, values in (("lift", lifts), ("turntable", angles)):
             self.limits.check(axis, values[0])
             self.limits.check(axis, values[-1])
+        check_section_gaps(self.limits, lifts)
         return plan
 
     def scan(self, request_id: int, args: ScanArgs) -> dict[str, Any]:

@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sqlite3
 import sys
-from collections.abc import Sequence
-from contextlib import suppress
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
 from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
@@ -36,8 +37,8 @@ from lamina_host.dicom import DICOM_SOPS, check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
 from lamina_host.exports import export_scan
-from lamina_host.files import prepare_output_folder
-from lamina_host.link import DeviceError
+from lamina_host.files import OutputError, disk_full, prepare_output_folder
+from lamina_host.link import DeviceError, RequestRefused
 from lamina_host.mesh import MESH_METHODS, meshlab
 from lamina_host.pipeline import ProcessOptions
 from lamina_host.store import SIDES, Library, ScanRecord, default_library_path
@@ -63,10 +64,41 @@ from lamina_shared.protocol import ProtocolError
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
+PLAN_REFUSALS = frozenset({"limit", "bad-args"})
+"""Refusal codes of a device that will refuse the same plan again (no resume can help)."""
 
 
 class UsageError(InputError):
     """A mistake in how the command was called."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl+C, SIGTERM or SIGHUP stopped a command; ``hint`` says how to go on (or "")."""
+
+    def __init__(self, hint: str = "") -> None:
+        super().__init__(hint)
+        self.hint = hint
+
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""Signals that end ``lamina scan`` as Ctrl+C does (an SSH session dropping, a terminal
+closed, a service manager stopping it): what arrived is written, and the resume named."""
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    """Turn a stop signal into the interrupt Ctrl+C gives (on the main thread)."""
+    raise Interrupted()
+
+
+@contextmanager
+def _stop_signals_interrupt() -> Iterator[None]:
+    """While inside, SIGTERM and SIGHUP interrupt like SIGINT; the old handlers come back."""
+    previous = {number: signal.signal(number, _interrupt) for number in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 SCAN_DEFAULTS: dict[str, Any] = {
@@ -408,7 +440,14 @@ def _apply_resume(args: argparse.Namespace, record: ScanRecord) -> None:
         raise UsageError(f"scan {record.id} records side {record.side}; resume it without --side")
     args.side = record.side
     if args.out is None:
-        args.out = Path(record.options["out"])
+        folder = record.options.get("out")
+        if not isinstance(folder, str) or not folder:
+            # Begun in the terminal UI or the browser, which keep no output folder.
+            raise UsageError(
+                f"scan {record.id} has no output folder of its own (begun in the terminal UI "
+                f"or a browser): resume it with -o NEW_FOLDER, or finish it in the UI"
+            )
+        args.out = Path(folder)
 
 
 def _finite_or_none(value: object) -> bool:
@@ -564,6 +603,11 @@ def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
 
 def scan(args: argparse.Namespace) -> int:
     """Run ``lamina scan``: store into the library, resume what it holds, reconstruct."""
+    with _stop_signals_interrupt():
+        return _scan(args)
+
+
+def _scan(args: argparse.Namespace) -> int:
     with _open_library(args.library) as library:
         record = library.scan(args.resume) if args.resume is not None else None
         if record is not None:
@@ -585,7 +629,16 @@ def scan(args: argparse.Namespace) -> int:
             raise
         finally:
             job.close()
-    results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+    try:
+        results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+    except (sqlite3.Error, OutputError) as exc:
+        if not disk_full(exc):
+            raise
+        raise DiskFull(
+            f"{_filled(exc, job)}: the disk is full; the scan is acquired and kept: free space "
+            f"on it, then process it with lamina scan --resume {acquired.scan_id} "
+            f"--device {args.device}"
+        ) from None
     print_summary(results.report, results.paths)
     return 0
 
@@ -607,13 +660,43 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
                 f"scan {scan_id} in library {job.library_path}", file=sys.stderr
             ),
         )
+    except KeyboardInterrupt:
+        if job.scan_id is None:
+            raise
+        raise Interrupted(
+            f"finish with lamina scan --resume {job.scan_id} --device {args.device}"
+        ) from None
+    except (sqlite3.Error, OutputError) as exc:
+        if job.scan_id is None or not disk_full(exc):
+            raise
+        raise DiskFull(
+            f"{_filled(exc, job)}: the disk is full; what was stored is kept: free space on "
+            f"it, then finish with lamina scan --resume {job.scan_id} --device {args.device}"
+        ) from None
     except (DeviceError, LinkClosed, ProtocolError) as exc:
         if job.scan_id is None:
             raise
+        if isinstance(exc, RequestRefused) and exc.code in PLAN_REFUSALS:
+            # The device refuses the scan's plan itself: a resume would meet the same refusal.
+            raise DeviceError(
+                f"{exc}; what arrived is kept in scan {job.scan_id}, but this device cannot "
+                "finish its plan: scan again with a plan within the device's limits"
+            ) from None
         raise DeviceError(
             f"{exc}; what arrived is kept: finish with lamina scan --resume {job.scan_id} "
             f"--device {args.device}"
         ) from None
+
+
+class DiskFull(LaminaError):
+    """A disk filled during a scan; the text names the file and how to finish the scan."""
+
+
+def _filled(exc: sqlite3.Error | OutputError, job: ScanJob) -> str:
+    """Return what could not be written: the output file the error names, or the library."""
+    if isinstance(exc, OutputError):
+        return str(exc)
+    return f"the scan library {job.library_path or default_library_path()} cannot grow ({exc})"
 
 
 def list_scans(args: argparse.Namespace) -> int:
@@ -747,10 +830,35 @@ COMMANDS = {
 }
 
 
+PATH_OPTIONS = {"out": "-o", "csv": "--csv", "library": "--library"}
+"""Options naming a file or folder, by their argparse name."""
+
+
+def _check_path_names(args: argparse.Namespace) -> None:
+    """Refuse a path whose name is not UTF-8 text (bytes the shell passed through).
+
+    Such a name can be neither shown nor recorded faithfully (and OpenCV crashed on
+    one): it is refused before anything is created.
+    """
+    for name, flag in PATH_OPTIONS.items():
+        path = getattr(args, name, None)
+        if path is None:
+            continue
+        try:
+            str(path).encode("utf-8")
+        except UnicodeEncodeError:
+            shown = str(path).encode("utf-8", "backslashreplace").decode("ascii", "replace")
+            raise UsageError(
+                f"{flag} {printable(shown)} is not UTF-8 text: name it in UTF-8 (letters, "
+                "digits, '-' and '_' are safe)"
+            ) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit status."""
     args = build_parser().parse_args(argv)
     try:
+        _check_path_names(args)
         return COMMANDS[args.command](args)
     except LinkClosed as exc:
         print(
@@ -761,6 +869,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"lamina: {printable(str(exc))}", file=sys.stderr)
     except sqlite3.Error as exc:
         library = getattr(args, "library", None) or default_library_path()
+        if disk_full(exc):
+            print(
+                f"lamina: the disk holding the scan library {library} is full ({exc}): "
+                "free space on it, then run the command again",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
         print(
             f"lamina: the scan library {library} cannot be used ({exc}): if it is damaged, "
             "restore it from a backup",
@@ -768,7 +883,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except OSError as exc:
         print(f"lamina: {exc.strerror or exc} ({exc.filename or 'no file'})", file=sys.stderr)
-    except KeyboardInterrupt:
-        print("lamina: interrupted; data received so far is in the output folder", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        hint = exc.hint if isinstance(exc, Interrupted) else ""
+        with suppress(OSError):  # a closed terminal (SIGHUP) may take stderr with it
+            print(
+                "lamina: interrupted; data received so far is in the output folder"
+                + (f" and the library: {hint}" if hint else ""),
+                file=sys.stderr,
+            )
         return 130
     return EXIT_USAGE

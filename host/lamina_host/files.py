@@ -10,12 +10,17 @@ refused rather than overwritten.
 
 from __future__ import annotations
 
+import errno
+import json
+import math
 import os
+import sqlite3
 import stat
 import tempfile
 from collections.abc import Callable
 from contextlib import suppress
 from pathlib import Path
+from typing import Any
 
 from lamina_shared.errors import LaminaError
 
@@ -24,7 +29,59 @@ PRIVATE_FOLDER = 0o700
 
 
 class OutputError(LaminaError, RuntimeError):
-    """An output cannot be written where asked; the text names the path and what to do."""
+    """An output cannot be written where asked; the text names the path and what to do.
+
+    ``errno`` is the file system's reason when there is one (``errno.ENOSPC``: the disk
+    is full), so a caller can say how to go on.
+    """
+
+    def __init__(self, message: str, errno: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Return True if ``exc`` says a disk is full (a file's or the scan library's).
+
+    Args:
+        exc: an OSError, an :class:`OutputError` or a ``sqlite3.Error``.
+
+    Returns:
+        True for ENOSPC and EDQUOT, and SQLite's "database or disk is full".
+    """
+    if isinstance(exc, OutputError | OSError):
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorcode", None)
+        return code == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
+    return False
+
+
+def _cannot_write(path: Path, exc: OSError) -> OutputError:
+    return OutputError(f"cannot write {path} ({_reason(exc)})", exc.errno)
+
+
+def finite_json(value: Any) -> Any:
+    """Return ``value`` with every non-finite number (NaN, infinity) replaced by None.
+
+    Args:
+        value: JSON-able data (dicts, lists, tuples, numbers, strings).
+
+    Returns:
+        The same data, fit for strict JSON parsers (``NaN`` is not JSON: null is).
+    """
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite_json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(item) for item in value]
+    return value
+
+
+def json_text(value: Any) -> str:
+    """Return ``value`` as indented strict JSON text (non-finite numbers as null), newline ended."""
+    return json.dumps(finite_json(value), indent=2, allow_nan=False) + "\n"
 
 
 def _reason(exc: OSError) -> str:
@@ -75,7 +132,7 @@ def replace_file(path: Path, write: Callable[[Path], object]) -> Path:
     try:
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
     except OSError as exc:
-        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+        raise _cannot_write(path, exc) from None
     os.close(fd)
     temporary = Path(name)
     try:
@@ -83,7 +140,7 @@ def replace_file(path: Path, write: Callable[[Path], object]) -> Path:
         os.chmod(temporary, PRIVATE_FILE)
         os.replace(temporary, path)
     except OSError as exc:
-        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+        raise _cannot_write(path, exc) from None
     finally:
         with suppress(FileNotFoundError):
             temporary.unlink()
@@ -106,14 +163,14 @@ def write_new_file(path: Path, data: bytes) -> Path:
     except FileExistsError:
         raise OutputError(f"{path} already exists: choose a new file name") from None
     except OSError as exc:
-        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+        raise _cannot_write(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as out:
             out.write(data)
     except OSError as exc:
         with suppress(OSError):
             path.unlink()
-        raise OutputError(f"cannot write {path} ({_reason(exc)})") from None
+        raise _cannot_write(path, exc) from None
     return path
 
 

@@ -32,17 +32,18 @@ import threading
 import time
 import tty
 import zlib
+from collections import deque
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
-from typing import Any
+from typing import IO, Any
 
 import cv2
 import numpy as np
 import serial
 
 from lamina_host.local import is_endpoint, open_endpoint
-from lamina_host.workflow import scan_identity, spawned_source
+from lamina_host.workflow import printable, scan_identity, spawned_source
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import Channel, LinkClosed, Ticker
@@ -266,6 +267,41 @@ class _Assembly:
 
 
 @dataclass
+class StderrTail:
+    """Read a device program's stderr while it runs, keeping its last lines.
+
+    A pipe holds about 64 KB: a program that writes more to a pipe nobody reads blocks,
+    and the host would wait for an answer that cannot come.
+    """
+
+    KEEP_LINES = 50
+    LINE_BYTES = 64 * 1024
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self._lines: deque[str] = deque(maxlen=self.KEEP_LINES)
+        self._thread = threading.Thread(
+            target=self._read, args=(stream,), name="device-stderr", daemon=True
+        )
+        self._thread.start()
+
+    def _read(self, stream: IO[bytes]) -> None:
+        with suppress(OSError, ValueError):  # the stream closed under us: nothing more to read
+            for raw in iter(lambda: stream.readline(self.LINE_BYTES), b""):
+                self._lines.append(raw.decode(errors="replace").strip())
+
+    def lines(self, wait_s: float = 2.0) -> list[str]:
+        """Return the last non-empty lines, after up to ``wait_s`` for an exited program's rest.
+
+        Args:
+            wait_s: how long to wait for the stream's end (call it once the program exited).
+
+        Returns:
+            The kept lines, oldest first.
+        """
+        self._thread.join(wait_s)
+        return [line for line in self._lines if line]
+
+
 class LinkStats:
     """What the link cost: resent requests, duplicate segments, fetch rounds."""
 
@@ -297,6 +333,8 @@ class DeviceClient:
         self._scanning = False
         self._on_notice: Callable[[str], object] | None = None
         self._welcomes: queue.SimpleQueue[Message] = queue.SimpleQueue()
+        self._refusal: str | None = None
+        """Why the device turned this host away (a WELCOME's ``refused``), if it did."""
         self.dispatcher = Dispatcher(channel, on_other=self._unclaimed, on_tick=self._tick)
         """The link's one reader: hands each reply to the thread waiting for it."""
         self.extract: ExtractChanges | None = None
@@ -304,6 +342,10 @@ class DeviceClient:
         self.spawned: str | None = None
         """What a device program started here was asked to acquire (``workflow.spawned_source``)."""
         self._process_checked_s = 0.0
+        self.stderr_tail = (
+            StderrTail(process.stderr) if process is not None and process.stderr else None
+        )
+        """What a device program started here writes to stderr, read while it runs."""
 
     def _new_id(self) -> int:
         with self._id_lock:
@@ -328,8 +370,7 @@ class DeviceClient:
         """Return one line on a device program started here that has exited, else None."""
         if self.process is None or self.process.poll() is None:
             return None
-        err = self.process.stderr.read().decode(errors="replace") if self.process.stderr else ""
-        lines = [line.strip() for line in err.strip().splitlines() if line.strip()]
+        lines = self.stderr_tail.lines() if self.stderr_tail is not None else []
         code = self.process.returncode
         how = f"was killed (signal {-code})" if code < 0 else f"exited (status {code})"
         return f"the device program {how}" + (f": {lines[-1]}" if lines else "")
@@ -365,12 +406,20 @@ class DeviceClient:
             if slow and self.process is not None and not noticed and on_notice is not None:
                 on_notice(f"waiting for the device program to start (up to {timeout_s:.0f} s)")
                 noticed = True
-            # Repeat HELLO: a device that opened its port late flushed the earlier ones.
-            self.channel.send(encode_json(Kind.HELLO, hello))
             try:
-                return self._welcome(self._welcomes.get(timeout=0.5).body)
-            except queue.Empty:
+                # Repeat HELLO: a device that opened its port late flushed the earlier ones.
+                self.channel.send(encode_json(Kind.HELLO, hello))
+                try:
+                    body = self._welcomes.get(timeout=0.5).body
+                except queue.Empty:
+                    body = None
+                self._raise_refusal()
+                if body is not None:
+                    return self._welcome(body)
                 self.dispatcher.raise_failure()
+            except LinkClosed:
+                self._await_refusal()  # a refusal came just before the device hung up
+                raise
             if (exit_message := self._device_exit_message()) is not None:
                 raise DeviceError(exit_message)
         if self.process is not None:
@@ -393,9 +442,36 @@ class DeviceClient:
         return info
 
     def _unclaimed(self, message: Message) -> None:
-        """Keep a WELCOME for :meth:`hello`; drop what belongs to no open request."""
+        """Keep a WELCOME for :meth:`hello`; drop what belongs to no open request.
+
+        A WELCOME that ``refused`` the session (a device service that already has a
+        host) is remembered, so :meth:`hello` says why even after the device hung up.
+        """
         if message.kind is Kind.WELCOME:
+            refusal = message.body.get("refused") if isinstance(message.body, dict) else None
+            if refusal is not None:
+                reason = refusal.get("message") if isinstance(refusal, dict) else None
+                self._refusal = printable(str(reason or "no reason given"))[:200]
+                return
             self._welcomes.put(message)
+
+    def _await_refusal(self, wait_s: float = 1.0) -> None:
+        """Raise DeviceError if a refusal arrives before the reader meets the hang-up."""
+        deadline = time.monotonic() + wait_s
+        while self._refusal is None and self.dispatcher.failure is None:
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.02)
+        self._raise_refusal()
+
+    def _raise_refusal(self) -> None:
+        """Raise DeviceError if the device turned this host away."""
+        if self._refusal is not None:
+            raise DeviceError(
+                f"the device is in use by another host ({self._refusal}): close the other "
+                "terminal UI, browser tab or scan using it, or wait for it to finish, then "
+                "connect again"
+            )
 
     def _tick(self) -> None:
         """Send our heartbeat while a request is open (on the reader thread)."""
@@ -795,8 +871,11 @@ def open_device(
     if is_endpoint(device):
         with open_endpoint(device, DeviceError) as port:
             client = DeviceClient(Channel(port))
-            client.hello()
-            yield client
+            try:
+                client.hello()
+                yield client
+            finally:
+                client.close()  # the reader stops before its port closes under it
         return
     if not os.path.exists(device):
         raise DeviceError(
@@ -809,8 +888,11 @@ def open_device(
         raise DeviceError(f"cannot open serial port {device}: {exc}") from None
     with port:
         client = DeviceClient(Channel(port))
-        client.hello()
-        yield client
+        try:
+            client.hello()
+            yield client
+        finally:
+            client.close()  # the reader stops before its port closes under it
 
 
 @contextmanager
@@ -851,6 +933,8 @@ def _spawned_device(
         if process.poll() is None:
             process.kill()
         process.wait()
+        if client is not None and client.stderr_tail is not None:
+            client.stderr_tail.lines()  # the reader is done before its stream closes
         if process.stderr:
             process.stderr.close()
         bridge.close()

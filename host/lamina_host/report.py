@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lamina_host.expect import Expectation
-from lamina_host.files import replace_file
+from lamina_host.files import json_text, replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import contour_normals, obj_bytes, save_ply
 from lamina_host.pipeline import Reconstruction, assemble, coloured_cloud, stack
@@ -204,6 +203,6 @@ def write_outputs(out: Path, result: Reconstruction, report: dict[str, Any]) -> 
             replace_file(paths["mesh.obj"], lambda temporary: temporary.write_bytes(data))
     else:
         del paths["mesh.ply"]
-    text = json.dumps(report, indent=2) + "\n"
+    text = json_text(report)  # strict JSON: NaN (an unknown spread) is written null
     replace_file(paths["report.json"], lambda temporary: temporary.write_text(text, "utf-8"))
     return paths

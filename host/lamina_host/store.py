@@ -39,7 +39,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.files import OutputError, tighten, write_new_file
+from lamina_host.files import OutputError, json_text, tighten, write_new_file
 from lamina_host.mesh import load_coloured_ply, obj_bytes, stl_bytes
 from lamina_host.workflow import (
     InputError,
@@ -661,7 +661,7 @@ class Library(Scoped):
                 f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
             )
         if suffix == ".json":
-            data = (json.dumps(report, indent=2) + "\n").encode()
+            data = json_text(report).encode()  # strict JSON, also of a report stored with NaN
         else:
             data = _convert_mesh(self.result_mesh(scan_id), suffix)
         return self.write_export(scan_id, path, data)

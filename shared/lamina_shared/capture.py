@@ -125,8 +125,13 @@ def _imread(path: Path) -> np.ndarray:
     """Return an image file as OpenCV decodes it, unchanged; FrameError if it cannot."""
     import cv2  # the device and host distributions both install opencv
 
+    # Read by Python, decoded in memory: OpenCV's own file API takes the path as text and
+    # crashed on a name that is not UTF-8 (any bytes are a valid Linux file name).
     try:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        data = np.frombuffer(path.read_bytes(), np.uint8)
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except OSError as exc:
+        raise FrameError(f"{path} cannot be read ({exc.strerror or exc})") from None
     except cv2.error as exc:
         raise FrameError(f"{path} cannot be decoded as an image ({exc})") from None
     if image is None:
@@ -478,8 +483,10 @@ class CaptureWriter:
             )
         path = self.root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(path), image):
+        ok, png = cv2.imencode(".png", image)  # see _imread: the path stays Python's
+        if not ok:
             raise OSError(f"could not write {path}")
+        path.write_bytes(png.tobytes())
         return rel
 
     def add_grid(self, image: np.ndarray, board: BoardSpec) -> None:

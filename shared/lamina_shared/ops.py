@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
@@ -120,6 +121,10 @@ def check_number(
     # Comparing before converting: float() of a 400-digit integer raises OverflowError.
     if isinstance(value, float) and not math.isfinite(value):
         problems.add(f"{where}: {show(value)} is not a finite number")
+        return None
+    if isinstance(value, int) and not -sys.float_info.max <= value <= sys.float_info.max:
+        # Even with infinite bounds (a listed plan's heights): no float holds it.
+        problems.add(f"{where}: {show(value)} is beyond any finite number")
         return None
     if not low <= value <= high:
         problems.add(f"{where}: {show(value)} is outside {low:g}..{high:g}")

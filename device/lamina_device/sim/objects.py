@@ -587,6 +587,14 @@ _FORMS = {
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
 _POSITIVE = {"d", "h", "a", "b", "c", "scale"}
+MAX_OBJECT_MM = 1000.0
+"""Largest size, distance from the axis or extent a simulated object may have: a metre,
+far beyond any turntable (the limb rig's field is a few hundred mm)."""
+MIN_SIZE_MM = 0.01
+"""Smallest size of a simulated solid: below a pixel of any rig."""
+SCALE_RANGE = (1e-3, 1e3)
+"""Scales a phantom or mesh may take (a mesh in metres needs 1000)."""
+_LENGTHS = {"d", "h", "a", "b", "c"}
 
 
 def _parse_fields(kind: str, body: str, form: str) -> dict[str, str]:
@@ -624,7 +632,36 @@ def _number(kind: str, key: str, value: str, form: str) -> float:
     if not math.isfinite(x) or (key in _POSITIVE and x <= 0):
         kind_of = "a positive number" if key in _POSITIVE else "a finite number"
         raise ValueError(f"{kind}: {key}={value!r} must be {kind_of}; expected e.g. {form}")
+    # Bounded, so a typo cannot make the renderer work on a kilometre-wide object.
+    low, high = (
+        SCALE_RANGE
+        if key == "scale"
+        else (MIN_SIZE_MM, MAX_OBJECT_MM)
+        if key in _LENGTHS
+        else (-MAX_OBJECT_MM, MAX_OBJECT_MM)
+        if key in {"x", "y", "z"}
+        else (-math.inf, math.inf)
+    )
+    if not low <= x <= high:
+        unit = "" if key == "scale" else " mm"
+        raise ValueError(
+            f"{kind}: {key}={value} is outside {low:g}..{high:g}{unit}, beyond what the "
+            f"simulated rig can hold; expected e.g. {form}"
+        )
     return x
+
+
+def _check_extent(kind: str, mesh: TriangleMesh) -> TriangleMesh:
+    """Return ``mesh`` unless it is larger than :data:`MAX_OBJECT_MM` across."""
+    if len(mesh.vertices):
+        extent = float(np.max(np.ptp(mesh.vertices, axis=0)))
+        reach = float(np.max(np.abs(mesh.vertices)))
+        if not (math.isfinite(extent) and extent <= MAX_OBJECT_MM and reach <= 2 * MAX_OBJECT_MM):
+            raise ValueError(
+                f"{kind}: the placed object is {extent:.4g} mm across, beyond the "
+                f"{MAX_OBJECT_MM:g} mm a simulated rig can hold; use a smaller scale"
+            )
+    return mesh
 
 
 def parse_object(spec: str) -> SceneObject:
@@ -658,5 +695,5 @@ def parse_object(spec: str) -> SceneObject:
     if kind in _PHANTOM_NAMES:
         from lamina_device.sim.phantoms import phantom  # phantoms build on this module
 
-        return phantom(kind, placement)
-    return load_mesh(fields["path"], placement)
+        return _check_extent(kind, phantom(kind, placement))
+    return _check_extent(kind, load_mesh(fields["path"], placement))

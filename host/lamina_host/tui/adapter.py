@@ -16,6 +16,7 @@ from pathlib import Path
 import serial.tools.list_ports
 
 from lamina_host.efd import HARMONIC_RULES
+from lamina_host.files import disk_full
 from lamina_host.link import DeviceError
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.pipeline import ProcessOptions
@@ -89,6 +90,11 @@ def user_message(exc: BaseException) -> str:
         return f"the link to the device broke ({exc}); check the cable, then reconnect (c)"
     if isinstance(exc, OSError) and not isinstance(exc, DeviceError):
         return f"file error: {exc.strerror or exc} ({exc.filename or 'no file'})"
+    if isinstance(exc, sqlite3.Error) and disk_full(exc):
+        return (
+            f"the disk holding the scan library is full ({exc}): what was stored is kept; "
+            "free space on it, then go on (p resumes a scan)"
+        )
     if isinstance(exc, sqlite3.Error):
         return f"the scan library cannot be used ({exc}): if it is damaged, restore a backup"
     return str(exc)

@@ -18,6 +18,7 @@ One place for the rules both front ends apply, so they cannot drift apart:
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import re
@@ -40,6 +41,9 @@ SUBJECT_RULE = (
 SECTIONS_RANGE = (1, 500)
 VIEWS_RANGE = (3, 360)
 PITCH_MAX_MM = 50.0
+PITCH_MIN_MM = 0.001
+"""The finest section pitch a plan may ask for: a micrometre, finer than any lift steps
+(a lead screw of 8 mm per turn at 3,200 microsteps per turn steps 2.5 um)."""
 DEFAULT_SECTIONS, DEFAULT_PITCH_MM, DEFAULT_VIEWS = 4, 2.0, 8
 """The regular plan's defaults when some of its numbers are given and others not."""
 
@@ -96,14 +100,78 @@ def check_plan(sections: int | None, pitch_mm: float | None, views: int | None) 
     pitch = check_positive_mm(
         "pitch", DEFAULT_PITCH_MM if pitch_mm is None else pitch_mm, PITCH_MAX_MM
     )
+    if pitch < PITCH_MIN_MM:
+        raise InputError(
+            f"pitch {pitch:g} mm is below {PITCH_MIN_MM:g} mm, finer than a lift can step: "
+            f"enter a pitch from {PITCH_MIN_MM:g} to {PITCH_MAX_MM:g} mm"
+        )
     n_views = check_count(
         "views", DEFAULT_VIEWS if views is None else views, *VIEWS_RANGE, " (the thesis uses 8)"
     )
-    return ScanPlan.regular(n_sections, pitch, n_views)
+    try:
+        return ScanPlan.regular(n_sections, pitch, n_views)
+    except ValueError as exc:  # what the checks above missed is still the user's input
+        raise InputError(f"the plan cannot be made: {exc}") from None
 
 
-def check_plan_limits(target: str, plan: ScanPlan, limits: Mapping[str, Any]) -> None:
+def _limit(axis: Mapping[str, Any], key: str) -> float | None:
+    """Return the finite number ``axis[key]`` of a WELCOME's ``axes``, else None."""
+    value = axis.get(key)
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        return float(value)
+    return None
+
+
+def check_plan_axes(target: str, plan: ScanPlan, axes: Mapping[str, Any]) -> None:
+    """Refuse a plan the axes cannot follow: heights or angles beyond their soft limits,
+    or sections closer than the lift's step (limits the WELCOME does not give are not
+    checked; the device checks every request again itself).
+
+    Raises:
+        InputError: naming the axis, the plan's figure and the device's limit.
+    """
+    lift, table = (axes.get(name) for name in ("lift", "turntable"))
+    lift = lift if isinstance(lift, Mapping) else {}
+    table = table if isinstance(table, Mapping) else {}
+    heights = sorted({view.z_mm for view in plan.views})
+    angles = sorted({view.angle_deg for view in plan.views})
+    if not heights:
+        return
+    for name, unit, values, axis in (
+        ("lift", "mm", heights, lift),
+        ("turntable", "deg", angles, table),
+    ):
+        low, high = _limit(axis, "min"), _limit(axis, "max")
+        if (low is not None and values[0] < low) or (high is not None and values[-1] > high):
+            extreme = values[-1] if high is not None and values[-1] > high else values[0]
+            travel = f"{'-inf' if low is None else f'{low:g}'}.."
+            travel += "inf" if high is None else f"{high:g}"
+            raise InputError(
+                f"the {target} plan reaches {extreme:g} {unit}, beyond the {name}'s travel of "
+                f"{travel} {unit}: plan fewer sections or a smaller pitch"
+            )
+    step = _limit(lift, "step")
+    gaps = [b - a for a, b in itertools.pairwise(heights)]
+    if step is not None and gaps and min(gaps) < step * (1 - 1e-9):
+        raise InputError(
+            f"the {target} plan's sections are {min(gaps):g} mm apart, finer than the lift's "
+            f"step of {step:g} mm: plan a pitch of at least {step:g} mm"
+        )
+
+
+def check_plan_limits(
+    target: str,
+    plan: ScanPlan,
+    limits: Mapping[str, Any],
+    axes: Mapping[str, Any] | None = None,
+) -> None:
     """Refuse a plan beyond the limits the device advertised (absent limits are not checked).
+
+    Args:
+        target: what the plan scans (named in the refusal).
+        plan: the plan to check.
+        limits: the WELCOME's ``limits`` (sizes).
+        axes: the WELCOME's ``axes`` (travel of the lift and turntable, the lift's step).
 
     Raises:
         InputError: naming the limit, the plan's figure and the device's.
@@ -123,6 +191,7 @@ def check_plan_limits(target: str, plan: ScanPlan, limits: Mapping[str, Any]) ->
                 f"the {target} plan has {figure} {what}, beyond the device's limit of {limit} "
                 f"({key}): plan a smaller scan"
             )
+    check_plan_axes(target, plan, axes or {})
     # The counts above name the limit; the shared check adds what only the wire knows
     # (an irregular plan too long for one request, heights and angles out of range).
     problems = plan_fits(plan, DeviceLimits.from_welcome(dict(limits)))

@@ -411,12 +411,13 @@ class ScanJob:
         client = self._device()
         identity = self._check_calibrated_here(client)
         limits = client.info.limits if client.info else {}
+        axes = client.info.axes if client.info else {}
         plans = {
             "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
             "object": client.plan_for("object", request.plan),
         }
         for target, wanted in plans.items():
-            check_plan_limits(target, wanted, limits)
+            check_plan_limits(target, wanted, limits, axes)
         diameter = request.cylinder_mm
         if diameter is None:
             diameter = self.data.cylinder_mm or self._cylinder_mm(None)
@@ -449,11 +450,18 @@ class ScanJob:
         client = self._device()
         identity = client.identity()
         limits = client.info.limits if client.info else {}
+        axes = client.info.axes if client.info else {}
         with self._library() as library:
             library.check_identity(scan_id, identity)
             record = library.scan(scan_id)
             for target, stored in record.plans.items():
-                check_plan_limits(target, stored, limits)
+                try:
+                    check_plan_limits(target, stored, limits, axes)
+                except InputError as exc:
+                    # Resuming again cannot help: say so rather than advise it once more.
+                    raise InputError(
+                        f"scan {scan_id} cannot be finished on this device: {exc}"
+                    ) from None
             self._load(library, scan_id)
         self.identity, self.extract = identity, extract
         return scan_id
@@ -599,7 +607,9 @@ class ScanJob:
         with self._library() as library:
             # Before anything changes: a scan is only ever continued by what began it.
             library.check_identity(scan_id, identity)
-            check_plan_limits("object", plan, self.info.limits if self.info else {})
+            info = self.info
+            limits, axes = (info.limits, info.axes) if info else ({}, {})
+            check_plan_limits("object", plan, limits, axes)
         self.identity = identity
         self.data.complete = False
         self.results = None
@@ -733,14 +743,32 @@ def acquire(
         start = time.perf_counter()
         job.fetch_object(None, on_progress, on_notice)
         timings["acquire_object"] = time.perf_counter() - start
-    finally:
+    except BaseException:
         if out is not None:
-            # What arrived is kept in the output folder too, also when the scan stops here.
-            save_segments(out / "cylinder-segments.npz", job.data.cylinder)
-            save_segments(out / "segments.npz", job.data.segments)
+            # What arrived is kept in the output folder too, also when the scan stops here;
+            # if that fails as well (the same full disk), the first error is the one told.
+            with suppress(OutputError):
+                _save_arrived(out, job)
+        raise
+    if out is not None:
+        _save_arrived(out, job)
     return Acquired(scan_id, timings)
 
 
+def _save_arrived(out: Path, job: ScanJob) -> None:
+    """Write the segments received so far into the output folder."""
+    save_segments(out / "cylinder-segments.npz", job.data.cylinder)
+    save_segments(out / "segments.npz", job.data.segments)
+
+
 def _write_image(path: Path, data: ScanData) -> None:
-    if data.grid_image is None or not cv2.imwrite(str(path), data.grid_image):
+    """Write the calibration image as PNG through Python's own file API.
+
+    ``cv2.imwrite`` takes the path as text: one that is not UTF-8 (surrogate-escaped
+    bytes) crashed the process inside OpenCV. Encoding in memory leaves the path to
+    Python, which takes any bytes the file system does.
+    """
+    ok, png = (False, None) if data.grid_image is None else cv2.imencode(".png", data.grid_image)
+    if not ok or png is None:
         raise OutputError(f"the calibration image could not be written to {path}")
+    path.write_bytes(png.tobytes())

@@ -16,7 +16,6 @@ from textual_plotext import PlotextPlot
 from lamina_host.tui.adapter import (
     USER_ERRORS,
     Progress,
-    UserError,
     check_subject,
     parse_plan,
     user_message,
@@ -31,6 +30,9 @@ def progress_text(p: Progress) -> str:
     left_text = "estimating time left" if left is None else f"{left:.0f} s left"
     return f"{p.target} view {p.done}/{p.total}, section {p.section}, {left_text}"
 
+
+PLAN_ERRORS: tuple[type[Exception], ...] = (*USER_ERRORS, ValueError)
+"""What reading the typed plan may raise: each is told on the status line, never fatal."""
 
 PLOT_INTERVAL_S = 0.25
 """How often the live section plot is redrawn while views arrive."""
@@ -132,8 +134,8 @@ class ScanScreen(LaminaScreen):
             return
         try:
             subject, plan = self._plan()
-        except UserError as exc:
-            self.say(str(exc), error=True)
+        except PLAN_ERRORS as exc:  # a typed plan is the user's, whatever fails
+            self.say(user_message(exc), error=True)
             return
         self._aborting, self.paused = False, False
         self._section, self._segments = -1, []
