@@ -31,6 +31,7 @@ import numpy as np
 
 from lamina_host.efd import EfdStack, EllipticFourier, efd_area
 from lamina_host.measure import centroid
+from lamina_host.status import CLOSED, OutlineStatus
 from lamina_host.workflow import InputError
 
 AXES = ("turntable", "centreline")
@@ -42,11 +43,12 @@ LANDMARK_KINDS = ("distal", "bottom", "top")
 DEFAULT_SPACING_MM = 40.0
 """Tape spacing in clinics: 4 cm (8 cm is also in use)."""
 
-MEASURED = "measured"
+MEASURED = OutlineStatus.MEASURED
 """The status of an outline seen all round (the coverage work's other statuses mean
-estimated in part: ``bridged``, ``interpolated``; ``open`` outlines are not closed)."""
+estimated in part: ``bridged``, ``interpolated``; ``open`` and ``failed`` outlines are not
+closed); also the source of a level resting on such outlines only."""
 
-OPEN = "open"
+OPEN = OutlineStatus.OPEN
 
 OUTLINE_SAMPLES = 1024
 """Samples per outline for a circumference: the polygon's shortfall on a circle is
@@ -82,7 +84,7 @@ class LimbSection:
     @property
     def closed(self) -> bool:
         """Return whether the outline is closed (so it is part of the volume)."""
-        return self.status != OPEN
+        return self.status in CLOSED
 
 
 @dataclass(frozen=True)
@@ -470,7 +472,11 @@ def sections_from_report(report: dict[str, Any], scan_id: int | None = None) -> 
     Raises:
         ClinicalError: the report holds no EFD coefficients (processed by an older Lamina).
     """
-    rows = [r for r in report.get("sections", []) if r.get("part", 0) == 0]
+    rows = [
+        r
+        for r in report.get("sections", [])
+        if r.get("part", 0) == 0 and r.get("status") != OutlineStatus.FAILED
+    ]
     if not rows or any("efd" not in r for r in rows):
         which = f"scan {scan_id}" if scan_id is not None else "the scan"
         raise ClinicalError(

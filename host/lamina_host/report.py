@@ -12,7 +12,7 @@ from lamina_host.expect import Expectation
 from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import contour_normals, obj_bytes, save_ply
-from lamina_host.pipeline import Reconstruction, coloured_cloud, stack
+from lamina_host.pipeline import Reconstruction, Section, coloured_cloud, stack
 from lamina_shared.types import Segment
 
 SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence", "colour")
@@ -68,32 +68,16 @@ def build_report(
     acquisition_s: dict[str, float],
 ) -> dict[str, Any]:
     """Return the JSON-ready report of one scan."""
+    outlines = [section_entry(s) for s in result.sections]
+    outlines += [f.to_dict() for f in result.failed]
+    outlines.sort(key=lambda entry: (entry["section"], entry["part"]))
     report: dict[str, Any] = {
         "device": device,
         "options": result.options.to_dict(),
         "calibration": result.grid.to_dict(),
         "axis": result.axis.to_dict(),
         "correction_factor": result.axis.correction_factor,
-        "sections": [
-            {
-                "section": s.index,
-                "part": s.part,
-                "z_mm": s.z_mm,
-                "segments": s.segments,
-                "raw_points": len(s.raw),
-                "outline_points": len(s.contour),
-                "harmonics": s.harmonics,
-                "perimeter_mm": perimeter(s.contour),
-                "area_mm2": polygon_area(s.contour),
-                "efd": s.efd.to_dict(),
-                "status": s.status,
-                "coverage": s.coverage.to_dict() if s.coverage is not None else None,
-                "estimated_outline_points": int(s.estimated.sum())
-                if s.estimated is not None
-                else 0,
-            }
-            for s in result.sections
-        ],
+        "sections": outlines,
         "outliers": result.rejected.to_dict(),
         "point_counts": {
             "segments": len(segments),
@@ -126,6 +110,25 @@ def build_report(
                 "contours": sphere_probing(_points3d(main, raw=False), 2 * expect.a_mm).to_dict(),
             }
     return report
+
+
+def section_entry(s: Section) -> dict[str, Any]:
+    """Return the report's entry of one processed outline."""
+    return {
+        "section": s.index,
+        "part": s.part,
+        "z_mm": s.z_mm,
+        "segments": s.segments,
+        "raw_points": len(s.raw),
+        "outline_points": len(s.contour),
+        "harmonics": s.harmonics,
+        "perimeter_mm": perimeter(s.contour),
+        "area_mm2": polygon_area(s.contour),
+        "efd": s.efd.to_dict(),
+        "status": s.status,
+        "coverage": s.coverage.to_dict() if s.coverage is not None else None,
+        "estimated_outline_points": int(s.estimated.sum()) if s.estimated is not None else 0,
+    }
 
 
 def _points3d(sections: list[Any], raw: bool) -> np.ndarray:

@@ -41,11 +41,11 @@ from lamina_host.measure import centroid, perimeter, polygon_area, radial_error_
 from lamina_host.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
 from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section
 from lamina_host.pipeline import (
+    STATUSES,
     ProcessOptions,
-    build_mesh,
     fill_gaps,
-    fit_groups,
-    outline_groups,
+    process_section,
+    safe_mesh,
 )
 from lamina_shared.errors import LaminaError
 
@@ -251,7 +251,9 @@ def test_efd_takes_any_outline(points: np.ndarray, rule: str, parameter: str) ->
 
 
 @FAST
-@given(st.lists(point_sets(), min_size=1, max_size=4), st.sampled_from(["linear", "pchip", "smooth"]))
+@given(
+    st.lists(point_sets(), min_size=1, max_size=4), st.sampled_from(["linear", "pchip", "smooth"])
+)
 def test_efd_stack_takes_any_sections(outlines: list[np.ndarray], kind: str) -> None:
     efds = [e for p in outlines if (e := lamina_or_result(lambda p=p: efd_fit(p, 3))) is not None]
     if not efds:
@@ -332,13 +334,22 @@ OPTIONS = (
 def test_section_processing_takes_any_sections(
     stack: list[list[np.ndarray]], options: ProcessOptions
 ) -> None:
+    """Each section gives outlines or failed outlines with a reason, never an exception."""
     rules = OutlierRules(working_radius_mm=None)
     fitted = []
     for k, pieces in enumerate(stack):
-        groups, _ = outline_groups(pieces, options, rules)
-        fitted += lamina_or_result(lambda k=k, g=groups: fit_groups(k, 2.0 * k, g, options)) or []
+        outcome = process_section(k, 2.0 * k, pieces, options, rules)
+        total = sum(len(p) for p in pieces)
+        assert sum(len(s.raw) for s in outcome.sections) <= total
+        parts = sorted([s.part for s in outcome.sections] + [f.part for f in outcome.failed])
+        assert parts == list(range(len(parts)))
+        for failed in outcome.failed:
+            assert failed.status == "failed" and failed.reason and "\n" not in failed.reason
+        for section in outcome.sections:
+            assert section.status in STATUSES and finite(section.contour)
+        fitted += outcome.sections
     filled = fill_gaps(fitted, options)
     assert len(filled) == len(fitted)
-    vertices, faces, warnings = build_mesh(filled, ProcessOptions(mesh="contours"))
+    vertices, faces, warnings = safe_mesh(filled, ProcessOptions(mesh="contours"))
     assert finite(vertices)
     assert len(faces) or warnings
