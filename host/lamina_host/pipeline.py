@@ -917,11 +917,19 @@ def process_segments(
     if rejected.points:
         warnings.append(rejection_warning(rejected))
     if not sections:
+        total = sum(len(p) for parts in by_section.values() for p in parts)
+        if rules.working_radius_mm is not None and rejected.outside_volume * 2 > total:
+            raise CalibrationError(
+                f"{rejected.outside_volume} of {total} stripe points lie further than "
+                f"{rules.working_radius_mm:.1f} mm from the turntable axis, outside what the "
+                "camera sees at every angle: the object is larger than this rig's field of "
+                "view; scan it on a rig with a wider view (the simulator: --rig limb)"
+            )
         why = f" ({failed[0].reason})" if failed else ""
         raise CalibrationError(
-            f"no section has an outline seen well enough by several views{why}: check the "
-            "object stands inside the laser plane and fits the camera's view, and that "
-            "the views overlap"
+            f"no section has an outline seen well enough by two or more views{why}: check "
+            "the object stands inside the laser plane and that neighbouring views overlap "
+            "(scan with more views per section)"
         )
     with timer.stage("fill_gaps"):
         sections = fill_gaps(sections, options)
