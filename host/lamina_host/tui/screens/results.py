@@ -197,7 +197,11 @@ class ResultsScreen(LaminaScreen):
         """Show the new results."""
         self.query_one("#process", Button).disabled = False
         self.refresh_from_session()
-        self.say(f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3")
+        failed = len(results.reconstruction.failed)
+        self.say(
+            f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
+            + (f"; {failed} outline(s) failed (see the summary)" if failed else "")
+        )
 
     def failed(self, message: str) -> None:
         """Re-enable the controls and say what went wrong."""
