@@ -566,17 +566,21 @@ def process_section(
     pieces: list[np.ndarray],
     options: ProcessOptions,
     rules: OutlierRules,
+    timer: Timer | None = None,
 ) -> SectionOutcome:
     """Reject one section's outliers and fit each of its outlines; never raises.
 
     An outline whose processing fails becomes a :class:`FailedSection` with the reason,
     and the section's other outlines are fitted as usual; a failure of the outlier
     rejection fails the whole section (part 0). Outlines of fewer than 3 points are
-    skipped, as in :func:`fit_groups`.
+    skipped, as in :func:`fit_groups`. ``timer`` adds the time taken to its "reject" and
+    "fit_efd" stages.
     """
+    timer = timer or Timer()
     outcome = SectionOutcome()
     try:
-        groups, outcome.rejected = outline_groups(pieces, options, rules)
+        with timer.stage("reject"):
+            groups, outcome.rejected = outline_groups(pieces, options, rules)
     except Exception as exc:  # any failure here is this section's, not the scan's
         points = int(sum(len(p) for p in pieces))
         outcome.failed.append(FailedSection(index, z_mm, 0, points, failure_reason(exc)))
@@ -587,7 +591,8 @@ def process_section(
             continue
         part = len(outcome.sections) + len(outcome.failed)
         try:
-            outcome.sections.append(fit_section(index, z_mm, outline, options, part))
+            with timer.stage("fit_efd"):
+                outcome.sections.append(fit_section(index, z_mm, outline, options, part))
         except Exception as exc:
             outcome.failed.append(FailedSection(index, z_mm, part, points, failure_reason(exc)))
     return outcome
@@ -908,12 +913,11 @@ def process_segments(
     rejected = Rejected()
     sections: list[Section] = []
     failed: list[FailedSection] = []
-    with timer.stage("reject_and_fit"):
-        for k in sorted(by_section):
-            outcome = process_section(k, heights[k], by_section[k], options, rules)
-            rejected.add(outcome.rejected)
-            sections += outcome.sections
-            failed += outcome.failed
+    for k in sorted(by_section):
+        outcome = process_section(k, heights[k], by_section[k], options, rules, timer)
+        rejected.add(outcome.rejected)
+        sections += outcome.sections
+        failed += outcome.failed
     if rejected.points:
         warnings.append(rejection_warning(rejected))
     if not sections:
@@ -931,7 +935,7 @@ def process_segments(
             "the object stands inside the laser plane and that neighbouring views overlap "
             "(scan with more views per section)"
         )
-    with timer.stage("fill_gaps"):
+    with timer.stage("fit_efd"):
         sections = fill_gaps(sections, options)
     with timer.stage("colour"):
         sections = colour_sections(sections, segments, grid, axis, options.trim_fraction)
