@@ -26,6 +26,7 @@ from lamina_host.status import OutlineStatus
 from lamina_host.store import Library
 from lamina_host.tui.screens.results import summary_text
 from lamina_host.workflow.results import Results, section_rows, volume_mm3
+from lamina_shared.types import ScanPlan
 from tests.helpers.cli import host_command
 
 ELLIPSOID = "ellipsoid:a=10,b=6.5,c=20,z=-1"
@@ -143,3 +144,15 @@ def test_lamina_process_refuses_what_it_cannot_process(
     assert capsys.readouterr().err.strip() == (
         f"lamina: there is no scan 4 in {library}: see lamina scans"
     )
+
+
+def test_lamina_process_sends_a_scan_being_acquired_to_resume(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    library = tmp_path / "library.sqlite"
+    with Library(library) as lib:
+        scan_id = lib.create_scan("P-01", {"object": ScanPlan.regular(1, 2.0, 4)})
+    assert main(["process", str(scan_id), "--library", str(library)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"lamina: scan {scan_id} is not fully acquired")
+    assert f"lamina scan --resume {scan_id}" in err and "\n" not in err

@@ -702,6 +702,13 @@ class ScanJob:
             InputError: the scan lacks its calibration or is not fully acquired.
             ProcessingError: the processing failed (the scan is kept as it was).
         """
+        with self._library() as library:
+            acquiring = library.scan(scan_id).status == "acquiring"
+        if acquiring:
+            raise InputError(
+                f"scan {scan_id} is not fully acquired: finish it with lamina scan --resume "
+                f"{scan_id} --device DEVICE (or resume it on the terminal UI's Scan screen)"
+            )
         data = self.open_scan(scan_id)
         if not data.complete:
             raise InputError(
