@@ -141,11 +141,16 @@ def taubin_circle(pts: np.ndarray) -> tuple[float, float, float]:
     Returns:
         (cx, cy, r) in the units of ``pts``.
     """
+    pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+    if len(pts) < 3:
+        raise CalibrationError(
+            f"a circle needs at least 3 arc points, got {len(pts)}; check the arc data"
+        )
     mean = pts.mean(axis=0)
     x, y = (pts - mean).T
     z = x * x + y * y
     z_mean = z.mean()
-    if z_mean <= 0.0:
+    if not z_mean > 0.0:  # also NaN: points not finite
         raise CalibrationError("all arc points coincide; no circle can be fitted to this arc")
     z0 = (z - z_mean) / (2.0 * np.sqrt(z_mean))
     _, _, vt = np.linalg.svd(np.stack([z0, x, y], axis=1), full_matrices=False)

@@ -41,6 +41,7 @@ from lamina_host.files import OutputError, disk_full, prepare_output_folder
 from lamina_host.link import DeviceError, RequestRefused
 from lamina_host.mesh import MESH_METHODS, meshlab
 from lamina_host.pipeline import ProcessOptions
+from lamina_host.status import OutlineStatus
 from lamina_host.store import SIDES, Library, ScanRecord, default_library_path
 from lamina_host.workflow import (
     DEFAULT_PITCH_MM,
@@ -181,6 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated noise level: thesis, harsh or none (sim only, default thesis)",
     )
     _add_processing_options(scan)
+    _add_process_parser(sub)
     scans = sub.add_parser("scans", help="list the scans in the library")
     scans.add_argument(
         "--set-side",
@@ -337,11 +339,40 @@ def _add_report_parser(sub: Any) -> None:
     _add_library_option(report)
 
 
+def _add_process_parser(sub: Any) -> None:
+    """Add ``lamina process``: a stored scan processed again with this version's pipeline."""
+    process = sub.add_parser(
+        "process",
+        help="process a stored scan again (acquired, or processed before) with this version "
+        "of Lamina and the options given; the result replaces the stored one",
+    )
+    process.add_argument("scan", type=int, help="scan id (see lamina scans)")
+    process.add_argument(
+        "-o", "--out", type=Path, help="new folder for the outputs (default: the library only)"
+    )
+    process.add_argument(
+        "--expect", help="known shape to measure accuracy against (default: the scan's own)"
+    )
+    process.add_argument(
+        "--harmonics", type=int, help="fixed EFD harmonics (default: the scan's own, else by rule)"
+    )
+    process.add_argument(
+        "--trim", type=float, help="fraction dropped from each segment end (default: the scan's)"
+    )
+    _add_method_options(process)
+    _add_library_option(process)
+
+
 def _add_processing_options(parser: argparse.ArgumentParser) -> None:
     """Add the rig choice and the method of each reconstruction stage."""
     parser.add_argument(
         "--rig", choices=RIG_PRESETS, help="simulated rig geometry (sim only, default thesis)"
     )
+    _add_method_options(parser)
+
+
+def _add_method_options(parser: argparse.ArgumentParser) -> None:
+    """Add the method of each reconstruction stage (scan and process)."""
     parser.add_argument(
         "--pipeline",
         choices=("best", "thesis"),
@@ -546,9 +577,13 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
     header = "section  z_mm  points  harmonics  cover%  status      "
     print(header + ("  rms_own_mm  rms_mean_mm" if accuracy else ""))
     for s in report["sections"]:
-        line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}  {s['harmonics']:>9}"
+        line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}"
+        if s.get("status") == OutlineStatus.FAILED:
+            print(f"{line}  {'-':>9}  {'-':>6}  {OutlineStatus.FAILED:<12}  {s.get('reason', '')}")
+            continue
+        line += f"  {s['harmonics']:>9}"
         cover = (s.get("coverage") or {}).get("fraction", float("nan"))
-        line += f"  {100 * cover:6.1f}  {s.get('status', 'measured'):<12}"
+        line += f"  {100 * cover:6.1f}  {s.get('status', OutlineStatus.MEASURED):<12}"
         if s["section"] in accuracy:
             row = accuracy[s["section"]]
             line += f"  {row['rms_own_mm']:10.4f}  {row['rms_mean_mm']:11.4f}"
@@ -699,6 +734,38 @@ def _filled(exc: sqlite3.Error | OutputError, job: ScanJob) -> str:
     return f"the scan library {job.library_path or default_library_path()} cannot grow ({exc})"
 
 
+def process(args: argparse.Namespace) -> int:
+    """Run ``lamina process SCAN``: reconstruct a stored scan again and store the result.
+
+    Trim, harmonics and the expected shape default to what the scan was started with;
+    the methods to the command line's (Lamina's best unless given).
+    """
+    with _open_library(args.library) as library:
+        record = library.scan(args.scan)
+        path = library.path
+    for name in ("trim", "harmonics", "expect"):
+        if getattr(args, name) is None:
+            setattr(args, name, record.options.get(name))
+    if args.trim is None:
+        args.trim = SCAN_DEFAULTS["trim"]
+    if not (isinstance(args.trim, int | float) and 0.0 <= args.trim < 0.5):
+        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
+    if args.harmonics is not None:
+        check_count("--harmonics", args.harmonics, 1, 100)
+    options = _process_options(args)
+    try:
+        expect = parse_expectation(args.expect) if args.expect else None
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.out is not None:
+        prepare_output_folder(args.out)
+    job = ScanJob(DeviceTarget(), path)
+    results = job.process_stored(args.scan, options, expect, args.out)
+    print_summary(results.report, results.paths)
+    print(f"scan {args.scan} processed; the result is stored in library {path}")
+    return 0
+
+
 def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
     with _open_library(args.library) as library:
@@ -821,6 +888,7 @@ def clinical_report(args: argparse.Namespace) -> int:
 
 COMMANDS = {
     "scan": scan,
+    "process": process,
     "scans": list_scans,
     "export": export,
     "report": clinical_report,

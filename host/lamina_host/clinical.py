@@ -31,6 +31,7 @@ import numpy as np
 
 from lamina_host.efd import EfdStack, EllipticFourier, efd_area
 from lamina_host.measure import centroid
+from lamina_host.status import CLOSED, OutlineStatus
 from lamina_host.workflow import InputError
 
 AXES = ("turntable", "centreline")
@@ -42,11 +43,12 @@ LANDMARK_KINDS = ("distal", "bottom", "top")
 DEFAULT_SPACING_MM = 40.0
 """Tape spacing in clinics: 4 cm (8 cm is also in use)."""
 
-MEASURED = "measured"
+MEASURED = OutlineStatus.MEASURED
 """The status of an outline seen all round (the coverage work's other statuses mean
-estimated in part: ``bridged``, ``interpolated``; ``open`` outlines are not closed)."""
+estimated in part: ``bridged``, ``interpolated``; ``open`` and ``failed`` outlines are not
+closed); also the source of a level resting on such outlines only."""
 
-OPEN = "open"
+OPEN = OutlineStatus.OPEN
 
 OUTLINE_SAMPLES = 1024
 """Samples per outline for a circumference: the polygon's shortfall on a circle is
@@ -73,16 +75,20 @@ class ClinicalError(InputError):
 
 @dataclass(frozen=True, eq=False)
 class LimbSection:
-    """One outline of a limb scan: its height, EFD and how it was closed."""
+    """One outline of a limb scan: its height, EFD and how it was closed.
+
+    A failed outline (``OutlineStatus.FAILED``, not processed) has no EFD: it is a gap,
+    as an open outline is, and a level measured across it says so.
+    """
 
     z_mm: float
-    efd: EllipticFourier
+    efd: EllipticFourier | None
     status: str = MEASURED
 
     @property
     def closed(self) -> bool:
         """Return whether the outline is closed (so it is part of the volume)."""
-        return self.status != OPEN
+        return self.status in CLOSED and self.efd is not None
 
 
 @dataclass(frozen=True)
@@ -179,7 +185,7 @@ def fit_axis(sections: Sequence[LimbSection], method: str = AXES[0]) -> LimbAxis
     if len({s.z_mm for s in closed}) < 2:
         raise ClinicalError("a centre line needs closed sections at two heights at least")
     z = np.array([s.z_mm for s in closed])
-    c = np.array([centroid(s.efd.evaluate(OUTLINE_SAMPLES)) for s in closed])
+    c = np.array([centroid(s.efd.evaluate(OUTLINE_SAMPLES)) for s in closed if s.efd is not None])
     design = np.column_stack([np.ones_like(z), z])
     (x0, ax), *_ = np.linalg.lstsq(design, c[:, 0], rcond=None)
     (y0, ay), *_ = np.linalg.lstsq(design, c[:, 1], rcond=None)
@@ -338,19 +344,21 @@ def stack_volume_mm3(stack: EfdStack, z_lo_mm: float, z_hi_mm: float) -> float:
     return total
 
 
-def _level_source(z_mm: float, closed: list[LimbSection], opened: list[float]) -> tuple[str, str]:
+def _level_source(
+    z_mm: float, closed: list[LimbSection], opened: list[LimbSection]
+) -> tuple[str, str]:
     """Return whether a level rests on measured outlines only, and a note if not."""
     heights = np.array([s.z_mm for s in closed])
     exact = np.flatnonzero(np.abs(heights - z_mm) <= _LEVEL_TOLERANCE_MM)
     if len(exact):
         used = [closed[int(exact[0])]]
-        between: list[float] = []
+        between: list[LimbSection] = []
     else:
         k = int(np.clip(np.searchsorted(heights, z_mm), 1, len(heights) - 1))
         used = [closed[k - 1], closed[k]]
-        between = [z for z in opened if used[0].z_mm < z < used[1].z_mm]
+        between = [s for s in opened if used[0].z_mm < s.z_mm < used[1].z_mm]
     notes = [f"outline at z={s.z_mm:.1f} mm {s.status}" for s in used if s.status != MEASURED]
-    notes += [f"open section at z={z:.1f} mm bridged by interpolation" for z in between]
+    notes += [f"{s.status} section at z={s.z_mm:.1f} mm bridged by interpolation" for s in between]
     return ("estimated", "; ".join(notes)) if notes else (MEASURED, "")
 
 
@@ -401,9 +409,10 @@ def measure_limb(
     closed = sorted((s for s in sections if s.closed), key=lambda s: s.z_mm)
     if not closed:
         raise ClinicalError("the scan has no closed section to measure; scan the limb again")
-    opened = sorted(s.z_mm for s in sections if not s.closed)
+    opened = sorted((s for s in sections if not s.closed), key=lambda s: s.z_mm)
     limb_axis = fit_axis(closed, axis)
-    stack = EfdStack.from_sections([s.z_mm for s in closed], [s.efd for s in closed], interpolation)
+    efds = [s.efd for s in closed if s.efd is not None]  # every closed outline has one
+    stack = EfdStack.from_sections([s.z_mm for s in closed], efds, interpolation)
     lo, hi = float(stack.z_mm[0]), float(stack.z_mm[-1])
     profile_c = np.array([_circumference(stack.section(z), z, limb_axis) for z in stack.z_mm])
     distal_top = len(profile_c) > 1 and profile_c[-1] < (1.0 - DISTAL_MARGIN) * profile_c[0]
@@ -432,7 +441,7 @@ def measure_limb(
         )
         for a, b in itertools.pairwise(levels)
     )
-    notes = [f"open section at z={z:.1f} mm left out of the volume" for z in opened]
+    notes = [f"{s.status} section at z={s.z_mm:.1f} mm left out of the volume" for s in opened]
     if limb_axis.method == "centreline":
         notes.append(f"centre line tilted {limb_axis.tilt_deg:.1f} deg from the turntable axis")
     return LimbMeasurement(
@@ -457,11 +466,15 @@ def sections_from_reconstruction(result: Any) -> list[LimbSection]:
     A limb has one outline per section: where a section split into several, the main
     one (part 0) is the limb.
     """
-    return [
+    outlines = [
         LimbSection(s.z_mm, s.efd, getattr(s, "status", MEASURED))
         for s in result.sections
         if s.part == 0
     ]
+    outlines += [
+        LimbSection(f.z_mm, None, f.status) for f in getattr(result, "failed", []) if f.part == 0
+    ]
+    return sorted(outlines, key=lambda s: s.z_mm)
 
 
 def sections_from_report(report: dict[str, Any], scan_id: int | None = None) -> list[LimbSection]:
@@ -470,19 +483,23 @@ def sections_from_report(report: dict[str, Any], scan_id: int | None = None) -> 
     Raises:
         ClinicalError: the report holds no EFD coefficients (processed by an older Lamina).
     """
-    rows = [r for r in report.get("sections", []) if r.get("part", 0) == 0]
+    every = [r for r in report.get("sections", []) if r.get("part", 0) == 0]
+    rows = [r for r in every if r.get("status") != OutlineStatus.FAILED]
+    failed = [LimbSection(float(r["z_mm"]), None, OutlineStatus.FAILED) for r in every
+              if r.get("status") == OutlineStatus.FAILED]  # fmt: skip
     if not rows or any("efd" not in r for r in rows):
         which = f"scan {scan_id}" if scan_id is not None else "the scan"
         raise ClinicalError(
             f"{which} was processed without EFD coefficients in its report; process it again "
             "with this version of Lamina"
         )
-    return [
+    outlines = [
         LimbSection(
             float(r["z_mm"]), EllipticFourier.from_dict(r["efd"]), r.get("status", MEASURED)
         )
         for r in rows
     ]
+    return sorted(outlines + failed, key=lambda s: s.z_mm)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from lamina_host.clinical import (
     AXES,
     COMPARISONS,
     DEFAULT_SPACING_MM,
+    MEASURED,
     ClinicalError,
     Comparison,
     Landmark,
@@ -149,7 +150,7 @@ def _header_lines(data: ReportData) -> list[str]:
         if not c.flags:
             lines.append("no threshold crossed")
     lines += [f"note: {n}" for n in m.notes]
-    estimated = [r for r in m.levels if r.source != "measured"]
+    estimated = [r for r in m.levels if r.source != MEASURED]
     if estimated:
         lines.append(
             f"{len(estimated)} level(s) rest on estimated outlines (marked * in the table)"
@@ -165,7 +166,7 @@ def _draw_table(ax: Any, data: ReportData) -> None:
         labels += ["other mm", "difference mm"]
     cells = []
     for row in table_rows(data.measurement, data.comparison):
-        mark = "" if row["source"] == "measured" else " *"
+        mark = "" if row["source"] == MEASURED else " *"
         line = [
             f"{row['offset_mm']:.0f}",
             f"{row['z_mm']:.1f}",

@@ -125,6 +125,10 @@ def measure_coverage(points: np.ndarray, bin_deg: float = COVERAGE_BIN_DEG) -> C
     counted as covered (sampling, not a gap).
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    if not len(pts) or not np.isfinite(pts).all():
+        raise CalibrationError(
+            f"an outline of {len(pts)} point(s), not all finite, has no coverage to measure"
+        )
     n = round(360.0 / bin_deg)
     centre = outline_centre(pts)
     empty = np.zeros(n)

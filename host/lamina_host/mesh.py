@@ -178,6 +178,8 @@ def triangulate_polygon(ring: np.ndarray) -> np.ndarray:
         alive = alive[~pick]
     if len(alive) == 3:
         triangles.append(alive[None, :])
+    if not triangles:  # fewer than 3 points enclose nothing
+        return np.empty((0, 3), dtype=np.int64)
     return np.concatenate(triangles).astype(np.int64)
 
 

@@ -45,6 +45,7 @@ from lamina_host.efd import (
 from lamina_host.measure import centroid, perimeter
 from lamina_host.mesh import (
     MESH_METHODS,
+    MeshlabMissing,
     ball_pivoting,
     contour_normals,
     screened_poisson,
@@ -52,6 +53,8 @@ from lamina_host.mesh import (
     tube_mesh,
 )
 from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
+from lamina_host.status import CLOSED, OutlineStatus
+from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, Segment
 
 MIN_SEGMENT_POINTS = 10
@@ -170,10 +173,11 @@ class ProcessOptions:
         return cls(**{k: v for k, v in recorded.items() if k in known})
 
 
-STATUSES = ("measured", "bridged", "interpolated", "open")
-"""How an outline was closed: seen all round; small unseen gaps closed by EFD; large gaps
-filled from the neighbouring sections' EFD (interpolated along z); or not closed (open:
-the gap is too wide and no neighbouring section could fill it; not meshed)."""
+STATUSES = tuple(OutlineStatus)
+"""How an outline was closed (:class:`~lamina_host.status.OutlineStatus`): seen all round;
+small unseen gaps closed by EFD; large gaps filled from the neighbouring sections' EFD
+(interpolated along z); not closed (open: the gap is too wide and no neighbouring section
+could fill it; not meshed); or not processed at all (failed, with its reason)."""
 
 INTERP_REACH_SECTIONS = 3
 """A large gap is filled only from outlines at most this many section pitches away."""
@@ -201,7 +205,7 @@ class Section:
     contour: np.ndarray
     part: int = 0
     coverage: Coverage | None = None
-    status: str = "measured"
+    status: str = OutlineStatus.MEASURED
     estimated: np.ndarray | None = None
     colour_points: np.ndarray | None = None
     """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
@@ -216,12 +220,51 @@ class Section:
     @property
     def closed(self) -> bool:
         """Return whether the outline is closed (it is meshed only then)."""
-        return self.status != "open"
+        return self.status in CLOSED
 
     @property
     def measured_contour(self) -> np.ndarray:
         """Return the contour samples that are not estimated (in seen stretches)."""
         return self.contour if self.estimated is None else self.contour[~self.estimated]
+
+
+@dataclass(frozen=True)
+class FailedSection:
+    """An outline, or a whole section, that could not be processed: where, and why.
+
+    ``part`` is the outline's place among its section's outlines (0 when the whole
+    section failed, e.g. in outlier rejection); ``points`` counts its stripe points.
+    """
+
+    index: int
+    z_mm: float
+    part: int
+    points: int
+    reason: str
+
+    @property
+    def status(self) -> str:
+        """Return ``failed`` (the report's and the screens' status of the outline)."""
+        return OutlineStatus.FAILED
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the report's entry for the outline (no EFD, contour or coverage)."""
+        return {
+            "section": self.index,
+            "part": self.part,
+            "z_mm": self.z_mm,
+            "raw_points": self.points,
+            "status": self.status,
+            "reason": self.reason,
+        }
+
+
+def failure_reason(exc: Exception) -> str:
+    """Return the one line a failed outline's report gives: Lamina's own message, or the
+    kind of an unexpected error (a bug, so it asks for a report)."""
+    if isinstance(exc, LaminaError):
+        return str(exc)
+    return f"internal error ({type(exc).__name__}: {exc}); please report it"
 
 
 @dataclass
@@ -242,6 +285,8 @@ class Reconstruction:
     options: ProcessOptions = field(default_factory=ProcessOptions)
     rejected: Rejected = field(default_factory=Rejected)
     vertex_colours: np.ndarray | None = None
+    failed: list[FailedSection] = field(default_factory=list)
+    """Outlines that could not be processed (not in ``sections``, not meshed)."""
 
 
 class Timer:
@@ -385,7 +430,15 @@ def colour_sections(
     views = assemble_colours(segments, grid, axis, trim_fraction)
     if not views:
         return sections
-    return [colour_section(s, views.get(s.index, [])) for s in sections]
+    return [_coloured_or_not(s, views.get(s.index, [])) for s in sections]
+
+
+def _coloured_or_not(section: Section, views: list[tuple[np.ndarray, np.ndarray]]) -> Section:
+    """Return the section coloured, or uncoloured when its colour cannot be averaged."""
+    try:
+        return colour_section(section, views)
+    except Exception:  # colour is an addition: the outline stands without it
+        return section
 
 
 def coloured_cloud(sections: list[Section]) -> tuple[np.ndarray, np.ndarray]:
@@ -453,7 +506,13 @@ def fit_section(
     coverage = measure_coverage(raw)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
-    status = "measured" if gap == 0 else "bridged" if limit is None or gap <= limit else "open"
+    status = (
+        OutlineStatus.MEASURED
+        if gap == 0
+        else OutlineStatus.BRIDGED
+        if limit is None or gap <= limit
+        else OutlineStatus.OPEN
+    )
     estimated = coverage.unseen(contour)
     return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
 
@@ -489,6 +548,65 @@ def fit_groups(
             continue
         sections.append(fit_section(index, z_mm, pieces, options, len(sections)))
     return sections
+
+
+@dataclass
+class SectionOutcome:
+    """What processing one section gave: its fitted outlines, the ones that failed, and
+    the points outlier rejection removed."""
+
+    sections: list[Section] = field(default_factory=list)
+    failed: list[FailedSection] = field(default_factory=list)
+    rejected: Rejected = field(default_factory=Rejected)
+
+
+def process_section(
+    index: int,
+    z_mm: float,
+    pieces: list[np.ndarray],
+    options: ProcessOptions,
+    rules: OutlierRules,
+    timer: Timer | None = None,
+) -> SectionOutcome:
+    """Reject one section's outliers and fit each of its outlines; never raises.
+
+    An outline whose processing fails becomes a :class:`FailedSection` with the reason,
+    and the section's other outlines are fitted as usual; a failure of the outlier
+    rejection fails the whole section (part 0). Outlines of fewer than 3 points are
+    skipped, as in :func:`fit_groups`. ``timer`` adds the time taken to its "reject" and
+    "fit_efd" stages.
+    """
+    timer = timer or Timer()
+    outcome = SectionOutcome()
+    try:
+        with timer.stage("reject"):
+            groups, outcome.rejected = outline_groups(pieces, options, rules)
+    except Exception as exc:  # any failure here is this section's, not the scan's
+        points = int(sum(len(p) for p in pieces))
+        outcome.failed.append(FailedSection(index, z_mm, 0, points, failure_reason(exc)))
+        return outcome
+    for outline in groups:
+        points = int(sum(len(p) for p in outline))
+        if points < 3:
+            continue
+        part = len(outcome.sections) + len(outcome.failed)
+        try:
+            with timer.stage("fit_efd"):
+                outcome.sections.append(fit_section(index, z_mm, outline, options, part))
+        except Exception as exc:
+            outcome.failed.append(FailedSection(index, z_mm, part, points, failure_reason(exc)))
+    return outcome
+
+
+def failure_warning(failed: list[FailedSection]) -> list[str]:
+    """Return the line naming the outlines that could not be processed, or none."""
+    if not failed:
+        return []
+    names = ", ".join(f"{f.index}.{f.part}" for f in failed)
+    return [
+        f"outline(s) {names} could not be processed (status failed, reasons in report.json; "
+        f"first: {failed[0].reason}); the others are processed and meshed"
+    ]
 
 
 def _neighbours(section: Section, solid: list[Section], reach_mm: float) -> list[Section]:
@@ -530,7 +648,9 @@ def fill_gap(section: Section, neighbours: list[Section], options: ProcessOption
     efd = fit_outline(merged, options)
     contour = efd.evaluate(options.outline_points)
     estimated = section.coverage.unseen(contour)
-    return replace(section, efd=efd, contour=contour, status="interpolated", estimated=estimated)
+    return replace(
+        section, efd=efd, contour=contour, status=OutlineStatus.INTERPOLATED, estimated=estimated
+    )
 
 
 def fill_gaps(sections: list[Section], options: ProcessOptions) -> list[Section]:
@@ -542,12 +662,15 @@ def fill_gaps(sections: list[Section], options: ProcessOptions) -> list[Section]
     pitch = section_pitch_mm(sections)
     if pitch is None or all(s.closed for s in sections):
         return sections
-    solid = [s for s in sections if s.status in ("measured", "bridged")]
+    solid = [s for s in sections if s.status in (OutlineStatus.MEASURED, OutlineStatus.BRIDGED)]
     reach = INTERP_REACH_SECTIONS * pitch
     out = []
     for s in sections:
-        near = _neighbours(s, solid, reach) if s.status == "open" else []
-        out.append(fill_gap(s, near, options) if near else s)
+        near = _neighbours(s, solid, reach) if s.status == OutlineStatus.OPEN else []
+        try:
+            out.append(fill_gap(s, near, options) if near else s)
+        except Exception:  # the neighbours could not fill it: it stays open, as it is
+            out.append(s)
     return out
 
 
@@ -680,6 +803,27 @@ def build_mesh(
     return (*mesh_ball_pivoting(sections, pitch, options.ball_radius_mm), [])
 
 
+def safe_mesh(
+    sections: list[Section], options: ProcessOptions
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Return :func:`build_mesh`'s mesh, or none and one warning when meshing fails.
+
+    The contours stand without a mesh (points.ply and the report keep them), so a shape
+    the mesher cannot take costs the mesh only, never the processed scan.
+    """
+    try:
+        return build_mesh(sections, options)
+    except MeshlabMissing:
+        raise  # the user's installation, not the shape: say what to install
+    except Exception as exc:
+        return (
+            np.empty((0, 3)),
+            np.empty((0, 3), int),
+            [f"the {options.mesh} mesh could not be built ({failure_reason(exc)}); the "
+             "contours are in points.ply: process again with another --mesh"],
+        )  # fmt: skip
+
+
 def camera_disc_mm(
     grid: GridCalibration, image_shape: tuple[int, ...], axis: AxisCalibration
 ) -> float | None:
@@ -723,12 +867,12 @@ def gap_warnings(sections: list[Section]) -> list[str]:
         return ", ".join(f"{s.index}.{s.part}" for s in sections if s.status == status)
 
     lines = []
-    if filled := names("interpolated"):
+    if filled := names(OutlineStatus.INTERPOLATED):
         lines.append(
             f"outline(s) {filled} had unseen gaps too wide to bridge; filled from the "
             "neighbouring sections (flagged estimated, left out of points.ply)"
         )
-    if left := names("open"):
+    if left := names(OutlineStatus.OPEN):
         lines.append(
             f"outline(s) {left} had unseen gaps too wide to bridge and no closed neighbour: "
             "left open and not meshed; add views or sections"
@@ -743,8 +887,15 @@ def process_segments(
     options: ProcessOptions,
     timer: Timer,
     rules: OutlierRules | None = None,
-) -> tuple[list[Section], list[str], Rejected]:
-    """Assemble the object's segments, reject outliers, fit the outlines, close the gaps."""
+) -> tuple[list[Section], list[str], Rejected, list[FailedSection]]:
+    """Assemble the object's segments, reject outliers, fit the outlines, close the gaps.
+
+    Each section is processed on its own (:func:`process_section`): one that fails is
+    returned among the failed outlines with its reason, and the others go on.
+
+    Raises:
+        CalibrationError: no view shows the stripe, or no section gave an outline.
+    """
     rules = rules or OutlierRules(working_radius_mm=options.working_radius_mm)
     with timer.stage("assemble"):
         by_section, heights, skipped = assemble(segments, grid, axis, options.trim_fraction)
@@ -760,26 +911,36 @@ def process_segments(
             "stands inside the laser plane and the laser works"
         )
     rejected = Rejected()
-    with timer.stage("reject"):
-        groups = {}
-        for k in sorted(by_section):
-            groups[k], counts = outline_groups(by_section[k], options, rules)
-            rejected.add(counts)
+    sections: list[Section] = []
+    failed: list[FailedSection] = []
+    for k in sorted(by_section):
+        outcome = process_section(k, heights[k], by_section[k], options, rules, timer)
+        rejected.add(outcome.rejected)
+        sections += outcome.sections
+        failed += outcome.failed
     if rejected.points:
         warnings.append(rejection_warning(rejected))
-    if not any(groups.values()):
+    if not sections:
+        total = sum(len(p) for parts in by_section.values() for p in parts)
+        if rules.working_radius_mm is not None and rejected.outside_volume * 2 > total:
+            raise CalibrationError(
+                f"{rejected.outside_volume} of {total} stripe points lie further than "
+                f"{rules.working_radius_mm:.1f} mm from the turntable axis, outside what the "
+                "camera sees at every angle: the object is larger than this rig's field of "
+                "view; scan it on a rig with a wider view (the simulator: --rig limb)"
+            )
+        why = f" ({failed[0].reason})" if failed else ""
         raise CalibrationError(
-            "no section has an outline seen well enough by several views: check the "
-            "object stands inside the laser plane and the views overlap"
+            f"no section has an outline seen well enough by two or more views{why}: check "
+            "the object stands inside the laser plane and that neighbouring views overlap "
+            "(scan with more views per section)"
         )
     with timer.stage("fit_efd"):
-        sections = [
-            s for k in sorted(groups) for s in fit_groups(k, heights[k], groups[k], options)
-        ]
         sections = fill_gaps(sections, options)
     with timer.stage("colour"):
         sections = colour_sections(sections, segments, grid, axis, options.trim_fraction)
-    return sections, warnings + gap_warnings(sections), rejected
+    warnings += failure_warning(failed) + gap_warnings(sections)
+    return sections, warnings, rejected, failed
 
 
 def reconstruct(
@@ -807,10 +968,12 @@ def reconstruct(
         )  # fmt: skip
     radius = options.working_radius_mm or camera_disc_mm(grid, grid_image.shape, axis)
     rules = OutlierRules(working_radius_mm=radius)
-    sections, warnings, rejected = process_segments(grid, axis, segments, options, timer, rules)
+    sections, warnings, rejected, failed = process_segments(
+        grid, axis, segments, options, timer, rules
+    )
     warnings = [*grid.warnings, *axis.warnings, *warnings]
     with timer.stage("mesh"):
-        vertices, faces, mesh_warnings = build_mesh(sections, options)
+        vertices, faces, mesh_warnings = safe_mesh(sections, options)
         topo = topology(vertices, faces) if len(faces) else {}
     warnings += mesh_warnings
     if topo and not (topo["watertight"] and topo["two_manifold"]):
@@ -822,5 +985,5 @@ def reconstruct(
     colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None
     return Reconstruction(
         grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected,
-        colour,
+        colour, failed,
     )  # fmt: skip

@@ -11,7 +11,7 @@ from lamina_host.expect import Expectation
 from lamina_host.files import json_text, replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
 from lamina_host.mesh import contour_normals, obj_bytes, save_ply
-from lamina_host.pipeline import Reconstruction, assemble, coloured_cloud, stack
+from lamina_host.pipeline import Reconstruction, Section, assemble, coloured_cloud, stack
 from lamina_host.precision import section_precision_mm
 from lamina_shared.types import Segment
 
@@ -69,33 +69,16 @@ def build_report(
 ) -> dict[str, Any]:
     """Return the JSON-ready report of one scan."""
     precision = _precision_mm(result, segments)
+    outlines = [section_entry(s, precision.get(s.index)) for s in result.sections]
+    outlines += [f.to_dict() for f in result.failed]
+    outlines.sort(key=lambda entry: (entry["section"], entry["part"]))
     report: dict[str, Any] = {
         "device": device,
         "options": result.options.to_dict(),
         "calibration": result.grid.to_dict(),
         "axis": result.axis.to_dict(),
         "correction_factor": result.axis.correction_factor,
-        "sections": [
-            {
-                "section": s.index,
-                "part": s.part,
-                "z_mm": s.z_mm,
-                "segments": s.segments,
-                "raw_points": len(s.raw),
-                "outline_points": len(s.contour),
-                "harmonics": s.harmonics,
-                "precision_mm": precision.get(s.index),
-                "perimeter_mm": perimeter(s.contour),
-                "area_mm2": polygon_area(s.contour),
-                "efd": s.efd.to_dict(),
-                "status": s.status,
-                "coverage": s.coverage.to_dict() if s.coverage is not None else None,
-                "estimated_outline_points": int(s.estimated.sum())
-                if s.estimated is not None
-                else 0,
-            }
-            for s in result.sections
-        ],
+        "sections": outlines,
         "outliers": result.rejected.to_dict(),
         "point_counts": {
             "segments": len(segments),
@@ -140,6 +123,31 @@ def _precision_mm(result: Reconstruction, segments: list[Segment]) -> dict[int, 
     by_section, _, _ = assemble(objects, result.grid, result.axis, result.options.trim_fraction)
     several = {s.index for s in result.sections if s.part > 0}
     return {k: None if k in several else section_precision_mm(v) for k, v in by_section.items()}
+
+
+def section_entry(s: Section, precision_mm: float | None = None) -> dict[str, Any]:
+    """Return the report's entry of one processed outline.
+
+    Args:
+        s: the outline.
+        precision_mm: its section's per-point precision from the views' overlaps, if known.
+    """
+    return {
+        "section": s.index,
+        "part": s.part,
+        "z_mm": s.z_mm,
+        "segments": s.segments,
+        "raw_points": len(s.raw),
+        "outline_points": len(s.contour),
+        "harmonics": s.harmonics,
+        "precision_mm": precision_mm,
+        "perimeter_mm": perimeter(s.contour),
+        "area_mm2": polygon_area(s.contour),
+        "efd": s.efd.to_dict(),
+        "status": s.status,
+        "coverage": s.coverage.to_dict() if s.coverage is not None else None,
+        "estimated_outline_points": int(s.estimated.sum()) if s.estimated is not None else 0,
+    }
 
 
 def _points3d(sections: list[Any], raw: bool) -> np.ndarray:

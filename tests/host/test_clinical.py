@@ -232,6 +232,30 @@ def test_estimated_and_open_sections_are_said_per_level() -> None:
     assert "bridged" in m2.levels[1].note
 
 
+def test_a_failed_section_is_a_gap_said_per_level() -> None:
+    """A failed outline (no EFD) is left out like an open one, and the levels across it say so,
+    from a reconstruction and from its report alike."""
+    sections = cone(40.0, 40.0, 100.0, 10.0)
+    truth = measure_limb(sections, spacing_mm=20.0)
+    kept = [s for k, s in enumerate(sections) if k != 6]
+    failed = SimpleNamespace(z_mm=60.0, part=0, status="failed")
+    result = SimpleNamespace(sections=pipeline_sections(kept), failed=[failed])
+    from_result = sections_from_reconstruction(result)
+    assert [(s.z_mm, s.status) for s in from_result if not s.closed] == [(60.0, "failed")]
+    report = {"sections": [
+        {"part": 0, "z_mm": s.z_mm, "status": "measured", "efd": s.efd.to_dict()} for s in kept
+    ] + [{"part": 0, "z_mm": 60.0, "status": "failed", "reason": "injected"}]}  # fmt: skip
+    for outlines in (from_result, sections_from_report(report)):
+        m = measure_limb(outlines, spacing_mm=20.0)
+        by_offset = {lv.offset_mm: lv for lv in m.levels}
+        assert by_offset[60.0].source == "estimated"
+        assert "failed section at z=60.0 mm" in by_offset[60.0].note
+        assert by_offset[40.0].source == "measured"
+        assert "failed section at z=60.0 mm left out of the volume" in m.notes
+        # The cylinder's volume is still right across the gap (interpolated between 50 and 70).
+        assert m.volume_mm3 == pytest.approx(truth.volume_mm3, rel=1e-3)
+
+
 def test_centreline_axis_measures_perpendicular_to_a_tilted_limb() -> None:
     """A cylinder tilted 20 deg: horizontal cuts are ellipses, the tape sees 2 pi r."""
     r, tilt = 50.0, math.radians(20.0)

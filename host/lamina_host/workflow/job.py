@@ -66,6 +66,18 @@ class Busy(LaminaError, RuntimeError):
     """The device is already running a request."""
 
 
+class ProcessingError(LaminaError):
+    """Processing a scan failed; the scan is kept and the message says how to process it again."""
+
+
+def process_again_hint(scan_id: int) -> str:
+    """Return the advice a failed processing of library scan ``scan_id`` ends with."""
+    return (
+        f"scan {scan_id} is kept in the library: process it again with lamina process "
+        f"{scan_id} [options] (or p on the terminal UI's Library screen)"
+    )
+
+
 @dataclass(frozen=True)
 class DeviceTarget:
     """What to connect to: a port path, ``sim`` or ``replay:DIR``, and the simulation's choices."""
@@ -654,9 +666,20 @@ class ScanJob:
         if not data.segments:
             raise InputError("nothing to process: scan the subject first (F5)")
         options = options or ProcessOptions()
-        result = reconstruct(
-            data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments, options
-        )
+        try:
+            result = reconstruct(
+                data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments,
+                options,
+            )  # fmt: skip
+        except Exception as exc:  # the acquisition must outlive any failure of processing
+            if self.scan_id is None:
+                raise
+            why = str(exc) if isinstance(exc, LaminaError) else (
+                f"internal error ({type(exc).__name__}: {exc}); please report it"
+            )  # fmt: skip
+            raise ProcessingError(
+                f"processing failed: {why}; {process_again_hint(self.scan_id)}"
+            ) from exc
         rows = section_rows(result)
         device = report_device(data.device, self.identity)
         report = build_report(result, device, data.segments, expect, dict(timings_s or {}))
@@ -672,6 +695,37 @@ class ScanJob:
                 paths = {}
         self.results = Results(result, rows, report["volume_mm3"], report, options.mesh, paths)
         return self.results
+
+    def process_stored(
+        self,
+        scan_id: int,
+        options: ProcessOptions | None = None,
+        expect: Expectation | None = None,
+        out: Path | None = None,
+    ) -> Results:
+        """Process library scan ``scan_id`` again (acquired or processed) and store the result.
+
+        The stored calibration and views are reconstructed with this version's pipeline
+        and ``options`` (None: the defaults); the new result replaces any earlier one.
+
+        Raises:
+            InputError: the scan lacks its calibration or is not fully acquired.
+            ProcessingError: the processing failed (the scan is kept as it was).
+        """
+        with self._library() as library:
+            acquiring = library.scan(scan_id).status == "acquiring"
+        if acquiring:
+            raise InputError(
+                f"scan {scan_id} is not fully acquired: finish it with lamina scan --resume "
+                f"{scan_id} --device DEVICE (or resume it on the terminal UI's Scan screen)"
+            )
+        data = self.open_scan(scan_id)
+        if not data.complete:
+            raise InputError(
+                f"scan {scan_id} is not fully acquired ({len(data.segments)} views held): "
+                f"finish it with lamina scan --resume {scan_id} --device DEVICE"
+            )
+        return self.process_scan(options, expect, None, out)
 
     def export(self, folder: Path) -> list[Path]:
         """Export the current scan's mesh (PLY, OBJ, STL) and report into a new folder."""

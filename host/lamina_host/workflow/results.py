@@ -16,6 +16,7 @@ import numpy as np
 from lamina_host.link import DeviceInfo
 from lamina_host.measure import perimeter, polygon_area
 from lamina_host.pipeline import Reconstruction, Section
+from lamina_host.status import OutlineStatus
 from lamina_shared.types import BoardSpec, Segment
 
 
@@ -83,8 +84,16 @@ class SectionRow:
     harmonics: int
     coverage_percent: float = 100.0
     """Share of the circumference the views saw (``lamina_host.coverage``)."""
-    status: str = "measured"
-    """How the outline was closed: measured, bridged, interpolated or open."""
+    status: str = OutlineStatus.MEASURED
+    """How the outline was closed (:class:`~lamina_host.status.OutlineStatus`): measured,
+    bridged, interpolated, open, or failed (then the measurements are NaN)."""
+    reason: str = ""
+    """Why a failed outline could not be processed (empty otherwise)."""
+
+    @property
+    def failed(self) -> bool:
+        """Return whether the outline could not be processed (it has no measurements)."""
+        return self.status == OutlineStatus.FAILED
 
 
 @dataclass
@@ -124,8 +133,8 @@ def roundness(contour: np.ndarray) -> float:
 
 
 def section_rows(result: Reconstruction) -> list[SectionRow]:
-    """Measure every section's EFD contour."""
-    return [
+    """Measure every section's EFD contour; a failed outline's row has NaN measurements."""
+    rows = [
         SectionRow(
             s.index,
             s.z_mm,
@@ -139,10 +148,17 @@ def section_rows(result: Reconstruction) -> list[SectionRow]:
         )
         for s in result.sections
     ]
+    nan = float("nan")
+    rows += [
+        SectionRow(f.index, f.z_mm, f.points, nan, nan, nan, 0, 0.0, f.status, f.reason)
+        for f in result.failed
+    ]
+    return sorted(rows, key=lambda r: r.z_mm)
 
 
 def volume_mm3(rows: list[SectionRow]) -> float:
     """Return the volume between the first and last section (trapezoid rule over areas)."""
+    rows = [r for r in rows if not r.failed]
     if len(rows) < 2:
         return 0.0
     z = np.array([r.z_mm for r in rows])
@@ -153,4 +169,5 @@ def volume_mm3(rows: list[SectionRow]) -> float:
 
 def radius_profile(rows: list[SectionRow]) -> tuple[list[float], list[float]]:
     """Return (z_mm, equivalent radius sqrt(A/pi) in mm) per section, for the profile plot."""
+    rows = [r for r in rows if not r.failed]
     return [r.z_mm for r in rows], [math.sqrt(r.area_mm2 / math.pi) for r in rows]

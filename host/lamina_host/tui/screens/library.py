@@ -1,4 +1,4 @@
-"""Library: past scans; open (and process again), export, delete with confirmation."""
+"""Library: past scans; open (and process again), process again, export, delete (asked)."""
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ class LibraryScreen(LaminaScreen):
     AUTO_FOCUS = "#scans"
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("o", "open", "Open"),
+        Binding("p", "process", "Process"),
         Binding("e", "export", "Export"),
         Binding("d", "delete", "Delete"),
         Binding("u", "reload", "Update list"),
@@ -66,7 +67,10 @@ class LibraryScreen(LaminaScreen):
                 "yes" if s.has_result else "no",
                 key=str(s.id),
             )
-        note = f"{len(scans)} scan{'s' if len(scans) != 1 else ''}: o opens one, d deletes it"
+        note = (
+            f"{len(scans)} scan{'s' if len(scans) != 1 else ''}: o opens one, "
+            "p processes it again, d deletes it"
+        )
         self.query_one("#library-note", Static).update(note if scans else "no scans yet")
 
     def _chosen(self) -> int | None:
@@ -100,6 +104,23 @@ class LibraryScreen(LaminaScreen):
             self.app.switch_mode("results")
         else:
             self.say(f"scan {scan_id} is incomplete ({outcome} views): connect and resume (F5, p)")
+
+    def action_process(self) -> None:
+        """Process the chosen stored scan again (as ``lamina process``), then show Results."""
+        scan_id = self._chosen()
+        if scan_id is not None:
+            self.say(f"processing scan {scan_id} again ...")
+            self.in_thread(
+                "library-open",
+                lambda: self.session.process_stored(scan_id),
+                lambda _: self.processed(scan_id),
+            )
+
+    def processed(self, scan_id: int) -> None:
+        """Say the scan is processed, refresh the list and show its results."""
+        self.say(f"scan {scan_id} processed again: see Results")
+        self.action_reload()
+        self.app.switch_mode("results")
 
     def _ask_about_chosen(
         self, dialog: Callable[[int], ModalScreen[T]], answered: Callable[[int, T | None], None]

@@ -16,6 +16,7 @@ from textual_plotext import PlotextPlot
 from lamina_host.clinical import Visit
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
+from lamina_host.status import ESTIMATED
 from lamina_host.store import Library
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
@@ -26,12 +27,13 @@ COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2",
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
 the circumference the views saw; closed says how: measured all round, bridged (small gaps
 closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
-(not closed, not meshed). Bridged and interpolated stretches are estimated, not measured."""
+(not closed, not meshed) or failed (not processed: the summary says why). Bridged and
+interpolated stretches are estimated, not measured."""
 
 
 def coverage_cells(row: SectionRow) -> tuple[str, str]:
-    """Return the cover % and closed cells of one outline."""
-    return f"{row.coverage_percent:.0f}", row.status
+    """Return the cover % and closed cells of one outline ("-" cover for a failed one)."""
+    return ("-" if row.failed else f"{row.coverage_percent:.0f}"), row.status
 
 
 def parse_harmonics(text: str) -> tuple[int | None, str | None]:
@@ -88,12 +90,15 @@ def summary_text(results: Results | None) -> str:
         + (", watertight" if topo.get("watertight") else "")
     )
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
-    estimated = [s for s in result.sections if s.status in ("bridged", "interpolated")]
+    estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
         lines.append(
             f"{len(estimated)} outline(s) closed across unseen gaps (estimated stretches, "
             f"not in points.ply), {sum(not s.closed for s in result.sections)} left open"
         )
+    lines += [
+        f"outline {f.index}.{f.part} (z {f.z_mm:.2f}) {f.status}: {f.reason}" for f in result.failed
+    ]
     return "\n".join(lines + [f"warning: {w}" for w in result.warnings])
 
 
@@ -192,7 +197,11 @@ class ResultsScreen(LaminaScreen):
         """Show the new results."""
         self.query_one("#process", Button).disabled = False
         self.refresh_from_session()
-        self.say(f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3")
+        failed = len(results.reconstruction.failed)
+        self.say(
+            f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
+            + (f"; {failed} outline(s) failed (see the summary)" if failed else "")
+        )
 
     def failed(self, message: str) -> None:
         """Re-enable the controls and say what went wrong."""
@@ -235,16 +244,14 @@ class ResultsScreen(LaminaScreen):
         table = self.query_one("#sections", DataTable)
         table.clear()
         for r in results.rows if results else []:
-            table.add_row(
-                str(r.index),
-                f"{r.z_mm:.2f}",
-                str(r.points),
-                *coverage_cells(r),
-                f"{r.perimeter_mm:.2f}",
-                f"{r.area_mm2:.1f}",
-                f"{r.roundness:.4f}",
-                str(r.harmonics),
-            )
+            measures = (
+                ("-", "-", "-", "-")
+                if r.failed
+                else (f"{r.perimeter_mm:.2f}", f"{r.area_mm2:.1f}", f"{r.roundness:.4f}",
+                      str(r.harmonics))
+            )  # fmt: skip
+            table.add_row(str(r.index), f"{r.z_mm:.2f}", str(r.points), *coverage_cells(r),
+                          *measures)  # fmt: skip
         self._draw_profile(results)
         summary: str | Text = summary_text(results)
         strip = colour_strip(results)
