@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
@@ -122,12 +123,24 @@ def _calibration(plan: CampaignPlan) -> _Calibration:
     """Return the rig's board and cylinder data, acquiring them on first use."""
     key = (plan.scale, plan.resolution, plan.noise)
     if key not in _CALIBRATIONS:
-        hardware = open_sim(None, 0, plan.noise, plan.scale, plan.rig())
+        hardware = _unwatched(open_sim(None, 0, plan.noise, plan.scale, plan.rig()))
         cylinder: list[Segment] = []
-        grid = grab_grid(hardware)
-        acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
+        try:
+            grid = grab_grid(hardware)
+            acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
+        finally:
+            hardware.close()
         _CALIBRATIONS[key] = _Calibration(grid, cylinder)
     return _CALIBRATIONS[key]
+
+
+def _unwatched(hardware: Hardware) -> Hardware:
+    """Stop the laser watchdog: a simulated frame may take longer to render on a loaded
+    machine than the 2 s the laser may stay on, which no real exposure does."""
+    if hardware.watchdog is not None:
+        hardware.watchdog.stop()
+        hardware.watchdog = None
+    return hardware
 
 
 def _fail(result: SeedResult, stage: str, exc: BaseException) -> SeedResult:
@@ -165,9 +178,12 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         calibration = _calibration(plan)
         stage = "acquire"
         spec = f"random:seed={seed},scale={plan.scale}"
-        hardware = open_sim(spec, 0, plan.noise, plan.scale, plan.rig())
+        hardware = _unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig()))
         segments: list[Segment] = []
-        acquire(hardware, "object", plan.scan_plan(), segments.append)
+        try:
+            acquire(hardware, "object", plan.scan_plan(), segments.append)
+        finally:
+            hardware.close()
         stage = "process"
         assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
         recon = reconstruct(
@@ -184,13 +200,15 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
             write_outputs(Path(tmp), recon, report)
         stage = "measure"
         _measure(result, shape, recon, plan)
-    except Exception as exc:  # noqa: BLE001 - a campaign counts every failure
+    except Exception as exc:
         _fail(result, stage, exc)
     result.wall_s = time.perf_counter() - start
     return result
 
 
-def _measure(result: SeedResult, shape: RandomShape, recon: Reconstruction, plan: CampaignPlan) -> None:
+def _measure(
+    result: SeedResult, shape: RandomShape, recon: Reconstruction, plan: CampaignPlan
+) -> None:
     """Fill in the figures of a finished scan against the truth."""
     result.warnings = list(recon.warnings)
     for s in recon.sections:
@@ -202,7 +220,11 @@ def _measure(result: SeedResult, shape: RandomShape, recon: Reconstruction, plan
     lit = lit_and_seen_points(scene, views, mechanics)
     result.lit_points = len(lit)
     contour, _ = measured_cloud(recon)
-    raw = np.vstack([np.column_stack([s.raw, np.full(len(s.raw), s.z_mm)]) for s in recon.sections]) if recon.sections else np.empty((0, 3))
+    raw = (
+        np.vstack([np.column_stack([s.raw, np.full(len(s.raw), s.z_mm)]) for s in recon.sections])
+        if recon.sections
+        else np.empty((0, 3))
+    )
     if len(contour) and len(lit):
         acc = scan_accuracy(shape, raw, contour, lit)
         result.mean_distance_mm = acc.aligned.mean_distance_mm

@@ -332,6 +332,11 @@ def _cast_pinhole(
         lo, hi = tri_xy.min(axis=1), tri_xy.max(axis=1)
         inside = np.all((ray_xy >= lo.min(0)) & (ray_xy <= hi.max(0)), axis=1)
         live, ray_xy = live[inside], ray_xy[inside]
+        if live.size:
+            # A triangle whose box misses every ray's box holds no ray: drop it (a few
+            # rays, as the truth's visibility test casts, then skip most of the mesh).
+            near = np.all((hi >= ray_xy.min(0)) & (lo <= ray_xy.max(0)), axis=1)
+            fidx, tri_xy, lo, hi = fidx[near], tri_xy[near], lo[near], hi[near]
     if not (fidx.size and live.size):
         return np.flatnonzero(~front)
     buckets = _RayBuckets.build(ray_xy)
@@ -505,7 +510,9 @@ def section_edges(obj: SceneObject, z_mm: float) -> tuple[np.ndarray, np.ndarray
     if not curves:
         return np.empty((0, 2)), np.empty((0, 2))
     a = np.concatenate([c.points if c.closed else c.points[:-1] for c in curves])
-    b = np.concatenate([np.roll(c.points, -1, axis=0) if c.closed else c.points[1:] for c in curves])
+    b = np.concatenate(
+        [np.roll(c.points, -1, axis=0) if c.closed else c.points[1:] for c in curves]
+    )
     return a, b
 
 

@@ -296,7 +296,11 @@ def _body(rng: np.random.Generator, unit: float, scale: str) -> tuple[_Part | No
         for k in rng.choice([2, 3, 4, 5], size=int(rng.integers(0, 3)), replace=False)
     )
     dents = tuple(
-        (float(rng.uniform(0, 2 * math.pi)), float(rng.uniform(0.05, 0.2)), float(rng.uniform(0.2, 0.5)))
+        (
+            float(rng.uniform(0, 2 * math.pi)),
+            float(rng.uniform(0.05, 0.2)),
+            float(rng.uniform(0.2, 0.5)),
+        )
         for _ in range(int(rng.integers(0, 3)))
     )
     bottom = _end_kind(rng, ("dome", "tip", "flat", "rim", "beyond"), (3, 1, 1, 1, 2))
