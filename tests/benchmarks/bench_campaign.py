@@ -68,7 +68,7 @@ def _scan(job: tuple[int, CampaignPlan]) -> tuple[SeedResult, float]:
 
 
 def run_scale(
-    plan: CampaignPlan, seeds: list[int], workers: int, budget_s: float
+    plan: CampaignPlan, seeds: list[int], workers: int, budget_s: float, progress: bool = False
 ) -> dict[str, Any]:
     """Scan ``seeds`` along ``plan`` in ``workers`` processes; return every seed's result."""
     start = time.perf_counter()
@@ -91,6 +91,13 @@ def run_scale(
                 row = asdict(result)
                 row["cpu_s"] = cpu_s
                 results.append(row)
+                if progress:
+                    what = result.failure_kind or f"coverage {result.coverage:.3f}"
+                    print(
+                        f"  {plan.scale} seed {result.seed}: {what} ({len(results)}/{len(seeds)})",
+                        file=sys.stderr,
+                        flush=True,
+                    )
     return {
         "plan": asdict(plan),
         "seeds_asked": len(seeds),
@@ -101,13 +108,19 @@ def run_scale(
 
 
 def run(
-    seeds: int | None = None, workers: int = WORKERS, budget_s: float = BUDGET_S
+    seeds: int | None = None,
+    workers: int = WORKERS,
+    budget_s: float = BUDGET_S,
+    progress: bool = True,
 ) -> dict[str, Any]:
-    """Run the campaign at both scales; return the per-seed results and their summary."""
+    """Run the campaign at both scales; return the per-seed results and their summary.
+
+    ``progress`` prints one line per finished seed on stderr (a full run takes long).
+    """
     count = SEEDS if seeds is None else seeds
     out: dict[str, Any] = {"seeds_per_scale": count}
     for scale, plan in PLANS.items():
-        scale_run = run_scale(plan, list(range(count)), workers, budget_s)
+        scale_run = run_scale(plan, list(range(count)), workers, budget_s, progress)
         scale_run["summary"] = summarise(scale_run["results"])
         out[scale] = scale_run
     return out
