@@ -18,12 +18,11 @@ judged against the simulator's truth with ``lamina_device.sim.truth``:
   refusal, anything else a traceback the user would see.
 
 Seeds run in parallel processes (2 by default), each exception caught per seed. The
-plans are small so both scales fit a bounded time: ``LAMINA_CAMPAIGN_SEEDS`` (or
-``--seeds``) sets the seeds per scale (default 200), ``--quick`` runs 12, and
+plans are small (2 sections x 6 views) to keep the time down: ``LAMINA_CAMPAIGN_SEEDS``
+(or ``--seeds``) sets the seeds per scale (default 200), ``--quick`` runs 12, and
 ``LAMINA_CAMPAIGN_BUDGET_S`` (default 1800) stops starting seeds of a scale after that
-many seconds, so ``make bench`` ends in bounded time (the report says how many ran; a
-full run of both scales needs about 40 minutes on 2 idle cores, ``inf`` lifts it). ``python tests/benchmarks/bench_campaign.py --quick``
-runs it on its own.
+many seconds, so ``make bench`` ends in bounded time (the report says how many ran;
+``inf`` lifts it). ``python tests/benchmarks/bench_campaign.py --quick`` runs it alone.
 """
 
 from __future__ import annotations
