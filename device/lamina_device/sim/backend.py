@@ -52,9 +52,16 @@ def sim_source(
 
 
 def open_sim(
-    object_spec: str | None = None, seed: int = 0, noise: str = "thesis", rig_name: str = "thesis"
+    object_spec: str | None = None,
+    seed: int = 0,
+    noise: str = "thesis",
+    rig_name: str = "thesis",
+    rig: Rig | None = None,
 ) -> Hardware:
-    """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it."""
+    """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it.
+
+    ``rig``, when given, replaces the preset (tests scan small, low-resolution variants).
+    """
     spec = object_spec or DEFAULT_OBJECT
     try:
         obj = parse_object(spec)
@@ -63,7 +70,7 @@ def open_sim(
     try:
         noise_model = NoiseModel.preset(noise)
         mechanics = Mechanics.preset(noise)
-        rig = Rig.preset(rig_name)
+        rig = rig if rig is not None else Rig.preset(rig_name)
     except ValueError as exc:
         raise HardwareError(str(exc)) from None
     source = sim_source(spec, obj, rig, noise_model, mechanics, seed)

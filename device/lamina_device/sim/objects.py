@@ -20,11 +20,14 @@ __all__ = [
     "Cylinder",
     "Ellipsoid",
     "SceneObject",
+    "SectionCurve",
     "TriangleMesh",
     "cylinder",
     "ellipsoid",
     "load_mesh",
     "parse_object",
+    "section_curves",
+    "section_edges",
     "sphere",
 ]
 
@@ -329,6 +332,11 @@ def _cast_pinhole(
         lo, hi = tri_xy.min(axis=1), tri_xy.max(axis=1)
         inside = np.all((ray_xy >= lo.min(0)) & (ray_xy <= hi.max(0)), axis=1)
         live, ray_xy = live[inside], ray_xy[inside]
+        if live.size:
+            # A triangle whose box misses every ray's box holds no ray: drop it (a few
+            # rays, as the truth's visibility test casts, then skip most of the mesh).
+            near = np.all((hi >= ray_xy.min(0)) & (lo <= ray_xy.max(0)), axis=1)
+            fidx, tri_xy, lo, hi = fidx[near], tri_xy[near], lo[near], hi[near]
     if not (fidx.size and live.size):
         return np.flatnonzero(~front)
     buckets = _RayBuckets.build(ray_xy)
@@ -419,13 +427,35 @@ class TriangleMesh:
             _keep_nearest(best_t, best_f, ray, t, face)
 
     def section_outline(self, z_mm: float) -> list[np.ndarray]:
-        """Slice the mesh at ``z_mm`` and chain the segments into closed CCW polygons."""
+        """Slice the mesh at ``z_mm`` and chain the segments into closed CCW polygons.
+
+        An open mesh (a shell, a tube cut off at a rim) may also give open chains; they
+        are returned whole, unclosed; :meth:`section_curves` says which is which.
+        """
+        return [c.points for c in self.section_curves(z_mm)]
+
+    def section_curves(self, z_mm: float) -> list[SectionCurve]:
+        """Slice the mesh at ``z_mm``: closed CCW polygons and open chains, each flagged."""
+        key, pts = self._slice(z_mm)
+        return _chain_segments(key, pts) if len(key) else []
+
+    def section_edges(self, z_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Return the section's segments at ``z_mm`` as start and end points (S, 2) each.
+
+        The same edges as :meth:`section_curves`, unchained: all the laser's shadow test
+        needs, without the chaining's cost on a finely meshed object.
+        """
+        _, pts = self._slice(z_mm)
+        return pts[:, 0], pts[:, 1]
+
+    def _slice(self, z_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Return the edge keys (S, 2) and end points (S, 2, 2) of the cut at ``z_mm``."""
         above = self.vertices[:, 2] >= z_mm  # on-plane vertices count as above: no degeneracy
         f = self.faces
         n_above = above[f].sum(axis=1)
         cut = f[(n_above == 1) | (n_above == 2)]
         if cut.size == 0:
-            return []
+            return np.empty((0, 2), np.int64), np.empty((0, 2, 2))
         edges = np.stack([cut[:, [0, 1]], cut[:, [1, 2]], cut[:, [2, 0]]], axis=1)
         crosses = above[edges[..., 0]] != above[edges[..., 1]]
         seg_edges = edges[crosses].reshape(-1, 2, 2)  # two crossing edges per cut face
@@ -434,11 +464,60 @@ class TriangleMesh:
         za, zb = self.vertices[a, 2], self.vertices[b, 2]
         w = ((z_mm - za) / (zb - za))[..., None]
         pts = self.vertices[a, :2] + w * (self.vertices[b, :2] - self.vertices[a, :2])
-        return _chain_segments(key, pts)
+        return key, pts
 
 
-def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
-    """Join segments (S, 2) that share edge keys into closed CCW polygons."""
+@dataclass(frozen=True, eq=False)
+class SectionCurve:
+    """One curve of a true section: a closed CCW polygon or an open chain (K, 2), mm."""
+
+    points: np.ndarray
+    closed: bool = True
+
+
+def section_curves(obj: SceneObject, z_mm: float) -> list[SectionCurve]:
+    """Return ``obj``'s true section at ``z_mm`` with each curve flagged closed or open.
+
+    Args:
+        obj: any scene object; one without open curves (the solids) gives closed ones.
+        z_mm: the height of the section in the object frame.
+
+    Returns:
+        The section's curves; an open mesh's open chains have ``closed`` False.
+    """
+    curves = getattr(obj, "section_curves", None)
+    if curves is not None:
+        return list(curves(z_mm))
+    return [SectionCurve(p) for p in obj.section_outline(z_mm)]
+
+
+def section_edges(obj: SceneObject, z_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the edges of ``obj``'s true section at ``z_mm``: start and end points (S, 2).
+
+    Args:
+        obj: any scene object; a closed curve gives every edge, its closing one too, an
+            open chain all but that one.
+        z_mm: the height of the section in the object frame.
+
+    Returns:
+        The edges' start and end points.
+    """
+    edges = getattr(obj, "section_edges", None)
+    if edges is not None:
+        a, b = edges(z_mm)
+        return np.asarray(a), np.asarray(b)
+    curves = section_curves(obj, z_mm)
+    if not curves:
+        return np.empty((0, 2)), np.empty((0, 2))
+    a = np.concatenate([c.points if c.closed else c.points[:-1] for c in curves])
+    b = np.concatenate(
+        [np.roll(c.points, -1, axis=0) if c.closed else c.points[1:] for c in curves]
+    )
+    return a, b
+
+
+def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[SectionCurve]:
+    """Join segments (S, 2) that share edge keys into closed CCW polygons and open chains."""
     point_of = {int(k): p for k, p in zip(key.ravel(), pts.reshape(-1, 2), strict=True)}
     touching: dict[int, list[int]] = {}
     for s, (k0, k1) in enumerate(key.tolist()):
@@ -452,21 +531,41 @@ def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
         used[start] = True
         ring = [int(key[start, 0])]
         cur = int(key[start, 1])
-        while cur != ring[0]:
-            ring.append(cur)
-            nxt = [s for s in touching[cur] if not used[s]]
-            if not nxt:
-                break  # open chain from a non-manifold mesh: keep what we have
-            used[nxt[0]] = True
-            k0, k1 = key[nxt[0]]
-            cur = int(k1 if k0 == cur else k0)
+        closed = _walk(ring, cur, key, touching, used)
+        if not closed:
+            # An open mesh's chain (a rim, a shell's edge): walk back from the start too,
+            # so the whole curve is one chain and not two falsely closed pieces.
+            back = [int(key[start, 1])]
+            _walk(back, int(key[start, 0]), key, touching, used)
+            ring = back[::-1] + ring[2:]  # back ends [.., k0, k1], ring starts [k0, k1]
         poly = np.array([point_of[k] for k in ring])
-        if len(poly) >= 3:
+        if not closed and len(poly) >= 2:
+            polygons.append(SectionCurve(poly, closed=False))
+        elif len(poly) >= 3:
             area = 0.5 * np.sum(
                 poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]
             )
-            polygons.append(poly if area > 0 else poly[::-1])
+            polygons.append(SectionCurve(poly if area > 0 else poly[::-1]))
     return polygons
+
+
+def _walk(
+    chain: list[int],
+    cur: int,
+    key: np.ndarray,
+    touching: dict[int, list[int]],
+    used: np.ndarray,
+) -> bool:
+    """Extend ``chain`` from key ``cur`` through unused segments; return True if it closed."""
+    while cur != chain[0]:
+        chain.append(cur)
+        nxt = [s for s in touching[cur] if not used[s]]
+        if not nxt:
+            return False  # the end of an open chain
+        used[nxt[0]] = True
+        k0, k1 = key[nxt[0]]
+        cur = int(k1 if k0 == cur else k0)
+    return True
 
 
 # ----------------------------------------------------------------------------- loading
@@ -583,6 +682,7 @@ _FORMS = {
     "ellipsoid": ("ellipsoid:a=10,b=6.5,c=20", {"a", "b", "c"}, set()),
     "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
     "patches": ("patches:d=30,h=40", set(), {"d", "h"}),
+    "random": ("random:seed=17,scale=thesis", {"seed"}, {"scale"}),
     **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
@@ -669,8 +769,10 @@ def parse_object(spec: str) -> SceneObject:
 
     Kinds: cylinder, sphere, ellipsoid, mesh, the phantoms of
     :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``)
-    and ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
-    on the axis, so no placement keys).
+    ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
+    on the axis, so no placement keys) and ``random`` (``random:seed=17,scale=limb``: the
+    seed's random anatomy-like object, :mod:`lamina_device.sim.random_shapes`; it places
+    itself, so no placement keys).
     """
     kind, colon, body = spec.strip().partition(":")
     kind = kind.strip().lower()
@@ -678,6 +780,10 @@ def parse_object(spec: str) -> SceneObject:
         kinds = ", ".join(f[0] for f in _FORMS.values())
         raise ValueError(f"unknown object kind {kind!r} in {spec!r}; accepted forms: {kinds}")
     form = _FORMS[kind][0]
+    if kind == "random":
+        from lamina_device.sim.random_shapes import parse_random_spec  # builds on this module
+
+        return parse_random_spec(body if colon else "", form)
     fields = _parse_fields(kind, body if colon else "", form)
     num = {k: _number(kind, k, v, form) for k, v in fields.items() if k != "path"}
     x, y, yaw = num.get("x", 0.0), num.get("y", 0.0), num.get("yaw", 0.0)

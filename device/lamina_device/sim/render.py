@@ -20,13 +20,13 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from lamina_device.sim.objects import SceneObject, cylinder
+from lamina_device.sim.objects import SceneObject, cylinder, section_edges
 from lamina_device.sim.rig import Rig
 from lamina_device.sim.texture import Textured
 from lamina_shared.presets import NOISE_PRESETS, make_preset
@@ -38,6 +38,7 @@ __all__ = [
     "SimScene",
     "ambient_field",
     "laser_reaches",
+    "laser_reaches_edges",
     "luma",
     "speckle_field",
 ]
@@ -233,19 +234,43 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def laser_reaches(
-    source_xy: np.ndarray, points_xy: np.ndarray, polygons: list[np.ndarray], tol_mm: np.ndarray
+    source_xy: np.ndarray,
+    points_xy: np.ndarray,
+    polygons: list[np.ndarray],
+    tol_mm: np.ndarray,
+    closed: Sequence[bool] | None = None,
 ) -> np.ndarray:
     """Return (N,) True where the segment source->point crosses no polygon edge.
 
     The last ``tol_mm`` (scalar or (N,)) of each segment is ignored, so a point on the
-    outline does not shadow itself.
+    outline does not shadow itself. ``closed`` flags each polygon closed (the default)
+    or an open chain (an open mesh's section), which has no edge from its last point
+    back to its first.
+    """
+    if not polygons:
+        return np.ones(len(np.asarray(points_xy).reshape(-1, 2)), dtype=bool)
+    if closed is None or all(closed):
+        a = np.concatenate(polygons)
+        b = np.concatenate([np.roll(p, -1, axis=0) for p in polygons])
+    else:
+        a = np.concatenate([p if c else p[:-1] for p, c in zip(polygons, closed, strict=True)])
+        b = np.concatenate(
+            [np.roll(p, -1, axis=0) if c else p[1:] for p, c in zip(polygons, closed, strict=True)]
+        )
+    return laser_reaches_edges(source_xy, points_xy, a, b, tol_mm)
+
+
+def laser_reaches_edges(
+    source_xy: np.ndarray, points_xy: np.ndarray, a: np.ndarray, b: np.ndarray, tol_mm: np.ndarray
+) -> np.ndarray:
+    """Return (N,) True where the segment source->point crosses no edge ``a[k]``-``b[k]``.
+
+    As :func:`laser_reaches`, with the section given as its edges' end points (S, 2).
     """
     pts = np.asarray(points_xy, dtype=float).reshape(-1, 2)
-    if not polygons or len(pts) == 0:
+    if len(a) == 0 or len(pts) == 0:
         return np.ones(len(pts), dtype=bool)
     src = np.asarray(source_xy, dtype=float)
-    a = np.concatenate(polygons)
-    b = np.concatenate([np.roll(p, -1, axis=0) for p in polygons])
     ref = np.arctan2(*(a.mean(axis=0) - src)[::-1])
 
     def bearing(p: np.ndarray) -> np.ndarray:
@@ -526,8 +551,8 @@ class SimScene:
         lit = np.ones(len(q), dtype=bool)
         for k in np.unique(slab):
             sel = slab == k
-            outline = obj.section_outline(z_mm + k * slab_mm)
-            lit[sel] = laser_reaches(src, q_obj[sel], outline, tol[sel])
+            a, b = section_edges(obj, z_mm + k * slab_mm)
+            lit[sel] = laser_reaches_edges(src, q_obj[sel], a, b, tol[sel])
         return lit
 
     def _grid_expected(self) -> np.ndarray:

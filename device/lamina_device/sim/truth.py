@@ -42,7 +42,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lamina_device.sim.axes import Mechanics
-from lamina_device.sim.objects import Cylinder, Ellipsoid, SceneObject, TriangleMesh
+from lamina_device.sim.objects import (
+    Cylinder,
+    Ellipsoid,
+    SceneObject,
+    TriangleMesh,
+    section_curves,
+)
 from lamina_device.sim.render import SimScene, laser_reaches
 
 __all__ = [
@@ -307,12 +313,17 @@ def align_about_axis(
 # ----------------------------------------------------------------------------- coverage
 
 
-def _resample(polygon: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return points at most ``spacing_mm`` apart along a closed polygon, with their normals.
+def _resample(
+    polygon: np.ndarray, spacing_mm: float, closed: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return points at most ``spacing_mm`` apart along a polygon, with their normals.
 
-    Normals point outward for counter-clockwise polygons.
+    Normals point outward for counter-clockwise polygons. An open chain (``closed``
+    False) is sampled from its first point to its last, without a closing edge.
     """
     a, b = polygon, np.roll(polygon, -1, axis=0)
+    if not closed:
+        a, b = polygon[:-1], polygon[1:]
     length = np.linalg.norm(b - a, axis=1)
     n = np.maximum(1, np.ceil(length / spacing_mm).astype(int))
     owner = np.repeat(np.arange(len(a)), n)
@@ -342,15 +353,16 @@ def lit_and_seen_points(
     found = []
     for z_cmd, angle_cmd in views:
         z, angle = mechanics.true_z_mm(z_cmd), mechanics.true_angle_deg(angle_cmd)
-        polygons = obj.section_outline(z)
-        if not polygons:
+        curves = section_curves(obj, z)
+        if not curves:
             continue
-        q = np.concatenate([_resample(poly, spacing_mm)[0] for poly in polygons])
+        polygons, closed = [c.points for c in curves], [c.closed for c in curves]
+        q = np.concatenate([_resample(c.points, spacing_mm, c.closed)[0] for c in curves])
         th = math.radians(angle)
         to_obj = np.array([[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]])
         axis = np.asarray(rig.axis_xy_mm)
         src = to_obj @ (np.asarray(rig.laser_source_xy_mm) - axis)
-        lit = laser_reaches(src, q, polygons, np.full(len(q), 1e-3))
+        lit = laser_reaches(src, q, polygons, np.full(len(q), 1e-3), closed)
         world = rig.object_to_world(q, angle, z)
         uv = rig.project(world)
         inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)

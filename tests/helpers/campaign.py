@@ -1,0 +1,287 @@
+"""One random shape scanned through the product path and judged against the truth.
+
+The random-shape campaign (issue 18) of ``tests/test_random_shapes.py`` and
+``tests/benchmarks/bench_campaign.py``: the simulated device (``open_sim``: renderer,
+mechanics, stripe extraction via :func:`lamina_device.acquisition.acquire`) acquires the
+calibration board, the cylinder and the object; the host reconstructs
+(:func:`lamina_host.pipeline.reconstruct`), builds ``report.json`` and writes the output
+files. Only the link between them is left out (it has its own tests and bench), and the
+board and cylinder frames, which do not depend on the object, are acquired once per
+process and rig. Every exception is caught and named by the stage it came from, so a
+campaign counts crashes instead of stopping at the first.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+import traceback
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.hardware import Hardware
+from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
+from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
+from lamina_device.sim.objects import section_curves
+from lamina_device.sim.random_shapes import RandomShape, random_shape
+from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accuracy
+from lamina_host.measure import polygon_area
+from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.report import build_report, measured_cloud, write_outputs
+from lamina_shared.errors import LaminaError
+from lamina_shared.types import ScanPlan, Segment
+
+NOISE = "harsh"
+
+
+@dataclass(frozen=True)
+class CampaignPlan:
+    """How each seed is scanned: the rig, the plan and the noise preset."""
+
+    scale: str  # "thesis" or "limb": the shape's scale and the rig preset
+    sections: int
+    pitch_mm: float
+    views: int
+    noise: str = NOISE
+    resolution: float = 1.0  # < 1: the preset rig's camera binned down (fast tests)
+
+    def rig(self) -> Rig:
+        """Return the rig: the preset, its image and focal length scaled by ``resolution``."""
+        rig = Rig.preset(self.scale)
+        if self.resolution == 1.0:
+            return rig
+        w, h = rig.image_size
+        size = (round(w * self.resolution), round(h * self.resolution))
+        return replace(rig, image_size=size, focal_px=rig.focal_px * self.resolution)
+
+    def scan_plan(self) -> ScanPlan:
+        """Return the object's scan plan."""
+        return ScanPlan.regular(self.sections, self.pitch_mm, self.views)
+
+
+@dataclass(frozen=True)
+class OutlineCheck:
+    """One outline the host reported, against the true surface (aligned frame, mm)."""
+
+    section: int
+    part: int
+    status: str
+    measured_samples: int  # contour samples not flagged estimated
+    p95_measured_mm: float  # 95th percentile distance of those samples to the truth
+    p95_raw_mm: float  # of the outline's measured (raw) points
+
+
+@dataclass
+class SeedResult:
+    """What one seed's scan gave: figures, or the stage and exception it failed with."""
+
+    seed: int
+    scale: str
+    features: str = ""
+    closed_shape: bool = False
+    stage: str = ""  # where it failed; empty when it finished
+    error_type: str = ""  # exception class; "LaminaError" subclasses are honest refusals
+    error: str = ""  # the message (one line)
+    refusal: bool = False  # a LaminaError: the user got one line, not a traceback
+    trace: str = ""  # the last frames of a crash's traceback
+    mean_distance_mm: float = math.nan  # points.ply to the truth, aligned
+    coverage: float = math.nan  # lit-and-seen surface within 0.25 mm of points.ply
+    lit_points: int = 0
+    volume_error_percent: float = math.nan  # closed shapes with every section closed
+    statuses: dict[str, int] = field(default_factory=dict)
+    outlines: list[OutlineCheck] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    @property
+    def crashed(self) -> bool:
+        """Return True when the scan ended in an exception that is not an honest refusal."""
+        return bool(self.stage) and not self.refusal
+
+    @property
+    def failure_kind(self) -> str:
+        """Return ``ExceptionType@stage`` (empty when it finished)."""
+        return f"{self.error_type}@{self.stage}" if self.stage else ""
+
+
+@dataclass
+class _Calibration:
+    """The board image and cylinder segments of one rig (they do not depend on the object)."""
+
+    grid_image: np.ndarray
+    cylinder: list[Segment]
+
+
+_CALIBRATIONS: dict[tuple[str, float, str], _Calibration] = {}  # per process: frames are pure
+
+
+def _calibration(plan: CampaignPlan) -> _Calibration:
+    """Return the rig's board and cylinder data, acquiring them on first use."""
+    key = (plan.scale, plan.resolution, plan.noise)
+    if key not in _CALIBRATIONS:
+        hardware = _unwatched(open_sim(None, 0, plan.noise, plan.scale, plan.rig()))
+        cylinder: list[Segment] = []
+        try:
+            grid = grab_grid(hardware)
+            acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
+        finally:
+            hardware.close()
+        _CALIBRATIONS[key] = _Calibration(grid, cylinder)
+    return _CALIBRATIONS[key]
+
+
+def _unwatched(hardware: Hardware) -> Hardware:
+    """Stop the laser watchdog: a simulated frame may take longer to render on a loaded
+    machine than the 2 s the laser may stay on, which no real exposure does."""
+    if hardware.watchdog is not None:
+        hardware.watchdog.stop()
+        hardware.watchdog = None
+    return hardware
+
+
+def _fail(result: SeedResult, stage: str, exc: BaseException) -> SeedResult:
+    """Record a failure of ``stage`` on ``result``."""
+    result.stage = stage
+    result.error_type = type(exc).__name__
+    result.error = (str(exc).strip().splitlines() or [""])[0][:300]
+    result.refusal = isinstance(exc, LaminaError)
+    frames = traceback.extract_tb(exc.__traceback__)[-3:]
+    result.trace = " <- ".join(
+        f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(frames)
+    )
+    return result
+
+
+def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
+    """Scan random shape ``seed`` along ``plan`` and measure it; never raises.
+
+    Args:
+        seed: the shape's seed (``--object random:seed=N,scale=...`` replays it).
+        plan: the rig, plan and noise.
+
+    Returns:
+        The figures, or the stage and exception the scan failed with.
+    """
+    start = time.perf_counter()
+    result = SeedResult(seed, plan.scale)
+    stage = "generate"
+    try:
+        shape = random_shape(seed, plan.scale)
+        if shape.features is not None:
+            result.features = shape.features.summary()
+            result.closed_shape = shape.features.closed
+        stage = "calibration-acquire"
+        calibration = _calibration(plan)
+        stage = "acquire"
+        spec = f"random:seed={seed},scale={plan.scale}"
+        hardware = _unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig()))
+        segments: list[Segment] = []
+        try:
+            acquire(hardware, "object", plan.scan_plan(), segments.append)
+        finally:
+            hardware.close()
+        stage = "process"
+        assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
+        recon = reconstruct(
+            calibration.grid_image,
+            hardware.board,
+            calibration.cylinder,
+            hardware.cylinder_diameter_mm,
+            segments,
+            ProcessOptions(distortion=True),
+        )
+        stage = "report"
+        report = build_report(recon, {"kind": "sim"}, segments, None, {})
+        with tempfile.TemporaryDirectory() as tmp:
+            write_outputs(Path(tmp), recon, report)
+        stage = "measure"
+        _measure(result, shape, recon, plan)
+    except Exception as exc:
+        _fail(result, stage, exc)
+    result.wall_s = time.perf_counter() - start
+    return result
+
+
+def _measure(
+    result: SeedResult, shape: RandomShape, recon: Reconstruction, plan: CampaignPlan
+) -> None:
+    """Fill in the figures of a finished scan against the truth."""
+    result.warnings = list(recon.warnings)
+    for s in recon.sections:
+        result.statuses[s.status] = result.statuses.get(s.status, 0) + 1
+    rig = plan.rig()
+    scene = SimScene(rig, shape, NoiseModel.preset(plan.noise))
+    mechanics = Mechanics.preset(plan.noise)
+    views = [(v.z_mm, v.angle_deg) for v in plan.scan_plan().views]
+    lit = lit_and_seen_points(scene, views, mechanics)
+    result.lit_points = len(lit)
+    contour, _ = measured_cloud(recon)
+    raw = (
+        np.vstack([np.column_stack([s.raw, np.full(len(s.raw), s.z_mm)]) for s in recon.sections])
+        if recon.sections
+        else np.empty((0, 3))
+    )
+    if len(contour) and len(lit):
+        acc = scan_accuracy(shape, raw, contour, lit)
+        result.mean_distance_mm = acc.aligned.mean_distance_mm
+        result.coverage = acc.aligned.coverage_percent / 100.0
+        alignment = acc.alignment
+    elif len(lit):
+        result.coverage = 0.0
+        alignment = None
+    else:
+        alignment = None
+    surface = TrueSurface(shape)
+    for s in recon.sections:
+        keep = np.ones(len(s.contour), bool) if s.estimated is None else ~s.estimated
+        pts = np.column_stack([s.contour[keep], np.full(int(keep.sum()), s.z_mm)])
+        rpts = np.column_stack([s.raw, np.full(len(s.raw), s.z_mm)])
+        if alignment is not None:
+            pts, rpts = alignment.apply(pts), alignment.apply(rpts)
+        d = surface.distance_mm(pts)
+        dr = surface.distance_mm(rpts)
+        result.outlines.append(
+            OutlineCheck(
+                s.index,
+                s.part,
+                s.status,
+                len(pts),
+                float(np.percentile(d, 95)) if len(d) else 0.0,
+                float(np.percentile(dr, 95)) if len(dr) else 0.0,
+            )
+        )
+    result.volume_error_percent = _volume_error(shape, recon, mechanics)
+
+
+def _volume_error(shape: RandomShape, recon: Reconstruction, mechanics: Mechanics) -> float:
+    """Return the contour stack's volume error in %, NaN unless shape and scan are closed.
+
+    Both stacks integrate (trapezoid) over the sections' TRUE heights, the measured areas
+    against the true ones, so the lift's scale error is left out and what remains is the
+    host's own error in the sections' areas.
+    """
+    if shape.features is None or not shape.features.closed:
+        return math.nan
+    by_index: dict[int, list[float]] = {}
+    heights: dict[int, float] = {}
+    for s in recon.sections:
+        if not s.closed:
+            return math.nan
+        by_index.setdefault(s.index, []).append(polygon_area(s.contour))
+        heights[s.index] = s.z_mm
+    if len(by_index) < 2:
+        return math.nan
+    order = sorted(by_index)
+    z = np.array([mechanics.true_z_mm(heights[k]) for k in order])
+    measured = np.array([sum(by_index[k]) for k in order])
+    true = np.array(
+        [sum(polygon_area(c.points) for c in section_curves(shape, float(v))) for v in z]
+    )
+    truth = float(np.trapezoid(true, z))
+    if truth <= 0.0:
+        return math.nan
+    return 100.0 * (float(np.trapezoid(measured, z)) - truth) / truth
