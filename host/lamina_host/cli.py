@@ -54,7 +54,7 @@ from lamina_host.workflow import (
     printable,
 )
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import Progress
+from lamina_host.workflow.results import Progress, mesh_summary
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
@@ -520,8 +520,7 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
             f"   mean RMS radial error: {acc['mean_own_mm']:.4f} mm (own centroid), "
             f"{acc['mean_mean_mm']:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
         )
-    mesh = report["mesh"]
-    print(f"mesh: {mesh['faces']} faces, {mesh['vertices']} vertices")
+    print(f"mesh: {mesh_summary(report['mesh'])}")
     for warning in report["warnings"]:
         print(f"warning: {warning}")
     for path in paths.values():

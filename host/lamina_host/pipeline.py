@@ -31,7 +31,7 @@ from lamina_host.calibration import (
     calibrate_grid,
 )
 from lamina_host.clinical import CLINICAL_INTERPOLATION
-from lamina_host.coverage import Coverage, measure_coverage
+from lamina_host.coverage import MEASURED_TOLERANCE_MM, Coverage, measure_coverage
 from lamina_host.efd import (
     HARMONIC_RULES,
     INTERPOLATIONS,
@@ -47,9 +47,10 @@ from lamina_host.mesh import (
     MESH_METHODS,
     ball_pivoting,
     contour_normals,
+    mesh_kind,
+    open_tube_mesh,
     screened_poisson,
     topology,
-    tube_mesh,
 )
 from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_shared.types import BoardSpec, Segment
@@ -173,7 +174,8 @@ class ProcessOptions:
 STATUSES = ("measured", "bridged", "interpolated", "open")
 """How an outline was closed: seen all round; small unseen gaps closed by EFD; large gaps
 filled from the neighbouring sections' EFD (interpolated along z); or not closed (open:
-the gap is too wide and no neighbouring section could fill it; not meshed)."""
+the gap is too wide and no neighbouring section could fill it; only its seen stretches
+are meshed, as an open surface)."""
 
 INTERP_REACH_SECTIONS = 3
 """A large gap is filled only from outlines at most this many section pitches away."""
@@ -215,7 +217,7 @@ class Section:
 
     @property
     def closed(self) -> bool:
-        """Return whether the outline is closed (it is meshed only then)."""
+        """Return whether the outline is closed (meshed whole; else only where seen)."""
         return self.status != "open"
 
     @property
@@ -626,26 +628,142 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
     return chains
 
 
+MIN_SEEN_RUN = 3
+"""Seen stretches of an open outline shorter than this many contour samples are not meshed
+(a sample or two where the EFD's bridge crosses measured radii); then unseen stretches this
+short between seen ones are (a sample off by more than the measured tolerance)."""
+
+
+def _clean_runs(mask: np.ndarray, min_run: int = MIN_SEEN_RUN) -> np.ndarray:
+    """Return a circular mask with True runs shorter than ``min_run`` cleared, then False
+    runs shorter than ``min_run`` between True ones set."""
+    out = np.asarray(mask, dtype=bool).copy()
+    for value in (True, False):
+        if out.all() or not out.any():
+            return out
+        start = int(np.flatnonzero(out != np.roll(out, 1))[0])  # a run starts here
+        rolled = np.roll(out, -start)
+        edges = np.flatnonzero(np.diff(rolled.astype(np.int8))) + 1
+        for run in np.split(np.arange(len(out)), edges):
+            if rolled[run[0]] == value and len(run) < min_run:
+                rolled[run] = not value
+        out = np.roll(rolled, start)
+    return out
+
+
+def seen_samples(section: Section, ring: np.ndarray) -> np.ndarray:
+    """Return which points of ``ring`` (the section's contour, aligned) are on seen surface.
+
+    A closed outline (measured, or closed across its gaps and flagged estimated) is all
+    seen: it is meshed whole. An open one is seen where its measured points back it: in a
+    covered bin within the measured radii (``Coverage.unseen``) and within
+    ``MEASURED_TOLERANCE_MM`` of a measured point, which leaves out where the closed EFD
+    curve swings off an open outline's ends; in stretches of at least
+    :data:`MIN_SEEN_RUN` samples.
+    """
+    if section.closed or section.coverage is None:
+        return np.ones(len(ring), dtype=bool)
+    from scipy.spatial import cKDTree  # deferred: only open outlines need it
+
+    near = cKDTree(section.raw).query(ring, distance_upper_bound=MEASURED_TOLERANCE_MM)[0]
+    return _clean_runs(~section.coverage.unseen(ring) & np.isfinite(near))
+
+
+def _ring_seen(chain: list[Section], rings: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Return (R, M) seen flags of a chain's rings: each section's own at its ring, and at a
+    ring the interpolation inserted between two sections, seen where both are."""
+    at = np.flatnonzero(measured)
+    own = np.stack([seen_samples(s, rings[k]) for s, k in zip(chain, at, strict=True)])
+    slab = np.clip(np.searchsorted(at, np.arange(len(rings)), side="right") - 1, 0, len(at) - 1)
+    below, above = own[slab], own[np.minimum(slab + 1, len(at) - 1)]
+    return np.where(measured[:, None], own[np.cumsum(measured) - 1], below & above)
+
+
+def radial_ring(section: Section, points: int, oversample: int = 8) -> np.ndarray | None:
+    """Return the section's EFD contour sampled at ``points`` equal angles about its coverage
+    centre (from -180 degrees, counter-clockwise), or None if it is not star-shaped there.
+
+    An open outline's EFD closes it by a curve across the unseen gap, so its parameter
+    does not fall on the same stretch of surface as a closed neighbour's: rings joined
+    sample by sample would twist. Equal angles about the centre join them where the
+    surface is the same (for outlines every ray from the centre meets once).
+    """
+    centre = np.asarray(
+        section.coverage.centre_mm if section.coverage else (section.efd.a0, section.efd.c0)
+    )
+    dense = section.efd.evaluate(oversample * points)
+    d = dense - centre
+    angle = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    if angle[-1] < angle[0]:
+        dense, angle = dense[::-1], angle[::-1]
+    step = np.diff(np.append(angle, angle[0] + 2.0 * np.pi))
+    if np.any(step <= 0.0) or not np.isclose(step.sum(), 2.0 * np.pi):
+        return None
+    # One period either side, so the wrap interpolates like any other stretch.
+    a = np.concatenate([angle - 2.0 * np.pi, angle, angle + 2.0 * np.pi])
+    xy = np.concatenate([dense, dense, dense])
+    target = -np.pi + 2.0 * np.pi * np.arange(points) / points
+    target = target + 2.0 * np.pi * np.ceil((angle[0] - target) / (2.0 * np.pi))
+    return np.stack([np.interp(target, a, xy[:, 0]), np.interp(target, a, xy[:, 1])], axis=1)
+
+
+def chain_rings(
+    chain: list[Section], points: int, interpolation: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return a chain's mesh rings (R, M, 2), their heights and which were seen (R, M).
+
+    Closed chains follow the aligned EFD stack and its interpolation along z (rings
+    inserted where it curves). A chain holding an open outline is sampled at equal angles
+    about each outline's centre (:func:`radial_ring`) and joined straight between
+    sections: coefficients interpolated between a closed outline and one closed across
+    an invented gap describe neither.
+    """
+    z = np.array([s.z_mm for s in chain])
+    if any(not s.closed for s in chain):
+        radial = [radial_ring(s, points) for s in chain]
+        if all(r is not None for r in radial):
+            rings = np.stack(radial)  # type: ignore[arg-type]
+            seen = np.stack([seen_samples(s, r) for s, r in zip(chain, rings, strict=True)])
+            return rings, z, seen
+        interpolation = "linear"  # not star-shaped: joined by parameter, but straight
+    stack_ = EfdStack.from_sections(list(z), [s.efd for s in chain], interpolation)
+    heights, measured = stack_.ring_heights()
+    rings = stack_.sample(points, heights)
+    return rings, heights, _ring_seen(chain, rings, measured)
+
+
 def mesh_contours(
     sections: list[Section], points: int, interpolation: str
-) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh each chain of outlines as a closed tube of aligned EFD contours.
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Mesh each chain of outlines as a tube of aligned EFD contours; return its warnings.
 
     Between sections the tube follows ``interpolation``: where it curves along z (PCHIP
     over a rounded end) rings interpolated by it are inserted (``EfdStack.ring_heights``),
-    so the mesh encloses the volume the clinical measurements integrate.
+    so the mesh encloses the volume the clinical measurements integrate. A chain of closed
+    outlines gives a closed tube; where an outline is open the tube keeps only the seen
+    stretches (:func:`~lamina_host.mesh.open_tube_mesh`, :func:`chain_rings`), an open
+    surface. An outline in a chain of its own (seen in one section only) is a curve with
+    no surface: not meshed.
     """
-    verts, faces, offset = [], [], 0
+    verts, faces, offset, lone = [], [], 0, []
     for chain in chain_outlines(sections):
-        stack_ = EfdStack.from_sections(
-            [s.z_mm for s in chain], [s.efd for s in chain], interpolation
-        )
-        heights, _ = stack_.ring_heights()
-        v, f = tube_mesh(stack_.sample(points, heights), heights)
+        if len(chain) < 2:
+            lone.append(f"{chain[0].index}.{chain[0].part}")
+            continue
+        rings, heights, seen = chain_rings(chain, points, interpolation)
+        v, f = open_tube_mesh(rings, heights, seen)
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)
-    return np.vstack(verts), np.vstack(faces)
+    warnings = []
+    if lone:
+        warnings.append(
+            f"outline(s) {', '.join(lone)} continue no outline of a neighbouring section: "
+            "a curve without surface, not meshed; scan more sections there"
+        )
+    if not faces:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64), warnings
+    return np.vstack(verts), np.vstack(faces), warnings
 
 
 def section_pitch_mm(sections: list[Section]) -> float | None:
@@ -659,25 +777,52 @@ def section_pitch_mm(sections: list[Section]) -> float | None:
 def build_mesh(
     sections: list[Section], options: ProcessOptions
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Mesh the closed contours with ``options.mesh``; return vertices, faces and warnings.
+    """Mesh the contours with ``options.mesh``; return vertices, faces and warnings.
 
-    Open outlines (a wide unseen gap nothing could fill) are not meshed.
+    The contour mesh keeps what was measured: closed outlines give a closed surface, open
+    ones (a wide unseen gap nothing could fill) the stretches that were seen. Ball pivoting
+    and Poisson mesh the closed outlines only (Poisson would close an open surface).
     """
-    sections = [s for s in sections if s.closed]
-    if not sections:
-        return np.empty((0, 3)), np.empty((0, 3), int), ["no outline is closed: nothing to mesh"]
-    pitch = section_pitch_mm(sections)
     if options.mesh == "contours":
-        return (*mesh_contours(sections, options.outline_points, options.interpolation), [])
-    if pitch is None:
-        return (
-            np.empty((0, 3)),
-            np.empty((0, 3), int),
-            [f"a single section cannot be meshed by {options.mesh}; scan two or more"],
+        return mesh_contours(sections, options.outline_points, options.interpolation)
+    closed = [s for s in sections if s.closed]
+    warnings = []
+    if len(closed) < len(sections):
+        warnings.append(
+            f"{len(sections) - len(closed)} open outline(s) are left out of the "
+            f"{options.mesh} mesh; use --mesh contours to mesh what was seen of them"
         )
+    empty = np.empty((0, 3)), np.empty((0, 3), np.int64)
+    if not closed:
+        return *empty, [*warnings, "no outline is closed: nothing to mesh"]
+    pitch = section_pitch_mm(closed)
+    if pitch is None:
+        single = f"a single section cannot be meshed by {options.mesh}; scan two or more"
+        return *empty, [*warnings, single]
     if options.mesh == "poisson":
-        return (*mesh_poisson(sections, pitch), [])
-    return (*mesh_ball_pivoting(sections, pitch, options.ball_radius_mm), [])
+        return (*mesh_poisson(closed, pitch), warnings)
+    return (*mesh_ball_pivoting(closed, pitch, options.ball_radius_mm), warnings)
+
+
+def mesh_warning(method: str, topo: dict[str, Any]) -> str | None:
+    """Return the line saying what is wrong with a mesh that should be closed, or None.
+
+    A contour mesh of outlines not seen all round is an open surface by design (the
+    outlines are named by :func:`gap_warnings`); otherwise a boundary or a shared edge
+    is a fault of the method, and the contour mesh is the closed alternative.
+    """
+    kind = mesh_kind(topo)
+    if kind in ("closed", "none") or (method == "contours" and kind == "open surface"):
+        return None
+    if kind == "open surface":
+        problem = f"is not closed ({topo['boundary_edges']} boundary edges)"
+    else:
+        problem = (
+            f"is not two-manifold ({topo['non_manifold_edges']} non-manifold edges, "
+            f"{topo['non_manifold_vertices']} non-manifold vertices)"
+        )
+    advice = "" if method == "contours" else "; use --mesh contours for a closed mesh"
+    return f"the {method} mesh {problem}{advice}"
 
 
 def camera_disc_mm(
@@ -731,7 +876,8 @@ def gap_warnings(sections: list[Section]) -> list[str]:
     if left := names("open"):
         lines.append(
             f"outline(s) {left} had unseen gaps too wide to bridge and no closed neighbour: "
-            "left open and not meshed; add views or sections"
+            "left open, only their seen stretches meshed (an open surface); add views or "
+            "sections to close them"
         )
     return lines
 
@@ -813,11 +959,8 @@ def reconstruct(
         vertices, faces, mesh_warnings = build_mesh(sections, options)
         topo = topology(vertices, faces) if len(faces) else {}
     warnings += mesh_warnings
-    if topo and not (topo["watertight"] and topo["two_manifold"]):
-        warnings.append(
-            f"the {options.mesh} mesh is not watertight and manifold "
-            f"({topo['boundary_edges']} boundary edges); use --mesh contours for a closed mesh"
-        )
+    if line := mesh_warning(options.mesh, topo):
+        warnings.append(line)
     points, colours = coloured_cloud(sections)
     colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None
     return Reconstruction(

@@ -11,7 +11,7 @@ import numpy as np
 from lamina_host.expect import Expectation
 from lamina_host.files import replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
-from lamina_host.mesh import contour_normals, obj_bytes, save_ply
+from lamina_host.mesh import contour_normals, mesh_kind, obj_bytes, save_ply
 from lamina_host.pipeline import Reconstruction, coloured_cloud, stack
 from lamina_shared.types import Segment
 
@@ -106,6 +106,8 @@ def build_report(
         },
         "mesh": {
             "method": result.options.mesh,
+            "kind": mesh_kind(result.mesh_topology),
+            "boundary_edges": int(result.mesh_topology.get("boundary_edges", 0)),
             "vertices": len(result.vertices),
             "faces": len(result.faces),
             "topology": result.mesh_topology,

@@ -29,7 +29,8 @@ __all__ = [
 ]
 
 OUTLINE_VERTICES = 4096
-_PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm")  # sim.phantoms.PHANTOMS
+# sim.phantoms.PHANTOMS
+_PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm", "face")
 _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
 
 
@@ -438,34 +439,52 @@ class TriangleMesh:
 
 
 def _chain_segments(key: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
-    """Join segments (S, 2) that share edge keys into closed CCW polygons."""
+    """Join segments (S, 2) that share edge keys into closed CCW polygons.
+
+    An open chain (the section of an open surface, such as a shell's rim) is returned out
+    and back along itself, a polygon of no area whose edges are the chain's own, twice: so
+    the laser-shadow test and the truth see the surface and no chord closing it.
+    """
     point_of = {int(k): p for k, p in zip(key.ravel(), pts.reshape(-1, 2), strict=True)}
     touching: dict[int, list[int]] = {}
     for s, (k0, k1) in enumerate(key.tolist()):
         touching.setdefault(k0, []).append(s)
         touching.setdefault(k1, []).append(s)
     used = np.zeros(len(key), dtype=bool)
+
+    def walk(stop: int, cur: int) -> tuple[list[int], bool]:
+        """Return the keys from ``cur`` along unused segments, and whether they reached
+        ``stop`` (a closed ring) rather than a dead end."""
+        chain = []
+        while cur != stop:
+            chain.append(cur)
+            nxt = [s for s in touching[cur] if not used[s]]
+            if not nxt:
+                return chain, False
+            used[nxt[0]] = True
+            k0, k1 = key[nxt[0]]
+            cur = int(k1 if k0 == cur else k0)
+        return chain, True
+
     polygons = []
     for start in range(len(key)):
         if used[start]:
             continue
         used[start] = True
-        ring = [int(key[start, 0])]
-        cur = int(key[start, 1])
-        while cur != ring[0]:
-            ring.append(cur)
-            nxt = [s for s in touching[cur] if not used[s]]
-            if not nxt:
-                break  # open chain from a non-manifold mesh: keep what we have
-            used[nxt[0]] = True
-            k0, k1 = key[nxt[0]]
-            cur = int(k1 if k0 == cur else k0)
+        first = int(key[start, 0])
+        ahead, closed = walk(first, int(key[start, 1]))
+        ring = [first, *ahead]
+        if not closed:
+            # An open chain: walk back from its first key too, then go out and back.
+            behind, _ = walk(-1, first)
+            ring = [*behind[:0:-1], *ring]
+            ring = ring + ring[-2:0:-1]
         poly = np.array([point_of[k] for k in ring])
         if len(poly) >= 3:
             area = 0.5 * np.sum(
                 poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]
             )
-            polygons.append(poly if area > 0 else poly[::-1])
+            polygons.append(poly if area >= 0 else poly[::-1])
     return polygons
 
 

@@ -34,6 +34,22 @@ def report_device(device: Mapping[str, Any], identity: Mapping[str, Any] | None)
     return report
 
 
+def mesh_summary(mesh: Mapping[str, Any]) -> str:
+    """Return one line on a report's ``mesh`` entry: what kind of surface, faces, vertices.
+
+    A closed mesh is watertight and two-manifold; an open surface has a boundary where
+    nothing was seen (its edge count is given); a report from before mesh kinds were
+    recorded names none.
+    """
+    kind = mesh.get("kind")
+    size = f"{mesh.get('faces', 0)} faces, {mesh.get('vertices', 0)} vertices"
+    if kind == "closed":
+        return f"closed (watertight), {size}"
+    if kind == "open surface":
+        return f"open surface ({mesh.get('boundary_edges', 0)} boundary edges), {size}"
+    return f"{kind}, {size}" if kind else size
+
+
 @dataclass(frozen=True)
 class Progress:
     """How far a scan has come, for the progress bar and the time left."""
