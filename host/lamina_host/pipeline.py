@@ -26,6 +26,7 @@ from lamina_host.assembly import (
 from lamina_host.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
 from lamina_host.calibration import (
     CALIBRATION_METHODS,
+    DISTORTION_MODES,
     CalibrationError,
     GridCalibration,
     calibrate_grid,
@@ -73,7 +74,9 @@ class ProcessOptions:
         harmonics: a fixed EFD order instead of ``harmonic_rule``.
         ball_radius_mm: ball radius for ball pivoting (default: the section pitch).
         calibration: one of ``CALIBRATION_METHODS``.
-        distortion: estimate radial lens distortion with the ``"ml"`` calibration.
+        distortion: one of ``DISTORTION_MODES``: radial lens distortion estimated with the
+            ``"ml"`` calibration and kept where the board shows it (auto), always (on) or
+            never (off); the other calibrations have none.
         axis: one of ``AXIS_METHODS``.
         angle_correction: estimate the turntable angle scale from the cylinder (joint only).
         per_view_angles: with ``angle_correction``, also fit each view's own angle offset
@@ -103,7 +106,7 @@ class ProcessOptions:
     harmonics: int | None = None
     ball_radius_mm: float | None = None
     calibration: str = CALIBRATION_METHODS[0]
-    distortion: bool = False
+    distortion: str = DISTORTION_MODES[0]
     axis: str = AXIS_METHODS[0]
     angle_correction: bool = True
     harmonic_rule: str = HARMONIC_RULES[0]
@@ -122,6 +125,7 @@ class ProcessOptions:
         """Return the thesis' pipeline: DLT, centroid of arc centres, HN, ball pivoting."""
         return cls(
             calibration="dlt",
+            distortion="off",
             axis="centroid",
             angle_correction=False,
             harmonic_rule="thesis",
@@ -143,12 +147,15 @@ class ProcessOptions:
             "efd_parameter": PARAMETERS,
             "mesh": MESH_METHODS,
             "interpolation": INTERPOLATIONS,
+            "distortion": DISTORTION_MODES,
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} {getattr(self, name)!r} is not one of {allowed}")
         if self.angle_correction and self.axis != "joint":
             raise ValueError("the angle correction needs the joint axis fit")
+        if self.distortion == "on" and self.calibration != "ml":
+            raise ValueError("lens distortion is only estimated by the ml calibration")
         if not 0.0 <= self.trim_fraction < 0.5:
             raise ValueError(f"trim fraction {self.trim_fraction} must be in [0, 0.5)")
         if self.split_gap_mm is not None and not self.split_gap_mm > 0:
@@ -168,7 +175,10 @@ class ProcessOptions:
     def from_dict(cls, recorded: dict[str, Any]) -> ProcessOptions:
         """Return the options a report recorded; fields this version lacks are ignored."""
         known = cls.__dataclass_fields__
-        return cls(**{k: v for k, v in recorded.items() if k in known})
+        options = {k: v for k, v in recorded.items() if k in known}
+        if isinstance(options.get("distortion"), bool):  # recorded before the modes
+            options["distortion"] = "on" if options["distortion"] else "off"
+        return cls(**options)
 
 
 STATUSES = ("measured", "bridged", "interpolated", "open")
@@ -945,7 +955,8 @@ def reconstruct(
     options.check()
     timer = Timer()
     with timer.stage("calibrate_grid"):
-        grid = calibrate_grid(grid_image, board, options.calibration, options.distortion)
+        distortion = options.distortion if options.calibration == "ml" else "off"
+        grid = calibrate_grid(grid_image, board, options.calibration, distortion)
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
             cylinder, grid, cylinder_mm, options.trim_fraction, options.axis,
