@@ -17,8 +17,8 @@ import pytest
 
 from lamina_device.sim import Mechanics, Rig, parse_object
 from lamina_device.sim.truth import TrueSurface, align_about_axis
-from lamina_host.mesh import load_ply, mesh_kind, topology, tube_mesh
-from lamina_host.pipeline import mesh_warning
+from lamina_host.mesh import load_ply, mesh_kind, open_tube_mesh, topology, tube_mesh
+from lamina_host.pipeline import _clean_runs, mesh_warning
 from tests.helpers.shapes import circle
 from tests.host.test_robust import boundary_vertices, distance_to, run, synthetic_scan
 
@@ -167,3 +167,36 @@ def test_a_face_gives_an_open_surface_on_the_true_one(face_scan: tuple[Path, str
         f"max {distance.max():.4f} mm"
     )
     assert distance.mean() < 0.05 and distance.max() < 0.3
+
+
+def test_the_open_tube_keeps_the_quads_whose_corners_were_all_seen() -> None:
+    """Three rings of 40, a 10-vertex stretch unseen on the middle one: the tube loses the
+    11 quads touching it in each slab, a hole bounded by 11 edges on each end ring and 2 up
+    each side; its caps stay. An unseen vertex on an end ring takes that cap with it. All
+    seen is the closed tube itself."""
+    t = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
+    ring = np.column_stack([np.cos(t), np.sin(t)])
+    rings, z = np.stack([ring, ring, ring]), np.array([0.0, 1.0, 2.0])
+    seen = np.ones((3, 40), dtype=bool)
+    closed = open_tube_mesh(rings, z, seen)
+    assert all(np.array_equal(a, b) for a, b in zip(closed, tube_mesh(rings, z), strict=True))
+    seen[1, 5:15] = False
+    verts, faces = open_tube_mesh(rings, z, seen)
+    topo = topology(verts, faces)
+    assert len(faces) == len(closed[1]) - 2 * 2 * 11 and len(verts) == 120 - 10
+    assert topo["boundary_edges"] == 2 * 11 + 2 * 2 and topo["two_manifold"]
+    seen[0, 0] = False  # an unseen vertex on an end ring: that cap goes too
+    faces = open_tube_mesh(rings, z, seen)[1]
+    assert topology(*open_tube_mesh(rings, z, seen))["boundary_edges"] > topo["boundary_edges"]
+    assert len(faces) == len(closed[1]) - 2 * 2 * 11 - 2 * 2 - 38
+
+
+def test_short_seen_and_unseen_runs_are_cleaned_round_the_wrap() -> None:
+    """Seen stretches under MIN_SEEN_RUN samples go, then unseen ones that short are filled."""
+    mask = np.zeros(20, dtype=bool)
+    mask[[0, 1, 2, 3, 5, 6, 7, 10, 18, 19]] = True  # 18-3 wraps; 5-7 and 10 are short/lone
+    cleaned = _clean_runs(mask)
+    expected = np.zeros(20, dtype=bool)
+    expected[[18, 19, 0, 1, 2, 3, 4, 5, 6, 7]] = True  # 10 cleared; the gap at 4 filled
+    assert cleaned.tolist() == expected.tolist()
+    assert _clean_runs(np.ones(7, dtype=bool)).all() and not _clean_runs(np.zeros(7, bool)).any()
