@@ -744,36 +744,34 @@ def chain_rings(
 
 def mesh_contours(
     sections: list[Section], points: int, interpolation: str
-) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Mesh each chain of outlines as a tube of aligned EFD contours; return its warnings.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh each chain of outlines as a tube of aligned EFD contours.
 
     Between sections the tube follows ``interpolation``: where it curves along z (PCHIP
     over a rounded end) rings interpolated by it are inserted (``EfdStack.ring_heights``),
     so the mesh encloses the volume the clinical measurements integrate. A chain of closed
     outlines gives a closed tube; where an outline is open the tube keeps only the seen
     stretches (:func:`~lamina_host.mesh.open_tube_mesh`, :func:`chain_rings`), an open
-    surface. An outline in a chain of its own (seen in one section only) is a curve with
-    no surface: not meshed.
+    surface. An outline in a chain of its own (seen in one section only,
+    :func:`lone_outlines`) is a curve with no surface: not meshed.
     """
-    verts, faces, offset, lone = [], [], 0, []
+    verts, faces, offset = [], [], 0
     for chain in chain_outlines(sections):
         if len(chain) < 2:
-            lone.append(f"{chain[0].index}.{chain[0].part}")
             continue
         rings, heights, seen = chain_rings(chain, points, interpolation)
         v, f = open_tube_mesh(rings, heights, seen)
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)
-    warnings = []
-    if lone:
-        warnings.append(
-            f"outline(s) {', '.join(lone)} continue no outline of a neighbouring section: "
-            "a curve without surface, not meshed; scan more sections there"
-        )
     if not faces:
-        return np.empty((0, 3)), np.empty((0, 3), np.int64), warnings
-    return np.vstack(verts), np.vstack(faces), warnings
+        return np.empty((0, 3)), np.empty((0, 3), np.int64)
+    return np.vstack(verts), np.vstack(faces)
+
+
+def lone_outlines(sections: list[Section]) -> list[Section]:
+    """Return the outlines that continue none in a neighbouring section (chains of one)."""
+    return [chain[0] for chain in chain_outlines(sections) if len(chain) == 1]
 
 
 def section_pitch_mm(sections: list[Section]) -> float | None:
@@ -794,7 +792,12 @@ def build_mesh(
     and Poisson mesh the closed outlines only (Poisson would close an open surface).
     """
     if options.mesh == "contours":
-        return mesh_contours(sections, options.outline_points, options.interpolation)
+        lone = ", ".join(f"{s.index}.{s.part}" for s in lone_outlines(sections))
+        warnings = [] if not lone else [
+            f"outline(s) {lone} continue no outline of a neighbouring section: a curve "
+            "without surface, not meshed; scan more sections there"
+        ]  # fmt: skip
+        return (*mesh_contours(sections, options.outline_points, options.interpolation), warnings)
     closed = [s for s in sections if s.closed]
     warnings = []
     if len(closed) < len(sections):
