@@ -43,7 +43,7 @@ from lamina_host.efd import (
     efd_fit,
     nyquist_max,
 )
-from lamina_host.measure import centroid, perimeter
+from lamina_host.measure import centroid, perimeter, signed_area
 from lamina_host.mesh import (
     MESH_METHODS,
     ball_pivoting,
@@ -689,32 +689,76 @@ def _ring_seen(chain: list[Section], rings: np.ndarray, measured: np.ndarray) ->
     return np.where(measured[:, None], own[np.cumsum(measured) - 1], below & above)
 
 
-def radial_ring(section: Section, points: int, oversample: int = 8) -> np.ndarray | None:
-    """Return the section's EFD contour sampled at ``points`` equal angles about its coverage
-    centre (from -180 degrees, counter-clockwise), or None if it is not star-shaped there.
+def _runs(mask: np.ndarray) -> list[np.ndarray]:
+    """Return the index runs of True in a circular mask, each in order (one may wrap)."""
+    if mask.all():
+        return [np.arange(len(mask))]
+    if not mask.any():
+        return []
+    start = int(np.flatnonzero(~mask)[0])
+    order = np.roll(np.arange(len(mask)), -start)
+    edges = np.flatnonzero(np.diff(mask[order].astype(np.int8))) + 1
+    return [run for run in np.split(order, edges) if mask[run[0]]]
+
+
+def radial_ring(
+    section: Section, points: int, oversample: int = 8
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Return the section's contour at ``points`` equal angles about its coverage centre
+    (from -180 degrees, counter-clockwise) and which of them are seen; None where it is not
+    star-shaped about the centre.
 
     An open outline's EFD closes it by a curve across the unseen gap, so its parameter
     does not fall on the same stretch of surface as a closed neighbour's: rings joined
     sample by sample would twist. Equal angles about the centre join them where the
-    surface is the same (for outlines every ray from the centre meets once).
+    surface is the same. Only the seen stretches (:func:`seen_samples`) are sampled so:
+    the invented curve may pass the centre on the wrong side (a half-seen outline).
+    A closed outline must be star-shaped all round; None also when less than 75 % of a
+    seen stretch advances round the centre.
     """
     centre = np.asarray(
         section.coverage.centre_mm if section.coverage else (section.efd.a0, section.efd.c0)
     )
     dense = section.efd.evaluate(oversample * points)
+    seen = seen_samples(section, dense)
     d = dense - centre
     angle = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    if angle[-1] < angle[0]:
-        dense, angle = dense[::-1], angle[::-1]
-    step = np.diff(np.append(angle, angle[0] + 2.0 * np.pi))
-    if np.any(step <= 0.0) or not np.isclose(step.sum(), 2.0 * np.pi):
-        return None
-    # One period either side, so the wrap interpolates like any other stretch.
-    a = np.concatenate([angle - 2.0 * np.pi, angle, angle + 2.0 * np.pi])
-    xy = np.concatenate([dense, dense, dense])
+    if signed_area(dense) < 0.0:  # counter-clockwise, so what was seen advances round
+        dense, angle, seen = dense[::-1], angle[::-1], seen[::-1]
     target = -np.pi + 2.0 * np.pi * np.arange(points) / points
-    target = target + 2.0 * np.pi * np.ceil((angle[0] - target) / (2.0 * np.pi))
-    return np.stack([np.interp(target, a, xy[:, 0]), np.interp(target, a, xy[:, 1])], axis=1)
+    ring = np.repeat(centre[None], points, axis=0)  # unseen samples: dropped by the mesh
+    hit = np.zeros(points, dtype=bool)
+    # Shortest first: where stretches overlap in angle the longest is the one meshed.
+    for run in sorted(_runs(seen), key=len):
+        run_angle = np.unwrap(angle[run])
+        if np.ptp(run_angle) < MIN_SEEN_RUN * 2.0 * np.pi / points:
+            continue  # narrower than the shortest stretch meshed (a hook at an end)
+        xy = dense[run]
+        if len(run) == len(seen):  # closed: round the wrap, and it must be star-shaped
+            run_angle = np.append(run_angle, run_angle[0] + 2.0 * np.pi)
+            xy = np.vstack([xy, xy[:1]])
+            if np.any(np.diff(run_angle) <= 0.0):
+                return None
+        # A seen stretch may hook back at an open outline's end, where the EFD turns into
+        # the curve it invents across the gap: only the part that advances is sampled.
+        ahead = np.concatenate([[True], np.diff(run_angle) > 0.0]) & (
+            run_angle >= np.maximum.accumulate(run_angle)
+        )
+        if ahead.mean() < 0.75:
+            return None  # not star-shaped about the centre
+        run_angle, xy = run_angle[ahead], xy[ahead]
+        t = run_angle[0] + (target - run_angle[0]) % (2.0 * np.pi)
+        inside = t <= run_angle[-1]
+        ring[inside, 0] = np.interp(t[inside], run_angle, xy[:, 0])
+        ring[inside, 1] = np.interp(t[inside], run_angle, xy[:, 1])
+        hit |= inside
+    seen_ring = _clean_runs(hit)
+    filled = seen_ring & ~hit  # a sample or two between seen ones: from its neighbours
+    if filled.any():
+        k = np.arange(points)
+        for axis in (0, 1):
+            ring[filled, axis] = np.interp(k[filled], k[hit], ring[hit, axis], period=points)
+    return ring, seen_ring
 
 
 def chain_rings(
@@ -732,9 +776,8 @@ def chain_rings(
     if any(not s.closed for s in chain):
         radial = [radial_ring(s, points) for s in chain]
         if all(r is not None for r in radial):
-            rings = np.stack(radial)  # type: ignore[arg-type]
-            seen = np.stack([seen_samples(s, r) for s, r in zip(chain, rings, strict=True)])
-            return rings, z, seen
+            rings = np.stack([r[0] for r in radial if r is not None])
+            return rings, z, np.stack([r[1] for r in radial if r is not None])
         interpolation = "linear"  # not star-shaped: joined by parameter, but straight
     stack_ = EfdStack.from_sections(list(z), [s.efd for s in chain], interpolation)
     heights, measured = stack_.ring_heights()
