@@ -32,7 +32,7 @@ from lamina_host.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.calibration import CALIBRATION_METHODS
+from lamina_host.calibration import CALIBRATION_METHODS, DISTORTION_MODES
 from lamina_host.dicom import DICOM_SOPS, check_institution
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.expect import Expectation, parse_expectation
@@ -56,7 +56,7 @@ from lamina_host.workflow import (
     printable,
 )
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import Progress
+from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
 from lamina_shared.errors import LaminaError
 from lamina_shared.link import LinkClosed
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
@@ -381,7 +381,12 @@ def _add_method_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--calibration", choices=CALIBRATION_METHODS, help="homography estimator")
     parser.add_argument(
-        "--distortion", action="store_true", help="estimate radial lens distortion (ml only)"
+        "--distortion",
+        nargs="?",
+        const="on",
+        choices=DISTORTION_MODES,
+        help="radial lens distortion (ml only): auto estimates it from the board and keeps it "
+        "where the board's rows show it (default), on always, off never; --distortion alone: on",
     )
     parser.add_argument("--axis", choices=AXIS_METHODS, help="turntable axis method")
     parser.add_argument(
@@ -405,8 +410,8 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
     for name in ("calibration", "axis", "harmonic_rule", "mesh"):
         if getattr(args, name) is not None:
             changes[name] = getattr(args, name)
-    if args.distortion:
-        changes["distortion"] = True
+    if args.distortion is not None:
+        changes["distortion"] = args.distortion
     if args.angle_correction is not None:
         changes["angle_correction"] = args.angle_correction
     elif changes.get("axis") == "centroid":
@@ -416,8 +421,8 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
             raise UsageError("--split-gap must be 0 (never split) or a positive number of mm")
         changes["split_gap_mm"] = args.split_gap or None
     options = replace(base, **changes)
-    if options.distortion and options.calibration != "ml":
-        raise UsageError("--distortion needs --calibration ml")
+    if options.distortion == "on" and options.calibration != "ml":
+        raise UsageError("--distortion on needs --calibration ml")
     if options.angle_correction and options.axis != "joint":
         raise UsageError("--angle-correction needs --axis joint")
     if options.mesh != "contours":
@@ -569,6 +574,8 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
         f"calibration: {cal['n_corners']} corners, residual RMS {cal['rms_mm']:.4f} mm "
         f"(max {cal['max_mm']:.4f} mm)"
     )
+    if line := distortion_summary(cal.get("distortion")):
+        print(f"lens: {line}")
     print(
         f"axis: ({axis['axis_xy_mm'][0]:.3f}, {axis['axis_xy_mm'][1]:.3f}) mm, correction "
         f"factor {report['correction_factor']:.5f}"
@@ -594,8 +601,7 @@ def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
             f"   mean RMS radial error: {acc['mean_own_mm']:.4f} mm (own centroid), "
             f"{acc['mean_mean_mm']:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
         )
-    mesh = report["mesh"]
-    print(f"mesh: {mesh['faces']} faces, {mesh['vertices']} vertices")
+    print(f"mesh: {mesh_summary(report['mesh'])}")
     for warning in report["warnings"]:
         print(f"warning: {warning}")
     for path in paths.values():

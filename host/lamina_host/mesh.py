@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -213,6 +214,61 @@ def tube_mesh(rings: np.ndarray, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarr
     top = triangulate_polygon(r[-1]) + (n_rings - 1) * m
     faces = np.concatenate([side.reshape(-1, 3), bottom, top]).astype(np.int64)
     return verts, faces
+
+
+def open_tube_mesh(
+    rings: np.ndarray, z_mm: np.ndarray, seen: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Join aligned contours like :func:`tube_mesh`, keeping only the surface that was seen.
+
+    A quad between rings ``s`` and ``s + 1`` is kept when all four of its vertices were
+    seen; an end is capped only when its whole contour was. What is left is an open
+    surface whose boundary runs where nothing was seen (a face seen from the front, a
+    limb whose back the views missed). Vertices no kept face uses are dropped.
+
+    Args:
+        rings: (S, M, 2) contours, S >= 1, M >= 3, counter-clockwise, aligned.
+        z_mm: (S,) ascending heights.
+        seen: (S, M) True where a ring's vertex lies on measured surface.
+
+    Returns:
+        (vertices (V, 3), faces (F, 3)); all seen gives :func:`tube_mesh`'s mesh.
+    """
+    r = np.asarray(rings, dtype=float)
+    mask = np.asarray(seen, dtype=bool)
+    if mask.shape != r.shape[:2]:
+        raise ValueError(f"seen must be {r.shape[:2]}, one flag per ring vertex, got {mask.shape}")
+    verts, faces = tube_mesh(r, z_mm)
+    if mask.all():
+        return verts, faces
+    n_rings, m = r.shape[:2]
+    n_side = 2 * m * (n_rings - 1)
+    keep = np.zeros(len(faces), dtype=bool)
+    quad = mask[:-1] & mask[1:] & np.roll(mask[:-1], -1, axis=1) & np.roll(mask[1:], -1, axis=1)
+    keep[:n_side] = np.concatenate([quad, quad], axis=1).reshape(-1)  # (a, b, c) then (a, c, d)
+    cap = (len(faces) - n_side) // 2
+    keep[n_side : n_side + cap] = mask[0].all()
+    keep[n_side + cap :] = mask[-1].all()
+    kept = faces[keep]
+    used = np.zeros(len(verts), dtype=bool)
+    used[kept.reshape(-1)] = True
+    index = np.cumsum(used) - 1
+    return verts[used], index[kept].astype(np.int64)
+
+
+MESH_KINDS = ("closed", "open surface", "non-manifold", "none")
+"""What a scan's mesh is: a watertight two-manifold solid; a surface with a boundary (what
+was seen of an object not seen all round); closed but with edges or vertices shared by more
+than one sheet (from ball pivoting or Poisson); or no mesh at all."""
+
+
+def mesh_kind(topo: dict[str, Any]) -> str:
+    """Return which of ``MESH_KINDS`` a mesh with :func:`topology` ``topo`` is."""
+    if not topo or not topo.get("faces"):
+        return "none"
+    if topo["boundary_edges"]:
+        return "open surface"
+    return "closed" if topo["two_manifold"] else "non-manifold"
 
 
 def screened_poisson(

@@ -26,12 +26,13 @@ from lamina_host.assembly import (
 from lamina_host.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
 from lamina_host.calibration import (
     CALIBRATION_METHODS,
+    DISTORTION_MODES,
     CalibrationError,
     GridCalibration,
     calibrate_grid,
 )
 from lamina_host.clinical import CLINICAL_INTERPOLATION
-from lamina_host.coverage import Coverage, measure_coverage
+from lamina_host.coverage import MEASURED_TOLERANCE_MM, Coverage, measure_coverage
 from lamina_host.efd import (
     HARMONIC_RULES,
     INTERPOLATIONS,
@@ -42,15 +43,16 @@ from lamina_host.efd import (
     efd_fit,
     nyquist_max,
 )
-from lamina_host.measure import centroid, perimeter
+from lamina_host.measure import centroid, perimeter, signed_area
 from lamina_host.mesh import (
     MESH_METHODS,
     MeshlabMissing,
     ball_pivoting,
     contour_normals,
+    mesh_kind,
+    open_tube_mesh,
     screened_poisson,
     topology,
-    tube_mesh,
 )
 from lamina_host.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_host.status import CLOSED, OutlineStatus
@@ -75,7 +77,9 @@ class ProcessOptions:
         harmonics: a fixed EFD order instead of ``harmonic_rule``.
         ball_radius_mm: ball radius for ball pivoting (default: the section pitch).
         calibration: one of ``CALIBRATION_METHODS``.
-        distortion: estimate radial lens distortion with the ``"ml"`` calibration.
+        distortion: one of ``DISTORTION_MODES``: radial lens distortion estimated with the
+            ``"ml"`` calibration and kept where the board shows it (auto), always (on) or
+            never (off); the other calibrations have none.
         axis: one of ``AXIS_METHODS``.
         angle_correction: estimate the turntable angle scale from the cylinder (joint only).
         per_view_angles: with ``angle_correction``, also fit each view's own angle offset
@@ -105,7 +109,7 @@ class ProcessOptions:
     harmonics: int | None = None
     ball_radius_mm: float | None = None
     calibration: str = CALIBRATION_METHODS[0]
-    distortion: bool = False
+    distortion: str = DISTORTION_MODES[0]
     axis: str = AXIS_METHODS[0]
     angle_correction: bool = True
     harmonic_rule: str = HARMONIC_RULES[0]
@@ -124,6 +128,7 @@ class ProcessOptions:
         """Return the thesis' pipeline: DLT, centroid of arc centres, HN, ball pivoting."""
         return cls(
             calibration="dlt",
+            distortion="off",
             axis="centroid",
             angle_correction=False,
             harmonic_rule="thesis",
@@ -145,12 +150,15 @@ class ProcessOptions:
             "efd_parameter": PARAMETERS,
             "mesh": MESH_METHODS,
             "interpolation": INTERPOLATIONS,
+            "distortion": DISTORTION_MODES,
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} {getattr(self, name)!r} is not one of {allowed}")
         if self.angle_correction and self.axis != "joint":
             raise ValueError("the angle correction needs the joint axis fit")
+        if self.distortion == "on" and self.calibration != "ml":
+            raise ValueError("lens distortion is only estimated by the ml calibration")
         if not 0.0 <= self.trim_fraction < 0.5:
             raise ValueError(f"trim fraction {self.trim_fraction} must be in [0, 0.5)")
         if self.split_gap_mm is not None and not self.split_gap_mm > 0:
@@ -170,14 +178,18 @@ class ProcessOptions:
     def from_dict(cls, recorded: dict[str, Any]) -> ProcessOptions:
         """Return the options a report recorded; fields this version lacks are ignored."""
         known = cls.__dataclass_fields__
-        return cls(**{k: v for k, v in recorded.items() if k in known})
+        options = {k: v for k, v in recorded.items() if k in known}
+        if isinstance(options.get("distortion"), bool):  # recorded before the modes
+            options["distortion"] = "on" if options["distortion"] else "off"
+        return cls(**options)
 
 
 STATUSES = tuple(OutlineStatus)
 """How an outline was closed (:class:`~lamina_host.status.OutlineStatus`): seen all round;
 small unseen gaps closed by EFD; large gaps filled from the neighbouring sections' EFD
 (interpolated along z); not closed (open: the gap is too wide and no neighbouring section
-could fill it; not meshed); or not processed at all (failed, with its reason)."""
+could fill it; only its seen stretches are meshed, as an open surface); or not processed
+at all (failed, with its reason)."""
 
 INTERP_REACH_SECTIONS = 3
 """A large gap is filled only from outlines at most this many section pitches away."""
@@ -219,7 +231,7 @@ class Section:
 
     @property
     def closed(self) -> bool:
-        """Return whether the outline is closed (it is meshed only then)."""
+        """Return whether the outline is closed (meshed whole; else only where seen)."""
         return self.status in CLOSED
 
     @property
@@ -749,26 +761,183 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
     return chains
 
 
+MIN_SEEN_RUN = 3
+"""Seen stretches of an open outline shorter than this many contour samples are not meshed
+(a sample or two where the EFD's bridge crosses measured radii); then unseen stretches this
+short between seen ones are (a sample off by more than the measured tolerance)."""
+
+
+def _clean_runs(mask: np.ndarray, min_run: int = MIN_SEEN_RUN) -> np.ndarray:
+    """Return a circular mask with True runs shorter than ``min_run`` cleared, then False
+    runs shorter than ``min_run`` between True ones set."""
+    out = np.asarray(mask, dtype=bool).copy()
+    for value in (True, False):
+        if out.all() or not out.any():
+            return out
+        start = int(np.flatnonzero(out != np.roll(out, 1))[0])  # a run starts here
+        rolled = np.roll(out, -start)
+        edges = np.flatnonzero(np.diff(rolled.astype(np.int8))) + 1
+        for run in np.split(np.arange(len(out)), edges):
+            if rolled[run[0]] == value and len(run) < min_run:
+                rolled[run] = not value
+        out = np.roll(rolled, start)
+    return out
+
+
+def seen_samples(section: Section, ring: np.ndarray) -> np.ndarray:
+    """Return which points of ``ring`` (the section's contour, aligned) are on seen surface.
+
+    A closed outline (measured, or closed across its gaps and flagged estimated) is all
+    seen: it is meshed whole. An open one is seen where its measured points back it: in a
+    covered bin within the measured radii (``Coverage.unseen``) and within
+    ``MEASURED_TOLERANCE_MM`` of a measured point, which leaves out where the closed EFD
+    curve swings off an open outline's ends; in stretches of at least
+    :data:`MIN_SEEN_RUN` samples.
+    """
+    if section.closed or section.coverage is None:
+        return np.ones(len(ring), dtype=bool)
+    from scipy.spatial import cKDTree  # deferred: only open outlines need it
+
+    near = cKDTree(section.raw).query(ring, distance_upper_bound=MEASURED_TOLERANCE_MM)[0]
+    return _clean_runs(~section.coverage.unseen(ring) & np.isfinite(near))
+
+
+def _ring_seen(chain: list[Section], rings: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Return (R, M) seen flags of a chain's rings: each section's own at its ring, and at a
+    ring the interpolation inserted between two sections, seen where both are."""
+    at = np.flatnonzero(measured)
+    own = np.stack([seen_samples(s, rings[k]) for s, k in zip(chain, at, strict=True)])
+    slab = np.clip(np.searchsorted(at, np.arange(len(rings)), side="right") - 1, 0, len(at) - 1)
+    below, above = own[slab], own[np.minimum(slab + 1, len(at) - 1)]
+    return np.where(measured[:, None], own[np.cumsum(measured) - 1], below & above)
+
+
+def _runs(mask: np.ndarray) -> list[np.ndarray]:
+    """Return the index runs of True in a circular mask, each in order (one may wrap)."""
+    if mask.all():
+        return [np.arange(len(mask))]
+    if not mask.any():
+        return []
+    start = int(np.flatnonzero(~mask)[0])
+    order = np.roll(np.arange(len(mask)), -start)
+    edges = np.flatnonzero(np.diff(mask[order].astype(np.int8))) + 1
+    return [run for run in np.split(order, edges) if mask[run[0]]]
+
+
+def radial_ring(
+    section: Section, points: int, oversample: int = 8
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Return the section's contour at ``points`` equal angles about its coverage centre
+    (from -180 degrees, counter-clockwise) and which of them are seen; None where it is not
+    star-shaped about the centre.
+
+    An open outline's EFD closes it by a curve across the unseen gap, so its parameter
+    does not fall on the same stretch of surface as a closed neighbour's: rings joined
+    sample by sample would twist. Equal angles about the centre join them where the
+    surface is the same. Only the seen stretches (:func:`seen_samples`) are sampled so:
+    the invented curve may pass the centre on the wrong side (a half-seen outline).
+    A closed outline must be star-shaped all round; None also when less than 75 % of a
+    seen stretch advances round the centre.
+    """
+    centre = np.asarray(
+        section.coverage.centre_mm if section.coverage else (section.efd.a0, section.efd.c0)
+    )
+    dense = section.efd.evaluate(oversample * points)
+    seen = seen_samples(section, dense)
+    d = dense - centre
+    angle = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    if signed_area(dense) < 0.0:  # counter-clockwise, so what was seen advances round
+        dense, angle, seen = dense[::-1], angle[::-1], seen[::-1]
+    target = -np.pi + 2.0 * np.pi * np.arange(points) / points
+    ring = np.repeat(centre[None], points, axis=0)  # unseen samples: dropped by the mesh
+    hit = np.zeros(points, dtype=bool)
+    # Shortest first: where stretches overlap in angle the longest is the one meshed.
+    for run in sorted(_runs(seen), key=len):
+        run_angle = np.unwrap(angle[run])
+        if np.ptp(run_angle) < MIN_SEEN_RUN * 2.0 * np.pi / points:
+            continue  # narrower than the shortest stretch meshed (a hook at an end)
+        xy = dense[run]
+        if len(run) == len(seen):  # closed: round the wrap, and it must be star-shaped
+            run_angle = np.append(run_angle, run_angle[0] + 2.0 * np.pi)
+            xy = np.vstack([xy, xy[:1]])
+            if np.any(np.diff(run_angle) <= 0.0):
+                return None
+        # A seen stretch may hook back at an open outline's end, where the EFD turns into
+        # the curve it invents across the gap: only the part that advances is sampled.
+        ahead = np.concatenate([[True], np.diff(run_angle) > 0.0]) & (
+            run_angle >= np.maximum.accumulate(run_angle)
+        )
+        if ahead.mean() < 0.75:
+            return None  # not star-shaped about the centre
+        run_angle, xy = run_angle[ahead], xy[ahead]
+        t = run_angle[0] + (target - run_angle[0]) % (2.0 * np.pi)
+        inside = t <= run_angle[-1]
+        ring[inside, 0] = np.interp(t[inside], run_angle, xy[:, 0])
+        ring[inside, 1] = np.interp(t[inside], run_angle, xy[:, 1])
+        hit |= inside
+    seen_ring = _clean_runs(hit)
+    filled = seen_ring & ~hit  # a sample or two between seen ones: from its neighbours
+    if filled.any():
+        k = np.arange(points)
+        for axis in (0, 1):
+            ring[filled, axis] = np.interp(k[filled], k[hit], ring[hit, axis], period=points)
+    return ring, seen_ring
+
+
+def chain_rings(
+    chain: list[Section], points: int, interpolation: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return a chain's mesh rings (R, M, 2), their heights and which were seen (R, M).
+
+    Closed chains follow the aligned EFD stack and its interpolation along z (rings
+    inserted where it curves). A chain holding an open outline is sampled at equal angles
+    about each outline's centre (:func:`radial_ring`) and joined straight between
+    sections: coefficients interpolated between a closed outline and one closed across
+    an invented gap describe neither.
+    """
+    z = np.array([s.z_mm for s in chain])
+    if any(not s.closed for s in chain):
+        radial = [radial_ring(s, points) for s in chain]
+        if all(r is not None for r in radial):
+            rings = np.stack([r[0] for r in radial if r is not None])
+            return rings, z, np.stack([r[1] for r in radial if r is not None])
+        interpolation = "linear"  # not star-shaped: joined by parameter, but straight
+    stack_ = EfdStack.from_sections(list(z), [s.efd for s in chain], interpolation)
+    heights, measured = stack_.ring_heights()
+    rings = stack_.sample(points, heights)
+    return rings, heights, _ring_seen(chain, rings, measured)
+
+
 def mesh_contours(
     sections: list[Section], points: int, interpolation: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh each chain of outlines as a closed tube of aligned EFD contours.
+    """Mesh each chain of outlines as a tube of aligned EFD contours.
 
     Between sections the tube follows ``interpolation``: where it curves along z (PCHIP
     over a rounded end) rings interpolated by it are inserted (``EfdStack.ring_heights``),
-    so the mesh encloses the volume the clinical measurements integrate.
+    so the mesh encloses the volume the clinical measurements integrate. A chain of closed
+    outlines gives a closed tube; where an outline is open the tube keeps only the seen
+    stretches (:func:`~lamina_host.mesh.open_tube_mesh`, :func:`chain_rings`), an open
+    surface. An outline in a chain of its own (seen in one section only,
+    :func:`lone_outlines`) is a curve with no surface: not meshed.
     """
     verts, faces, offset = [], [], 0
     for chain in chain_outlines(sections):
-        stack_ = EfdStack.from_sections(
-            [s.z_mm for s in chain], [s.efd for s in chain], interpolation
-        )
-        heights, _ = stack_.ring_heights()
-        v, f = tube_mesh(stack_.sample(points, heights), heights)
+        if len(chain) < 2:
+            continue
+        rings, heights, seen = chain_rings(chain, points, interpolation)
+        v, f = open_tube_mesh(rings, heights, seen)
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)
+    if not faces:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64)
     return np.vstack(verts), np.vstack(faces)
+
+
+def lone_outlines(sections: list[Section]) -> list[Section]:
+    """Return the outlines that continue none in a neighbouring section (chains of one)."""
+    return [chain[0] for chain in chain_outlines(sections) if len(chain) == 1]
 
 
 def section_pitch_mm(sections: list[Section]) -> float | None:
@@ -782,25 +951,57 @@ def section_pitch_mm(sections: list[Section]) -> float | None:
 def build_mesh(
     sections: list[Section], options: ProcessOptions
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Mesh the closed contours with ``options.mesh``; return vertices, faces and warnings.
+    """Mesh the contours with ``options.mesh``; return vertices, faces and warnings.
 
-    Open outlines (a wide unseen gap nothing could fill) are not meshed.
+    The contour mesh keeps what was measured: closed outlines give a closed surface, open
+    ones (a wide unseen gap nothing could fill) the stretches that were seen. Ball pivoting
+    and Poisson mesh the closed outlines only (Poisson would close an open surface).
     """
-    sections = [s for s in sections if s.closed]
-    if not sections:
-        return np.empty((0, 3)), np.empty((0, 3), int), ["no outline is closed: nothing to mesh"]
-    pitch = section_pitch_mm(sections)
     if options.mesh == "contours":
-        return (*mesh_contours(sections, options.outline_points, options.interpolation), [])
-    if pitch is None:
-        return (
-            np.empty((0, 3)),
-            np.empty((0, 3), int),
-            [f"a single section cannot be meshed by {options.mesh}; scan two or more"],
+        lone = ", ".join(f"{s.index}.{s.part}" for s in lone_outlines(sections))
+        warnings = [] if not lone else [
+            f"outline(s) {lone} continue no outline of a neighbouring section: a curve "
+            "without surface, not meshed; scan more sections there"
+        ]  # fmt: skip
+        return (*mesh_contours(sections, options.outline_points, options.interpolation), warnings)
+    closed = [s for s in sections if s.closed]
+    warnings = []
+    if len(closed) < len(sections):
+        warnings.append(
+            f"{len(sections) - len(closed)} open outline(s) are left out of the "
+            f"{options.mesh} mesh; use --mesh contours to mesh what was seen of them"
         )
+    empty = np.empty((0, 3)), np.empty((0, 3), np.int64)
+    if not closed:
+        return *empty, [*warnings, "no outline is closed: nothing to mesh"]
+    pitch = section_pitch_mm(closed)
+    if pitch is None:
+        single = f"a single section cannot be meshed by {options.mesh}; scan two or more"
+        return *empty, [*warnings, single]
     if options.mesh == "poisson":
-        return (*mesh_poisson(sections, pitch), [])
-    return (*mesh_ball_pivoting(sections, pitch, options.ball_radius_mm), [])
+        return (*mesh_poisson(closed, pitch), warnings)
+    return (*mesh_ball_pivoting(closed, pitch, options.ball_radius_mm), warnings)
+
+
+def mesh_warning(method: str, topo: dict[str, Any]) -> str | None:
+    """Return the line saying what is wrong with a mesh that should be closed, or None.
+
+    A contour mesh of outlines not seen all round is an open surface by design (the
+    outlines are named by :func:`gap_warnings`); otherwise a boundary or a shared edge
+    is a fault of the method, and the contour mesh is the closed alternative.
+    """
+    kind = mesh_kind(topo)
+    if kind in ("closed", "none") or (method == "contours" and kind == "open surface"):
+        return None
+    if kind == "open surface":
+        problem = f"is not closed ({topo['boundary_edges']} boundary edges)"
+    else:
+        problem = (
+            f"is not two-manifold ({topo['non_manifold_edges']} non-manifold edges, "
+            f"{topo['non_manifold_vertices']} non-manifold vertices)"
+        )
+    advice = "" if method == "contours" else "; use --mesh contours for a closed mesh"
+    return f"the {method} mesh {problem}{advice}"
 
 
 def safe_mesh(
@@ -875,7 +1076,8 @@ def gap_warnings(sections: list[Section]) -> list[str]:
     if left := names(OutlineStatus.OPEN):
         lines.append(
             f"outline(s) {left} had unseen gaps too wide to bridge and no closed neighbour: "
-            "left open and not meshed; add views or sections"
+            "left open, only their seen stretches meshed (an open surface); add views or "
+            "sections to close them"
         )
     return lines
 
@@ -960,7 +1162,8 @@ def reconstruct(
     options.check()
     timer = Timer()
     with timer.stage("calibrate_grid"):
-        grid = calibrate_grid(grid_image, board, options.calibration, options.distortion)
+        distortion = options.distortion if options.calibration == "ml" else "off"
+        grid = calibrate_grid(grid_image, board, options.calibration, distortion)
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
             cylinder, grid, cylinder_mm, options.trim_fraction, options.axis,
@@ -976,11 +1179,8 @@ def reconstruct(
         vertices, faces, mesh_warnings = safe_mesh(sections, options)
         topo = topology(vertices, faces) if len(faces) else {}
     warnings += mesh_warnings
-    if topo and not (topo["watertight"] and topo["two_manifold"]):
-        warnings.append(
-            f"the {options.mesh} mesh is not watertight and manifold "
-            f"({topo['boundary_edges']} boundary edges); use --mesh contours for a closed mesh"
-        )
+    if line := mesh_warning(options.mesh, topo):
+        warnings.append(line)
     points, colours = coloured_cloud(sections)
     colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None
     return Reconstruction(

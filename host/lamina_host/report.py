@@ -10,7 +10,7 @@ import numpy as np
 from lamina_host.expect import Expectation
 from lamina_host.files import json_text, replace_file
 from lamina_host.measure import perimeter, polygon_area, radial_error_table, sphere_probing
-from lamina_host.mesh import contour_normals, obj_bytes, save_ply
+from lamina_host.mesh import contour_normals, mesh_kind, obj_bytes, save_ply
 from lamina_host.pipeline import Reconstruction, Section, assemble, coloured_cloud, stack
 from lamina_host.precision import section_precision_mm
 from lamina_shared.types import Segment
@@ -91,6 +91,8 @@ def build_report(
         },
         "mesh": {
             "method": result.options.mesh,
+            "kind": mesh_kind(result.mesh_topology),
+            "boundary_edges": int(result.mesh_topology.get("boundary_edges", 0)),
             "vertices": len(result.vertices),
             "faces": len(result.faces),
             "topology": result.mesh_topology,

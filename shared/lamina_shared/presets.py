@@ -13,10 +13,11 @@ __all__ = ["NOISE_PRESETS", "RIG_PRESETS", "make_preset"]
 
 T = TypeVar("T")
 
-NOISE_PRESETS = ("thesis", "harsh", "none")
+NOISE_PRESETS = ("thesis", "harsh", "wide", "none")
 """Simulated camera noise and mechanical error: ``thesis`` (the thesis-like rig, default),
 ``harsh`` (a Pi camera at raised analog gain in a lit room, a real lens, an eccentric
-turntable gear) and ``none`` (noise-free camera, perfect mechanics)."""
+turntable gear), ``wide`` (``harsh`` through a wide lens's stronger barrel distortion) and
+``none`` (noise-free camera, perfect mechanics)."""
 
 RIG_PRESETS = ("thesis", "limb")
 """Simulated rig geometries (``lamina_device.sim.Rig.preset``): ``thesis`` (the thesis

@@ -1,8 +1,9 @@
 """Clinical accuracy at limb scale (issue #13 part 5): volume, circumference, surface distance.
 
 Three limb-scale phantoms are scanned end to end on the simulated limb rig (``lamina scan
---device sim --rig limb --noise harsh --distortion``, the real device process over the real
-link), 8 views per section at 10 mm pitch, and measured with ``lamina_host.clinical`` from
+--device sim --rig limb --noise harsh`` with the default processing, which finds the lens
+distortion on the board; the real device process over the real link), 8 views per
+section at 10 mm pitch, and measured with ``lamina_host.clinical`` from
 the EFD sections stored in report.json (PCHIP along z, the clinical default):
 
 - ``vol %``: the contour-stack volume over the scanned range against the true volume
@@ -84,7 +85,7 @@ def _scan(spec: str, sections: int, out: Path, library: Path) -> tuple[float, st
     """Run one simulated scan; return its wall time and the error line (empty when fine)."""
     command = [
         sys.executable, "-m", "lamina_host", "scan", "--device", "sim", "--rig", "limb",
-        "-o", str(out), "--object", spec, "--noise", NOISE, "--distortion",
+        "-o", str(out), "--object", spec, "--noise", NOISE,
         "--sections", str(sections), "--pitch", str(PITCH_MM), "--views", str(VIEWS),
         "--library", str(library),
     ]  # fmt: skip

@@ -195,7 +195,7 @@ def test_both_command_lines_offer_exactly_the_noise_presets():
         )
         assert args.noise == name
         assert host_parser().parse_args(["scan", "--device", "sim", "--noise", name]).noise == name
-    with pytest.raises(ValueError, match="thesis, harsh, none"):
+    with pytest.raises(ValueError, match="thesis, harsh, wide, none"):
         NoiseModel.preset("bright")
     with pytest.raises(SystemExit):
         host_parser().parse_args(["scan", "--device", "sim", "--noise", "bright"])

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 
-from lamina_device.sim import Rig, SimScene
+from lamina_device.sim import NoiseModel, Rig, SimScene
 from lamina_host.calibration import (
     CalibrationError,
+    GridCalibration,
     Homography,
     analytical_homography,
     calibrate_grid,
@@ -335,3 +338,57 @@ def test_calibrate_grid_methods_and_bad_method() -> None:
         assert cal.to_dict()["method"] == m and cal.rms_mm < 0.02, m
     with pytest.raises(CalibrationError, match="unknown calibration method"):
         calibrate_grid(image, BOARD, method="magic")
+
+
+def _field_error_mm(rig: Rig, cal: GridCalibration, reach_mm: float) -> float:
+    """Return the plane map's largest error in mm over a disc about the axis (the stripes)."""
+    phi, radius = np.meshgrid(np.linspace(0, 2 * np.pi, 90), np.linspace(0.1, 1.0, 8) * reach_mm)
+    xy = np.asarray(rig.axis_xy_mm) + np.column_stack(
+        [(radius * np.cos(phi)).ravel(), (radius * np.sin(phi)).ravel()]
+    )
+    uv = rig.project(np.column_stack([xy, np.zeros(len(xy))]))
+    return float(np.linalg.norm(cal.homography.apply(uv) - xy, axis=1).max())
+
+
+@pytest.mark.parametrize("lens_k", [-0.02, -0.1])
+def test_lens_distortion_is_found_on_the_board_by_default(lens_k: float) -> None:
+    """A barrel lens (the harsh preset's, 4 px at the image corners; a wide lens's, 20 px):
+    the default calibration keeps a coefficient, the corners' residual falls to their noise
+    and the map is right over the field; --distortion off keeps the bend (and says so).
+    The limb camera's figures are in ``bench_calibration``."""
+    rig_name, reach_mm = "thesis", 15.0
+    noise = replace(NoiseModel.harsh(), lens_division_k=lens_k)
+    scene = SimScene(Rig.preset(rig_name), None, noise)
+    rig, image = scene.rig, scene.render("grid", 0.0, 0.0, False)
+    auto = calibrate_grid(image, rig.board)
+    test = auto.distortion
+    assert test is not None and test.mode == "auto" and test.significant and test.applied
+    assert auto.homography.division_k == test.division_k < 0.0  # barrel
+    assert test.rms_px_with < 0.08 < 2.0 * test.rms_px_with < test.rms_px_without
+    assert test.rms_mm_with < test.rms_mm_without
+    reported = auto.to_dict()["distortion"]
+    assert reported["division_k"] == test.division_k and reported["applied"]
+    assert {"rms_px_without", "rms_px_with", "rms_mm_without", "rms_mm_with"} <= set(reported)
+    off = calibrate_grid(image, rig.board, distortion="off")
+    assert off.homography.division_k == 0.0 and off.distortion.significant
+    assert any("shows lens distortion" in w for w in off.warnings)
+    errors = (_field_error_mm(rig, auto, reach_mm), _field_error_mm(rig, off, reach_mm))
+    print(f"{rig_name} k {lens_k}: F {test.f_statistic:.0f}, field error {errors} mm")
+    assert errors[0] < 0.015 < 4 * errors[0] < errors[1]
+
+
+def test_a_pinhole_camera_gets_no_distortion() -> None:
+    """No lens distortion: the F test finds none to keep (noisy and noise-free boards, the
+    harsh preset's light through a pinhole); --distortion on still fits it, next to nothing."""
+    for noise in (NoiseModel.thesis(), NoiseModel.none(), NoiseModel.harsh()):
+        scene = SimScene(Rig(), None, replace(noise, lens_division_k=0.0))
+        image = scene.render("grid", 0.0, 0.0, False)
+        cal = calibrate_grid(image, scene.rig.board)
+        assert cal.distortion is not None and not cal.distortion.significant
+        assert not cal.distortion.applied and cal.homography.division_k == 0.0
+        assert cal.distortion.f_statistic < cal.distortion.f_critical / 3
+        on = calibrate_grid(image, scene.rig.board, distortion="on")
+        assert on.distortion.applied and abs(on.homography.division_k) < 1e-3
+    with pytest.raises(CalibrationError, match="only estimated by the 'ml' method"):
+        calibrate_grid(image, scene.rig.board, "dlt", "on")
+    assert calibrate_grid(image, scene.rig.board, "dlt").distortion is None

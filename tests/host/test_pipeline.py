@@ -144,7 +144,7 @@ def test_limb_scale_rig(tmp_path: Path, noise: str, rms_mm: float, radius_mm: fl
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--calibration", "dlt", "--distortion"], "--distortion needs --calibration ml"),
+        (["--calibration", "dlt", "--distortion"], "--distortion on needs --calibration ml"),
         (["--axis", "centroid", "--angle-correction"], "--angle-correction needs --axis joint"),
         (["--split-gap", "-1"], "--split-gap must be"),
     ],

@@ -22,7 +22,7 @@ import pytest
 from lamina_device.sim import Mechanics, Rig, SimScene
 from lamina_host.coverage import measure_coverage
 from lamina_host.measure import polygon_area
-from lamina_host.mesh import signed_volume, topology, triangulate_polygon, tube_mesh
+from lamina_host.mesh import mesh_kind, signed_volume, topology, triangulate_polygon, tube_mesh
 from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section, cluster_support
 from lamina_host.pipeline import (
     ProcessOptions,
@@ -72,6 +72,13 @@ def run(scan: dict, options: ProcessOptions | None = None, segments=None) -> Rec
     """Reconstruct a synthetic scan."""
     return reconstruct(scan["grid"], scan["board"], scan["cylinder"], scan["cylinder_mm"],
                        segments if segments is not None else scan["segments"], options)  # fmt: skip
+
+
+def boundary_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Return the (K, 3) vertices on a mesh's boundary (edges used by one face only)."""
+    half = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    edges, uses = np.unique(half, axis=0, return_counts=True)
+    return vertices[np.unique(edges[uses == 1])]
 
 
 def distance_to(points: np.ndarray, outline: Outline) -> np.ndarray:
@@ -268,7 +275,9 @@ CIRCLE = {"centre": (2.0, 1.0), "radius_mm": 6.0}
 
 
 def test_a_section_seen_from_one_side_reports_its_coverage_and_stays_open() -> None:
-    """Three views of 8: coverage as seen, no invented curve: open, unmeshed, not in points.ply."""
+    """Three views of 8: coverage as seen, no invented curve: open, meshed where seen only
+    (an open surface on the true one, its boundary at the ends of what was seen), not in
+    points.ply."""
     rig, truth = Rig(), circle(CIRCLE["centre"], CIRCLE["radius_mm"])
     scan = synthetic_scan(rig, Mechanics.ideal(), dict.fromkeys(range(3), truth),
                           views_of={k: [0, 1, 2] for k in range(3)})  # fmt: skip
@@ -284,8 +293,19 @@ def test_a_section_seen_from_one_side_reports_its_coverage_and_stays_open() -> N
         assert in_gap.any() and np.all(s.estimated[in_gap])
         error = distance_to(s.measured_contour, truth)
         assert np.median(error) < 0.05 and error.max() < 0.25
-    assert len(result.faces) == 0
-    assert any("left open and not meshed" in w for w in result.warnings)
+    assert mesh_kind(result.mesh_topology) == "open surface"
+    assert distance_to(result.vertices[:, :2], truth).max() < 0.25
+    # Nothing is meshed in the unseen gap; the side boundary lies at the seen arc's ends.
+    section = result.sections[0]
+    assert not section.coverage.unseen(result.vertices[:, :2], tolerance_mm=0.25).any()
+    ends = boundary_vertices(result.vertices, result.faces)
+    ends = ends[(ends[:, 2] > 0.0) & (ends[:, 2] < 4.0)]  # not the end sections' rims
+    side = np.degrees(np.arctan2(*(ends[:, :2] - CIRCLE["centre"]).T[::-1]))
+    [gap] = section.coverage.gaps_deg()
+    edges = np.array([gap[0], gap[0] + gap[1]])
+    off = np.abs((side[:, None] - edges[None] + 180.0) % 360.0 - 180.0).min(axis=1)
+    assert len(side) >= 2 and off.max() < 4.0, side
+    assert any("only their seen stretches meshed" in w for w in result.warnings)
     points, _ = measured_cloud(result)
     assert len(points) == sum(int((~s.estimated).sum()) for s in result.sections)
     assert distance_to(points[:, :2], truth).max() < 0.25

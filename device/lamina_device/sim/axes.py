@@ -69,10 +69,12 @@ class Mechanics:
 
     @classmethod
     def preset(cls, noise: str) -> Mechanics:
-        """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``none``)."""
+        """Return the mechanics that go with a noise preset (``thesis``, ``harsh``, ``wide``,
+        ``none``)."""
         makers: dict[str, Callable[[], Mechanics]] = {
             "thesis": cls,
             "harsh": cls.harsh,
+            "wide": cls.harsh,
             "none": cls.ideal,
         }
         return make_preset("noise", noise, makers)

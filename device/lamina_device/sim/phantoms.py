@@ -1,4 +1,4 @@
-"""Anatomy-like test objects built by code: hand, foot, bust, bone, ring, stump and arm.
+"""Anatomy-like test objects built by code: hand, foot, bust, bone, ring, stump, arm, face.
 
 Each phantom is a small closed triangle mesh (a few thousand triangles) in the object
 frame, sized for the thesis rig (20-30 mm across, sections from z = 0 up to ~20 mm,
@@ -14,7 +14,9 @@ limb``). What each one makes hard for the scanner:
   waist in every section) and rounded ends;
 - ``ring``: an upright torus: two outlines per section, each shadowing the other;
 - ``stump``: a tapered residual limb with a rounded distal end (the stripe grazes it);
-- ``arm``: a tapered, oval forearm with a muscle belly (limb measurements at scale 5).
+- ``arm``: a tapered, oval forearm with a muscle belly (limb measurements at scale 5);
+- ``face``: the front half of the bust's face as a shell of no thickness, open at its
+  rims: an open surface, seen from the front and from behind, whose outlines never close.
 
 Parts are built as lofts of closed outlines (rings of vertices joined by strips), and
 parts of one phantom touch but do not overlap (the hand's fingers stand on the palm's
@@ -33,7 +35,7 @@ import numpy as np
 
 from lamina_device.sim.objects import _PHANTOM_NAMES, AS_BUILT, Placement, TriangleMesh
 
-__all__ = ["PHANTOMS", "phantom"]
+__all__ = ["OPEN_PHANTOMS", "PHANTOMS", "phantom"]
 
 _N_PHI = 72  # vertices per ring: ~1 mm edges on a 24 mm outline
 _RING_STEP_MM = 0.6  # vertical spacing of rings on straight parts (thesis scale)
@@ -92,6 +94,26 @@ def _loft(
         if sk > 0.0:
             hub = np.broadcast_to(ring.mean(axis=0), ring.shape)
             tris.append(np.stack([hub, ring, ring[nxt]], axis=1))
+    return np.concatenate(tris)
+
+
+def _open_loft(z: np.ndarray, radius: RadiusFn, phi0_deg: float, phi1_deg: float) -> np.ndarray:
+    """Return the triangles (F, 3, 3) of an open shell: strips through arcs at heights ``z``.
+
+    Arc k runs from ``phi0_deg`` to ``phi1_deg`` (ends included) at ``radius(phi, z_k)``
+    about the z axis; nothing joins the arcs' ends or closes the top and bottom, so the
+    shell has a rim all round.
+    """
+    n_phi = max(2, math.ceil(abs(phi1_deg - phi0_deg) / 360.0 * _N_PHI) + 1)
+    phi = np.radians(np.linspace(phi0_deg, phi1_deg, n_phi))
+    unit = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    arcs = [
+        np.column_stack([radius(phi, float(zk))[:, None] * unit, np.full(n_phi, zk)]) for zk in z
+    ]
+    tris = []
+    for a, b in itertools.pairwise(arcs):
+        tris.append(np.stack([a[:-1], a[1:], b[1:]], axis=1))
+        tris.append(np.stack([a[:-1], b[1:], b[:-1]], axis=1))
     return np.concatenate(tris)
 
 
@@ -244,6 +266,23 @@ def _arm() -> np.ndarray:
     return _loft(z, s, radius)
 
 
+def _face() -> np.ndarray:
+    """The front half (facing -y) of the bust's face, z -5..16, as an open shell (a mask).
+
+    A face is scanned from one side only: there is no back to close its outlines. Each
+    section is an arc of 180 degrees with the bust's eye sockets, nose and mouth.
+    """
+
+    def radius(phi: np.ndarray, z: float) -> np.ndarray:
+        base = 11.0 * 12.5 / np.hypot(12.5 * np.cos(phi), 11.0 * np.sin(phi))
+        eyes = -1.8 * _gauss(z, 11.0, 1.3) * (_bump(phi, -62.0, 9.0) + _bump(phi, -118.0, 9.0))
+        nose = 2.8 * max(0.0, 1.0 - abs(z - 7.5) / 3.5) * _bump(phi, -90.0, 6.0)
+        mouth = -1.6 * _gauss(z, 2.5, 0.7) * _bump(phi, -90.0, 9.0)
+        return base + eyes + nose + mouth
+
+    return _open_loft(_levels(-5.0, 16.0, 0.3), radius, -180.0, 0.0)
+
+
 _BUILDERS: dict[str, Callable[[], np.ndarray]] = {
     "arm": _arm,
     "hand": _hand,
@@ -252,9 +291,13 @@ _BUILDERS: dict[str, Callable[[], np.ndarray]] = {
     "bone": _bone,
     "ring": _ring,
     "stump": _stump,
+    "face": _face,
 }
 PHANTOMS = _PHANTOM_NAMES
 """Names of the built-in phantoms, usable as ``--object NAME[:scale=S,x=,y=,z=,yaw=]``."""
+
+OPEN_PHANTOMS = ("face",)
+"""The phantoms that are open surfaces (a rim, no inside), not closed solids."""
 
 
 def phantom(name: str, placement: Placement = AS_BUILT) -> TriangleMesh:

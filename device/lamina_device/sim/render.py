@@ -133,6 +133,13 @@ class NoiseModel:
         )
 
     @classmethod
+    def wide(cls) -> NoiseModel:
+        """Return the harsh camera behind a wide-angle lens: barrel distortion k = -0.1 of the
+        division model at the half diagonal, five times the harsh preset's (an image corner
+        sees what a pinhole would image 11 % further out: ~100 px on the limb camera)."""
+        return replace(cls.harsh(), lens_division_k=-0.1)
+
+    @classmethod
     def none(cls) -> NoiseModel:
         """Return a noise-free model (no speckle, shot or read noise); ambient stays."""
         return cls(read_noise_dn=0.0, shot_gain_dn=0.0, speckle_contrast=0.0)

@@ -35,6 +35,37 @@ def report_device(device: Mapping[str, Any], identity: Mapping[str, Any] | None)
     return report
 
 
+def mesh_summary(mesh: Mapping[str, Any]) -> str:
+    """Return one line on a report's ``mesh`` entry: what kind of surface, faces, vertices.
+
+    A closed mesh is watertight and two-manifold; an open surface has a boundary where
+    nothing was seen (its edge count is given); a report from before mesh kinds were
+    recorded names none.
+    """
+    kind = mesh.get("kind")
+    size = f"{mesh.get('faces', 0)} faces, {mesh.get('vertices', 0)} vertices"
+    if kind == "closed":
+        return f"closed (watertight), {size}"
+    if kind == "open surface":
+        return f"open surface ({mesh.get('boundary_edges', 0)} boundary edges), {size}"
+    return f"{kind}, {size}" if kind else size
+
+
+def distortion_summary(test: Mapping[str, Any] | None) -> str | None:
+    """Return one line on a report's calibration ``distortion`` entry (None without one)."""
+    if not test:
+        return None
+    change = (
+        f"corner residual {test['rms_px_without']:.3f} px without, "
+        f"{test['rms_px_with']:.3f} px with it"
+    )
+    if test["applied"]:
+        return f"radial distortion k = {test['division_k']:.5f} removed ({change})"
+    if test["significant"]:
+        return f"radial distortion shown by the board but kept (--distortion off; {change})"
+    return f"no measurable distortion (F {test['f_statistic']:.1f} < {test['f_critical']:.1f})"
+
+
 @dataclass(frozen=True)
 class Progress:
     """How far a scan has come, for the progress bar and the time left."""

@@ -20,7 +20,7 @@ from lamina_host.status import ESTIMATED
 from lamina_host.store import Library
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
-from lamina_host.workflow.results import SectionRow, colour_bins
+from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
 
 COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
@@ -84,17 +84,14 @@ def summary_text(results: Results | None) -> str:
     if results is None:
         return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
     result = results.reconstruction
-    topo = result.mesh_topology
-    mesh = (
-        f"mesh ({results.mesh_method}): {len(result.faces)} faces, {len(result.vertices)} vertices"
-        + (", watertight" if topo.get("watertight") else "")
-    )
+    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report['mesh'])}"
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
     estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
         lines.append(
             f"{len(estimated)} outline(s) closed across unseen gaps (estimated stretches, "
-            f"not in points.ply), {sum(not s.closed for s in result.sections)} left open"
+            f"not in points.ply), {sum(not s.closed for s in result.sections)} left open "
+            "(meshed where seen)"
         )
     lines += [
         f"outline {f.index}.{f.part} (z {f.z_mm:.2f}) {f.status}: {f.reason}" for f in result.failed
