@@ -32,7 +32,8 @@ __all__ = [
 ]
 
 OUTLINE_VERTICES = 4096
-_PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm")  # sim.phantoms.PHANTOMS
+# sim.phantoms.PHANTOMS
+_PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm", "face")
 _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
 
 
