@@ -575,7 +575,7 @@ def scan(args: argparse.Namespace) -> int:
         created = not args.out.exists()
         prepare_output_folder(args.out, allow_files=own_out)
         target = DeviceTarget(args.device, args.object, args.seed, args.noise, args.rig)
-        job = ScanJob(target, library.path)
+        job = ScanJob(target, library=library)  # one connection for the whole scan
         try:
             acquired = _acquire_scan(job, args, request)
         except BaseException:
@@ -585,7 +585,7 @@ def scan(args: argparse.Namespace) -> int:
             raise
         finally:
             job.close()
-    results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+        results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
     print_summary(results.report, results.paths)
     return 0
 

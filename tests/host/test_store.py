@@ -209,3 +209,33 @@ def test_lamina_scan_records_the_side_it_is_given(scanned_library):
     with Library(scanned_library) as lib:
         assert lib.scan(1).side == "left"
         assert [s.side for s in lib.scans()] == ["left"]
+
+
+def _count_in_another_process(path) -> int:
+    """Return the object segments another process finds in the library (opened read-write)."""
+    code = (
+        "import sqlite3, sys\n"
+        "db = sqlite3.connect(sys.argv[1], timeout=30)\n"
+        "print(db.execute(\"SELECT COUNT(*) FROM segments WHERE target='object'\").fetchone()[0])\n"
+        "db.close()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True
+    )
+    return int(done.stdout)
+
+
+def test_a_second_library_in_one_process_keeps_the_first_ones_locks(tmp_path):
+    """Issue 19: opening the file outside SQLite dropped this process's locks on it, so another
+    process's last close deleted the WAL under the open connection and later commits were lost."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as first:
+        scan_id = first.create_scan("S-01", PLANS)
+        first.add_segment(scan_id, 0, segment(0))
+        with Library(path) as second:
+            assert second.held(scan_id, "object") == {0}
+        # A reader in another process comes and goes: its close must not take the WAL away.
+        assert _count_in_another_process(path) == 1
+        first.add_segment(scan_id, 1, segment(1))
+        assert _count_in_another_process(path) == 2
+    assert _count_in_another_process(path) == 2
