@@ -292,6 +292,34 @@ def _link_new_private(path: Path) -> None:
         os.unlink(name)
 
 
+_NOT_DAMAGE = frozenset(
+    (
+        sqlite3.SQLITE_PERM,
+        sqlite3.SQLITE_BUSY,
+        sqlite3.SQLITE_LOCKED,
+        sqlite3.SQLITE_NOMEM,
+        sqlite3.SQLITE_READONLY,
+        sqlite3.SQLITE_IOERR,
+        sqlite3.SQLITE_FULL,
+        sqlite3.SQLITE_CANTOPEN,
+        sqlite3.SQLITE_PROTOCOL,
+        sqlite3.SQLITE_NOLFS,
+        sqlite3.SQLITE_AUTH,
+    )
+)
+"""SQLite's errors that say something about the machine (locks, disk, permissions), not the file."""
+
+
+def _is_damage(exc: sqlite3.Error) -> bool:
+    """Return True if an error met reading a library says the file itself is damaged.
+
+    Not only SQLITE_CORRUPT and SQLITE_NOTADB: a damaged header gives a plain error
+    ("unsupported file format").
+    """
+    code = getattr(exc, "sqlite_errorcode", None)
+    return isinstance(code, int) and (code & 0xFF) not in _NOT_DAMAGE
+
+
 def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
     """Return the identity a schema-1 scan can be given from what it recorded."""
     spawned = None
@@ -357,27 +385,28 @@ class Library(Scoped):
             self._db.execute("PRAGMA foreign_keys=ON")
             if version != SCHEMA_VERSION:
                 self._upgrade()
-        except sqlite3.OperationalError as exc:
+        except sqlite3.Error as exc:
+            if _is_damage(exc):
+                raise self._damaged(str(exc)) from None
             raise StoreError(f"cannot open the scan library {self.path}: {exc}") from None
-        except sqlite3.DatabaseError as exc:
-            raise self._damaged(str(exc)) from None
 
     def _check_intact(self) -> None:
-        """Refuse a library whose pages are damaged, before anything is written to it."""
-        try:
-            problems = [str(row[0]) for row in self._db.execute("PRAGMA quick_check")]
-        except sqlite3.OperationalError:
-            raise
-        except sqlite3.DatabaseError as exc:
-            problems = [str(exc)]
+        """Refuse a library whose pages are damaged, before anything is written to it.
+
+        ``quick_check`` sees damage to the file's structure (pages, b-trees, overflow chains,
+        the header); SQLite keeps no checksum of the data itself.
+        """
+        problems = [str(row[0]) for row in self._db.execute("PRAGMA quick_check")]
         if problems != ["ok"]:
-            raise self._damaged(problems[0])
+            lines = [line for text in problems for line in text.splitlines()]
+            found = [line for line in lines if line.strip() and not line.startswith("***")]
+            raise self._damaged(found[0] if found else "quick_check failed")
 
     def _damaged(self, problem: str) -> StoreError:
         """Return the one-line refusal of a damaged library file."""
         return StoreError(
-            f"the scan library {self.path} is damaged ({problem[:120]}): it was left as it is; "
-            "restore it from a backup (or name another with --library)"
+            f"the scan library {self.path} is damaged ({' '.join(problem.split())[:120]}): "
+            "it was left as it is; restore it from a backup (or name another with --library)"
         )
 
     def _refuse_newer(self, version: int) -> None:
