@@ -331,3 +331,24 @@ def test_cli_refuses_a_damaged_library_in_one_line_and_leaves_it(pristine, tmp_p
         assert line.endswith("restore it from a backup (or name another with --library)")
         assert path.read_bytes() == damaged
     assert not (tmp_path / "m.ply").exists()
+
+
+def test_processes_creating_one_new_library_at_once_all_succeed_and_keep_it_private(tmp_path):
+    path = tmp_path / "new" / "library.sqlite"
+    code = (
+        "import sys\n"
+        "from lamina_host.store import Library\n"
+        "from lamina_shared.types import ScanPlan\n"
+        "with Library(sys.argv[1]) as library:\n"
+        "    library.create_scan(sys.argv[2], {'object': ScanPlan.regular(1, 2.0, 4)})\n"
+    )
+    runs = [
+        subprocess.Popen([sys.executable, "-c", code, str(path), f"S-{k}"], stderr=subprocess.PIPE)
+        for k in range(4)
+    ]
+    errors = [run.communicate(timeout=120)[1] for run in runs]
+    assert [run.returncode for run in runs] == [0] * 4, errors
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
+    with Library(path) as library:
+        assert sorted(s.subject for s in library.scans()) == ["S-0", "S-1", "S-2", "S-3"]
