@@ -4,10 +4,11 @@ Hypothesis picks a schedule: which programs run at once on one library (``lamina
 --device sim`` with small plans, a scan in the terminal UI with its Library screen
 reloading in the same process, and the readers ``lamina scans``, ``export``, ``report``,
 ``batch`` and the terminal UI's Library screen), when each starts and when, if ever, it is
-killed with SIGKILL. Each is a real process. Afterwards the library passes
-``PRAGMA integrity_check``; every process not killed ended with status 0; every scan that
-ended holds exactly the segments its program wrote to ``segments.npz`` and
-``cylinder-segments.npz`` (all it received, stored and acknowledged); every segment a
+killed with SIGKILL (with any simulated device it started). Each is a real process.
+Afterwards the library passes ``PRAGMA integrity_check``; every process not killed ended
+with status 0; every scan that ended holds exactly the segments its program wrote to
+``segments.npz`` and ``cylinder-segments.npz`` (all it received, stored and
+acknowledged); every segment a
 watcher in this process ever saw committed is still there (the lower bound for a scan
 killed before it could write its npz files); the processed scan the library began with
 is untouched.
@@ -206,7 +207,10 @@ def _run_schedule(schedule: list[Role], library: Path, base: Path) -> list[Ran]:
                     continue
                 if one.process.poll() is None:
                     if role.kill_after_s is not None and now_s >= role.start_s + role.kill_after_s:
-                        one.process.send_signal(signal.SIGKILL)
+                        # The program and the simulated device it started: a device program
+                        # outliving its host holds its pty, which a later scan may be given
+                        # again (its exclusive lock then fails; not the library's concern).
+                        os.killpg(one.process.pid, signal.SIGKILL)
                         one.killed = True
                         one.status = one.process.wait()
                         stopped.add(index)
