@@ -44,9 +44,15 @@ tui: install
 bench: install
 	$(BIN)/python tests/benchmarks/run.py --out $(OUT)/bench.json
 
-# The normal suite runs a short fuzz; this runs the same properties with many more examples.
+# The normal suite runs a short fuzz; this runs the same properties with many more examples,
+# and LIBRARY_RUNS schedules of processes sharing one scan library (figures, one JSON line a
+# run, in out/library-fuzz.jsonl).
+LIBRARY_RUNS ?= 100
 fuzz: install
 	LAMINA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py
+	mkdir -p $(OUT)
+	LAMINA_LIBRARY_RUNS=$(LIBRARY_RUNS) LAMINA_LIBRARY_LOG=$(OUT)/library-fuzz.jsonl \
+		$(BIN)/python -m pytest -q tests/test_library_concurrency.py
 
 # The host and device on an arm64 Debian Bookworm userland under qemu (root; debootstrap and
 # qemu-user-static): installs, a short simulated scan and the device's tests. Takes long the

@@ -390,7 +390,7 @@ def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan
         ) as client,
         Library(tmp_path / "library.sqlite") as library,
     ):
-        job = ScanJob(DeviceTarget("sim"), library.path)
+        job = ScanJob(DeviceTarget("sim"), library=library)
         job.attach(client)
         with pytest.raises(InputError, match=limit):
             job.create(ScanRequest("P-01", plan))

@@ -660,7 +660,7 @@ def _scan(args: argparse.Namespace) -> int:
         created = not args.out.exists()
         prepare_output_folder(args.out, allow_files=own_out)
         target = DeviceTarget(args.device, args.object, args.seed, args.noise, args.rig)
-        job = ScanJob(target, library.path)
+        job = ScanJob(target, library=library)  # one connection for the whole scan
         try:
             acquired = _acquire_scan(job, args, request)
         except BaseException:
@@ -670,16 +670,16 @@ def _scan(args: argparse.Namespace) -> int:
             raise
         finally:
             job.close()
-    try:
-        results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
-    except (sqlite3.Error, OutputError) as exc:
-        if not disk_full(exc):
-            raise
-        raise DiskFull(
-            f"{_filled(exc, job)}: the disk is full; the scan is acquired and kept: free space "
-            f"on it, then process it with lamina scan --resume {acquired.scan_id} "
-            f"--device {args.device}"
-        ) from None
+        try:
+            results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+        except (sqlite3.Error, OutputError) as exc:
+            if not disk_full(exc):
+                raise
+            raise DiskFull(
+                f"{_filled(exc, job)}: the disk is full; the scan is acquired and kept: free space "
+                f"on it, then process it with lamina scan --resume {acquired.scan_id} "
+                f"--device {args.device}"
+            ) from None
     print_summary(results.report, results.paths)
     return 0
 

@@ -9,8 +9,17 @@ A segment is committed (``synchronous=FULL``) before :meth:`Library.add_segment`
 returns, and the link acknowledges it only after that, so a host killed at any moment
 holds every segment the device believes delivered. The file is created readable by
 its owner only (mode 0600; SQLite gives its ``-wal`` and ``-shm`` files the same mode).
-Use one :class:`Library` per thread; WAL lets several read while one writes. A library
-file found readable by others is made owner-only (:attr:`Library.notices` says so).
+A library file found readable by others is made owner-only (:attr:`Library.notices`
+says so).
+
+Many processes may use one library at once (scans, listings, exports, the terminal UI):
+WAL lets them read while one writes, and a writer waits for another's commit. That holds
+because nothing but SQLite ever opens the file: POSIX record locks belong to a process,
+and closing any other descriptor of the file would silently drop the locks of every
+connection the process holds, letting another process delete the WAL under them (issue
+19). A process keeps one :class:`Library` (it may be shared by its threads), and opening
+one checks the file (``PRAGMA quick_check``): a damaged library is refused in one line and
+left untouched.
 
 Each scan records the identity of what acquired it (device serial, software, hardware,
 source object or capture, calibration, extraction settings; see
@@ -31,6 +40,10 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
+import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -55,6 +68,8 @@ from lamina_shared.types import BoardSpec, ScanPlan, Segment
 SCHEMA_VERSION = 4
 SIDES = ("none", "left", "right")
 """The limb side a scan records; ``none`` for anything that is not one of a pair."""
+BUSY_TIMEOUT_S = 30.0
+"""How long a connection waits for another's write to end before it gives up."""
 STATUSES = ("acquiring", "acquired", "processed")
 """A scan is ``acquiring`` until every planned view is held, ``processed`` once it has a result."""
 
@@ -244,14 +259,65 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
 def _create_private(path: Path) -> bool:
     """Create ``path`` (and its folder) owner-only; return True if an existing one was widened.
 
-    An existing file (and its ``-wal``/``-shm`` companions) readable by others is made
-    owner-only.
+    Nothing here opens the library file itself: POSIX record locks belong to the process,
+    so closing any descriptor of the file would drop the locks of every SQLite connection
+    this process holds on it (and another process could then checkpoint and delete the
+    WAL under them). A new file is made as a private temporary file and hard-linked into
+    place (never over an existing one); an existing file and its ``-wal``/``-shm``
+    companions readable by others are made owner-only by path.
     """
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-    os.close(fd)
+    if not os.path.lexists(path):
+        _link_new_private(path)
     widened = [tighten(path.with_name(path.name + end)) for end in ("", "-wal", "-shm")]
     return any(widened)
+
+
+def _link_new_private(path: Path) -> None:
+    """Put an empty owner-only file at ``path`` unless something is there already.
+
+    The descriptor opened is the temporary file's, closed before the link exists, so no
+    connection can hold a lock on it. Where hard links are not supported (FAT, which has
+    no permissions to keep anyway) SQLite creates the file itself.
+    """
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)  # 0600
+    os.close(fd)
+    try:
+        os.link(name, path)
+    except FileExistsError:
+        pass  # another process made it meanwhile: it is SQLite's now
+    except OSError:
+        pass  # no hard links here
+    finally:
+        os.unlink(name)
+
+
+_NOT_DAMAGE = frozenset(
+    (
+        sqlite3.SQLITE_PERM,
+        sqlite3.SQLITE_BUSY,
+        sqlite3.SQLITE_LOCKED,
+        sqlite3.SQLITE_NOMEM,
+        sqlite3.SQLITE_READONLY,
+        sqlite3.SQLITE_IOERR,
+        sqlite3.SQLITE_FULL,
+        sqlite3.SQLITE_CANTOPEN,
+        sqlite3.SQLITE_PROTOCOL,
+        sqlite3.SQLITE_NOLFS,
+        sqlite3.SQLITE_AUTH,
+    )
+)
+"""SQLite's errors that say something about the machine (locks, disk, permissions), not the file."""
+
+
+def _is_damage(exc: sqlite3.Error) -> bool:
+    """Return True if an error met reading a library says the file itself is damaged.
+
+    Not only SQLITE_CORRUPT and SQLITE_NOTADB: a damaged header gives a plain error
+    ("unsupported file format").
+    """
+    code = getattr(exc, "sqlite_errorcode", None)
+    return isinstance(code, int) and (code & 0xFF) not in _NOT_DAMAGE
 
 
 def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
@@ -270,39 +336,126 @@ def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[st
 
 
 class Library(Scoped):
-    """The scan library file; a context manager that closes it."""
+    """The scan library file; a context manager that closes it.
+
+    One :class:`Library` serves every thread of a process (its calls are serialised), so a
+    program keeps one open rather than one per step. Each write is one ``BEGIN IMMEDIATE``
+    transaction, so a writer in another process is waited for (up to
+    :data:`BUSY_TIMEOUT_S`) rather than failed.
+
+    Raises:
+        StoreError: the file cannot be opened, was written by a newer Lamina, or is damaged
+            (``PRAGMA quick_check``; then nothing is written to it).
+    """
 
     def __init__(self, path: Path | None = None) -> None:
         self.path = Path(path) if path is not None else default_library_path()
         self.notices: list[str] = []
         """Things the user should know once (a library made owner-only)."""
         self._guards: dict[int, tuple[dict[str, Any], dict[str, ScanPlan]]] = {}
+        self._lock = threading.RLock()
         try:
             if _create_private(self.path):
                 self.notices.append(
                     f"the scan library {self.path} was readable by other users; "
                     "it is now readable by its owner only"
                 )
-            self._db = sqlite3.connect(self.path, timeout=30.0)
-            self._db.row_factory = sqlite3.Row
-            version = self._db.execute("PRAGMA user_version").fetchone()[0]
-            if version > SCHEMA_VERSION:
-                raise StoreError(
-                    f"library {self.path} was written by a newer Lamina (schema {version}): "
-                    "upgrade lamina-host"
-                )
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute("PRAGMA foreign_keys=ON")
-            with self._db:
-                if version == 1:
-                    self._migrate_from_1()
-                if 1 <= version <= 3:
-                    self._migrate_side()
-                self._db.executescript(_SCHEMA)
-                self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            # Autocommit: every transaction below is begun explicitly (see _write).
+            self._db = sqlite3.connect(
+                self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False
+            )
         except (sqlite3.Error, OSError) as exc:
             raise StoreError(f"cannot open the scan library {self.path}: {exc}") from None
+        try:
+            self._open()
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _open(self) -> None:
+        """Check the file is whole, then set the connection up and bring the schema up to date."""
+        self._db.row_factory = sqlite3.Row
+        try:
+            self._check_intact()
+            version = self._db.execute("PRAGMA user_version").fetchone()[0]
+            self._refuse_newer(version)
+            if self._db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
+                self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            if version != SCHEMA_VERSION:
+                self._upgrade()
+        except sqlite3.Error as exc:
+            if _is_damage(exc):
+                raise self._damaged(str(exc)) from None
+            raise StoreError(f"cannot open the scan library {self.path}: {exc}") from None
+
+    def _check_intact(self) -> None:
+        """Refuse a library whose pages are damaged, before anything is written to it.
+
+        ``quick_check`` sees damage to the file's structure (pages, b-trees, overflow chains,
+        the header); SQLite keeps no checksum of the data itself.
+        """
+        problems = [str(row[0]) for row in self._db.execute("PRAGMA quick_check")]
+        if problems != ["ok"]:
+            lines = [line for text in problems for line in text.splitlines()]
+            found = [line for line in lines if line.strip() and not line.startswith("***")]
+            raise self._damaged(found[0] if found else "quick_check failed")
+
+    def _damaged(self, problem: str) -> StoreError:
+        """Return the one-line refusal of a damaged library file."""
+        return StoreError(
+            f"the scan library {self.path} is damaged ({' '.join(problem.split())[:120]}): "
+            "it was left as it is; restore it from a backup (or name another with --library)"
+        )
+
+    def _refuse_newer(self, version: int) -> None:
+        if version > SCHEMA_VERSION:
+            raise StoreError(
+                f"library {self.path} was written by a newer Lamina (schema {version}): "
+                "upgrade lamina-host"
+            )
+
+    def _upgrade(self) -> None:
+        """Create or migrate the schema in one transaction (one opener at a time does it)."""
+        with self._write() as db:
+            version = db.execute("PRAGMA user_version").fetchone()[0]
+            self._refuse_newer(version)
+            if version == 1:
+                self._migrate_from_1()
+            if 1 <= version <= 3:
+                self._migrate_side()
+            for statement in _SCHEMA.split(";"):
+                if statement.strip():
+                    db.execute(statement)
+            db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """Hold the connection for one write transaction, committed when the block ends.
+
+        ``BEGIN IMMEDIATE`` takes the write lock first, so another process's writer is
+        waited for; a read upgraded to a write could instead fail at once as busy.
+        """
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                if self._db.in_transaction:  # SQLite may have rolled back already
+                    self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def _rows(self, sql: str, parameters: tuple[Any, ...] = ()) -> list[sqlite3.Row]:
+        """Return every row of one query (a read of its own)."""
+        with self._lock:
+            return self._db.execute(sql, parameters).fetchall()
+
+    def _row(self, sql: str, parameters: tuple[Any, ...] = ()) -> sqlite3.Row | None:
+        """Return the first row of one query, or None."""
+        rows = self._rows(sql, parameters)
+        return rows[0] if rows else None
 
     def _migrate_from_1(self) -> None:
         """Add the scans' identity column, with legacy identities from what they recorded."""
@@ -326,8 +479,9 @@ class Library(Scoped):
         self.close()
 
     def close(self) -> None:
-        """Close the file."""
-        self._db.close()
+        """Close the file (after any call another thread is making)."""
+        with self._lock:
+            self._db.close()
 
     # --- scans -----------------------------------------------------------------------
 
@@ -351,7 +505,7 @@ class Library(Scoped):
         except InputError as exc:
             raise StoreError(str(exc)) from None
         check_side(side)
-        with self._db:
+        with self._write():
             self._db.execute(
                 "INSERT OR IGNORE INTO subjects (code, created) VALUES (?, ?)", (subject, _now())
             )
@@ -376,11 +530,11 @@ class Library(Scoped):
 
     def scan(self, scan_id: int) -> ScanRecord:
         """Return what scan ``scan_id`` was asked to be."""
-        row = self._db.execute(
+        row = self._row(
             "SELECT scans.*, subjects.code FROM scans JOIN subjects ON subjects.id = subject_id "
             "WHERE scans.id = ?",
             (scan_id,),
-        ).fetchone()
+        )
         if row is None:
             raise StoreError(f"there is no scan {scan_id} in {self.path}: see lamina scans")
         plans = {t: ScanPlan.from_dict(p) for t, p in json.loads(row["plans"]).items()}
@@ -426,12 +580,12 @@ class Library(Scoped):
 
     def scans(self) -> list[ScanSummary]:
         """Return every scan, oldest first."""
-        rows = self._db.execute(
+        rows = self._rows(
             "SELECT scans.id, code, scans.created, status, plans, side, "
             "(SELECT COUNT(*) FROM segments WHERE scan_id = scans.id AND target = 'object') "
             "AS received, (SELECT COUNT(*) FROM results WHERE scan_id = scans.id) AS results "
             "FROM scans JOIN subjects ON subjects.id = subject_id ORDER BY scans.id"
-        ).fetchall()
+        )
         out = []
         for row in rows:
             plan = json.loads(row["plans"]).get("object", {"views": []})
@@ -456,20 +610,20 @@ class Library(Scoped):
         """Record which limb scan ``scan_id`` is (:data:`SIDES`)."""
         check_side(side)
         self.scan(scan_id)
-        with self._db:
+        with self._write():
             self._db.execute("UPDATE scans SET side = ? WHERE id = ?", (side, scan_id))
 
     def set_status(self, scan_id: int, status: str) -> None:
         """Set the scan's status (one of :data:`STATUSES`)."""
         if status not in STATUSES:
             raise ValueError(f"unknown scan status {status!r}")
-        with self._db:
+        with self._write():
             self._db.execute("UPDATE scans SET status = ? WHERE id = ?", (status, scan_id))
 
     def delete_scan(self, scan_id: int) -> None:
         """Remove a scan and everything recorded for it (its subject stays)."""
         self.scan(scan_id)
-        with self._db:
+        with self._write():
             self._db.execute("DELETE FROM scans WHERE id = ?", (scan_id,))
         self._guards.pop(scan_id, None)  # SQLite may give a later scan the same id
 
@@ -496,7 +650,7 @@ class Library(Scoped):
                 f"segment {seq} of {segment.target} is not a view scan {scan_id} planned: "
                 "it is not stored"
             )
-        with self._db:
+        with self._write():
             cursor = self._db.execute(
                 "INSERT OR IGNORE INTO segments (scan_id, target, seq, section, view, z_mm, "
                 "angle_deg, points, data) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -516,7 +670,7 @@ class Library(Scoped):
 
     def held(self, scan_id: int, target: str) -> set[int]:
         """Return the plan indices of ``target`` already stored for the scan."""
-        rows = self._db.execute(
+        rows = self._rows(
             "SELECT seq FROM segments WHERE scan_id = ? AND target = ?", (scan_id, target)
         )
         return {row[0] for row in rows}
@@ -529,11 +683,15 @@ class Library(Scoped):
 
     def segments(self, scan_id: int, target: str) -> list[Segment]:
         """Return the stored segments of ``target`` in plan order."""
-        rows = self._db.execute(
+        return list(self.held_segments(scan_id, target).values())
+
+    def held_segments(self, scan_id: int, target: str) -> dict[int, Segment]:
+        """Return the stored segments of ``target`` by plan index, in plan order (one read)."""
+        rows = self._rows(
             "SELECT * FROM segments WHERE scan_id = ? AND target = ? ORDER BY seq",
             (scan_id, target),
-        ).fetchall()
-        return [_segment_from_row(row) for row in rows]
+        )
+        return {row["seq"]: _segment_from_row(row) for row in rows}
 
     # --- calibration and results -----------------------------------------------------
 
@@ -550,7 +708,7 @@ class Library(Scoped):
         ok, png = cv2.imencode(".png", grid_image)
         if not ok:
             raise StoreError("the calibration image could not be encoded")
-        with self._db:
+        with self._write():
             self._db.execute(
                 "INSERT OR REPLACE INTO calibrations (scan_id, created, board, grid_png, "
                 "cylinder_mm) VALUES (?, ?, ?, ?, ?)",
@@ -559,9 +717,7 @@ class Library(Scoped):
 
     def calibration(self, scan_id: int) -> Calibration | None:
         """Return the scan's calibration data, or None if it has none yet."""
-        row = self._db.execute(
-            "SELECT * FROM calibrations WHERE scan_id = ?", (scan_id,)
-        ).fetchone()
+        row = self._row("SELECT * FROM calibrations WHERE scan_id = ?", (scan_id,))
         if row is None:
             return None
         image = cv2.imdecode(np.frombuffer(row["grid_png"], np.uint8), cv2.IMREAD_UNCHANGED)
@@ -600,7 +756,7 @@ class Library(Scoped):
     def save_result(self, scan_id: int, report: dict[str, Any], files: dict[str, Path]) -> None:
         """Store the processing report and output files (replacing earlier ones)."""
         blobs = {name: Path(path).read_bytes() for name, path in files.items()}
-        with self._db:
+        with self._write():
             self._db.execute("DELETE FROM result_files WHERE scan_id = ?", (scan_id,))
             self._db.execute(
                 "INSERT OR REPLACE INTO results (scan_id, created, report) VALUES (?, ?, ?)",
@@ -614,14 +770,13 @@ class Library(Scoped):
 
     def result(self, scan_id: int) -> dict[str, Any] | None:
         """Return the scan's report, or None if it was never processed."""
-        row = self._db.execute("SELECT report FROM results WHERE scan_id = ?", (scan_id,))
-        found = row.fetchone()
+        found = self._row("SELECT report FROM results WHERE scan_id = ?", (scan_id,))
         return json.loads(found[0]) if found else None
 
     def _result_file(self, scan_id: int, name: str) -> bytes | None:
-        row = self._db.execute(
+        row = self._row(
             "SELECT data FROM result_files WHERE scan_id = ? AND name = ?", (scan_id, name)
-        ).fetchone()
+        )
         return bytes(row[0]) if row else None
 
     def result_mesh(self, scan_id: int) -> bytes:
@@ -676,7 +831,7 @@ class Library(Scoped):
             write_new_file(path, data)
         except OutputError as exc:
             raise StoreError(str(exc)) from None
-        with self._db:
+        with self._write():
             self._db.execute(
                 "INSERT INTO exports (scan_id, created, format, path) VALUES (?, ?, ?, ?)",
                 (scan_id, _now(), path.suffix.lower().lstrip("."), str(path.resolve())),

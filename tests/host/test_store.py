@@ -7,10 +7,14 @@ import sqlite3
 import stat
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pymeshlab
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lamina_host.mesh import save_ply
 from lamina_host.store import Library, StoreError, default_library_path
@@ -209,3 +213,142 @@ def test_lamina_scan_records_the_side_it_is_given(scanned_library):
     with Library(scanned_library) as lib:
         assert lib.scan(1).side == "left"
         assert [s.side for s in lib.scans()] == ["left"]
+
+
+def _count_in_another_process(path) -> int:
+    """Return the object segments another process finds in the library (opened read-write)."""
+    code = (
+        "import sqlite3, sys\n"
+        "db = sqlite3.connect(sys.argv[1], timeout=30)\n"
+        "print(db.execute(\"SELECT COUNT(*) FROM segments WHERE target='object'\").fetchone()[0])\n"
+        "db.close()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True
+    )
+    return int(done.stdout)
+
+
+def test_a_second_library_in_one_process_keeps_the_first_ones_locks(tmp_path):
+    """Issue 19: opening the file outside SQLite dropped this process's locks on it, so another
+    process's last close deleted the WAL under the open connection and later commits were lost."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as first:
+        scan_id = first.create_scan("S-01", PLANS)
+        first.add_segment(scan_id, 0, segment(0))
+        with Library(path) as second:
+            assert second.held(scan_id, "object") == {0}
+        # A reader in another process comes and goes: its close must not take the WAL away.
+        assert _count_in_another_process(path) == 1
+        first.add_segment(scan_id, 1, segment(1))
+        assert _count_in_another_process(path) == 2
+    assert _count_in_another_process(path) == 2
+
+
+def _fill(path) -> dict[int, tuple[str, dict[int, Segment]]]:
+    """Write two scans whose segments span pages (overflow pages too); return what was written."""
+    written = {}
+    with Library(path) as library:
+        for k, subject in enumerate(("S-01", "S-02")):
+            scan_id = library.create_scan(subject, PLANS)
+            segments = {seq: segment(seq, n=300 + 300 * k) for seq in range(12)}
+            for seq, s in segments.items():
+                library.add_segment(scan_id, seq, s)
+            written[scan_id] = (subject, segments)
+    return written
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    path = tmp_path_factory.mktemp("pristine") / "library.sqlite"
+    written = _fill(path)
+    return path.read_bytes(), written
+
+
+def _damage(data: bytes, kind: str, where: float, seed: int) -> bytes:
+    """Return ``data`` with one 4096-byte page overwritten, or cut short, or its header hit."""
+    rng = np.random.default_rng(seed)
+    pages = len(data) // 4096
+    page = min(int(where * pages), pages - 1)
+    if kind == "truncated":
+        return data[: max(page, 1) * 4096]
+    if kind == "header":  # the database header's sizes and counts (bytes 16-99)
+        start = 16 + int(where * 80)
+        return data[:start] + rng.integers(0, 256, 4, np.uint8).tobytes() + data[start + 4 :]
+    fill = bytes(4096) if kind == "zeroed" else rng.integers(0, 256, 4096, np.uint8).tobytes()
+    return data[: page * 4096] + fill + data[(page + 1) * 4096 :]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    # Not a zeroed overflow page: SQLite keeps no checksum of the data, so a blob's zeroed
+    # tail is unseen (README). Not a file cut to nothing: that is a new, empty library.
+    kind=st.sampled_from(["random", "truncated", "header"]),
+    where=st.floats(0, 1, exclude_max=True),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_a_damaged_library_is_refused_untouched_or_reads_back_whole(pristine, kind, where, seed):
+    """Issue 19: a library with damaged pages listed "no scans"; now opening it either refuses
+    in one line and leaves the file as it was, or every scan and segment reads back exactly."""
+    data, written = pristine
+    damaged = _damage(data, kind, where, seed)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "library.sqlite"
+        path.write_bytes(damaged)
+        path.chmod(0o600)
+        try:
+            library = Library(path)
+        except StoreError as exc:
+            assert path.read_bytes() == damaged
+            assert "\n" not in str(exc)
+            if "newer Lamina" in str(exc):  # the header's user_version was hit
+                return
+            assert f"the scan library {path} is damaged (" in str(exc)
+            assert "restore it from a backup" in str(exc)
+            return
+        with library:
+            assert [(s.id, s.subject) for s in library.scans()] == [
+                (k, subject) for k, (subject, _) in written.items()
+            ]
+            for scan_id, (_, segments) in written.items():
+                held = library.held_segments(scan_id, "object")
+                assert held.keys() == segments.keys()
+                assert all(held[seq].same_as(s) for seq, s in segments.items())
+
+
+def test_cli_refuses_a_damaged_library_in_one_line_and_leaves_it(pristine, tmp_path):
+    """Issue 19: ``lamina scans`` said "no scans" (exit 0) and ``export`` "there is no scan 1"
+    on a library with damaged pages."""
+    data, _ = pristine
+    path = tmp_path / "library.sqlite"
+    damaged = _damage(data, "random", 0.3, 7)
+    path.write_bytes(damaged)
+    for args in (("scans",), ("export", "1", "-o", str(tmp_path / "m.ply"))):
+        done = lamina(*args, "--library", str(path))
+        assert done.returncode == 2 and done.stdout == "", args
+        (line,) = done.stderr.strip().splitlines()
+        assert line.startswith(f"lamina: the scan library {path} is damaged (")
+        assert line.endswith("restore it from a backup (or name another with --library)")
+        assert path.read_bytes() == damaged
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_processes_creating_one_new_library_at_once_all_succeed_and_keep_it_private(tmp_path):
+    path = tmp_path / "new" / "library.sqlite"
+    code = (
+        "import sys\n"
+        "from lamina_host.store import Library\n"
+        "from lamina_shared.types import ScanPlan\n"
+        "with Library(sys.argv[1]) as library:\n"
+        "    library.create_scan(sys.argv[2], {'object': ScanPlan.regular(1, 2.0, 4)})\n"
+    )
+    runs = [
+        subprocess.Popen([sys.executable, "-c", code, str(path), f"S-{k}"], stderr=subprocess.PIPE)
+        for k in range(4)
+    ]
+    errors = [run.communicate(timeout=120)[1] for run in runs]
+    assert [run.returncode for run in runs] == [0] * 4, errors
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
+    with Library(path) as library:
+        assert sorted(s.subject for s in library.scans()) == ["S-0", "S-1", "S-2", "S-3"]

@@ -126,9 +126,14 @@ class ScanJob:
     (the object views received, by plan index) and :attr:`results`.
     """
 
-    def __init__(self, target: DeviceTarget, library_path: Path | None = None) -> None:
+    def __init__(
+        self, target: DeviceTarget, library_path: Path | None = None, library: Library | None = None
+    ) -> None:
         self.target = target
-        self.library_path = library_path
+        self.library_path = library.path if library is not None else library_path
+        self._given_library = library
+        self._own_library: Library | None = None
+        self._library_lock = threading.Lock()
         self.data = ScanData()
         self.grid: GridCalibration | None = None
         self.grid_accepted = False
@@ -264,9 +269,16 @@ class ScanJob:
                 stack.close()
 
     def close(self) -> None:
-        """Disconnect (stopping a device program this host started)."""
+        """Disconnect (stopping a device program this host started) and close the library.
+
+        The job's own library is opened again if a later step needs it.
+        """
         with self._lock:
             self._close_link()
+        with self._library_lock:
+            own, self._own_library = self._own_library, None
+        if own is not None:
+            own.close()
 
     @contextmanager
     def _link(self) -> Iterator[DeviceClient]:
@@ -277,9 +289,19 @@ class ScanJob:
             self._close_link()
             raise
 
-    def _library(self) -> Library:
-        """Open the scan library (one connection per call: each worker is its own thread)."""
-        return Library(self.library_path)
+    def library(self) -> Library:
+        """Return the job's scan library, opened on first use and kept until :meth:`close`.
+
+        One connection for every step and thread of the job (a :class:`Library` serialises
+        its calls), so a process holds one rather than one per step; a library handed in
+        at construction is used instead and left to its owner to close.
+        """
+        if self._given_library is not None:
+            return self._given_library
+        with self._library_lock:
+            if self._own_library is None:
+                self._own_library = Library(self.library_path)
+            return self._own_library
 
     # -- the device's own controls ------------------------------------------------------
 
@@ -382,12 +404,12 @@ class ScanJob:
             InputError: no calibration cylinder diameter is known.
         """
         scan_id = self.require_scan()
-        with self._library() as library:
-            if library.calibration(scan_id) is None:
-                image, board = self.grab_grid()
-                diameter = self._cylinder_mm(cylinder_mm)
-                library.save_calibration(scan_id, image, board, diameter, self.identity)
-            calibration = library.calibration(scan_id)
+        library = self.library()
+        if library.calibration(scan_id) is None:
+            image, board = self.grab_grid()
+            diameter = self._cylinder_mm(cylinder_mm)
+            library.save_calibration(scan_id, image, board, diameter, self.identity)
+        calibration = library.calibration(scan_id)
         assert calibration is not None
         self.data.grid_image, self.data.board = calibration.grid_image, calibration.board
         diameter = calibration.cylinder_mm
@@ -438,14 +460,14 @@ class ScanJob:
                 "the device does not know its calibration cylinder: pass --cylinder-mm"
             )
         data = self.data
-        with self._library() as library:
-            scan_id = library.create_scan(
-                request.subject, plans, dict(request.options), data.device, identity, request.side
-            )
-            if data.grid_image is not None and data.board is not None:
-                library.save_calibration(scan_id, data.grid_image, data.board, diameter, identity)
-            for seq, segment in self.cylinder_held.items():
-                library.add_segment(scan_id, seq, segment, identity)
+        library = self.library()
+        scan_id = library.create_scan(
+            request.subject, plans, dict(request.options), data.device, identity, request.side
+        )
+        if data.grid_image is not None and data.board is not None:
+            library.save_calibration(scan_id, data.grid_image, data.board, diameter, identity)
+        for seq, segment in self.cylinder_held.items():
+            library.add_segment(scan_id, seq, segment, identity)
         self.scan_id, self.identity, self.extract = scan_id, identity, request.extract
         self.cylinder_plan, self.plan, self.held = plans["cylinder"], plans["object"], {}
         data.subject_id, data.segments, data.complete = request.subject, [], False
@@ -463,18 +485,18 @@ class ScanJob:
         identity = client.identity()
         limits = client.info.limits if client.info else {}
         axes = client.info.axes if client.info else {}
-        with self._library() as library:
-            library.check_identity(scan_id, identity)
-            record = library.scan(scan_id)
-            for target, stored in record.plans.items():
-                try:
-                    check_plan_limits(target, stored, limits, axes)
-                except InputError as exc:
-                    # Resuming again cannot help: say so rather than advise it once more.
-                    raise InputError(
-                        f"scan {scan_id} cannot be finished on this device: {exc}"
-                    ) from None
-            self._load(library, scan_id)
+        library = self.library()
+        library.check_identity(scan_id, identity)
+        record = library.scan(scan_id)
+        for target, stored in record.plans.items():
+            try:
+                check_plan_limits(target, stored, limits, axes)
+            except InputError as exc:
+                # Resuming again cannot help: say so rather than advise it once more.
+                raise InputError(
+                    f"scan {scan_id} cannot be finished on this device: {exc}"
+                ) from None
+        self._load(library, scan_id)
         self.identity, self.extract = identity, extract
         return scan_id
 
@@ -501,22 +523,14 @@ class ScanJob:
 
     @staticmethod
     def _held(library: Library, scan_id: int, target: str) -> dict[int, Segment]:
-        return dict(
-            zip(
-                sorted(library.held(scan_id, target)),
-                library.segments(scan_id, target),
-                strict=True,
-            )
-        )
+        return library.held_segments(scan_id, target)
 
     def open_scan(self, scan_id: int) -> ScanData:
         """Load a library scan so it can be processed again, exported or resumed."""
-        with self._library() as library:
-            if library.calibration(scan_id) is None:
-                raise InputError(
-                    f"scan {scan_id} has no calibration stored; it cannot be processed"
-                )
-            return self._load(library, scan_id)
+        library = self.library()
+        if library.calibration(scan_id) is None:
+            raise InputError(f"scan {scan_id} has no calibration stored; it cannot be processed")
+        return self._load(library, scan_id)
 
     @property
     def resumable(self) -> bool:
@@ -545,7 +559,7 @@ class ScanJob:
             return [held[k] for k in sorted(held)]
         start, first = time.monotonic(), len(held)
         scan_id, identity = self.scan_id, self.identity
-        library = self._library() if store else None
+        library = self.library() if store else None
 
         def report(section: int, starting: bool = False) -> None:
             if on_progress is not None:
@@ -572,20 +586,16 @@ class ScanJob:
         extra: dict[str, Any] = {} if self.extract is None else {"extract": self.extract}
         if self.colour and target == "object":  # the cylinder needs no colour
             extra["colour"] = True
-        try:
-            with self._link() as client:
-                client.scan(
-                    target,
-                    plan,
-                    progress,
-                    have=tuple(held),
-                    on_segment=take,
-                    on_notice=on_notice,
-                    **extra,
-                )
-        finally:
-            if library is not None:
-                library.close()
+        with self._link() as client:
+            client.scan(
+                target,
+                plan,
+                progress,
+                have=tuple(held),
+                on_segment=take,
+                on_notice=on_notice,
+                **extra,
+            )
         return [held[k] for k in sorted(held)]
 
     def fetch_cylinder(
@@ -616,12 +626,12 @@ class ScanJob:
             raise InputError("no scan to resume: start one (s)")
         plan = self.plan
         identity = self._device().identity()
-        with self._library() as library:
-            # Before anything changes: a scan is only ever continued by what began it.
-            library.check_identity(scan_id, identity)
-            info = self.info
-            limits, axes = (info.limits, info.axes) if info else ({}, {})
-            check_plan_limits("object", plan, limits, axes)
+        library = self.library()
+        # Before anything changes: a scan is only ever continued by what began it.
+        library.check_identity(scan_id, identity)
+        info = self.info
+        limits, axes = (info.limits, info.axes) if info else ({}, {})
+        check_plan_limits("object", plan, limits, axes)
         self.identity = identity
         self.data.complete = False
         self.results = None
@@ -630,8 +640,7 @@ class ScanJob:
                 self._run_views("object", plan, self.held, True, on_segment, on_progress, on_notice)
             finally:
                 self.data.segments = [self.held[k] for k in sorted(self.held)]
-        with self._library() as library:
-            library.set_status(scan_id, "acquired")
+        self.library().set_status(scan_id, "acquired")
         self.data.complete = True
         return self.data.segments
 
@@ -687,10 +696,10 @@ class ScanJob:
         report["volume_mm3"] = volume_mm3(rows)
         paths: dict[str, Any] = {}
         if self.scan_id is not None or out is not None:
-            with tempfile.TemporaryDirectory() as tmp, self._library() as library:
+            with tempfile.TemporaryDirectory() as tmp:
                 paths = write_outputs(out or Path(tmp), result, report)
                 if self.scan_id is not None:
-                    library.save_result(self.scan_id, report, paths)
+                    self.library().save_result(self.scan_id, report, paths)
             if out is None:
                 paths = {}
         self.results = Results(result, rows, report["volume_mm3"], report, options.mesh, paths)
@@ -712,9 +721,7 @@ class ScanJob:
             InputError: the scan lacks its calibration or is not fully acquired.
             ProcessingError: the processing failed (the scan is kept as it was).
         """
-        with self._library() as library:
-            acquiring = library.scan(scan_id).status == "acquiring"
-        if acquiring:
+        if self.library().scan(scan_id).status == "acquiring":
             raise InputError(
                 f"scan {scan_id} is not fully acquired: finish it with lamina scan --resume "
                 f"{scan_id} --device DEVICE (or resume it on the terminal UI's Scan screen)"
@@ -738,18 +745,16 @@ class ScanJob:
         if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
             raise InputError(f"{folder} is not an empty folder; choose a new one")
         folder.mkdir(parents=True, exist_ok=True, mode=PRIVATE_FOLDER)
-        with self._library() as library:
-            return [library.export(scan_id, folder / name) for name in EXPORT_NAMES]
+        library = self.library()
+        return [library.export(scan_id, folder / name) for name in EXPORT_NAMES]
 
     def scans(self) -> list[ScanSummary]:
         """Return the library's scans, oldest first."""
-        with self._library() as library:
-            return library.scans()
+        return self.library().scans()
 
     def delete_scan(self, scan_id: int) -> None:
         """Delete a scan from the library (forgetting it here too if it is open)."""
-        with self._library() as library:
-            library.delete_scan(scan_id)
+        self.library().delete_scan(scan_id)
         if self.scan_id == scan_id:
             self.scan_id, self.results, self.plan, self.held = None, None, None, {}
             self.data = ScanData()

@@ -17,7 +17,6 @@ from lamina_host.clinical import Visit
 from lamina_host.efd import HARMONIC_RULES
 from lamina_host.mesh import MESH_METHODS
 from lamina_host.status import ESTIMATED
-from lamina_host.store import Library
 from lamina_host.tui.adapter import Results, UserError, radius_profile
 from lamina_host.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
@@ -160,12 +159,12 @@ class ResultsScreen(LaminaScreen):
         """Return the visits of the open scan's subject in the library (none if unsaved)."""
         from lamina_host.clinical_report import MeasureRequest, subject_visits
 
-        scan_id, path = self.session.scan_id, self.session.library_path
+        scan_id = self.session.scan_id
         if scan_id is None:
             return []
         try:
-            with Library(path) as library:
-                return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
+            library = self.session.library()  # the session's own: one connection a process
+            return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
         except LaminaError:
             return []  # the view still measures this scan; only the history is missing
 
