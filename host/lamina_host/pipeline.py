@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 
 from lamina_host.assembly import (
+    Blend,
     average_overlap_colours,
-    average_overlaps,
+    blend_overlaps,
     split_outlines,
     to_object_frame,
     trim,
@@ -38,6 +39,7 @@ from lamina_host.efd import (
     PARAMETERS,
     EfdStack,
     EllipticFourier,
+    MeasuredPoints,
     choose_harmonics,
     efd_fit,
     nyquist_max,
@@ -430,12 +432,27 @@ def thin_outline(points: np.ndarray, max_points: int | None) -> np.ndarray:
     return np.add.reduceat(pts, starts, axis=0) / counts
 
 
-def fit_outline(raw: np.ndarray, options: ProcessOptions) -> EllipticFourier:
-    """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4)."""
+def fit_outline(
+    raw: np.ndarray, options: ProcessOptions, measured: MeasuredPoints | None = None
+) -> EllipticFourier:
+    """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4).
+
+    ``measured`` (the views' own points and their noise) is what the default order rule
+    judges the fit by; without it that rule falls back to the spectrum's noise floor.
+    """
     pts = thin_outline(raw, options.max_efd_points)
-    order = options.harmonics or choose_harmonics(pts, options.harmonic_rule, options.efd_parameter)
+    order = options.harmonics or choose_harmonics(
+        pts, options.harmonic_rule, options.efd_parameter, measured
+    )
     order = max(1, min(order, nyquist_max(len(pts))))
     return efd_fit(pts, order, options.efd_parameter)
+
+
+def measured_points(blend: Blend) -> MeasuredPoints | None:
+    """Return what the order rule needs of a blend: its points and noise (None: unknown)."""
+    if blend.noise_mm is None or not blend.noise_mm > 0:
+        return None
+    return MeasuredPoints(blend.centre_mm, blend.angle_rad, blend.radius_mm, blend.noise_mm)
 
 
 def fit_section(
@@ -447,8 +464,9 @@ def fit_section(
     ``options.max_bridge_deg`` (EFD closes it; those samples are flagged estimated) and
     "open" otherwise, until :func:`fill_gaps` fills it from neighbouring sections.
     """
-    raw = average_overlaps(parts)
-    efd = fit_outline(raw, options)
+    blend = blend_overlaps(parts)
+    raw = blend.points
+    efd = fit_outline(raw, options, measured_points(blend))
     contour = efd.evaluate(options.outline_points)
     coverage = measure_coverage(raw)
     gap = coverage.largest_gap_deg
