@@ -72,9 +72,10 @@ class Blend:
 
     ``points`` is the blended contour (one point per measured point, sorted by polar angle
     about ``centre_mm``); ``angle_rad`` and ``radius_mm`` are the measured points' own polar
-    coordinates in the same order, before blending. ``noise_mm`` is the RMS distance of a
-    measured point from the surface, estimated where two views saw the same surface
-    (:func:`overlap_noise`); None when no two views overlap.
+    coordinates before blending, each view's averaged over runs ``RESOLUTION_RAD`` long
+    (:func:`run_means`). ``noise_mm`` is the RMS distance of those from the surface,
+    estimated where two views saw the same surface (:func:`overlap_noise`); None when no
+    two views overlap.
     """
 
     points: np.ndarray
@@ -120,17 +121,53 @@ def blend_overlaps(segments: list[np.ndarray]) -> Blend:
     polar = [_polar(s, centre) for s in segs]
     ang, rad = _overlap_means(polar, [r[:, None] for _, r in polar])
     rad = rad[:, 0]
-    own_ang = np.concatenate([a for a, _ in polar])
-    own_rad = np.concatenate([r for _, r in polar])
-    order = np.argsort(own_ang, kind="stable")
-    noise, pairs = overlap_noise(polar)
+    local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
+    noise, pairs = overlap_noise(local)
+    own_ang = np.concatenate([a for a, _ in local])
+    own_rad = np.concatenate([r for _, r in local])
     return Blend(
         centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1),
         centre,
-        own_ang[order],
-        own_rad[order],
+        own_ang,
+        own_rad,
         noise,
         pairs,
+    )
+
+
+RESOLUTION_RAD = 2.0 * np.pi / 256.0
+"""The finest detail the outline's order is judged at: half a wavelength of harmonic 128
+(``efd.MAX_TESTED_HARMONICS``), which averaging over it attenuates by a third."""
+
+
+def run_means(
+    angle_rad: np.ndarray, radius_mm: np.ndarray, resolution_rad: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return a stripe's points averaged in runs of consecutive points ``resolution_rad`` long.
+
+    Stripe noise at a pixel's scale is far finer than any harmonic the EFD keeps; a mean
+    over a few neighbours along the stripe keeps what an outline's order can show (its
+    shape, the views' disagreement) and lowers the rest, in the residual and in the noise
+    alike. Runs hold ``floor(points * resolution / angular span)`` points (at least one).
+
+    Args:
+        angle_rad: the stripe's points' polar angles, in stripe order.
+        radius_mm: their radii.
+        resolution_rad: the angular length of a run.
+
+    Returns:
+        The runs' mean angles (unwrapped along the stripe) and mean radii.
+    """
+    unwrapped = np.unwrap(np.asarray(angle_rad, dtype=float))
+    span = float(np.ptp(unwrapped)) if len(unwrapped) else 0.0
+    k = max(1, int(len(unwrapped) * resolution_rad / span)) if span > 0 else 1
+    if k == 1:
+        return unwrapped, np.asarray(radius_mm, dtype=float)
+    starts = np.arange(0, len(unwrapped), k)
+    counts = np.diff(np.append(starts, len(unwrapped)))
+    return (
+        np.add.reduceat(unwrapped, starts) / counts,
+        np.add.reduceat(np.asarray(radius_mm, dtype=float), starts) / counts,
     )
 
 

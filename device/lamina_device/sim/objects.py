@@ -30,6 +30,7 @@ __all__ = [
 
 OUTLINE_VERTICES = 4096
 _PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm")  # sim.phantoms.PHANTOMS
+_RELIEF_NAMES = ("arm", "stump")  # sim.phantoms.RELIEF_PHANTOMS
 _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
 
 
@@ -584,9 +585,13 @@ _FORMS = {
     "mesh": ("mesh:path=/some/file.stl,scale=1", {"path"}, {"scale"}),
     "patches": ("patches:d=30,h=40", set(), {"d", "h"}),
     **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
+    **{
+        name: (f"{name}:scale=1,relief=0.3,wave=10", set(), {"scale", "relief", "wave"})
+        for name in _RELIEF_NAMES
+    },  # fmt: skip
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
-_POSITIVE = {"d", "h", "a", "b", "c", "scale"}
+_POSITIVE = {"d", "h", "a", "b", "c", "scale", "relief", "wave"}
 
 
 def _parse_fields(kind: str, body: str, form: str) -> dict[str, str]:
@@ -631,7 +636,8 @@ def parse_object(spec: str) -> SceneObject:
     """Build a scene object from ``kind:key=value,...``: a solid, a mesh file or a phantom.
 
     Kinds: cylinder, sphere, ellipsoid, mesh, the phantoms of
-    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``)
+    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump, arm;
+    ``scale=``; the limbs arm and stump also ``relief=`` and ``wave=``, skin relief)
     and ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
     on the axis, so no placement keys).
     """
@@ -658,5 +664,5 @@ def parse_object(spec: str) -> SceneObject:
     if kind in _PHANTOM_NAMES:
         from lamina_device.sim.phantoms import phantom  # phantoms build on this module
 
-        return phantom(kind, placement)
+        return phantom(kind, placement, num.get("relief"), num.get("wave"))
     return load_mesh(fields["path"], placement)
