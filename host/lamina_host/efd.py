@@ -376,9 +376,9 @@ def harmonics_residual(
     So the order is the smallest N whose residual is at most ``(1 + margin)`` noise, or
     within ``PLATEAU_MARGIN`` of it and no longer falling (all higher orders together
     remove less than ``PLATEAU_GAIN`` of the noise power beyond what following the noise
-    removes, judged by the residual's fall over the upper half of the orders), tested up to ``MAX_TESTED_HARMONICS`` and the
-    Nyquist cap: first on a coarse grid of orders, then by bisection below the first
-    order that passes.
+    removes, judged by the residual's fall over the upper half of the orders), tested up
+    to ``MAX_TESTED_HARMONICS`` and the Nyquist cap: first on a coarse grid of orders,
+    then by bisection below the first order that passes.
 
     Args:
         contour: (K, 2) blended closed contour in mm (what is fitted).

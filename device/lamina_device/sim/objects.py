@@ -588,7 +588,7 @@ _FORMS = {
     **{
         name: (f"{name}:scale=1,relief=0.3,wave=10", set(), {"scale", "relief", "wave"})
         for name in _RELIEF_NAMES
-    },  # fmt: skip
+    },
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
 _POSITIVE = {"d", "h", "a", "b", "c", "scale", "relief", "wave"}
