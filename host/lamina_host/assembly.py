@@ -159,16 +159,27 @@ def run_means(
         The runs' mean angles (unwrapped along the stripe) and mean radii.
     """
     unwrapped = np.unwrap(np.asarray(angle_rad, dtype=float))
+    radius = np.asarray(radius_mm, dtype=float)
     span = float(np.ptp(unwrapped)) if len(unwrapped) else 0.0
     k = max(1, int(len(unwrapped) * resolution_rad / span)) if span > 0 else 1
     if k == 1:
-        return unwrapped, np.asarray(radius_mm, dtype=float)
-    starts = np.arange(0, len(unwrapped), k)
+        return unwrapped, radius
+    # A run does not reach across a hole in the stripe (a shadow, a rejected stretch).
+    step = np.abs(np.diff(unwrapped))
+    hole = np.concatenate([[True], step > RUN_HOLE_STEPS * np.median(step)])
+    piece = np.cumsum(hole) - 1
+    first = np.flatnonzero(hole)[piece]
+    run = piece * len(unwrapped) + (np.arange(len(unwrapped)) - first) // k
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(run) != 0]))
     counts = np.diff(np.append(starts, len(unwrapped)))
     return (
         np.add.reduceat(unwrapped, starts) / counts,
-        np.add.reduceat(np.asarray(radius_mm, dtype=float), starts) / counts,
+        np.add.reduceat(radius, starts) / counts,
     )
+
+
+RUN_HOLE_STEPS = 4.0
+"""A step along a stripe this many times its median step is a hole runs do not cross."""
 
 
 def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:

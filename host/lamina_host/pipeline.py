@@ -32,7 +32,7 @@ from lamina_host.calibration import (
     calibrate_grid,
 )
 from lamina_host.clinical import CLINICAL_INTERPOLATION
-from lamina_host.coverage import Coverage, measure_coverage
+from lamina_host.coverage import Coverage, bridge_gaps, measure_coverage
 from lamina_host.efd import (
     HARMONIC_RULES,
     INTERPOLATIONS,
@@ -173,9 +173,15 @@ class ProcessOptions:
 
 
 STATUSES = ("measured", "bridged", "interpolated", "open")
-"""How an outline was closed: seen all round; small unseen gaps closed by EFD; large gaps
-filled from the neighbouring sections' EFD (interpolated along z); or not closed (open:
-the gap is too wide and no neighbouring section could fill it; not meshed)."""
+"""How an outline was closed: seen all round; unseen gaps closed from its own points (small
+ones by EFD, wider ones of a mostly measured outline by a bridge from their sides); large
+gaps of a mostly unseen outline filled from the neighbouring sections' EFD (interpolated
+along z); or not closed (open: no neighbouring section could fill it; not meshed)."""
+
+OWN_BRIDGE_FRACTION = 0.75
+"""An outline at least this much covered is closed from its own points, however wide its
+gap; neighbouring sections fill only outlines mostly unseen (their shape may differ: a
+thin part ending, a tip)."""
 
 INTERP_REACH_SECTIONS = 3
 """A large gap is filled only from outlines at most this many section pitches away."""
@@ -460,18 +466,26 @@ def fit_section(
 ) -> Section:
     """Average an outline's overlaps, fit its EFD (thesis 6.3-6.4) and measure its coverage.
 
-    The status is "measured" without unseen gaps, "bridged" when the widest gap is at most
-    ``options.max_bridge_deg`` (EFD closes it; those samples are flagged estimated) and
-    "open" otherwise, until :func:`fill_gaps` fills it from neighbouring sections.
+    The status is "measured" without unseen gaps; "bridged" when the widest gap is at most
+    ``options.max_bridge_deg`` or the outline is mostly measured (at least
+    ``OWN_BRIDGE_FRACTION`` covered): each gap is then bridged from the outline's own
+    points on its sides (``coverage.bridge_gaps``; with ``max_bridge_deg`` None the EFD
+    closes every gap alone, as the thesis); and "open" otherwise, until
+    :func:`fill_gaps` fills it from neighbouring sections. Samples in gaps are flagged
+    estimated.
     """
     blend = blend_overlaps(parts)
     raw = blend.points
-    efd = fit_outline(raw, options, measured_points(blend))
-    contour = efd.evaluate(options.outline_points)
     coverage = measure_coverage(raw)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
-    status = "measured" if gap == 0 else "bridged" if limit is None or gap <= limit else "open"
+    # A gap of a mostly measured outline is bridged from its own sides (an EFD closing it
+    # alone draws a chord, and its kinks cost harmonics); None leaves it to EFD (thesis).
+    own = limit is not None and (gap <= limit or coverage.fraction >= OWN_BRIDGE_FRACTION)
+    fitted = bridge_gaps(raw, np.asarray(coverage.centre_mm)) if own and gap > 0 else raw
+    efd = fit_outline(fitted, options, measured_points(blend))
+    contour = efd.evaluate(options.outline_points)
+    status = "measured" if gap == 0 else "bridged" if limit is None or own else "open"
     estimated = coverage.unseen(contour)
     return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
 
