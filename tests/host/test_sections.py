@@ -185,8 +185,9 @@ def test_a_scan_keeps_its_mostly_measured_section_its_own() -> None:
         result = run(scan)
         middle = next(s for s in result.sections if s.index == 2)
         area_error = polygon_area(middle.contour) / (np.pi * radius**2) - 1.0
-        print(f"{len(views)} views: {middle.status}, coverage {middle.coverage.fraction:.3f}, "
-              f"gap {middle.coverage.largest_gap_deg:.0f} deg, area {100 * area_error:+.3f} %")  # fmt: skip
+        cover, gap = middle.coverage.fraction, middle.coverage.largest_gap_deg
+        print(f"{len(views)} views: {middle.status}, coverage {cover:.3f}, gap {gap:.0f} deg, "
+              f"area {100 * area_error:+.3f} %")  # fmt: skip
         assert low <= middle.coverage.fraction <= high and middle.coverage.largest_gap_deg > 30
         assert middle.status == "bridged" and abs(area_error) < 0.01
         assert distance_to(middle.contour, truth).max() < 0.05
