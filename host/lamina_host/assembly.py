@@ -209,24 +209,25 @@ def overlap_noise(polar: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float | N
         (noise in mm, number of pairs); noise None with fewer than ``MIN_NOISE_PAIRS``.
     """
     diffs, factors = [], []
+    ang_all = np.concatenate([a for a, _ in polar])
+    rad_all = np.concatenate([r for _, r in polar])
+    owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
     for m, (ang_m, rad_m) in enumerate(polar):
         xp = np.unwrap(ang_m)
         order = np.argsort(xp, kind="stable")
         xp, fp = xp[order], rad_m[order]
         if len(xp) < 2 or xp[-1] <= xp[0]:
             continue
-        for k, (ang_k, rad_k) in enumerate(polar):
-            if k == m:
-                continue
-            shifted = xp[0] + np.mod(ang_k - xp[0], TWO_PI)
-            inside = shifted <= xp[-1]
-            if not inside.any():
-                continue
-            x = shifted[inside]
-            j = np.clip(np.searchsorted(xp, x) - 1, 0, len(xp) - 2)
-            t = (x - xp[j]) / np.maximum(xp[j + 1] - xp[j], 1e-300)
-            diffs.append(rad_k[inside] - np.interp(x, xp, fp))
-            factors.append(1.0 + t**2 + (1.0 - t) ** 2)
+        # Every other segment's points at once, shifted into [lo, lo + 2 pi).
+        shifted = xp[0] + np.mod(ang_all - xp[0], TWO_PI)
+        inside = (shifted <= xp[-1]) & (owner != m)
+        if not inside.any():
+            continue
+        x = shifted[inside]
+        j = np.clip(np.searchsorted(xp, x) - 1, 0, len(xp) - 2)
+        t = (x - xp[j]) / np.maximum(xp[j + 1] - xp[j], 1e-300)
+        diffs.append(rad_all[inside] - np.interp(x, xp, fp))
+        factors.append(1.0 + t**2 + (1.0 - t) ** 2)
     if not diffs:
         return None, 0
     d, f = np.concatenate(diffs), np.concatenate(factors)
