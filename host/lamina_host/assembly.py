@@ -60,6 +60,20 @@ def to_object_frame(
     return correction_factor * (p @ rot_t)
 
 
+def unwrap_angles(angle_rad: np.ndarray) -> np.ndarray:
+    """Return angles along a stripe unwrapped (no step over pi), as ``np.unwrap`` but leaner.
+
+    Called for every stripe of every section, where ``np.unwrap``'s generality costs more
+    than the work.
+    """
+    a = np.asarray(angle_rad, dtype=float)
+    if len(a) < 2:
+        return a.copy()
+    step = np.diff(a)
+    step -= TWO_PI * np.round(step / TWO_PI)
+    return np.concatenate([a[:1], a[0] + np.cumsum(step)])
+
+
 def _polar(points: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return (angle in (-pi, pi], radius) of points about centre."""
     d = points - centre
@@ -158,7 +172,7 @@ def run_means(
     Returns:
         The runs' mean angles (unwrapped along the stripe) and mean radii.
     """
-    unwrapped = np.unwrap(np.asarray(angle_rad, dtype=float))
+    unwrapped = unwrap_angles(angle_rad)
     radius = np.asarray(radius_mm, dtype=float)
     span = float(np.ptp(unwrapped)) if len(unwrapped) else 0.0
     k = max(1, int(len(unwrapped) * resolution_rad / span)) if span > 0 else 1
@@ -166,7 +180,7 @@ def run_means(
         return unwrapped, radius
     # A run does not reach across a hole in the stripe (a shadow, a rejected stretch).
     step = np.abs(np.diff(unwrapped))
-    hole = np.concatenate([[True], step > RUN_HOLE_STEPS * np.median(step)])
+    hole = np.concatenate([[True], step > RUN_HOLE_STEPS * span / (len(unwrapped) - 1)])
     piece = np.cumsum(hole) - 1
     first = np.flatnonzero(hole)[piece]
     run = piece * len(unwrapped) + (np.arange(len(unwrapped)) - first) // k
@@ -179,7 +193,7 @@ def run_means(
 
 
 RUN_HOLE_STEPS = 4.0
-"""A step along a stripe this many times its median step is a hole runs do not cross."""
+"""A step along a stripe this many times its mean step is a hole runs do not cross."""
 
 
 def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
@@ -213,7 +227,7 @@ def overlap_noise(polar: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float | N
     rad_all = np.concatenate([r for _, r in polar])
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
     for m, (ang_m, rad_m) in enumerate(polar):
-        xp = np.unwrap(ang_m)
+        xp = unwrap_angles(ang_m)
         order = np.argsort(xp, kind="stable")
         xp, fp = xp[order], rad_m[order]
         if len(xp) < 2 or xp[-1] <= xp[0]:
@@ -298,15 +312,12 @@ def _overlap_means(
     are unwrapped along each segment so segments crossing +-pi and segments running
     clockwise are handled; the result is sorted by angle.
     """
-    tables = []
+    tables, own_weight = [], []
     for (ang_m, _), val in zip(polar, values, strict=True):
-        unwrapped = np.unwrap(ang_m)
+        unwrapped = unwrap_angles(ang_m)
         order = np.argsort(unwrapped, kind="stable")
         tables.append((unwrapped[order], val[order]))
-    own_weight = []
-    for ang_m, _ in polar:
-        unwrapped = np.unwrap(ang_m)
-        lo, hi = unwrapped.min(), unwrapped.max()
+        lo, hi = unwrapped[order[0]], unwrapped[order[-1]]
         span = hi - lo if hi > lo else 1.0
         own_weight.append(blend_weight((unwrapped - lo) / span))
     ang = np.concatenate([a for a, _ in polar])

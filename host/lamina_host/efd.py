@@ -359,6 +359,24 @@ def _truncations(pts: np.ndarray, top: int, parameter: str) -> tuple[np.ndarray,
     return np.fft.rfft(xy, axis=1), np.array(length)
 
 
+def _polar_table(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return a closed curve's samples as (angle, radius) sorted by angle about the origin.
+
+    A star-shaped curve's unwrapped angle runs one way round: it is reversed if need be,
+    with no sort; otherwise the angles in (-pi, pi] are sorted. The angles ascend from the
+    first and span less than one turn.
+    """
+    rad = np.hypot(x, y)
+    ang = np.unwrap(np.arctan2(y, x))
+    if ang[-1] < ang[0]:
+        ang, rad = ang[::-1], rad[::-1]
+    if np.all(np.diff(ang) > 0) and ang[-1] - ang[0] < 2.0 * np.pi:
+        return ang, rad
+    wrapped = np.arctan2(y, x)
+    order = np.argsort(wrapped)
+    return wrapped[order], np.hypot(x, y)[order]
+
+
 def harmonics_residual(
     contour: np.ndarray,
     measured: MeasuredPoints,
@@ -401,9 +419,10 @@ def harmonics_residual(
             kept = spectrum.copy()
             kept[:, order + 1 :] = 0.0
             x, y = np.fft.irfft(kept, int(length), axis=1) - centre[:, None]
-            ang, rad = np.arctan2(y, x), np.hypot(x, y)
-            by = np.argsort(ang)
-            fit = np.interp(measured.angle_rad, ang[by], rad[by], period=2.0 * np.pi)
+            ang, rad = _polar_table(x, y)
+            # One turn from the first sample, closed: np.interp's period would sort again.
+            at = ang[0] + np.mod(measured.angle_rad - ang[0], 2.0 * np.pi)
+            fit = np.interp(at, np.append(ang, ang[0] + 2.0 * np.pi), np.append(rad, rad[0]))
             cache[order] = float(np.sqrt(np.mean((measured.radius_mm - fit) ** 2)))
         return cache[order]
 
