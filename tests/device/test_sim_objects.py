@@ -156,7 +156,7 @@ def test_limb_phantoms_take_skin_relief_of_the_asked_height_and_wavelength():
     waves = int(np.argmax(spectrum[1:]) + 1)
     perimeter = float(np.sum(np.linalg.norm(np.diff(smooth[:, :2], axis=0), axis=1)))
     assert perimeter / waves == pytest.approx(8.0, rel=0.1)
-    with pytest.raises(ValueError, match="unknown key .relief."):
+    with pytest.raises(ValueError, match=r"unknown key .relief."):
         parse_object("hand:relief=0.3")
     with pytest.raises(ValueError, match="wave= needs relief="):
         parse_object("stump:wave=5")
