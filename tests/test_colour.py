@@ -199,8 +199,13 @@ def test_overlapping_views_get_the_mean_colour():
     colours = [np.tile(c, (len(a), 1)) for c, a in zip(paint, angles, strict=True)]
     points, mean = average_overlap_colours(arcs, colours)
     azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0])) % 360
+    # In the overlap the colour blends from one view's to the other's without a step
+    # (weights falling to zero at each view's end): a convex mix, red falling steadily.
     both = (azimuth > 91) & (azimuth < 179)
-    np.testing.assert_allclose(mean[both], [[100.0, 0.0, 50.0]] * int(both.sum()))
+    mix = mean[both][np.argsort(azimuth[both])]
+    np.testing.assert_allclose(mix[:, 0] / 200.0 + mix[:, 2] / 100.0, 1.0)
+    assert np.all(np.diff(mix[:, 0]) <= 1e-9) and mix[0, 0] > 190.0 and mix[-1, 0] < 10.0
+    assert np.abs(np.diff(mix[:, 0])).max() < 20.0
     np.testing.assert_allclose(mean[azimuth < 89], [[200.0, 0.0, 0.0]] * int((azimuth < 89).sum()))
     # The geometry's overlap averaging is unchanged by sharing its core with colour.
     contour = average_overlaps(arcs)

@@ -140,3 +140,78 @@ def measure_coverage(points: np.ndarray, bin_deg: float = COVERAGE_BIN_DEG) -> C
     lo[hole] = np.minimum(np.roll(lo, 1), np.roll(lo, -1))[hole]
     hi[hole] = np.maximum(np.roll(hi, 1), np.roll(hi, -1))[hole]
     return Coverage(probe.centre_mm, covered | hole, lo, hi)
+
+
+BRIDGE_MIN_GAP_DEG = 4.0
+"""Unseen gaps narrower than this (two coverage bins) are left to the EFD to close."""
+
+BRIDGE_SIDE_DEG = 10.0
+"""Each side of a gap, the measured points this far from it give the bridge's end value
+and slope (a parabola fitted to them)."""
+
+BRIDGE_STEP_DEG = 0.5
+"""Angular spacing of the samples of a bridge."""
+
+
+def _side(ang: np.ndarray, rad: np.ndarray) -> tuple[float, float]:
+    """Return the value and slope at angle 0 of a parabola fitted to (ang, rad).
+
+    A parabola, not a line: a line's slope is that of the window's middle, which on a
+    curved outline tilts the bridge (0.2 mm over 20 degrees of a 30 x 22 mm ellipse).
+    """
+    if len(ang) < 2 or np.ptp(ang) <= 0:
+        return float(np.mean(rad)), 0.0
+    coeffs = np.polyfit(ang, rad, 2 if len(ang) >= 6 else 1)
+    return float(coeffs[-1]), float(coeffs[-2])
+
+
+def bridge_gaps(points: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """Return an outline's measured points with every unseen gap bridged from its own sides.
+
+    About ``centre_mm``, each gap between angularly consecutive points wider than
+    ``BRIDGE_MIN_GAP_DEG`` is spanned by a cubic Hermite curve in polar coordinates whose
+    ends take the value and slope of a parabola fitted to the measured points within
+    ``BRIDGE_SIDE_DEG`` on that side: the outline continues smoothly as it was seen
+    arriving at the gap and leaving it. The outline must be star-shaped about the centre
+    (as overlap blending assumes). A chord, which EFD would draw, cuts inside a convex
+    outline (by 2.4 mm over 36 degrees of a 50 mm radius).
+
+    Args:
+        points: (N, 2) measured points of one outline in mm.
+        centre_mm: the centre the gaps are measured about (``Coverage.centre_mm``).
+
+    Returns:
+        (M, 2) points, the measured ones and the bridges', sorted by angle about the centre.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    centre = np.asarray(centre_mm, dtype=float)
+    d = pts - centre
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    order = np.argsort(ang, kind="stable")
+    pts, ang, rad = pts[order], ang[order], np.hypot(*d[order].T)
+    if len(pts) < 4:
+        return pts
+    step = np.diff(np.append(ang, ang[0] + 2.0 * np.pi))
+    side = np.deg2rad(BRIDGE_SIDE_DEG)
+    extra = []
+    for k in np.flatnonzero(step > np.deg2rad(BRIDGE_MIN_GAP_DEG)):
+        start, width = ang[k], step[k]
+        # Angles relative to the gap's start, unwrapped: left side <= 0, right >= width.
+        rel = np.mod(ang - start + np.pi, 2.0 * np.pi) - np.pi
+        left = (rel <= 0.0) & (rel >= -side)
+        rel_r = np.mod(ang - start, 2.0 * np.pi)
+        right = (rel_r >= width - 1e-12) & (rel_r <= width + side)
+        r0, s0 = _side(rel[left], rad[left])
+        r1, s1 = _side(rel_r[right] - width, rad[right])
+        n = max(2, int(np.ceil(np.rad2deg(width) / BRIDGE_STEP_DEG)))
+        t = np.arange(1, n) / n
+        h00, h10 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t
+        h01, h11 = -2 * t**3 + 3 * t**2, t**3 - t**2
+        r = h00 * r0 + h10 * width * s0 + h01 * r1 + h11 * width * s1
+        a = start + t * width
+        extra.append(centre + np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
+    if not extra:
+        return pts
+    merged = np.concatenate([pts, *extra])
+    m = merged - centre
+    return merged[np.argsort(np.arctan2(m[:, 1], m[:, 0]), kind="stable")]

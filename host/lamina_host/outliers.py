@@ -14,13 +14,17 @@ becomes a phantom outline or a bump. Five steps, cheapest first, each vectorised
    in an angular sector where other views agree on surfaces only at radii far from it,
    is an outlier, unless it continues a stretch of its own stripe that other
    views do confirm (the far side of a thin part, which one view sees, continues into
-   its confirmed sides; a reflection is a stretch of its own). A point in a sector no
-   other view covers is kept.
+   its confirmed sides; a reflection is a stretch of its own) or its stretch is the arc
+   of a thin part close beside a confirmed surface (which shadows it from the other
+   views). A point in a sector no other view covers is kept.
 4. **Outline support**: the points are grouped into clusters (points closer than the
-   outline gap join); a cluster is an outline only with enough points, enough views,
+   outline gap join); a cluster is an outline with enough points, enough views,
    enough size and enough angular extent about its fitted circle's centre. Phantom
    clusters come from one view (a reflection moves with the turntable, so it lands
    elsewhere in each view), and two that meet by chance form a stroke, not an arc.
+   A smaller cluster, or one seen by one view, that nothing contradicted (step 3) is
+   still kept when its view's stripe continues into it from a supported cluster, or
+   when it is the arc of a thin part (2-6 mm thick): it is rejected only on evidence.
 5. **Stray stretches**: what is left of a view's stripe in runs of fewer than
    ``MIN_RUN_POINTS`` points (between rejected points, or apart from the stripe) goes;
    each remaining run is one piece for overlap averaging, which interpolates a piece
@@ -82,6 +86,16 @@ class OutlierRules:
     """Smallest bounding-box diagonal of an outline."""
     min_angle_deg: float = 60.0
     """Smallest angle an outline subtends about its fitted circle's centre."""
+    min_thin_points: int = 10
+    """Fewest points of a cluster kept without the support above (``cluster_support``)."""
+    continue_mm: float = 5.0
+    """Longest step along one view's stripe that continues a supported cluster."""
+    thin_radius_mm: tuple[float, float] = (1.0, 3.0)
+    """Radii of the circle a thin part's arc fits (2-6 mm thick)."""
+    thin_fit_mm: float = 0.1
+    """Largest RMS distance of a thin part's points from their circle."""
+    thin_reach_mm: float = 6.0
+    """A thin part one view saw beside a confirmed surface lies at most this far from it."""
 
 
 @dataclass
@@ -248,6 +262,38 @@ def run_confirmed_share(
     return share[run], run
 
 
+def thin_runs(
+    points: np.ndarray,
+    run: np.ndarray,
+    suspect: np.ndarray,
+    confirmed: np.ndarray,
+    rules: OutlierRules,
+) -> np.ndarray:
+    """Return True for the points of suspect runs that are a thin part beside the surface.
+
+    A thin part (2-6 mm thick) near a larger one is often seen by one view, the others
+    shadowed by the larger part; other views confirming that larger part in the same
+    sector do not contradict it. A run (one view's stretch, :func:`run_confirmed_share`)
+    holding ``suspect`` points is kept when it is :func:`thin_part`'s arc and lies within
+    ``rules.thin_reach_mm`` of a confirmed point. Further out, where the other views
+    would have seen it too, it stays contradicted (a reflection).
+    """
+    out = np.zeros(len(points), dtype=bool)
+    runs = np.unique(run[suspect])
+    if len(runs) == 0 or not confirmed.any():
+        return out
+    from scipy.spatial import cKDTree  # deferred: only sections with suspects need it
+
+    tree = cKDTree(points[confirmed])
+    for r in runs:
+        mine = run == r
+        if mine.sum() < rules.min_thin_points or not thin_part(points[mine], rules):
+            continue
+        if tree.query(points[mine], distance_upper_bound=rules.thin_reach_mm)[0].min() < np.inf:
+            out |= mine
+    return out
+
+
 def label_clusters(points: np.ndarray, gap_mm: float) -> tuple[np.ndarray, int]:
     """Return each point's cluster label (0..count-1) and the count.
 
@@ -269,7 +315,27 @@ def label_clusters(points: np.ndarray, gap_mm: float) -> tuple[np.ndarray, int]:
 def cluster_support(
     points: np.ndarray, views: np.ndarray, labels: np.ndarray, count: int, rules: OutlierRules
 ) -> np.ndarray:
-    """Return True for each cluster that is well enough supported to be an outline."""
+    """Return True for each cluster that is well enough supported to be an outline.
+
+    A cluster is an outline with enough points, views, size and angle (module docstring,
+    step 4). One that falls short is still kept, as nothing rejected it on evidence (the
+    views' consensus, step 3, comes first), when it holds ``rules.min_thin_points`` and
+    either continues a supported cluster along its own view's stripe (the stripe steps
+    less than ``rules.continue_mm`` from one to the other: the far side of a part, an
+    occlusion edge) or is plausibly a thin part (:func:`thin_part`).
+    """
+    return support_and_joins(points, views, labels, count, rules)[0]
+
+
+def support_and_joins(
+    points: np.ndarray, views: np.ndarray, labels: np.ndarray, count: int, rules: OutlierRules
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return :func:`cluster_support`'s verdict and, per cluster, the one it continues.
+
+    Returns:
+        (count,) True for kept clusters, and (count,) the label of the supported cluster
+        a cluster was kept for continuing (-1 for the others): it belongs to that outline.
+    """
     n_views = int(views.max()) + 1 if len(views) else 1
     sizes = np.bincount(labels, minlength=count)
     per_view = np.bincount(labels * n_views + views, minlength=count * n_views)
@@ -281,7 +347,78 @@ def cluster_support(
     )
     for label in np.flatnonzero(good):
         good[label] = angular_extent_deg(points[labels == label]) >= rules.min_angle_deg
-    return good
+    joins = np.full(count, -1, dtype=np.int64)
+    candidates = ~good & (sizes >= rules.min_thin_points)
+    for _ in range(count):  # a chain of pieces along one stripe joins one at a time
+        if not candidates.any() or not good.any():
+            break
+        target = _continues(points, views, labels, count, good, rules.continue_mm)
+        joined = candidates & (target >= 0)
+        if not joined.any():
+            break
+        owner = target[joined]
+        joins[joined] = np.where(joins[owner] >= 0, joins[owner], owner)
+        good |= joined
+        candidates &= ~joined
+    if candidates.any():
+        good |= candidates & _thin_parts(points, labels, count, rules)
+    return good, joins
+
+
+def _continues(
+    points: np.ndarray,
+    views: np.ndarray,
+    labels: np.ndarray,
+    count: int,
+    good: np.ndarray,
+    reach_mm: float,
+) -> np.ndarray:
+    """Return, per cluster, a ``good`` cluster its view's stripe steps to it from (or -1).
+
+    ``points`` are in stripe order, view after view; a step joins two clusters when it
+    stays in one view and is at most ``reach_mm`` long.
+    """
+    out = np.full(count, -1, dtype=np.int64)
+    if len(points) < 2:
+        return out
+    step = np.hypot(*np.diff(points, axis=0).T)
+    link = (np.diff(views) == 0) & (step <= reach_mm) & (labels[1:] != labels[:-1])
+    a, b = labels[:-1][link], labels[1:][link]
+    forward, backward = good[a] & ~good[b], good[b] & ~good[a]
+    out[b[forward]] = a[forward]
+    out[a[backward]] = b[backward]
+    return out
+
+
+def _thin_parts(
+    points: np.ndarray, labels: np.ndarray, count: int, rules: OutlierRules
+) -> np.ndarray:
+    """Return True for each cluster that :func:`thin_part` finds plausible."""
+    out = np.zeros(count, dtype=bool)
+    for label in range(count):
+        mine = points[labels == label]
+        if len(mine) >= rules.min_thin_points:
+            out[label] = thin_part(mine, rules)
+    return out
+
+
+def thin_part(points: np.ndarray, rules: OutlierRules) -> bool:
+    """Return whether one view's points are plausibly the side of a thin part.
+
+    A thin part (a finger, a tendon, a strap 2-6 mm thick) shows a view an arc of a small
+    outline: the points fit a circle of ``rules.thin_radius_mm`` (1-3 mm) closely (RMS
+    within ``rules.thin_fit_mm``) and cover ``rules.min_angle_deg`` of it. A reflection
+    is a stroke (a huge circle) and stray light a scatter, neither an arc.
+    """
+    try:
+        cx, cy, r = taubin_circle(points)
+    except CalibrationError:
+        return False
+    lo, hi = rules.thin_radius_mm
+    if not lo <= r <= hi:
+        return False
+    rms = float(np.sqrt(np.mean((np.hypot(*(points - [cx, cy]).T) - r) ** 2)))
+    return rms <= rules.thin_fit_mm and angular_extent_deg(points) >= rules.min_angle_deg
 
 
 def angular_extent_deg(points: np.ndarray) -> float:
@@ -334,15 +471,21 @@ def clean_section(
     pts, views = pts[keep], views[keep]
     confirmed = confirmed_by_other_views(pts, views, rules.consensus_mm)
     bad = contradicted(pts, confirmed, rules.consensus_mm)
-    bad &= run_confirmed_share(pts, views, confirmed, gap_mm)[0] < MIN_RUN_CONFIRMED
+    # A stretch may step a little (an occlusion edge) and still be one stretch here.
+    share, run = run_confirmed_share(pts, views, confirmed, max(gap_mm, rules.continue_mm))
+    bad &= share < MIN_RUN_CONFIRMED
+    bad &= ~thin_runs(pts, run, bad, confirmed, rules)
     rejected.view_consensus = int(bad.sum())
     pts, views = pts[~bad], views[~bad]
     labels, count = label_clusters(pts, gap_mm)
     if count == 0:
         return [], rejected
-    good = cluster_support(pts, views, labels, count, rules)
+    good, joins = support_and_joins(pts, views, labels, count, rules)
     rejected.clusters = int((~good).sum())
     rejected.unsupported_clusters = int((~good[labels]).sum())
+    # A cluster kept for continuing an outline along a stripe is part of that outline.
+    labels = np.where(joins[labels] >= 0, joins[labels], labels)
+    good &= joins < 0
     sizes = np.bincount(labels, minlength=count)
     pts, views, labels = pts[good[labels]], views[good[labels]], labels[good[labels]]
     # Pieces are runs of one view's stripe: overlap averaging interpolates each piece

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 
 from lamina_host.assembly import (
+    Blend,
     average_overlap_colours,
-    average_overlaps,
+    blend_overlaps,
     split_outlines,
     to_object_frame,
     trim,
@@ -32,13 +33,19 @@ from lamina_host.calibration import (
     calibrate_grid,
 )
 from lamina_host.clinical import CLINICAL_INTERPOLATION
-from lamina_host.coverage import MEASURED_TOLERANCE_MM, Coverage, measure_coverage
+from lamina_host.coverage import (
+    MEASURED_TOLERANCE_MM,
+    Coverage,
+    bridge_gaps,
+    measure_coverage,
+)
 from lamina_host.efd import (
     HARMONIC_RULES,
     INTERPOLATIONS,
     PARAMETERS,
     EfdStack,
     EllipticFourier,
+    MeasuredPoints,
     choose_harmonics,
     efd_fit,
     nyquist_max,
@@ -186,10 +193,16 @@ class ProcessOptions:
 
 STATUSES = tuple(OutlineStatus)
 """How an outline was closed (:class:`~lamina_host.status.OutlineStatus`): seen all round;
-small unseen gaps closed by EFD; large gaps filled from the neighbouring sections' EFD
-(interpolated along z); not closed (open: the gap is too wide and no neighbouring section
-could fill it; only its seen stretches are meshed, as an open surface); or not processed
-at all (failed, with its reason)."""
+unseen gaps closed from its own points (small ones by EFD, wider ones of a mostly measured
+outline by a bridge from their sides); large gaps of a mostly unseen outline filled from the
+neighbouring sections' EFD (interpolated along z); not closed (open: no neighbouring section
+could fill it; only its seen stretches are meshed, as an open surface); or not processed at
+all (failed, with its reason)."""
+
+OWN_BRIDGE_FRACTION = 0.75
+"""An outline at least this much covered is closed from its own points, however wide its
+gap; neighbouring sections fill only outlines mostly unseen (their shape may differ: a
+thin part ending, a tip)."""
 
 INTERP_REACH_SECTIONS = 3
 """A large gap is filled only from outlines at most this many section pitches away."""
@@ -495,12 +508,27 @@ def thin_outline(points: np.ndarray, max_points: int | None) -> np.ndarray:
     return np.add.reduceat(pts, starts, axis=0) / counts
 
 
-def fit_outline(raw: np.ndarray, options: ProcessOptions) -> EllipticFourier:
-    """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4)."""
+def fit_outline(
+    raw: np.ndarray, options: ProcessOptions, measured: MeasuredPoints | None = None
+) -> EllipticFourier:
+    """Fit one closed outline's EFD with the chosen order rule and parameterisation (6.4).
+
+    ``measured`` (the views' own points and their noise) is what the default order rule
+    judges the fit by; without it that rule falls back to the spectrum's noise floor.
+    """
     pts = thin_outline(raw, options.max_efd_points)
-    order = options.harmonics or choose_harmonics(pts, options.harmonic_rule, options.efd_parameter)
+    order = options.harmonics or choose_harmonics(
+        pts, options.harmonic_rule, options.efd_parameter, measured
+    )
     order = max(1, min(order, nyquist_max(len(pts))))
     return efd_fit(pts, order, options.efd_parameter)
+
+
+def measured_points(blend: Blend) -> MeasuredPoints | None:
+    """Return what the order rule needs of a blend: its points and noise (None: unknown)."""
+    if blend.noise_mm is None or not blend.noise_mm > 0:
+        return None
+    return MeasuredPoints(blend.centre_mm, blend.angle_rad, blend.radius_mm, blend.noise_mm)
 
 
 def fit_section(
@@ -508,21 +536,30 @@ def fit_section(
 ) -> Section:
     """Average an outline's overlaps, fit its EFD (thesis 6.3-6.4) and measure its coverage.
 
-    The status is "measured" without unseen gaps, "bridged" when the widest gap is at most
-    ``options.max_bridge_deg`` (EFD closes it; those samples are flagged estimated) and
-    "open" otherwise, until :func:`fill_gaps` fills it from neighbouring sections.
+    The status is "measured" without unseen gaps; "bridged" when the widest gap is at most
+    ``options.max_bridge_deg`` or the outline is mostly measured (at least
+    ``OWN_BRIDGE_FRACTION`` covered): each gap is then bridged from the outline's own
+    points on its sides (``coverage.bridge_gaps``; with ``max_bridge_deg`` None the EFD
+    closes every gap alone, as the thesis); and "open" otherwise, until
+    :func:`fill_gaps` fills it from neighbouring sections. Samples in gaps are flagged
+    estimated.
     """
-    raw = average_overlaps(parts)
-    efd = fit_outline(raw, options)
-    contour = efd.evaluate(options.outline_points)
+    blend = blend_overlaps(parts)
+    raw = blend.points
     coverage = measure_coverage(raw)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
+    # A gap of a mostly measured outline is bridged from its own sides (an EFD closing it
+    # alone draws a chord, and its kinks cost harmonics); None leaves it to EFD (thesis).
+    own = limit is not None and (gap <= limit or coverage.fraction >= OWN_BRIDGE_FRACTION)
+    fitted = bridge_gaps(raw, np.asarray(coverage.centre_mm)) if own and gap > 0 else raw
+    efd = fit_outline(fitted, options, measured_points(blend))
+    contour = efd.evaluate(options.outline_points)
     status = (
         OutlineStatus.MEASURED
         if gap == 0
         else OutlineStatus.BRIDGED
-        if limit is None or gap <= limit
+        if limit is None or own
         else OutlineStatus.OPEN
     )
     estimated = coverage.unseen(contour)

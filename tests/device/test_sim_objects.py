@@ -135,3 +135,28 @@ def test_laser_reaches_exactly_the_arc_facing_the_source():
     lit = laser_reaches(src, ring, [ring], np.full(len(ring), 1e-3))
     clear = np.abs(facing) > 1e-3 * np.abs(facing).max()  # skip the two tangent points
     assert np.array_equal(lit[clear], facing[clear] > 0)
+
+
+def test_limb_phantoms_take_skin_relief_of_the_asked_height_and_wavelength():
+    """arm:scale=5,relief=0.3,wave=8: the outline departs from the smooth arm's by up to
+    about 0.3 mm, in folds whose strongest period round the outline is ~8 mm; the other
+    phantoms refuse relief in one line."""
+    smooth = parse_object("arm:scale=5").section_outline(40.0)[0]
+    relief = parse_object("arm:scale=5,relief=0.3,wave=8").section_outline(40.0)[0]
+
+    def radius(outline: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        ang = np.arctan2(outline[:, 1], outline[:, 0])
+        order = np.argsort(ang)
+        return np.interp(phi, ang[order], np.hypot(*outline[order, :2].T), period=2 * np.pi)
+
+    phi = np.linspace(-np.pi, np.pi, 4096, endpoint=False)
+    bumps = radius(relief, phi) - radius(smooth, phi)
+    assert 0.2 < np.abs(bumps).max() < 0.35
+    spectrum = np.abs(np.fft.rfft(bumps))
+    waves = int(np.argmax(spectrum[1:]) + 1)
+    perimeter = float(np.sum(np.linalg.norm(np.diff(smooth[:, :2], axis=0), axis=1)))
+    assert perimeter / waves == pytest.approx(8.0, rel=0.1)
+    with pytest.raises(ValueError, match=r"unknown key .relief."):
+        parse_object("hand:relief=0.3")
+    with pytest.raises(ValueError, match="wave= needs relief="):
+        parse_object("stump:wave=5")

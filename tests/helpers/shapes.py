@@ -59,9 +59,9 @@ def view_segment(
     rig: Rig, target: str, section: int, view: int, z_mm: float, commanded_deg: float,
     true_deg: float, outline: Outline, rng: np.random.Generator, noise_px: float,
 ) -> Segment | None:  # fmt: skip
-    """Return what the camera sees of a convex outline turned to ``true_deg``.
+    """Return what the camera sees of an outline turned to ``true_deg``.
 
-    The stripe is the run of outline points both the camera and the laser face, projected
+    The stripe is the outline points both the camera and the laser face, projected
     and resampled at whole columns with ``noise_px`` of row noise; None when it is short.
     """
     tangent = np.roll(outline, -1, axis=0) - np.roll(outline, 1, axis=0)
@@ -74,8 +74,11 @@ def view_segment(
     keep = (np.sum(n_world * to_cam, 1) > 0) & (np.sum(n_world * to_laser, 1) > 0)
     if keep.sum() < 20:
         return None
-    start = int(np.flatnonzero(keep & ~np.roll(keep, 1))[0])  # one run: the outline is convex
-    idx = np.roll(np.arange(len(outline)), -start)[: int(keep.sum())]
+    # From the start of a run, every point both face: one run on a convex outline, several
+    # on one with shallow relief (what the relief hides from the camera is not removed).
+    start = int(np.flatnonzero(keep & ~np.roll(keep, 1))[0])
+    idx = np.roll(np.arange(len(outline)), -start)
+    idx = idx[keep[idx]]
     uv = rig.project(world[idx])
     order = np.argsort(uv[:, 0])
     u, v = uv[order, 0], uv[order, 1]

@@ -19,59 +19,21 @@ import cv2
 import numpy as np
 import pytest
 
-from lamina_device.sim import Mechanics, Rig, SimScene
+from lamina_device.sim import Mechanics, Rig
 from lamina_host.coverage import measure_coverage
 from lamina_host.measure import polygon_area
 from lamina_host.mesh import mesh_kind, signed_volume, topology, triangulate_polygon, tube_mesh
 from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section, cluster_support
 from lamina_host.pipeline import (
     ProcessOptions,
-    Reconstruction,
     assemble,
     fit_outline,
-    reconstruct,
     thin_outline,
 )
 from lamina_host.report import load_segments, measured_cloud
 from lamina_shared.types import Segment
-from tests.helpers.shapes import Outline, circle, ellipse, posts_stl, view_segment
-
-
-def synthetic_scan(
-    rig: Rig, mechanics: Mechanics, outlines: dict[int, Outline], views: int = 8,
-    noise_px: float = 0.1, seed: int = 0, views_of: dict[int, list[int]] | None = None,
-    pitch_mm: float = 2.0,
-) -> dict:  # fmt: skip
-    """Return grid image, cylinder and object segments of sections ``outlines`` (index: outline).
-
-    The cylinder is seen at the object's commanded view angles; ``views_of`` limits the
-    views of a section (a section seen over part of its circumference).
-    """
-    rng = np.random.default_rng(seed)
-    angles = [360.0 * v / views for v in range(views)]
-    cyl = circle(rig.cylinder_offset_mm, rig.cylinder_diameter_mm / 2.0)
-    cylinder = [
-        s for v, a in enumerate(angles)
-        if (s := view_segment(rig, "cylinder", 0, v, 0.0, a, mechanics.true_angle_deg(a), cyl,
-                              rng, noise_px)) is not None
-    ]  # fmt: skip
-    segments = []
-    for k, outline in outlines.items():
-        for v in (views_of or {}).get(k, range(views)):
-            a = angles[v]
-            s = view_segment(rig, "object", k, v, k * pitch_mm, a, mechanics.true_angle_deg(a),
-                             outline, rng, noise_px)  # fmt: skip
-            if s is not None:
-                segments.append(s)
-    return {"grid": SimScene(rig).render("grid", 0.0, 0.0, False), "board": rig.board,
-            "cylinder": cylinder, "cylinder_mm": rig.cylinder_diameter_mm,
-            "segments": segments}  # fmt: skip
-
-
-def run(scan: dict, options: ProcessOptions | None = None, segments=None) -> Reconstruction:
-    """Reconstruct a synthetic scan."""
-    return reconstruct(scan["grid"], scan["board"], scan["cylinder"], scan["cylinder_mm"],
-                       segments if segments is not None else scan["segments"], options)  # fmt: skip
+from tests.helpers.scans import distance_to, run, synthetic_scan
+from tests.helpers.shapes import circle, ellipse, posts_stl
 
 
 def boundary_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -79,13 +41,6 @@ def boundary_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     half = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
     edges, uses = np.unique(half, axis=0, return_counts=True)
     return vertices[np.unique(edges[uses == 1])]
-
-
-def distance_to(points: np.ndarray, outline: Outline) -> np.ndarray:
-    """Return each point's distance in mm to a dense true outline."""
-    from scipy.spatial import cKDTree
-
-    return cKDTree(outline).query(np.asarray(points).reshape(-1, 2))[0]
 
 
 # --- phantoms --------------------------------------------------------------------------

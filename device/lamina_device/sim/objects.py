@@ -34,6 +34,7 @@ __all__ = [
 OUTLINE_VERTICES = 4096
 # sim.phantoms.PHANTOMS
 _PHANTOM_NAMES = ("hand", "foot", "bust", "bone", "ring", "stump", "arm", "face")
+_RELIEF_NAMES = ("arm", "stump")  # sim.phantoms.RELIEF_PHANTOMS
 _EPS_T_MM = 1e-9  # hits closer than this to the origin are the origin's own surface
 
 
@@ -685,9 +686,13 @@ _FORMS = {
     "patches": ("patches:d=30,h=40", set(), {"d", "h"}),
     "random": ("random:seed=17,scale=thesis", {"seed"}, {"scale"}),
     **{name: (f"{name}:scale=1", set(), {"scale"}) for name in _PHANTOM_NAMES},
+    **{
+        name: (f"{name}:scale=1,relief=0.3,wave=10", set(), {"scale", "relief", "wave"})
+        for name in _RELIEF_NAMES
+    },
 }
 _PLACEMENT = {"x", "y", "z", "yaw"}
-_POSITIVE = {"d", "h", "a", "b", "c", "scale"}
+_POSITIVE = {"d", "h", "a", "b", "c", "scale", "relief", "wave"}
 MAX_OBJECT_MM = 1000.0
 """Largest size, distance from the axis or extent a simulated object may have: a metre,
 far beyond any turntable (the limb rig's field is a few hundred mm)."""
@@ -769,7 +774,8 @@ def parse_object(spec: str) -> SceneObject:
     """Build a scene object from ``kind:key=value,...``: a solid, a mesh file or a phantom.
 
     Kinds: cylinder, sphere, ellipsoid, mesh, the phantoms of
-    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump; ``scale=``)
+    :mod:`lamina_device.sim.phantoms` (hand, foot, bust, bone, ring, stump, arm, face;
+    ``scale=``; the limbs arm and stump also ``relief=`` and ``wave=``, skin relief),
     ``patches`` (a skin-tone cylinder with colour patches, :mod:`lamina_device.sim.texture`;
     on the axis, so no placement keys) and ``random`` (``random:seed=17,scale=limb``: the
     seed's random anatomy-like object, :mod:`lamina_device.sim.random_shapes`; it places
@@ -802,5 +808,5 @@ def parse_object(spec: str) -> SceneObject:
     if kind in _PHANTOM_NAMES:
         from lamina_device.sim.phantoms import phantom  # phantoms build on this module
 
-        return _check_extent(kind, phantom(kind, placement))
+        return _check_extent(kind, phantom(kind, placement, num.get("relief"), num.get("wave")))
     return _check_extent(kind, load_mesh(fields["path"], placement))

@@ -18,6 +18,10 @@ limb``). What each one makes hard for the scanner:
 - ``face``: the front half of the bust's face as a shell of no thickness, open at its
   rims: an open surface, seen from the front and from behind, whose outlines never close.
 
+The limb phantoms (``arm``, ``stump``) take skin relief: ``relief=A`` adds oblique folds
+of about A mm (placed mm) at ``wave=`` mm round the outline (default 10 mm) and at two
+longer scales, so a section is not an ellipse (``arm:scale=5,relief=0.3,wave=8``).
+
 Parts are built as lofts of closed outlines (rings of vertices joined by strips), and
 parts of one phantom touch but do not overlap (the hand's fingers stand on the palm's
 top face), so ray casts, sections and the laser-shadow test see one solid. The faces
@@ -30,6 +34,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -48,6 +53,56 @@ _STUMP_DOME_RINGS = 40
 
 RadiusFn = Callable[[np.ndarray, float], np.ndarray]
 """r(phi, z): the outline's radius at polar angles ``phi`` about its centre, at height z."""
+
+RELIEF_PHANTOMS = ("arm", "stump")
+"""The limb phantoms that take skin relief (``relief=``, ``wave=``)."""
+
+_RELIEF_WAVES = ((1.0, 1.0, 2.0, 0.0), (0.5, 1.9, 3.1, 1.3), (0.35, 3.3, -4.7, 2.6))
+"""Skin relief's components: (weight, wavelength / ``wave``, wavelength along z / that
+round the outline, phase): oblique folds at three scales, as skin over tendons and
+muscle has, the first ``wave`` long round the outline."""
+
+_RELIEF_SAMPLES_PER_WAVE = 8
+"""Mesh edges per shortest relief wavelength, round the outline and along z."""
+
+
+@dataclass(frozen=True)
+class Relief:
+    """Skin relief on a limb phantom: folds of ``amplitude_mm`` at ``wavelength_mm`` round
+    the outline (and longer ones), in placed mm; ``scale`` is the placement's."""
+
+    amplitude_mm: float
+    wavelength_mm: float
+    scale: float = 1.0
+
+    def radius_fn(self, radius: RadiusFn, reference_mm: float) -> RadiusFn:
+        """Return ``radius`` with the relief added (build units).
+
+        Each component has a whole number of waves round an outline of radius
+        ``reference_mm`` (build units), so the relief is continuous round every outline.
+        """
+        amp = self.amplitude_mm / self.scale / sum(w for w, *_ in _RELIEF_WAVES)
+        lam = self.wavelength_mm / self.scale
+        parts = []
+        for weight, along, up, phase in _RELIEF_WAVES:
+            waves = max(1, round(2.0 * math.pi * reference_mm / (lam * along)))
+            parts.append((amp * weight, waves, 2.0 * math.pi / (lam * along * up), phase))
+
+        def relieved(phi: np.ndarray, z: float) -> np.ndarray:
+            bumps = sum(a * np.cos(n * phi + k * z + ph) for a, n, k, ph in parts)
+            return radius(phi, z) + bumps
+
+        return relieved
+
+    def ring_count(self, reference_mm: float) -> int:
+        """Return vertices per ring that resolve the shortest wave (at least ``_N_PHI``)."""
+        edge = self.wavelength_mm / self.scale / _RELIEF_SAMPLES_PER_WAVE
+        return max(_N_PHI, math.ceil(2.0 * math.pi * reference_mm * 1.3 / edge))
+
+    def ring_step(self) -> float:
+        """Return the largest vertical ring spacing (build units) that resolves the relief."""
+        up = min(abs(along * up) for _, along, up, _ in _RELIEF_WAVES)
+        return min(_RING_STEP_MM, self.wavelength_mm * up / self.scale / _RELIEF_SAMPLES_PER_WAVE)
 
 
 def _levels(z0: float, z1: float, step: float) -> np.ndarray:
@@ -125,9 +180,9 @@ def _profile(*pieces: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.nda
     return z[keep], s[keep]
 
 
-def _straight(z0: float, z1: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return a (z, scale) piece of constant scale 1."""
-    z = _levels(z0, z1, _RING_STEP_MM)
+def _straight(z0: float, z1: float, step: float = _RING_STEP_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Return a (z, scale) piece of constant scale 1, rings at most ``step`` apart."""
+    z = _levels(z0, z1, step)
     return z, np.ones_like(z)
 
 
@@ -238,7 +293,7 @@ def _ring() -> np.ndarray:
     return np.concatenate([np.stack([a, b, c], -2), np.stack([a, c, d], -2)]).reshape(-1, 3, 3)
 
 
-def _stump() -> np.ndarray:
+def _stump(relief: Relief | None = None) -> np.ndarray:
     """A tapered, slightly oval residual limb (24 -> 19 mm) ending in a rounded distal end."""
 
     def radius(phi: np.ndarray, z: float) -> np.ndarray:
@@ -246,11 +301,15 @@ def _stump() -> np.ndarray:
         return taper * (1.0 + 0.06 * np.cos(2.0 * phi) + 0.02 * np.sin(3.0 * phi))
 
     top = 12.0
-    z, s = _profile(_straight(-5.0, top), _dome(top, 9.0, _STUMP_DOME_RINGS))
-    return _loft(z, s, radius)
+    if relief is None:
+        z, s = _profile(_straight(-5.0, top), _dome(top, 9.0, _STUMP_DOME_RINGS))
+        return _loft(z, s, radius)
+    # The relief fades over the dome with its radius (the loft scales it with the ring).
+    z, s = _profile(_straight(-5.0, top, relief.ring_step()), _dome(top, 9.0, _STUMP_DOME_RINGS))
+    return _loft(z, s, relief.radius_fn(radius, 11.0), n_phi=relief.ring_count(12.0))
 
 
-def _arm() -> np.ndarray:
+def _arm(relief: Relief | None = None) -> np.ndarray:
     """A forearm (wrist 11 -> elbow 17 mm across, z -5..20): tapered, oval, a muscle belly.
 
     Scaled five times (``arm:scale=5`` on ``--rig limb``) it is an adult forearm: about
@@ -262,8 +321,10 @@ def _arm() -> np.ndarray:
         mean = 5.4 + 2.6 * u + 0.9 * _gauss(z, 14.0, 4.0)
         return mean * (1.0 + (0.14 - 0.08 * u) * np.cos(2.0 * phi) + 0.015 * np.sin(3.0 * phi))
 
-    z, s = _straight(-5.0, 20.0)
-    return _loft(z, s, radius)
+    if relief is None:
+        return _loft(*_straight(-5.0, 20.0), radius)
+    z, s = _straight(-5.0, 20.0, relief.ring_step())
+    return _loft(z, s, relief.radius_fn(radius, 7.0), n_phi=relief.ring_count(9.0))
 
 
 def _face() -> np.ndarray:
@@ -300,8 +361,38 @@ OPEN_PHANTOMS = ("face",)
 """The phantoms that are open surfaces (a rim, no inside), not closed solids."""
 
 
-def phantom(name: str, placement: Placement = AS_BUILT) -> TriangleMesh:
-    """Return phantom ``name`` placed (scaled about the object origin, yawed, then moved)."""
+def phantom(
+    name: str,
+    placement: Placement = AS_BUILT,
+    relief_mm: float | None = None,
+    wave_mm: float | None = None,
+) -> TriangleMesh:
+    """Return phantom ``name`` placed (scaled about the object origin, yawed, then moved).
+
+    Args:
+        name: one of ``PHANTOMS``.
+        placement: scale, yaw and shift.
+        relief_mm: skin relief's amplitude in placed mm (limb phantoms only, see
+            ``RELIEF_PHANTOMS``); None: a smooth surface.
+        wave_mm: the relief's shortest wavelength round the outline in placed mm
+            (default 10 mm).
+    """
     if name not in PHANTOMS:
         raise ValueError(f"unknown phantom {name!r}; use one of {', '.join(PHANTOMS)}")
-    return TriangleMesh.from_triangles(placement.apply(_BUILDERS[name]()), name=name)
+    if relief_mm is None:
+        if wave_mm is not None:
+            raise ValueError(f"{name}: wave= needs relief= (the relief's amplitude in mm)")
+        return TriangleMesh.from_triangles(placement.apply(_BUILDERS[name]()), name=name)
+    if name not in RELIEF_PHANTOMS:
+        raise ValueError(
+            f"{name}: skin relief is offered on {', '.join(RELIEF_PHANTOMS)}; drop relief="
+        )
+    relief = Relief(relief_mm, DEFAULT_WAVE_MM if wave_mm is None else wave_mm, placement.scale)
+    tris = _RELIEF_BUILDERS[name](relief)
+    return TriangleMesh.from_triangles(placement.apply(tris), name=name)
+
+
+DEFAULT_WAVE_MM = 10.0
+"""Skin relief's shortest wavelength when ``wave=`` is not given."""
+
+_RELIEF_BUILDERS: dict[str, Callable[[Relief], np.ndarray]] = {"arm": _arm, "stump": _stump}
