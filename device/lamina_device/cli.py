@@ -33,6 +33,7 @@ from lamina_shared.link import Channel
 from lamina_shared.local import EndpointError, local_url
 from lamina_shared.ops import ArgsError, Problems, check_plan
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
+from lamina_shared.spawned import watch_parent
 from lamina_shared.types import ScanPlan
 
 EXIT_USAGE = 2
@@ -281,6 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check-config":
         return check_config_command(args.file)
     signal.signal(signal.SIGTERM, _terminate)
+    watch_parent()  # a device a host started ends with it, even after kill -9 of the host
     try:
         hardware = open_hardware(
             args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig

@@ -69,6 +69,7 @@ from lamina_shared.protocol import (
     decode_segment_body,
     encode_json,
 )
+from lamina_shared.spawned import PARENT_PID_ENV
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 MAX_IMAGE_SIDE = 16_384
@@ -816,9 +817,10 @@ def device_environment() -> dict[str, str]:
     The real device is a computer of its own. One started beside the host stands in
     for it, so its numerical libraries get one thread each: left to themselves they
     take every core while rendering, and the host (its terminal UI above all) then
-    answers keys late.
+    answers keys late. It is told this process's id, so that it ends when the host does
+    (:mod:`lamina_shared.spawned`).
     """
-    return {**os.environ, **SINGLE_THREADED}
+    return {**os.environ, **SINGLE_THREADED, PARENT_PID_ENV: str(os.getpid())}
 
 
 def device_command(
