@@ -994,6 +994,8 @@ def build_mesh(
     ones (a wide unseen gap nothing could fill) the stretches that were seen. Ball pivoting
     and Poisson mesh the closed outlines only (Poisson would close an open surface).
     """
+    if not sections:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64), ["no outline: nothing to mesh"]
     if options.mesh == "contours":
         lone = ", ".join(f"{s.index}.{s.part}" for s in lone_outlines(sections))
         warnings = [] if not lone else [

@@ -236,5 +236,5 @@ def test_the_simulated_device_opens_with_the_harsh_preset():
         assert "noise harsh" in hardware.description
     finally:
         hardware.close()
-    with pytest.raises(HardwareError, match="thesis, harsh, none"):
+    with pytest.raises(HardwareError, match="thesis, harsh, wide, none"):
         open_sim("stump", noise="bright")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
+from lamina_device.sim.objects import section_curves
 from lamina_device.sim.phantoms import OPEN_PHANTOMS, PHANTOMS, phantom
 
 
@@ -45,29 +46,29 @@ def test_phantoms_are_closed_small_meshes_that_fit_the_thesis_field(name):
 
 def test_the_face_is_an_open_shell_whose_sections_are_open_arcs():
     """The face: every edge on at most two faces, a rim all round; each section one arc of
-    180 degrees given out and back (no area, no chord closing it)."""
+    180 degrees, flagged open (no chord closing it), each point once."""
     mesh = phantom("face")
     edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     _, uses = np.unique(edges, axis=0, return_counts=True)
     assert uses.max() == 2 and np.sum(uses == 1) > 100
     for z in (-4.05, 2.45, 7.55, 11.05):  # between the shell's rings
-        (arc,) = mesh.section_outline(z)
-        assert abs(_area(arc)) < 1e-9
-        # Out along the arc and back over the same points: each twice but the two ends.
-        _, seen = np.unique(np.round(arc, 9), axis=0, return_counts=True)
-        assert sorted(seen.tolist()) == [1, 1] + [2] * (len(seen) - 2)
+        (curve,) = section_curves(mesh, z)
+        assert not curve.closed
+        arc = curve.points
+        assert len(np.unique(np.round(arc, 9), axis=0)) == len(arc)
         angle = np.degrees(np.arctan2(arc[:, 1], arc[:, 0]))
         assert angle.min() == pytest.approx(-180.0, abs=0.5) and angle.max() < 0.5
+        # Neighbouring points are neighbours on the arc: one chain, not pieces.
+        assert np.hypot(*np.diff(arc, axis=0).T).max() < 5.0
     # The laser cannot pass through the shell: a point behind it is shadowed.
     from lamina_device.sim.render import laser_reaches
 
     (arc,) = mesh.section_outline(0.0)
-    assert laser_reaches(np.array([0.0, -80.0]), np.array([[0.0, -5.0]]), [arc], 1e-3).tolist() == [
-        False
+    reaches = [
+        laser_reaches(np.array([0.0, y]), np.array([[0.0, -5.0]]), [arc], 1e-3, [False])
+        for y in (-80.0, 80.0)
     ]
-    assert laser_reaches(np.array([0.0, 80.0]), np.array([[0.0, -5.0]]), [arc], 1e-3).tolist() == [
-        True
-    ]
+    assert [r.tolist() for r in reaches] == [[False], [True]]
 
 
 def test_each_phantom_has_its_difficulty():
