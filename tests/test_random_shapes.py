@@ -17,7 +17,7 @@ import os
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from lamina_device.sim import NoiseModel, Rig, SimScene, parse_object
@@ -146,14 +146,24 @@ def test_a_shell_section_is_open_and_its_truth_has_no_closing_chord():
     assert np.mean(off_chord < 0.05) < 0.02
 
 
-@settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None)
+# No shrinking: each example is a whole scan, and the seed in the message replays it.
+NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
+
+
+@settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, phases=NO_SHRINK)
 @given(seed=st.integers(min_value=0, max_value=10**6))
 def test_thesis_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_seen(seed):
     """Every shape gives a result or one honest line; measured outline is on the surface."""
     _check_scan("thesis", seed)
 
 
-@settings(max_examples=max(1, EXAMPLES - 1), deadline=None, derandomize=True, database=None)
+@settings(
+    max_examples=max(1, EXAMPLES - 1),
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=NO_SHRINK,
+)
 @given(seed=st.integers(min_value=0, max_value=10**6))
 def test_limb_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_seen(seed):
     """The same at the limb scale, on the limb rig (fewer examples: its frames are larger)."""

@@ -3,7 +3,8 @@
 Each seed's random anatomy-like object (``lamina_device.sim.random_shapes``; replay one
 with ``--object random:seed=N,scale=S``) is scanned through the product path of
 ``tests.helpers.campaign`` (simulated device: renderer, mechanics, stripe extraction;
-host: reconstruction with ``--distortion``, report and output files; the link left out)
+host: reconstruction with the defaults (lens distortion auto), report and output files;
+the link left out)
 on the harsh preset, at the thesis scale (thesis rig) and the limb scale (limb rig), and
 judged against the simulator's truth with ``lamina_device.sim.truth``:
 
@@ -199,7 +200,7 @@ def _replay(plan: dict[str, Any], seed: int) -> str:
     """Return the command that replays one seed's scan as a user would run it."""
     rig = "" if plan["scale"] == "thesis" else f" --rig {plan['scale']}"
     return (
-        f"lamina scan --device sim{rig} --noise {plan['noise']} --distortion "
+        f"lamina scan --device sim{rig} --noise {plan['noise']} "
         f"--object random:seed={seed},scale={plan['scale']} --sections {plan['sections']} "
         f"--pitch {plan['pitch_mm']:g} --views {plan['views']} -o OUT"
     )

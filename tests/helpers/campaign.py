@@ -192,7 +192,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
             calibration.cylinder,
             hardware.cylinder_diameter_mm,
             segments,
-            ProcessOptions(distortion=True),
+            ProcessOptions(),
         )
         stage = "report"
         report = build_report(recon, {"kind": "sim"}, segments, None, {})
