@@ -287,8 +287,10 @@ class StderrTail:
 
     def _read(self, stream: IO[bytes]) -> None:
         with suppress(OSError, ValueError):  # the stream closed under us: nothing more to read
-            for raw in iter(lambda: stream.readline(self.LINE_BYTES), b""):
-                self._lines.append(raw.decode(errors="replace").strip())
+            # Empty at the end of the stream, whether it yields bytes or (a caller's) text.
+            while raw := stream.readline(self.LINE_BYTES):
+                line = raw.decode(errors="replace") if isinstance(raw, bytes) else raw
+                self._lines.append(line.strip())
 
     def lines(self, wait_s: float = 2.0) -> list[str]:
         """Return the last non-empty lines, after up to ``wait_s`` for an exited program's rest.
