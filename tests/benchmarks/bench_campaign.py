@@ -29,7 +29,6 @@ many seconds, so ``make bench`` ends in bounded time (the report says how many r
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -268,12 +267,9 @@ def main() -> int:
     if args.scale:
         for other in [k for k in PLANS if k != args.scale]:
             del PLANS[other]
-    results = run(count, args.workers)
-    print(f"campaign: {TITLE}")
-    for line in report(results):
-        print(line)
-    if args.out:
-        args.out.write_text(json.dumps(results, indent=2) + "\n")
+    from run import show  # the bench runner beside this file
+
+    show("campaign", sys.modules[__name__], run(count, args.workers), args.out)
     return 0
 
 

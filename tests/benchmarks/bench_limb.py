@@ -214,12 +214,9 @@ def main() -> int:
     parser.add_argument("--keep", type=Path, help="keep the scans here (and reuse them)")
     parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
     args = parser.parse_args()
-    results = run("quick" if args.quick else "full", args.keep)
-    print(f"limb: {TITLE}")
-    for line in report(results):
-        print(line)
-    if args.out:
-        args.out.write_text(json.dumps(results, indent=2) + "\n")
+    from run import show  # the bench runner beside this file
+
+    show("limb", sys.modules[__name__], run("quick" if args.quick else "full", args.keep), args.out)
     return 0
 
 

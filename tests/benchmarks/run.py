@@ -18,6 +18,15 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 
 
+def show(name: str, module: Any, results: dict[str, Any], out: Path | None = None) -> None:
+    """Print one bench's title and table; also write its results as JSON to ``out``."""
+    print(f"{name}: {module.TITLE}")
+    for line in module.report(results):
+        print(line)
+    if out:
+        out.write_text(json.dumps(results, indent=2) + "\n")
+
+
 def main() -> int:
     """Run every benchmark (or those named), print tables, write the JSON file."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -37,9 +46,7 @@ def main() -> int:
     for name in names:
         module = importlib.import_module(f"bench_{name}")
         results[name] = module.run()
-        print(f"{name}: {module.TITLE}")
-        for line in module.report(results[name]):
-            print(line)
+        show(name, module, results[name])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {args.out}")
