@@ -165,7 +165,10 @@ def test_sigterm_to_a_serving_device_leaves_its_laser_off():
             worker.start()
             assert scanning.wait(60), "no segment from the device"
             process.send_signal(signal.SIGTERM)
-            _, err = process.communicate(timeout=60)
+            process.wait(timeout=60)
+            # The client drains the program's stderr while it runs (a full pipe would block it).
+            assert client.stderr_tail is not None
+            err = "\n".join(client.stderr_tail.lines(wait_s=10))
     finally:
         if process.poll() is None:
             process.kill()
