@@ -35,6 +35,7 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy shared/lamina_shared device/lamina_device host/lamina_host
+	$(BIN)/lint-imports --no-logo
 
 # The terminal UI on the simulated scanner (add DEVICE=/dev/ttyACM0 for a real one).
 DEVICE ?= sim

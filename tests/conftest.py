@@ -19,7 +19,9 @@ def device_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
     The program outlives each host that connects, as the box's service does.
     """
-    from lamina_host.link import SINGLE_THREADED  # here: the device's tests run without a host
+    from lamina_host.link.client import (
+        SINGLE_THREADED,  # here: the device's tests run without a host
+    )
 
     log = tmp_path_factory.mktemp("device-service") / "stderr.log"
     command = [sys.executable, "-m", "lamina_device", "serve", "--hardware", "sim"]

@@ -21,10 +21,10 @@ from lamina_device.extract import sample_colour
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
 from lamina_device.sim.texture import Texture, colour_errors
-from lamina_host.assembly import average_overlap_colours, average_overlaps
-from lamina_host.link import DeviceError, DeviceInfo
-from lamina_host.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
-from lamina_host.store import Library
+from lamina_host.link.client import DeviceError, DeviceInfo
+from lamina_host.reconstruct.assembly import average_overlap_colours, average_overlaps
+from lamina_host.reconstruct.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
+from lamina_host.store.library import Library
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import OPS, ArgsError, ScanArgs, parse_args, request_args
 from lamina_shared.protocol import (

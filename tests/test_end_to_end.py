@@ -21,8 +21,8 @@ import pymeshlab
 import pytest
 import serial
 
-from lamina_host.link import PtyBridge
-from lamina_host.report import load_segments
+from lamina_host.link.client import PtyBridge
+from lamina_host.store.outputs import load_segments
 from lamina_shared.link import Channel
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
 from tests.helpers.cli import device_command

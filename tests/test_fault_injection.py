@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lamina_host.link import DeviceClient, open_device
-from lamina_host.store import Library
+from lamina_host.link.client import DeviceClient, open_device
+from lamina_host.store.library import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_shared.types import Segment

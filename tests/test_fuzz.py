@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
-from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, PtyBridge
+from lamina_host.link.client import DeviceClient, DeviceError, DeviceInfo, PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import OPS as SCHEMAS
@@ -258,7 +258,7 @@ def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plan
 @given(JSON, st.integers(0, 2**32 - 1))
 def test_host_refuses_odd_replies_with_device_error(result, request_id):
     client = DeviceClient(Channel(SilentStream()))
-    from lamina_host.link import _result
+    from lamina_host.link.client import _result
 
     for body in (
         {"id": request_id, "ok": True, "result": result},

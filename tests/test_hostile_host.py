@@ -31,19 +31,16 @@ import pytest
 import serial
 
 from lamina_device.server import DeviceServer, ServerSettings
-from lamina_host import cli, link
-from lamina_host.link import DeviceClient, DeviceError, PtyBridge, open_device
-from lamina_host.report import load_segments
-from lamina_host.store import Library, StoreError
-from lamina_host.tui.adapter import Session, UserError, parse_plan
-from lamina_host.workflow import (
-    InputError,
-    check_plan_limits,
-    identity_difference,
-    printable,
-    scan_identity,
-)
+from lamina_host import cli
+from lamina_host.link import client as link
+from lamina_host.link.client import DeviceClient, DeviceError, PtyBridge, open_device
+from lamina_host.link.identity import identity_difference, scan_identity
+from lamina_host.store.library import Library, StoreError
+from lamina_host.store.outputs import load_segments
+from lamina_host.ui.tui.adapter import Session, UserError, parse_plan
+from lamina_host.workflow import check_plan_limits
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
+from lamina_shared.errors import InputError, printable
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan, Segment

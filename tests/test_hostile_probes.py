@@ -30,13 +30,21 @@ import pytest
 import serial
 
 from lamina_device.motion import StepperLift
-from lamina_device.sim.objects import MAX_OBJECT_MM, parse_object
-from lamina_host import cli, link
-from lamina_host.link import DeviceClient, DeviceError, PtyBridge, RequestRefused, open_device
-from lamina_host.report import load_segments
-from lamina_host.store import Library
-from lamina_host.workflow import InputError, check_plan, check_plan_limits
+from lamina_device.sim.specs import MAX_OBJECT_MM, parse_object
+from lamina_host import cli
+from lamina_host.link import client as link
+from lamina_host.link.client import (
+    DeviceClient,
+    DeviceError,
+    PtyBridge,
+    RequestRefused,
+    open_device,
+)
+from lamina_host.store.library import Library
+from lamina_host.store.outputs import load_segments
+from lamina_host.workflow import check_plan, check_plan_limits
 from lamina_host.workflow.job import ScanRequest
+from lamina_shared.errors import InputError
 from lamina_shared.link import Channel
 from lamina_shared.types import ScanPlan
 from tests.helpers.cli import device_command
@@ -442,7 +450,7 @@ def test_a_second_host_is_told_the_device_is_in_use(device_service, capsys, tmp_
 
 
 def test_finite_json_replaces_every_non_finite_number_only():
-    from lamina_host.files import finite_json, json_text
+    from lamina_host.store.files import finite_json, json_text
 
     rng = np.random.default_rng(3)
     values = [math.nan, math.inf, -math.inf, 0.0, -1.5, 1e308, 3]
@@ -525,8 +533,8 @@ def test_a_full_disk_names_what_filled_and_how_to_finish(capsys, monkeypatch, tm
 
 
 def test_the_terminal_ui_says_a_full_disk_is_full_not_damaged():
-    from lamina_host.files import OutputError, disk_full
-    from lamina_host.tui.adapter import user_message
+    from lamina_host.store.files import OutputError, disk_full
+    from lamina_host.ui.tui.adapter import user_message
 
     full = sqlite3.OperationalError("database or disk is full")
     assert disk_full(full) and disk_full(OSError(errno.ENOSPC, "No space left on device"))

@@ -37,8 +37,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lamina_host.report import load_segments
-from lamina_host.store import Library
+from lamina_host.store.library import Library
+from lamina_host.store.outputs import load_segments
 from lamina_shared.types import Segment
 from tests.helpers.cli import host_command
 

@@ -11,7 +11,7 @@ import pytest
 from lamina_device.acquisition import grab_grid
 from lamina_device.server import ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link import DeviceClient, DeviceError
+from lamina_host.link.client import DeviceClient, DeviceError
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json

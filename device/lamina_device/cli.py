@@ -21,8 +21,9 @@ import serial
 
 from lamina_device import __version__
 from lamina_device.acquisition import Progress, acquire, grab_grid
+from lamina_device.backends import open_hardware
 from lamina_device.config import check_config
-from lamina_device.hardware import Hardware, open_hardware
+from lamina_device.hardware import Hardware
 from lamina_device.listen import ListeningPort, open_listener
 from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer, PortLost

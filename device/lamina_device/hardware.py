@@ -1,10 +1,9 @@
-"""The hardware factory: picks the backend the device program drives (pi, sim, replay).
+"""The hardware a device program drives, and the scanner box's own assembly of it.
 
-:func:`open_hardware` picks the backend: ``pi`` is the scanner box (picamera2, the
-laser on a GPIO, stepper axes, all as the TOML configuration says), assembled here by
-:func:`open_pi`; ``sim`` is the virtual rig (``lamina_device/sim/backend.py``) and
-``replay:DIR`` a recorded capture standing in for the camera (``replay.py``). Every
-kind comes with its laser watchdog running.
+:class:`Hardware` is what every backend gives: camera, laser, lift, turntable, with the
+laser watchdog running. :func:`open_pi` assembles the scanner box (picamera2, the laser
+on a GPIO, stepper axes, all as the TOML configuration says); the simulator and replay
+backends build on this module, and :mod:`lamina_device.backends` picks one by name.
 """
 
 from __future__ import annotations
@@ -13,11 +12,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gpiozero.exc import GPIOZeroError
 from gpiozero.pins import Factory
 
-from lamina_device.camera import Camera, CameraError, PiCamera, Stage
-from lamina_device.config import ConfigError, DeviceConfig, load_config
+from lamina_device.camera import Camera, PiCamera, Stage
+from lamina_device.config import DeviceConfig
 from lamina_device.extract import ExtractSettings
 from lamina_device.laser import Laser
 from lamina_device.motion import Lift, StepperLift, StepperTurntable, Turntable
@@ -143,54 +141,3 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         extract=config.extract,
     )
     return watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)
-
-
-def open_hardware(
-    spec: str,
-    object_spec: str | None = None,
-    seed: int = 0,
-    noise: str = "thesis",
-    config_path: Path | str | None = None,
-    pin_factory: Factory | None = None,
-    rig: str = "thesis",
-) -> Hardware:
-    """Return the hardware named by ``spec``: ``sim``, ``replay:DIR`` or ``pi``.
-
-    Args:
-        spec: which hardware.
-        object_spec: the simulated object (sim only).
-        seed: simulation noise seed (sim only).
-        noise: one of ``NOISE_PRESETS``: ``thesis``, ``harsh`` or ``none`` (sim only).
-        config_path: the TOML configuration (pi only; the packaged default if None).
-        pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
-        rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
-
-    Raises:
-        HardwareError: naming what is wrong and what to do.
-    """
-    # The simulator and replay modules build on this one, so they are imported on demand.
-    if spec == "sim":
-        from lamina_device.sim.backend import open_sim
-
-        return open_sim(object_spec, seed, noise, rig)
-    if spec.startswith("replay:"):
-        from lamina_device.replay import open_replay
-
-        folder = spec.removeprefix("replay:")
-        if not folder:
-            raise HardwareError("replay needs a capture folder: --hardware replay:DIR")
-        return open_replay(Path(folder))
-    if spec == "pi":
-        try:
-            config = load_config(config_path)
-            return open_pi(config, str(config_path or "(default)"), pin_factory)
-        except (ConfigError, CameraError) as exc:
-            raise HardwareError(str(exc)) from None
-        except GPIOZeroError as exc:
-            raise HardwareError(
-                f"cannot drive the GPIO pins: {exc}; on the Pi install python3-lgpio "
-                "(GPIOZERO_PIN_FACTORY=lgpio), off the Pi use GPIOZERO_PIN_FACTORY=mock"
-            ) from None
-    raise HardwareError(
-        f"unknown hardware {spec!r}: use 'sim', 'replay:DIR' (a recorded capture folder) or 'pi'"
-    )

@@ -20,6 +20,10 @@ from gpiozero.pins import Factory
 log = logging.getLogger(__name__)
 
 
+MOCK_LASER_PIN = 17
+"""The laser's GPIO pin on the simulated and replayed devices (a gpiozero mock pin)."""
+
+
 class Laser:
     """A laser that starts off and is switched off again before its pin is released."""
 

@@ -18,10 +18,9 @@ from gpiozero.pins.mock import MockFactory
 
 from lamina_device.camera import CameraError, ExposureRefused, Stage
 from lamina_device.hardware import Hardware, watched
-from lamina_device.laser import Laser
+from lamina_device.laser import MOCK_LASER_PIN, Laser
 from lamina_device.motion import Lift, Turntable
 from lamina_device.sim.axes import Mechanics, SimLift, SimTurntable
-from lamina_device.sim.backend import MOCK_LASER_PIN
 from lamina_device.sim.camera import SIM_EXPOSURE_US
 from lamina_shared.capture import MANIFEST, Capture, load_capture, read_colour, read_frame
 from lamina_shared.limits import DeviceLimits

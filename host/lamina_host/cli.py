@@ -23,8 +23,27 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host import __version__
-from lamina_host.axis import AXIS_METHODS
-from lamina_host.batch import (
+from lamina_host.link.client import DeviceError, RequestRefused
+from lamina_host.reconstruct.axis import AXIS_METHODS
+from lamina_host.reconstruct.calibration import CALIBRATION_METHODS, DISTORTION_MODES
+from lamina_host.reconstruct.efd import HARMONIC_RULES
+from lamina_host.reconstruct.expect import Expectation, parse_expectation
+from lamina_host.reconstruct.mesh import MESH_METHODS, meshlab
+from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.reconstruct.status import OutlineStatus
+from lamina_host.store.dicom import DICOM_SOPS, check_institution
+from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
+from lamina_host.store.library import SIDES, Library, ScanRecord, default_library_path
+from lamina_host.store.subjects import SUBJECT_RULE, check_subject
+from lamina_host.workflow import (
+    DEFAULT_PITCH_MM,
+    DEFAULT_SECTIONS,
+    DEFAULT_VIEWS,
+    check_count,
+    check_plan,
+    check_positive_mm,
+)
+from lamina_host.workflow.batch import (
     ClinicalMeasure,
     check_output,
     check_pattern,
@@ -32,32 +51,10 @@ from lamina_host.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.calibration import CALIBRATION_METHODS, DISTORTION_MODES
-from lamina_host.dicom import DICOM_SOPS, check_institution
-from lamina_host.efd import HARMONIC_RULES
-from lamina_host.expect import Expectation, parse_expectation
-from lamina_host.exports import export_scan
-from lamina_host.files import OutputError, disk_full, prepare_output_folder
-from lamina_host.link import DeviceError, RequestRefused
-from lamina_host.mesh import MESH_METHODS, meshlab
-from lamina_host.pipeline import ProcessOptions
-from lamina_host.status import OutlineStatus
-from lamina_host.store import SIDES, Library, ScanRecord, default_library_path
-from lamina_host.workflow import (
-    DEFAULT_PITCH_MM,
-    DEFAULT_SECTIONS,
-    DEFAULT_VIEWS,
-    SUBJECT_RULE,
-    InputError,
-    check_count,
-    check_plan,
-    check_positive_mm,
-    check_subject,
-    printable,
-)
+from lamina_host.workflow.exports import export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
-from lamina_shared.errors import LaminaError
+from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
@@ -283,7 +280,7 @@ def _check_ui_options(args: argparse.Namespace) -> list[str]:
 
 def _add_measure_options(parser: argparse.ArgumentParser) -> None:
     """Add how a limb is measured: level spacing, landmark and axis (report and batch)."""
-    from lamina_host.clinical import AXES
+    from lamina_host.clinical.measures import AXES
 
     parser.add_argument(
         "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
@@ -307,7 +304,7 @@ def _check_spacing(spacing_mm: float) -> float:
 
 def _add_report_parser(sub: Any) -> None:
     """Add ``lamina report``: a processed scan's clinical measurements on one page."""
-    from lamina_host.clinical import COMPARISONS, Thresholds
+    from lamina_host.clinical.measures import COMPARISONS, Thresholds
 
     limits = Thresholds()
     report = sub.add_parser(
@@ -819,7 +816,7 @@ def batch(args: argparse.Namespace) -> int:
         check_count("--workers", args.workers, 1, 256)
     check_pattern(args.subjects)
     check_output(args.out)
-    from lamina_host.clinical import parse_landmark
+    from lamina_host.clinical.measures import parse_landmark
 
     measure = ClinicalMeasure(
         _check_spacing(args.spacing_mm), parse_landmark(args.landmark), args.limb_axis
@@ -841,7 +838,7 @@ def batch(args: argparse.Namespace) -> int:
 def tui(args: argparse.Namespace) -> int:
     """Run ``lamina tui``: the Textual app on this terminal."""
     _check_ui_options(args)
-    from lamina_host.tui.app import LaminaApp  # deferred: Textual is only needed here
+    from lamina_host.ui.tui.app import LaminaApp  # deferred: Textual is only needed here
 
     LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
     return 0
@@ -852,7 +849,7 @@ def serve_ui(args: argparse.Namespace) -> int:
     tui_options = _check_ui_options(args)
     if not 0 < args.port < 65536:
         raise UsageError(f"--port {args.port} must be from 1 to 65535")
-    from lamina_host.serve_ui import serve_ui as run_server  # deferred: aiohttp is heavy
+    from lamina_host.ui.browser import serve_ui as run_server  # deferred: aiohttp is heavy
 
     try:
         run_server(args.host, args.port, tui_options, args.allow_remote)
@@ -866,8 +863,8 @@ def serve_ui(args: argparse.Namespace) -> int:
 
 def clinical_report(args: argparse.Namespace) -> int:
     """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
-    from lamina_host.clinical import Thresholds, parse_landmark
-    from lamina_host.clinical_report import MeasureRequest, build_report_data, write_report
+    from lamina_host.clinical.measures import Thresholds, parse_landmark
+    from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
 
     limits: tuple[float, ...] = (args.flag_difference_ml, args.flag_difference_percent)
     limits += (args.flag_circumference_mm, args.flag_change_percent)

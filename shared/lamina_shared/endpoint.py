@@ -10,7 +10,7 @@ scan on one thread, its pause or abort on another.
 
 Heartbeats go to every open waiter: one naming the waiter's request says the peer is
 at work on it, one naming another request (or none) says the peer never got ours, so
-the requester may ask again early (see ``lamina_host.link.DeviceClient.request``).
+the requester may ask again early (see ``lamina_host.link.client.DeviceClient.request``).
 """
 
 from __future__ import annotations

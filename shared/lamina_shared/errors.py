@@ -10,8 +10,25 @@ input, ``ConnectionError`` for the link...) so callers may still catch by kind.
 
 from __future__ import annotations
 
-__all__ = ["LaminaError"]
+import unicodedata
+
+__all__ = ["InputError", "LaminaError", "printable"]
 
 
 class LaminaError(Exception):
     """A problem the user can act on; ``str(error)`` is the one line to show them."""
+
+
+class InputError(LaminaError, ValueError):
+    """A value typed by the user is refused; the text names it and what to enter."""
+
+
+def printable(text: str) -> str:
+    """Return ``text`` with control and format characters (escapes, newlines) shown escaped.
+
+    Idempotent: text already printable is returned unchanged.
+    """
+    return "".join(
+        ch.encode("unicode_escape").decode("ascii") if unicodedata.category(ch)[0] == "C" else ch
+        for ch in text
+    )

@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from lamina_host.batch import run_batch, select_scans
-from lamina_host.store import Library
+from lamina_host.store.library import Library
+from lamina_host.workflow.batch import run_batch, select_scans
 from tests.helpers.cli import host_command
 
 TITLE = "lamina batch: 20 short simulated scans re-measured, 1 worker vs all cores"

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from lamina_device.sim import NoiseModel, Rig, SimScene
-from lamina_host.calibration import (
+from lamina_host.reconstruct.calibration import (
     analytical_homography,
     calibrate_grid,
     dlt_homography,

@@ -11,7 +11,7 @@ from typing import Any
 from lamina_device.acquisition import acquire
 from lamina_device.sim import open_sim
 from lamina_device.sim.texture import colour_errors
-from lamina_host.mesh import load_coloured_ply
+from lamina_host.reconstruct.mesh import load_coloured_ply
 from lamina_shared.protocol import encode_segment, quantise_segment
 from lamina_shared.types import ScanPlan, Segment
 

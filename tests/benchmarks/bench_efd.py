@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lamina_host.efd import (
+from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
     EfdStack,
     choose_harmonics,

@@ -3,7 +3,7 @@
 Three limb-scale phantoms are scanned end to end on the simulated limb rig (``lamina scan
 --device sim --rig limb --noise harsh`` with the default processing, which finds the lens
 distortion on the board; the real device process over the real link), 8 views per
-section at 10 mm pitch, and measured with ``lamina_host.clinical`` from
+section at 10 mm pitch, and measured with ``lamina_host.clinical.measures`` from
 the EFD sections stored in report.json (PCHIP along z, the clinical default):
 
 - ``vol %``: the contour-stack volume over the scanned range against the true volume
@@ -40,9 +40,9 @@ import numpy as np
 
 from lamina_device.sim import Mechanics, parse_object
 from lamina_device.sim.truth import TrueSurface, align_about_axis
-from lamina_host.clinical import measure_limb, sections_from_report
-from lamina_host.measure import perimeter, polygon_area
-from lamina_host.mesh import load_ply
+from lamina_host.clinical.measures import measure_limb, sections_from_report
+from lamina_host.reconstruct.measure import perimeter, polygon_area
+from lamina_host.reconstruct.mesh import load_ply
 
 NOISE = "harsh"
 PITCH_MM, VIEWS, SPACING_MM = 10.0, 8, 20.0

@@ -13,8 +13,8 @@ import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.sim import open_sim
-from lamina_host.link import DeviceClient, PtyBridge, open_device
-from lamina_host.store import Library
+from lamina_host.link.client import DeviceClient, PtyBridge, open_device
+from lamina_host.store.library import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_host.workflow.job import acquire as acquire_scan

@@ -41,7 +41,7 @@ from lamina_device.sim.truth import (
     lit_and_seen_points,
     scan_accuracy,
 )
-from lamina_host.report import load_segments
+from lamina_host.store.outputs import load_segments
 from lamina_shared.types import ScanPlan, Segment
 
 NOISE = "harsh"

@@ -31,7 +31,7 @@ def _child() -> dict[str, Any]:
     from bench_reconstruction import synthetic_scan, timed
 
     from lamina_device.sim import Rig
-    from lamina_host.pipeline import ProcessOptions
+    from lamina_host.reconstruct.pipeline import ProcessOptions
 
     scan = synthetic_scan(Rig.limb(), SCALE_MM, sections=SECTIONS, views=VIEWS)
     row = timed(scan, ProcessOptions(), SCALE_MM)
@@ -43,7 +43,7 @@ def _child() -> dict[str, Any]:
 
 def _run_child(single_thread: bool) -> dict[str, Any]:
     """Run :func:`_child` in a fresh interpreter, with or without the thread limits."""
-    from lamina_host.link import SINGLE_THREADED
+    from lamina_host.link.client import SINGLE_THREADED
 
     env = dict(os.environ)
     for name in SINGLE_THREADED:

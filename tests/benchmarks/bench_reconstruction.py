@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from lamina_device.sim import Rig, SimScene
-from lamina_host.measure import RadiusModel, centroid, radial_error_table
-from lamina_host.pipeline import ProcessOptions, reconstruct
+from lamina_host.reconstruct.measure import RadiusModel, centroid, radial_error_table
+from lamina_host.reconstruct.pipeline import ProcessOptions, reconstruct
 from tests.helpers.shapes import circle, view_segment
 
 TITLE = "host processing of a 100-section x 16-view scan (synthetic segments), <= 2 s target"

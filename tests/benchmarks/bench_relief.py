@@ -29,10 +29,10 @@ import numpy as np
 
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, parse_object
 from lamina_device.sim.truth import coverage, lit_and_seen_points, scan_accuracy
-from lamina_host.batch import reprocess
-from lamina_host.pipeline import ProcessOptions
-from lamina_host.report import measured_cloud
-from lamina_host.store import Library
+from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.store.library import Library
+from lamina_host.store.outputs import measured_cloud
+from lamina_host.workflow.batch import reprocess
 from lamina_shared.types import ScanPlan
 
 NOISE, VIEWS, PITCH_MM, SECTIONS = "harsh", 8, 8.0, 8

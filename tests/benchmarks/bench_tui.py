@@ -21,7 +21,7 @@ from textual import events
 from textual.widgets import Input
 from textual.worker import Worker
 
-from lamina_host.tui.app import LaminaApp
+from lamina_host.ui.tui.app import LaminaApp
 from tests.tui.drive import help_key_latencies_s
 
 PAUSE_S = 0.05

@@ -10,9 +10,9 @@ import pytest
 from gpiozero.pins.mock import MockFactory
 
 from lamina_device.acquisition import Progress, ScanAborted, ScanControl, acquire
+from lamina_device.backends import open_hardware
 from lamina_device.camera import CameraError
 from lamina_device.cli import main
-from lamina_device.hardware import open_hardware
 from lamina_shared.capture import load_capture
 from lamina_shared.types import ScanPlan
 

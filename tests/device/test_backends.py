@@ -11,7 +11,7 @@ import pytest
 from gpiozero.pins.mock import MockFactory
 
 from lamina_device import cli as device_cli
-from lamina_device.hardware import open_hardware
+from lamina_device.backends import open_hardware
 from lamina_device.motion import MotionError, StepperLift, StepperTurntable
 from lamina_device.operations import AxisLimits
 from lamina_device.sim import SIM_LIFT_TRAVEL_MM, Mechanics, NoiseModel, Rig

@@ -11,8 +11,9 @@ import pytest
 from gpiozero.pins.mock import MockFactory
 
 from lamina_device.acquisition import capture_pair
+from lamina_device.backends import open_hardware
 from lamina_device.camera import CameraError, PiCamera, exposure_window_ns
-from lamina_device.hardware import HardwareError, open_hardware
+from lamina_device.hardware import HardwareError
 from lamina_device.laser import Laser
 
 

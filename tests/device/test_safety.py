@@ -17,7 +17,7 @@ from gpiozero.pins.mock import MockFactory
 
 from lamina_device.laser import Laser
 from lamina_device.safety import LaserShutdown, LaserWatchdog
-from lamina_host.link import DeviceClient, PtyBridge
+from lamina_host.link.client import DeviceClient, PtyBridge
 from lamina_shared.link import Channel
 
 

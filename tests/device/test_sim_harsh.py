@@ -134,7 +134,7 @@ def test_thesis_frames_are_grey_and_untouched_by_the_colour_path():
 
 def test_harsh_lens_bends_the_board_and_the_host_division_model_recovers_it():
     """The harsh lens moves corner pixels by several px; --distortion brings the map back."""
-    from lamina_host.calibration import calibrate_grid
+    from lamina_host.reconstruct.calibration import calibrate_grid
 
     scene = SimScene(Rig(), None, NoiseModel.harsh())
     rig = scene.rig

@@ -4,7 +4,7 @@ The random-shape campaign (issue 18) of ``tests/test_random_shapes.py`` and
 ``tests/benchmarks/bench_campaign.py``: the simulated device (``open_sim``: renderer,
 mechanics, stripe extraction via :func:`lamina_device.acquisition.acquire`) acquires the
 calibration board, the cylinder and the object; the host reconstructs
-(:func:`lamina_host.pipeline.reconstruct`), builds ``report.json`` and writes the output
+(:func:`lamina_host.reconstruct.pipeline.reconstruct`), builds ``report.json`` and writes the output
 files. Only the link between them is left out (it has its own tests and bench), and the
 board and cylinder frames, which do not depend on the object, are acquired once per
 process and rig. Every exception is caught and named by the stage it came from, so a
@@ -29,9 +29,9 @@ from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
 from lamina_device.sim.random_shapes import RandomShape, random_shape
 from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accuracy
-from lamina_host.measure import polygon_area
-from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
-from lamina_host.report import build_report, measured_cloud, write_outputs
+from lamina_host.reconstruct.measure import polygon_area
+from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.store.outputs import build_report, measured_cloud, write_outputs
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from lamina_device.sim import Mechanics, Rig, SimScene
-from lamina_host.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
 from tests.helpers.shapes import Outline, circle, view_segment
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_device.sim import Rig
-from lamina_host.mesh import stl_bytes
+from lamina_host.reconstruct.mesh import stl_bytes
 from lamina_shared.types import Segment
 
 Outline = np.ndarray

@@ -20,8 +20,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "tui")]
 from drive import connect_and_calibrate, fill_scan_form, wait_for  # noqa: E402
 from textual.widgets import DataTable  # noqa: E402
 
-from lamina_host.report import save_segments  # noqa: E402
-from lamina_host.tui.app import LaminaApp  # noqa: E402
+from lamina_host.store.outputs import save_segments  # noqa: E402
+from lamina_host.ui.tui.app import LaminaApp  # noqa: E402
 
 RELOADS = 4
 

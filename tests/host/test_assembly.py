@@ -1,11 +1,11 @@
-"""Tests for lamina_host.assembly: trimming, object frame and overlap averaging (6.1-6.3)."""
+"""Tests for reconstruct.assembly: trimming, object frame and overlap averaging (6.1-6.3)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from lamina_host.assembly import average_overlaps, split_outlines, to_object_frame, trim
+from lamina_host.reconstruct.assembly import average_overlaps, split_outlines, to_object_frame, trim
 
 R = 9.525
 

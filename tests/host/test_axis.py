@@ -1,13 +1,13 @@
-"""Tests for lamina_host.axis: circle fitting and the turntable axis (thesis 6.2)."""
+"""Tests for lamina_host.reconstruct.axis: circle fitting and the turntable axis (thesis 6.2)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from lamina_host.assembly import trim
-from lamina_host.axis import find_axis, find_axis_joint, fit_circle
-from lamina_host.calibration import CalibrationError
+from lamina_host.reconstruct.assembly import trim
+from lamina_host.reconstruct.axis import find_axis, find_axis_joint, fit_circle
+from lamina_host.reconstruct.calibration import CalibrationError
 
 R_CYL = 9.525  # thesis test cylinder, 19.05 mm diameter
 

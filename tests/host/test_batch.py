@@ -19,9 +19,15 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import parse_object
-from lamina_host.batch import BatchError, ClinicalMeasure, measure_scan, run_batch, select_scans
-from lamina_host.clinical import Landmark
-from lamina_host.store import Library
+from lamina_host.clinical.measures import Landmark
+from lamina_host.store.library import Library
+from lamina_host.workflow.batch import (
+    BatchError,
+    ClinicalMeasure,
+    measure_scan,
+    run_batch,
+    select_scans,
+)
 
 COHORT = 20
 

@@ -1,4 +1,4 @@
-"""Tests for lamina_host.calibration: corner detection, DLT homography, grid calibration."""
+"""Tests for reconstruct.calibration: corner detection, DLT homography, grid calibration."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import NoiseModel, Rig, SimScene
-from lamina_host.calibration import (
+from lamina_host.reconstruct.calibration import (
     CalibrationError,
     GridCalibration,
     Homography,

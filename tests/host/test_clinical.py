@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.special import ellipe
 
-from lamina_host.clinical import (
+from lamina_host.clinical.measures import (
     ClinicalError,
     Landmark,
     LimbSection,
@@ -24,9 +24,9 @@ from lamina_host.clinical import (
     sections_from_report,
     stack_volume_mm3,
 )
-from lamina_host.efd import efd_fit
-from lamina_host.mesh import signed_volume, topology, tube_mesh
-from lamina_host.pipeline import Section, mesh_contours, vertex_colours
+from lamina_host.reconstruct.efd import efd_fit
+from lamina_host.reconstruct.mesh import signed_volume, topology, tube_mesh
+from lamina_host.reconstruct.pipeline import Section, mesh_contours, vertex_colours
 
 
 def ellipse_section(

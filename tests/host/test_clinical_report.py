@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from lamina_host.cli import main
-from lamina_host.clinical import Landmark, compare, measure_limb, sections_from_report
-from lamina_host.clinical_report import MeasureRequest, build_report_data, csv_text
-from lamina_host.efd import efd_fit
-from lamina_host.store import Library
+from lamina_host.clinical.measures import Landmark, compare, measure_limb, sections_from_report
+from lamina_host.clinical.report import MeasureRequest, build_report_data, csv_text
+from lamina_host.reconstruct.efd import efd_fit
+from lamina_host.store.library import Library
 from lamina_shared.types import ScanPlan
 
 PLANS = {"object": ScanPlan.regular(2, 10.0, 4)}

@@ -7,8 +7,8 @@ import sqlite3
 import numpy as np
 import pytest
 
-from lamina_host.report import load_segments, save_segments
-from lamina_host.store import Library
+from lamina_host.store.library import Library
+from lamina_host.store.outputs import load_segments, save_segments
 from lamina_shared.types import ScanPlan, Segment
 
 PLANS = {"object": ScanPlan.regular(2, 2.0, 2)}

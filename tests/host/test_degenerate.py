@@ -22,17 +22,23 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lamina_host.assembly import (
+from lamina_host.reconstruct.assembly import (
     average_overlap_colours,
     average_overlaps,
     split_outlines,
     to_object_frame,
     trim,
 )
-from lamina_host.axis import AxisCalibration, find_axis, find_axis_joint, fit_circle, taubin_circle
-from lamina_host.calibration import CalibrationError, GridCalibration, calibrate_grid
-from lamina_host.coverage import measure_coverage
-from lamina_host.efd import (
+from lamina_host.reconstruct.axis import (
+    AxisCalibration,
+    find_axis,
+    find_axis_joint,
+    fit_circle,
+    taubin_circle,
+)
+from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
+from lamina_host.reconstruct.coverage import measure_coverage
+from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
     PARAMETERS,
     EfdStack,
@@ -41,10 +47,10 @@ from lamina_host.efd import (
     efd_fit,
     resample_by_angle,
 )
-from lamina_host.measure import centroid, perimeter, polygon_area, radial_error_table
-from lamina_host.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
-from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section
-from lamina_host.pipeline import (
+from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area, radial_error_table
+from lamina_host.reconstruct.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
+from lamina_host.reconstruct.outliers import OutlierRules, angular_extent_deg, clean_section
+from lamina_host.reconstruct.pipeline import (
     STATUSES,
     ProcessOptions,
     Reconstruction,
@@ -55,8 +61,8 @@ from lamina_host.pipeline import (
     process_segments,
     safe_mesh,
 )
-from lamina_host.report import build_report
-from lamina_host.store import Library, ScanInputs
+from lamina_host.store.library import Library, ScanInputs
+from lamina_host.store.outputs import build_report
 from lamina_host.workflow.results import section_rows
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import Segment

@@ -1,4 +1,4 @@
-"""Tests for lamina_host.efd: Kuhl-Giardina coefficients and harmonic choice (thesis 6.4)."""
+"""Tests for reconstruct.efd: Kuhl-Giardina coefficients and harmonic choice (thesis 6.4)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pyefd
 import pytest
 
-from lamina_host.efd import (
+from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
     EfdStack,
     align,
@@ -17,7 +17,7 @@ from lamina_host.efd import (
     nyquist_max,
     shift_start,
 )
-from lamina_host.measure import signed_area
+from lamina_host.reconstruct.measure import signed_area
 from tests.helpers.shapes import regular_polygon
 
 R = 9.525

@@ -17,7 +17,9 @@ import numpy as np
 import pydicom
 import pytest
 
-from lamina_host.dicom import (
+from lamina_host.reconstruct.measure import perimeter, polygon_area
+from lamina_host.reconstruct.mesh import load_ply, tube_mesh
+from lamina_host.store.dicom import (
     ENCAPSULATED_STL,
     SURFACE_SCAN_MESH,
     DicomContext,
@@ -26,10 +28,8 @@ from lamina_host.dicom import (
     read_stl_triangles,
     read_surface_mesh,
 )
-from lamina_host.measure import perimeter, polygon_area
-from lamina_host.mesh import load_ply, tube_mesh
-from lamina_host.record import load_record
-from lamina_host.store import Library
+from lamina_host.store.library import Library
+from lamina_host.store.record import load_record
 
 from .conftest import SUBJECT
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import parse_object
-from lamina_host.axis import RADIUS_SPREAD_WARNING
+from lamina_host.reconstruct.axis import RADIUS_SPREAD_WARNING
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_limb.py"
 SPEC, SECTIONS = "stump:scale=5,z=-50", 6

@@ -1,12 +1,12 @@
-"""Tests for lamina_host.measure: polygon measures and the Table 8.3 radial errors."""
+"""Tests for lamina_host.reconstruct.measure: polygon measures and the Table 8.3 radial errors."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from lamina_host.calibration import CalibrationError
-from lamina_host.measure import (
+from lamina_host.reconstruct.calibration import CalibrationError
+from lamina_host.reconstruct.measure import (
     centroid,
     perimeter,
     polygon_area,

@@ -1,4 +1,4 @@
-"""Tests for lamina_host.mesh: normals, ball pivoting and PLY output (thesis chapter 7)."""
+"""Tests for reconstruct.mesh: normals, ball pivoting and PLY output (thesis chapter 7)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pymeshlab
 import pytest
 
-from lamina_host.mesh import (
+from lamina_host.reconstruct.mesh import (
     ball_pivoting,
     contour_normals,
     obj_bytes,

@@ -17,8 +17,8 @@ import pytest
 
 from lamina_device.sim import Mechanics, Rig, parse_object
 from lamina_device.sim.truth import TrueSurface, align_about_axis
-from lamina_host.mesh import load_ply, mesh_kind, open_tube_mesh, topology, tube_mesh
-from lamina_host.pipeline import (
+from lamina_host.reconstruct.mesh import load_ply, mesh_kind, open_tube_mesh, topology, tube_mesh
+from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     _clean_runs,
     build_mesh,

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import Rig
-from lamina_host.expect import parse_expectation
-from lamina_host.measure import radial_error_table
-from lamina_host.pipeline import ProcessOptions, reconstruct
-from lamina_host.report import load_segments
+from lamina_host.reconstruct.expect import parse_expectation
+from lamina_host.reconstruct.measure import radial_error_table
+from lamina_host.reconstruct.pipeline import ProcessOptions, reconstruct
+from lamina_host.store.outputs import load_segments
 from tests.helpers.shapes import posts_stl
 
 RIG_BOARD = Rig().board

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lamina_host.precision import overlap_differences, section_precision_mm
+from lamina_host.reconstruct.precision import overlap_differences, section_precision_mm
 
 
 def circle_views(noise_mm: float, views: int = 6, seed: int = 0, radius_mm: float = 20.0):

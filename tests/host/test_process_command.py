@@ -15,16 +15,16 @@ from pathlib import Path
 
 import pytest
 
-import lamina_host.pipeline as pipeline
+import lamina_host.reconstruct.pipeline as pipeline
 import lamina_host.workflow.job as job
-from lamina_host.batch import reprocess
-from lamina_host.calibration import CalibrationError
 from lamina_host.cli import main, print_summary
-from lamina_host.pipeline import ProcessOptions
-from lamina_host.report import build_report
-from lamina_host.status import OutlineStatus
-from lamina_host.store import Library
-from lamina_host.tui.screens.results import summary_text
+from lamina_host.reconstruct.calibration import CalibrationError
+from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.reconstruct.status import OutlineStatus
+from lamina_host.store.library import Library
+from lamina_host.store.outputs import build_report
+from lamina_host.ui.tui.screens.results import summary_text
+from lamina_host.workflow.batch import reprocess
 from lamina_host.workflow.results import Results, section_rows, volume_mm3
 from lamina_shared.types import ScanPlan
 from tests.helpers.cli import host_command

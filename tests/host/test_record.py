@@ -15,14 +15,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from lamina_host.axis import AxisCalibration
-from lamina_host.calibration import GridCalibration, Homography
-from lamina_host.clinical import LimbSection, measure_limb, sections_from_reconstruction
-from lamina_host.efd import EllipticFourier, align
-from lamina_host.measure import perimeter, polygon_area
-from lamina_host.mesh import signed_volume
-from lamina_host.outliers import OutlierRules
-from lamina_host.pipeline import (
+from lamina_host.clinical.measures import LimbSection, measure_limb, sections_from_reconstruction
+from lamina_host.reconstruct.axis import AxisCalibration
+from lamina_host.reconstruct.calibration import GridCalibration, Homography
+from lamina_host.reconstruct.efd import EllipticFourier, align
+from lamina_host.reconstruct.measure import perimeter, polygon_area
+from lamina_host.reconstruct.mesh import signed_volume
+from lamina_host.reconstruct.outliers import OutlierRules
+from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
     Section,
@@ -30,7 +30,7 @@ from lamina_host.pipeline import (
     fit_groups,
     outline_groups,
 )
-from lamina_host.record import RecordError, load_record, record_bytes
+from lamina_host.store.record import RecordError, load_record, record_bytes
 
 SECTIONS = 40
 PITCH_MM = 4.0

@@ -20,17 +20,28 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import Mechanics, Rig
-from lamina_host.coverage import measure_coverage
-from lamina_host.measure import polygon_area
-from lamina_host.mesh import mesh_kind, signed_volume, topology, triangulate_polygon, tube_mesh
-from lamina_host.outliers import OutlierRules, angular_extent_deg, clean_section, cluster_support
-from lamina_host.pipeline import (
+from lamina_host.reconstruct.coverage import measure_coverage
+from lamina_host.reconstruct.measure import polygon_area
+from lamina_host.reconstruct.mesh import (
+    mesh_kind,
+    signed_volume,
+    topology,
+    triangulate_polygon,
+    tube_mesh,
+)
+from lamina_host.reconstruct.outliers import (
+    OutlierRules,
+    angular_extent_deg,
+    clean_section,
+    cluster_support,
+)
+from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     assemble,
     fit_outline,
     thin_outline,
 )
-from lamina_host.report import load_segments, measured_cloud
+from lamina_host.store.outputs import load_segments, measured_cloud
 from lamina_shared.types import Segment
 from tests.helpers.scans import distance_to, run, synthetic_scan
 from tests.helpers.shapes import circle, ellipse, posts_stl

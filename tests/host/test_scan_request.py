@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from lamina_host.workflow import InputError
 from lamina_host.workflow.job import ScanRequest
+from lamina_shared.errors import InputError
 from lamina_shared.types import ScanPlan
 
 

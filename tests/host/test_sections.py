@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import Mechanics, Rig
-from lamina_host.coverage import bridge_gaps, measure_coverage
-from lamina_host.measure import polygon_area
-from lamina_host.outliers import OutlierRules, clean_section, thin_part
-from lamina_host.pipeline import ProcessOptions, fit_section
+from lamina_host.reconstruct.coverage import bridge_gaps, measure_coverage
+from lamina_host.reconstruct.measure import polygon_area
+from lamina_host.reconstruct.outliers import OutlierRules, clean_section, thin_part
+from lamina_host.reconstruct.pipeline import ProcessOptions, fit_section
 from tests.helpers.scans import distance_to, run, synthetic_scan
 
 # A limb-like section at the thesis rig's scale: oval, with skin relief of 0.08 and

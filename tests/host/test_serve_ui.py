@@ -14,7 +14,7 @@ import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestServer, make_mocked_request
 
-from lamina_host.serve_ui import UiServer, allowed_names, tui_command
+from lamina_host.ui.browser import UiServer, allowed_names, tui_command
 
 
 def serve_ui(*args: str) -> subprocess.CompletedProcess[str]:

@@ -16,8 +16,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lamina_host.mesh import save_ply
-from lamina_host.store import Library, StoreError, default_library_path
+from lamina_host.reconstruct.mesh import save_ply
+from lamina_host.store.library import Library, StoreError, default_library_path
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 PLANS = {"cylinder": ScanPlan.regular(1, 2.0, 4), "object": ScanPlan.regular(3, 2.0, 4)}
@@ -337,7 +337,7 @@ def test_processes_creating_one_new_library_at_once_all_succeed_and_keep_it_priv
     path = tmp_path / "new" / "library.sqlite"
     code = (
         "import sys\n"
-        "from lamina_host.store import Library\n"
+        "from lamina_host.store.library import Library\n"
         "from lamina_shared.types import ScanPlan\n"
         "with Library(sys.argv[1]) as library:\n"
         "    library.create_scan(sys.argv[2], {'object': ScanPlan.regular(1, 2.0, 4)})\n"

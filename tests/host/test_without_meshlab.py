@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lamina_host.mesh import load_ply, stl_triangles
+from lamina_host.reconstruct.mesh import load_ply, stl_triangles
 
 # sys.modules[name] = None makes every later `import name` raise ImportError.
 HIDDEN = (

@@ -17,8 +17,8 @@ from textual.app import App
 from textual.pilot import Pilot
 from textual_plotext import PlotextPlot
 
-from lamina_host.tui.adapter import Session, parse_plan
-from lamina_host.tui.widgets import FrameView
+from lamina_host.ui.tui.adapter import Session, parse_plan
+from lamina_host.ui.tui.widgets import FrameView
 
 # The helpers in drive.py sit beside the tests; pytest's importlib mode does not add
 # this folder to the import path by itself.

@@ -10,8 +10,8 @@ from textual import events
 from textual.pilot import Pilot
 from textual.widgets import DataTable, Input
 
-from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.widgets import HelpScreen
+from lamina_host.ui.tui.app import LaminaApp
+from lamina_host.ui.tui.widgets import HelpScreen
 
 TIMEOUT_S = 60.0
 

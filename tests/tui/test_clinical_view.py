@@ -11,8 +11,8 @@ from drive import open_first_scan, wait_for
 from textual.widgets import DataTable, Input, Static
 from textual_plotext import PlotextPlot
 
-from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.clinical_view import ClinicalView
+from lamina_host.ui.tui.app import LaminaApp
+from lamina_host.ui.tui.clinical_view import ClinicalView
 
 DIAMETER_MM = 19.05
 """The simulated cylinder of the scanned library (see conftest)."""

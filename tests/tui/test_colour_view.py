@@ -9,8 +9,8 @@ import numpy as np
 from textual.widgets import Checkbox, Input, Static
 
 from lamina_device.sim.texture import Texture, colour_errors
-from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.screens.results import COLOUR_SECTORS, colour_strip
+from lamina_host.ui.tui.app import LaminaApp
+from lamina_host.ui.tui.screens.results import COLOUR_SECTORS, colour_strip
 from lamina_host.workflow.results import colour_bins
 
 from .drive import calibrate, connect, fill_scan_form, wait_for

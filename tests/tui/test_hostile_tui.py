@@ -16,8 +16,8 @@ from rich.text import Text
 from textual.widgets import DataTable, Input
 
 from lamina_host import cli
-from lamina_host.store import Library
-from lamina_host.tui.app import LaminaApp
+from lamina_host.store.library import Library
+from lamina_host.ui.tui.app import LaminaApp
 from lamina_shared.types import ScanPlan
 
 BAD_FORMS = [

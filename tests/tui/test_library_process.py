@@ -13,11 +13,11 @@ from drive import open_library, wait_for
 from textual.pilot import Pilot
 from textual.widgets import DataTable, Static
 
-import lamina_host.pipeline as pipeline
+import lamina_host.reconstruct.pipeline as pipeline
 import lamina_host.workflow.job as job
-from lamina_host.calibration import CalibrationError
-from lamina_host.store import Library
-from lamina_host.tui.app import LaminaApp
+from lamina_host.reconstruct.calibration import CalibrationError
+from lamina_host.store.library import Library
+from lamina_host.ui.tui.app import LaminaApp
 
 DIAMETER_MM = 19.05
 """The simulated device's default object: the thesis's calibration cylinder."""

@@ -17,8 +17,8 @@ from drive import calibrate, connect, fill_scan_form, wait_for
 from textual.widgets import Input
 
 from lamina_host.cli import main
-from lamina_host.store import Library
-from lamina_host.tui.app import LaminaApp
+from lamina_host.store.library import Library
+from lamina_host.ui.tui.app import LaminaApp
 from lamina_shared.types import Segment
 
 DIAMETER_MM = 19.05

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lamina_host.tui.adapter import (
+from lamina_host.ui.tui.adapter import (
     Progress,
     SectionRow,
     UserError,
@@ -17,7 +17,7 @@ from lamina_host.tui.adapter import (
     roundness,
     volume_mm3,
 )
-from lamina_host.tui.render import STRIPE_RGB, UPPER_HALF, cell_grid, fit_size, grid_text
+from lamina_host.ui.tui.render import STRIPE_RGB, UPPER_HALF, cell_grid, fit_size, grid_text
 
 
 def test_fit_size_keeps_the_aspect_ratio() -> None:
@@ -112,8 +112,8 @@ def test_subject_ids_are_safe_codes() -> None:
 
 
 def test_harmonics_field_takes_a_count_a_rule_or_nothing():
-    from lamina_host.tui.adapter import UserError
-    from lamina_host.tui.screens.results import parse_harmonics
+    from lamina_host.ui.tui.adapter import UserError
+    from lamina_host.ui.tui.screens.results import parse_harmonics
 
     assert parse_harmonics("") == (None, None)
     assert parse_harmonics(" auto ") == (None, None)
@@ -126,7 +126,7 @@ def test_harmonics_field_takes_a_count_a_rule_or_nothing():
 def test_processing_again_with_a_harmonic_rule(scanned_library, tmp_path):
     import shutil
 
-    from lamina_host.tui.adapter import Session
+    from lamina_host.ui.tui.adapter import Session
 
     # A copy: the shared library feeds the snapshots, and processing stores a new result.
     library = tmp_path / "library.sqlite"

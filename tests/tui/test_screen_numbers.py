@@ -14,9 +14,9 @@ import numpy as np
 from drive import calibrate, connect, fill_scan_form, open_library, wait_for
 from textual.widgets import DataTable, Input, Static
 
-from lamina_host.pipeline import assemble
-from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.screens.scan import ScanScreen
+from lamina_host.reconstruct.pipeline import assemble
+from lamina_host.ui.tui.app import LaminaApp
+from lamina_host.ui.tui.screens.scan import ScanScreen
 from lamina_host.workflow.job import TRIM_FRACTION
 
 RADIUS_MM = 19.05 / 2

@@ -18,8 +18,8 @@ import pytest
 from drive import connect_and_calibrate, fill_scan_form, open_first_scan, open_library, wait_for
 from textual.pilot import Pilot
 
-from lamina_host.tui.app import LaminaApp
-from lamina_host.tui.screens.scan import ScanScreen
+from lamina_host.ui.tui.app import LaminaApp
+from lamina_host.ui.tui.screens.scan import ScanScreen
 
 SIZE = (80, 24)
 
@@ -27,7 +27,7 @@ SIZE = (80, 24)
 @pytest.fixture(autouse=True)
 def pinned_ports(monkeypatch: pytest.MonkeyPatch) -> None:
     """List only the simulated device: real serial ports differ between machines."""
-    monkeypatch.setattr("lamina_host.tui.screens.connect.serial_ports", lambda: [])
+    monkeypatch.setattr("lamina_host.ui.tui.screens.connect.serial_ports", lambda: [])
 
 
 def test_connect_screen(snap_compare, tmp_path: Path) -> None:

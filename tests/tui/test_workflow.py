@@ -13,8 +13,8 @@ import pytest
 from drive import calibrate, connect, fill_scan_form, help_key_latencies_s, wait_for
 from textual.widgets import DataTable, Input
 
-from lamina_host.store import Library
-from lamina_host.tui.app import LaminaApp
+from lamina_host.store.library import Library
+from lamina_host.ui.tui.app import LaminaApp
 
 DIAMETER_MM = 19.05
 """The simulated device's default object: the thesis's calibration cylinder."""

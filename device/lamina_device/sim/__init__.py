@@ -17,11 +17,11 @@ from lamina_device.sim.objects import (
     cylinder,
     ellipsoid,
     load_mesh,
-    parse_object,
     sphere,
 )
 from lamina_device.sim.render import NOISE_PRESETS, NoiseModel, SimScene
 from lamina_device.sim.rig import RIG_PRESETS, Rig
+from lamina_device.sim.specs import parse_object
 
 __all__ = [
     "NOISE_PRESETS",

@@ -14,25 +14,22 @@ from gpiozero.pins.mock import MockFactory
 
 from lamina_device.camera import Stage
 from lamina_device.hardware import Hardware, HardwareError, watched
-from lamina_device.laser import Laser
+from lamina_device.laser import MOCK_LASER_PIN, Laser
 from lamina_device.sim.axes import Mechanics, SimLift, SimTurntable
 from lamina_device.sim.camera import SimCamera
-from lamina_device.sim.objects import parse_object
 from lamina_device.sim.render import NoiseModel, SimScene
 from lamina_device.sim.rig import Rig
+from lamina_device.sim.specs import parse_object
 from lamina_shared.types import ScanPlan
 
 __all__ = [
     "DEFAULT_CYLINDER_PLAN",
     "DEFAULT_OBJECT",
     "DEFAULT_PLAN",
-    "MOCK_LASER_PIN",
     "open_sim",
     "sim_source",
 ]
 
-MOCK_LASER_PIN = 17
-"""The laser's (mock) GPIO pin on the simulated and replayed devices."""
 DEFAULT_OBJECT = "cylinder:d=19.05"
 DEFAULT_PLAN = ScanPlan.regular(sections=4, pitch_mm=2.0, views=8)
 DEFAULT_CYLINDER_PLAN = ScanPlan.regular(sections=1, pitch_mm=2.0, views=8)

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lamina_device.sim.objects import _PHANTOM_NAMES, AS_BUILT, Placement, TriangleMesh
+from lamina_device.sim.objects import AS_BUILT, Placement, TriangleMesh
 
 __all__ = ["OPEN_PHANTOMS", "PHANTOMS", "phantom"]
 
@@ -354,7 +354,7 @@ _BUILDERS: dict[str, Callable[[], np.ndarray]] = {
     "stump": _stump,
     "face": _face,
 }
-PHANTOMS = _PHANTOM_NAMES
+PHANTOMS = ("hand", "foot", "bust", "bone", "ring", "stump", "arm", "face")
 """Names of the built-in phantoms, usable as ``--object NAME[:scale=S,x=,y=,z=,yaw=]``."""
 
 OPEN_PHANTOMS = ("face",)

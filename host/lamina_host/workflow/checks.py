@@ -2,41 +2,28 @@
 
 One place for the rules both front ends apply, so they cannot drift apart:
 
-- :func:`check_subject`: subject codes are pseudonyms of a fixed character set
-  (:data:`SUBJECT_RULE`), never free text that could hold a name or terminal escapes;
 - :func:`check_plan`: the regular plan's three numbers, refused (never replaced by a
   default) when zero, negative, not finite or beyond the ranges below;
 - :func:`check_plan_limits`: a plan against the limits the device advertised, before
-  the scan exists in the library;
-- :func:`scan_identity` and :func:`identity_difference`: what acquired a scan (device,
-  software, source, calibration, extraction settings), so a resume on another device
-  or with another object is refused rather than merged;
-- :func:`printable`: text read from the library or a device, with control characters
-  shown escaped before it reaches a terminal.
+  the scan exists in the library.
+
+Subject codes are the library's rule (:mod:`lamina_host.store.subjects`); the identity of
+what acquires a scan is the link's (:mod:`lamina_host.link.identity`);
+:class:`~lamina_shared.errors.InputError` and :func:`~lamina_shared.errors.printable` are
+shared with the device.
 """
 
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
 import math
-import re
-import unicodedata
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
-from lamina_shared.errors import LaminaError
+from lamina_shared.errors import InputError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import plan_fits
 from lamina_shared.types import ScanPlan
-
-SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,31}")
-SUBJECT_RULE = (
-    "1 to 32 characters: ASCII letters, digits, '.', '_' and '-', starting with a letter "
-    "or digit (a pseudonymous code such as P001-left, never a name)"
-)
 
 SECTIONS_RANGE = (1, 500)
 VIEWS_RANGE = (3, 360)
@@ -46,24 +33,6 @@ PITCH_MIN_MM = 0.001
 (a lead screw of 8 mm per turn at 3,200 microsteps per turn steps 2.5 um)."""
 DEFAULT_SECTIONS, DEFAULT_PITCH_MM, DEFAULT_VIEWS = 4, 2.0, 8
 """The regular plan's defaults when some of its numbers are given and others not."""
-
-IDENTITY_KEYS = (
-    "serial", "source", "software", "hardware", "description", "image_size", "protocol",
-    "calibration", "extract",
-)  # fmt: skip
-"""What a scan's identity may hold (only what the device and host know is recorded)."""
-
-
-class InputError(LaminaError, ValueError):
-    """A value typed by the user is refused; the text names it and what to enter."""
-
-
-def check_subject(code: str) -> str:
-    """Return ``code`` if it is a valid subject code, else raise :class:`InputError`."""
-    if not isinstance(code, str) or SUBJECT_PATTERN.fullmatch(code) is None:
-        shown = printable(str(code))[:40]
-        raise InputError(f"subject code '{shown}' is not allowed: use {SUBJECT_RULE}")
-    return code
 
 
 def _is_number(value: object) -> bool:
@@ -197,94 +166,3 @@ def check_plan_limits(
     problems = plan_fits(plan, DeviceLimits.from_welcome(dict(limits)))
     if problems:
         raise InputError(f"the {target} plan cannot be sent to the device: {problems[0]}")
-
-
-def printable(text: str) -> str:
-    """Return ``text`` with control and format characters (escapes, newlines) shown escaped.
-
-    Idempotent: text already printable is returned unchanged.
-    """
-    return "".join(
-        ch.encode("unicode_escape").decode("ascii") if unicodedata.category(ch)[0] == "C" else ch
-        for ch in text
-    )
-
-
-def spawned_source(
-    device: str, object_spec: str | None, seed: int | None, noise: str | None, rig: str | None
-) -> str | None:
-    """Return what a device the host starts itself acquires, as the host asked for it.
-
-    For ``sim`` the object, rig, noise and seed; for ``replay:DIR`` the capture's name and
-    the SHA-256 of its ``capture.json``. None for a real device (it reports its own).
-    """
-    if device == "sim":
-        return (
-            f"sim object={object_spec or 'default'} rig={rig or 'thesis'} "
-            f"noise={noise or 'thesis'} seed={0 if seed is None else seed}"
-        )
-    if device.startswith("replay:"):
-        folder = Path(device.removeprefix("replay:"))
-        try:
-            digest = hashlib.sha256((folder / "capture.json").read_bytes()).hexdigest()
-        except OSError:
-            digest = "unreadable"
-        return f"replay {folder.name} sha256={digest}"
-    return None
-
-
-def _plain(value: Any) -> Any:
-    """Return ``value`` as JSON would give it back (tuples become lists, keys strings)."""
-    return json.loads(json.dumps(value, sort_keys=True, default=str))
-
-
-def scan_identity(welcome: Mapping[str, Any], spawned: str | None = None) -> dict[str, Any]:
-    """Return the identity of what acquires a scan, from the device's WELCOME.
-
-    Fields the device does not report (an older device) are left out. The device's own
-    ``identity.source`` takes precedence over ``spawned`` (what the host asked a device it
-    started to simulate or replay). ``calibration`` is a hash of the calibration setup the
-    device reported (board, cylinder, image size and any ``calibration`` record).
-    """
-    identity: dict[str, Any] = {}
-    reported = welcome.get("identity")
-    if isinstance(reported, Mapping):
-        for key in ("serial", "source"):
-            if reported.get(key) is not None:
-                identity[key] = str(reported[key])
-    if "source" not in identity and spawned is not None:
-        identity["source"] = spawned
-    for key in ("software", "hardware", "description", "image_size", "protocol", "extract"):
-        if welcome.get(key) is not None:
-            identity[key] = _plain(welcome[key])
-    setup = {
-        k: welcome.get(k) for k in ("board", "cylinder_diameter_mm", "image_size", "calibration")
-    }
-    if any(v is not None for v in setup.values()):
-        blob = json.dumps(_plain(setup), sort_keys=True).encode()
-        identity["calibration"] = hashlib.sha256(blob).hexdigest()[:16]
-    return identity
-
-
-def _shown(value: Any) -> str:
-    text = "absent" if value is None else json.dumps(value, sort_keys=True)
-    text = printable(text)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
-    """Return what differs between a scan's recorded identity and the current one, or None.
-
-    A scan recorded before identities existed (``legacy``) is compared on what it recorded.
-    """
-    keys = set(recorded) if recorded.get("legacy") else set(recorded) | set(current)
-    keys.discard("legacy")
-    current_plain = _plain(dict(current))
-    differs = [k for k in sorted(keys) if recorded.get(k) != current_plain.get(k)]
-    if not differs:
-        return None
-    details = "; ".join(
-        f"{k} was {_shown(recorded.get(k))}, now {_shown(current_plain.get(k))}"
-        for k in differs[:2]
-    )
-    return f"{', '.join(differs)} {'differs' if len(differs) == 1 else 'differ'}: {details}"

@@ -23,20 +23,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.axis import AxisCalibration
-from lamina_host.calibration import GridCalibration, calibrate_grid
-from lamina_host.expect import Expectation
-from lamina_host.files import PRIVATE_FOLDER, OutputError, replace_file
-from lamina_host.link import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
-from lamina_host.pipeline import ProcessOptions, assemble, calibrate_axis, reconstruct
-from lamina_host.report import build_report, save_segments, write_outputs
-from lamina_host.store import SIDES, Library, ScanSummary, check_side
-from lamina_host.workflow.checks import (
-    InputError,
-    check_plan_limits,
-    check_positive_mm,
-    check_subject,
-)
+from lamina_host.link.client import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
+from lamina_host.reconstruct.axis import AxisCalibration
+from lamina_host.reconstruct.calibration import GridCalibration, calibrate_grid
+from lamina_host.reconstruct.expect import Expectation
+from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, calibrate_axis, reconstruct
+from lamina_host.store.files import PRIVATE_FOLDER, OutputError, replace_file
+from lamina_host.store.library import SIDES, Library, ScanSummary, check_side
+from lamina_host.store.outputs import build_report, save_segments, write_outputs
+from lamina_host.store.subjects import check_subject
+from lamina_host.workflow.checks import check_plan_limits, check_positive_mm
 from lamina_host.workflow.results import (
     Progress,
     Results,
@@ -46,7 +42,7 @@ from lamina_host.workflow.results import (
     section_rows,
     volume_mm3,
 )
-from lamina_shared.errors import LaminaError
+from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
 from lamina_shared.ops import ExtractChanges
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
@@ -94,13 +90,13 @@ class ScanRequest:
     """A new scan as a front end asks for it; checked once, when it is made.
 
     Attributes:
-        subject: the pseudonymous subject code (:data:`~lamina_host.workflow.SUBJECT_RULE`).
+        subject: the pseudonymous subject code (:data:`~lamina_host.store.subjects.SUBJECT_RULE`).
         plan: the object's plan; None for the device's default plan.
         cylinder_mm: the calibration cylinder's diameter; None for the device's.
         options: what the library records with the scan (what a resume must repeat).
         extract: per-scan extraction settings for the device; None leaves the device's own.
         colour: ask for each object point's colour (the device must say it can).
-        side: the limb scanned, one of :data:`lamina_host.store.SIDES`.
+        side: the limb scanned, one of :data:`lamina_host.store.library.SIDES`.
     """
 
     subject: str
@@ -647,7 +643,7 @@ class ScanJob:
     def section_points(self, segments: list[Segment]) -> np.ndarray:
         """Return the object-frame points (mm) of one section's views so far.
 
-        The same assembly as the final result (:func:`lamina_host.pipeline.assemble`,
+        The same assembly as the final result (:func:`lamina_host.reconstruct.pipeline.assemble`,
         with the turntable's angle correction); (0, 2) before calibration.
         """
         if self.grid is None or self.axis is None or not segments:

@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from lamina_host.link import DeviceInfo
-from lamina_host.measure import perimeter, polygon_area
-from lamina_host.pipeline import Reconstruction, Section
-from lamina_host.status import OutlineStatus
+from lamina_host.link.client import DeviceInfo
+from lamina_host.reconstruct.measure import perimeter, polygon_area
+from lamina_host.reconstruct.pipeline import Reconstruction, Section
+from lamina_host.reconstruct.status import OutlineStatus
 from lamina_shared.types import BoardSpec, Segment
 
 
@@ -114,9 +114,9 @@ class SectionRow:
     roundness: float
     harmonics: int
     coverage_percent: float = 100.0
-    """Share of the circumference the views saw (``lamina_host.coverage``)."""
+    """Share of the circumference the views saw (``lamina_host.reconstruct.coverage``)."""
     status: str = OutlineStatus.MEASURED
-    """How the outline was closed (:class:`~lamina_host.status.OutlineStatus`): measured,
+    """How the outline was closed (:class:`OutlineStatus`): measured,
     bridged, interpolated, open, or failed (then the measurements are NaN)."""
     reason: str = ""
     """Why a failed outline could not be processed (empty otherwise)."""

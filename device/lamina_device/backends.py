@@ -1,0 +1,65 @@
+"""The hardware factory: picks the backend the device program drives by name.
+
+``pi`` is the scanner box (:func:`lamina_device.hardware.open_pi`); ``sim`` the virtual
+rig (:mod:`lamina_device.sim.backend`); ``replay:DIR`` a recorded capture standing in for
+the camera (:mod:`lamina_device.replay`). Every kind comes with its laser watchdog running.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from gpiozero.exc import GPIOZeroError
+from gpiozero.pins import Factory
+
+from lamina_device.camera import CameraError
+from lamina_device.config import ConfigError, load_config
+from lamina_device.hardware import Hardware, HardwareError, open_pi
+from lamina_device.replay import open_replay
+from lamina_device.sim.backend import open_sim
+
+
+def open_hardware(
+    spec: str,
+    object_spec: str | None = None,
+    seed: int = 0,
+    noise: str = "thesis",
+    config_path: Path | str | None = None,
+    pin_factory: Factory | None = None,
+    rig: str = "thesis",
+) -> Hardware:
+    """Return the hardware named by ``spec``: ``sim``, ``replay:DIR`` or ``pi``.
+
+    Args:
+        spec: which hardware.
+        object_spec: the simulated object (sim only).
+        seed: simulation noise seed (sim only).
+        noise: one of ``NOISE_PRESETS``: ``thesis``, ``harsh`` or ``none`` (sim only).
+        config_path: the TOML configuration (pi only; the packaged default if None).
+        pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
+        rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
+
+    Raises:
+        HardwareError: naming what is wrong and what to do.
+    """
+    if spec == "sim":
+        return open_sim(object_spec, seed, noise, rig)
+    if spec.startswith("replay:"):
+        folder = spec.removeprefix("replay:")
+        if not folder:
+            raise HardwareError("replay needs a capture folder: --hardware replay:DIR")
+        return open_replay(Path(folder))
+    if spec == "pi":
+        try:
+            config = load_config(config_path)
+            return open_pi(config, str(config_path or "(default)"), pin_factory)
+        except (ConfigError, CameraError) as exc:
+            raise HardwareError(str(exc)) from None
+        except GPIOZeroError as exc:
+            raise HardwareError(
+                f"cannot drive the GPIO pins: {exc}; on the Pi install python3-lgpio "
+                "(GPIOZERO_PIN_FACTORY=lgpio), off the Pi use GPIOZERO_PIN_FACTORY=mock"
+            ) from None
+    raise HardwareError(
+        f"unknown hardware {spec!r}: use 'sim', 'replay:DIR' (a recorded capture folder) or 'pi'"
+    )

@@ -1,0 +1,2 @@
+"""What a clinic reads from a scan: limb measurements at landmark levels, comparisons
+between sides and visits, and the clinical report (PDF, CSV)."""

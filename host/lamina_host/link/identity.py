@@ -1,0 +1,97 @@
+"""What acquired a scan: the device, its software, source, calibration and extraction.
+
+A scan records its identity when it is created; a resume on another device, or on the
+same device with another object or calibration, is refused rather than merged into it.
+The identity is read from the device's WELCOME and, for a device the host started
+itself (``sim``, ``replay:DIR``), from what the host asked it to acquire.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from lamina_shared.errors import printable
+
+
+def spawned_source(
+    device: str, object_spec: str | None, seed: int | None, noise: str | None, rig: str | None
+) -> str | None:
+    """Return what a device the host starts itself acquires, as the host asked for it.
+
+    For ``sim`` the object, rig, noise and seed; for ``replay:DIR`` the capture's name and
+    the SHA-256 of its ``capture.json``. None for a real device (it reports its own).
+    """
+    if device == "sim":
+        return (
+            f"sim object={object_spec or 'default'} rig={rig or 'thesis'} "
+            f"noise={noise or 'thesis'} seed={0 if seed is None else seed}"
+        )
+    if device.startswith("replay:"):
+        folder = Path(device.removeprefix("replay:"))
+        try:
+            digest = hashlib.sha256((folder / "capture.json").read_bytes()).hexdigest()
+        except OSError:
+            digest = "unreadable"
+        return f"replay {folder.name} sha256={digest}"
+    return None
+
+
+def _plain(value: Any) -> Any:
+    """Return ``value`` as JSON would give it back (tuples become lists, keys strings)."""
+    return json.loads(json.dumps(value, sort_keys=True, default=str))
+
+
+def scan_identity(welcome: Mapping[str, Any], spawned: str | None = None) -> dict[str, Any]:
+    """Return the identity of what acquires a scan, from the device's WELCOME.
+
+    Fields the device does not report (an older device) are left out. The device's own
+    ``identity.source`` takes precedence over ``spawned`` (what the host asked a device it
+    started to simulate or replay). ``calibration`` is a hash of the calibration setup the
+    device reported (board, cylinder, image size and any ``calibration`` record).
+    """
+    identity: dict[str, Any] = {}
+    reported = welcome.get("identity")
+    if isinstance(reported, Mapping):
+        for key in ("serial", "source"):
+            if reported.get(key) is not None:
+                identity[key] = str(reported[key])
+    if "source" not in identity and spawned is not None:
+        identity["source"] = spawned
+    for key in ("software", "hardware", "description", "image_size", "protocol", "extract"):
+        if welcome.get(key) is not None:
+            identity[key] = _plain(welcome[key])
+    setup = {
+        k: welcome.get(k) for k in ("board", "cylinder_diameter_mm", "image_size", "calibration")
+    }
+    if any(v is not None for v in setup.values()):
+        blob = json.dumps(_plain(setup), sort_keys=True).encode()
+        identity["calibration"] = hashlib.sha256(blob).hexdigest()[:16]
+    return identity
+
+
+def _shown(value: Any) -> str:
+    text = "absent" if value is None else json.dumps(value, sort_keys=True)
+    text = printable(text)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
+    """Return what differs between a scan's recorded identity and the current one, or None.
+
+    A scan recorded before identities existed (``legacy``) is compared on what it recorded.
+    """
+    keys = set(recorded) if recorded.get("legacy") else set(recorded) | set(current)
+    keys.discard("legacy")
+    current_plain = _plain(dict(current))
+    differs = [k for k in sorted(keys) if recorded.get(k) != current_plain.get(k)]
+    if not differs:
+        return None
+    details = "; ".join(
+        f"{k} was {_shown(recorded.get(k))}, now {_shown(current_plain.get(k))}"
+        for k in differs[:2]
+    )
+    return f"{', '.join(differs)} {'differs' if len(differs) == 1 else 'differ'}: {details}"

@@ -1,0 +1,379 @@
+"""Reassemble stripe segments into one contour per section (thesis 6.1-6.3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lamina_host.reconstruct.calibration import CalibrationError
+from lamina_host.reconstruct.outliers import label_clusters
+
+TWO_PI = 2.0 * np.pi
+
+
+def trim(points: np.ndarray, fraction: float = 0.10) -> np.ndarray:
+    """Drop the first and last ``fraction`` of a segment's points (thesis 6.1).
+
+    The stripe is weakest and noisiest where it grazes the object's edges, so the thesis
+    discards 10 % at each end.
+
+    Args:
+        points: (K, ...) points ordered along the segment (by image column).
+        fraction: share of the points dropped at each end, 0 <= fraction < 0.5.
+
+    Returns:
+        The middle points; ``floor(K * fraction)`` are removed from each end.
+    """
+    if not 0.0 <= fraction < 0.5:
+        raise ValueError(f"trim fraction must be in [0, 0.5), not {fraction}")
+    pts = np.asarray(points)
+    k = int(np.floor(len(pts) * fraction + 1e-9))
+    return pts[k : len(pts) - k]
+
+
+def to_object_frame(
+    points_world: np.ndarray,
+    angle_deg: float,
+    axis_xy_mm: tuple[float, float],
+    correction_factor: float,
+) -> np.ndarray:
+    """Move laser-plane points into the object's frame: ``q = C_f Rz(-angle)(p - a)``.
+
+    Capture-spec convention; thesis 6.2.3 (translate to the axis, rotate, eq. 6.2) and
+    6.2.4 (scale by the correction factor about the axis).
+
+    Args:
+        points_world: (N, 2) world points in mm.
+        angle_deg: turntable angle of the view, counter-clockwise seen from above.
+        axis_xy_mm: turntable axis ``a`` in world mm.
+        correction_factor: ``C_f`` from the calibration cylinder.
+
+    Returns:
+        (N, 2) object-frame points in mm.
+    """
+    p = np.asarray(points_world, dtype=float).reshape(-1, 2) - np.asarray(axis_xy_mm, float)
+    th = np.deg2rad(angle_deg)
+    c, s = np.cos(th), np.sin(th)
+    # Rz(-theta) = [[c, s], [-s, c]]; applied to row vectors as p @ Rz(-theta).T.
+    rot_t = np.array([[c, -s], [s, c]])
+    return correction_factor * (p @ rot_t)
+
+
+def unwrap_angles(angle_rad: np.ndarray) -> np.ndarray:
+    """Return angles along a stripe unwrapped (no step over pi), as ``np.unwrap`` but leaner.
+
+    Called for every stripe of every section, where ``np.unwrap``'s generality costs more
+    than the work.
+    """
+    a = np.asarray(angle_rad, dtype=float)
+    if len(a) < 2:
+        return a.copy()
+    step = np.diff(a)
+    step -= TWO_PI * np.round(step / TWO_PI)
+    return np.concatenate([a[:1], a[0] + np.cumsum(step)])
+
+
+def _polar(points: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (angle in (-pi, pi], radius) of points about centre."""
+    d = points - centre
+    return np.arctan2(d[:, 1], d[:, 0]), np.hypot(d[:, 0], d[:, 1])
+
+
+@dataclass(frozen=True, eq=False)
+class Blend:
+    """One outline's overlap-blended contour and what its measured points say of their noise.
+
+    ``points`` is the blended contour (one point per measured point, sorted by polar angle
+    about ``centre_mm``); ``angle_rad`` and ``radius_mm`` are the measured points' own polar
+    coordinates before blending, each view's averaged over runs ``RESOLUTION_RAD`` long
+    (:func:`run_means`). ``noise_mm`` is the RMS distance of those from the surface,
+    estimated where two views saw the same surface (:func:`overlap_noise`); None when no
+    two views overlap.
+    """
+
+    points: np.ndarray
+    centre_mm: np.ndarray
+    angle_rad: np.ndarray
+    radius_mm: np.ndarray
+    noise_mm: float | None
+    overlap_pairs: int
+
+
+MIN_NOISE_PAIRS = 20
+"""Fewest overlap pairs from which an outline's noise is estimated."""
+
+
+def blend_overlaps(segments: list[np.ndarray]) -> Blend:
+    """Blend overlapping segments radially into one closed contour and estimate their noise.
+
+    Thesis 6.3, generalised from pairs to any number of overlapping segments: polar
+    coordinates are taken about the mean of all the section's points; every point's radius
+    is replaced by the weighted mean of its own radius and the radius of each *other*
+    segment whose angular range covers the point's angle, linearly interpolated there
+    (6.3 steps 3-4). The thesis takes the plain mean, which jumps where a segment ends
+    and leaves a seam the EFD would have to follow; here each segment's weight falls to
+    zero at its ends (:func:`blend_weight`), so overlapping views blend without a step.
+    Angles are unwrapped along each segment, so segments crossing +-pi and segments running
+    clockwise are handled. The section must be star-shaped about that centre (one radius per
+    angle), as the thesis' method assumes.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm, each ordered along its stripe.
+
+    Returns:
+        The blended contour, the measured points' polar coordinates and their noise.
+
+    Raises:
+        CalibrationError: no points at all.
+    """
+    segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
+    segs = [s for s in segs if len(s) > 0]
+    if not segs:
+        raise CalibrationError("the section has no stripe points; check the scan views")
+    centre = np.concatenate(segs).mean(axis=0)
+    polar = [_polar(s, centre) for s in segs]
+    ang, rad = _overlap_means(polar, [r[:, None] for _, r in polar])
+    rad = rad[:, 0]
+    local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
+    noise, pairs = overlap_noise(local)
+    own_ang = np.concatenate([a for a, _ in local])
+    own_rad = np.concatenate([r for _, r in local])
+    return Blend(
+        centre + np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1),
+        centre,
+        own_ang,
+        own_rad,
+        noise,
+        pairs,
+    )
+
+
+RESOLUTION_RAD = 2.0 * np.pi / 256.0
+"""The finest detail the outline's order is judged at: half a wavelength of harmonic 128
+(``efd.MAX_TESTED_HARMONICS``), which averaging over it attenuates by a third."""
+
+
+def run_means(
+    angle_rad: np.ndarray, radius_mm: np.ndarray, resolution_rad: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return a stripe's points averaged in runs of consecutive points ``resolution_rad`` long.
+
+    Stripe noise at a pixel's scale is far finer than any harmonic the EFD keeps; a mean
+    over a few neighbours along the stripe keeps what an outline's order can show (its
+    shape, the views' disagreement) and lowers the rest, in the residual and in the noise
+    alike. Runs hold ``floor(points * resolution / angular span)`` points (at least one).
+
+    Args:
+        angle_rad: the stripe's points' polar angles, in stripe order.
+        radius_mm: their radii.
+        resolution_rad: the angular length of a run.
+
+    Returns:
+        The runs' mean angles (unwrapped along the stripe) and mean radii.
+    """
+    unwrapped = unwrap_angles(angle_rad)
+    radius = np.asarray(radius_mm, dtype=float)
+    span = float(np.ptp(unwrapped)) if len(unwrapped) else 0.0
+    k = max(1, int(len(unwrapped) * resolution_rad / span)) if span > 0 else 1
+    if k == 1:
+        return unwrapped, radius
+    # A run does not reach across a hole in the stripe (a shadow, a rejected stretch).
+    step = np.abs(np.diff(unwrapped))
+    hole = np.concatenate([[True], step > RUN_HOLE_STEPS * span / (len(unwrapped) - 1)])
+    piece = np.cumsum(hole) - 1
+    first = np.flatnonzero(hole)[piece]
+    run = piece * len(unwrapped) + (np.arange(len(unwrapped)) - first) // k
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(run) != 0]))
+    counts = np.diff(np.append(starts, len(unwrapped)))
+    return (
+        np.add.reduceat(unwrapped, starts) / counts,
+        np.add.reduceat(radius, starts) / counts,
+    )
+
+
+RUN_HOLE_STEPS = 4.0
+"""A step along a stripe this many times its mean step is a hole runs do not cross."""
+
+
+def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
+    """Return the blended contour of :func:`blend_overlaps` alone.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm, each ordered along its stripe.
+
+    Returns:
+        (N, 2) closed contour of all points, sorted by polar angle in (-pi, pi].
+    """
+    return blend_overlaps(segments).points
+
+
+def overlap_noise(polar: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float | None, int]:
+    """Return the measured points' RMS noise in mm from where views overlap, and the pairs.
+
+    Where segment m covers a point of another segment, both saw the same surface: the
+    point's radius less m's radius there (linearly interpolated between m's neighbouring
+    points at fractions t, 1 - t) is the difference of two measurements' errors, of
+    variance sigma^2 (1 + t^2 + (1 - t)^2) when the noise is independent. So
+    sigma^2 = sum(d^2) / sum(1 + t^2 + (1 - t)^2). What views disagree on (a residual of
+    calibration or turntable angle, a seam) counts as noise: the EFD must not follow it.
+    The largest 1 % of differences are left out (a stray point the rejection let by).
+
+    Returns:
+        (noise in mm, number of pairs); noise None with fewer than ``MIN_NOISE_PAIRS``.
+    """
+    diffs, factors = [], []
+    ang_all = np.concatenate([a for a, _ in polar])
+    rad_all = np.concatenate([r for _, r in polar])
+    owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
+    for m, (ang_m, rad_m) in enumerate(polar):
+        xp = unwrap_angles(ang_m)
+        order = np.argsort(xp, kind="stable")
+        xp, fp = xp[order], rad_m[order]
+        if len(xp) < 2 or xp[-1] <= xp[0]:
+            continue
+        # Every other segment's points at once, shifted into [lo, lo + 2 pi).
+        shifted = xp[0] + np.mod(ang_all - xp[0], TWO_PI)
+        inside = (shifted <= xp[-1]) & (owner != m)
+        if not inside.any():
+            continue
+        x = shifted[inside]
+        j = np.clip(np.searchsorted(xp, x) - 1, 0, len(xp) - 2)
+        t = (x - xp[j]) / np.maximum(xp[j + 1] - xp[j], 1e-300)
+        diffs.append(rad_all[inside] - np.interp(x, xp, fp))
+        factors.append(1.0 + t**2 + (1.0 - t) ** 2)
+    if not diffs:
+        return None, 0
+    d, f = np.concatenate(diffs), np.concatenate(factors)
+    if len(d) < MIN_NOISE_PAIRS:
+        return None, len(d)
+    keep = np.abs(d) <= np.quantile(np.abs(d), 0.99)
+    return float(np.sqrt(np.sum(d[keep] ** 2) / np.sum(f[keep]))), len(d)
+
+
+def average_overlap_colours(
+    segments: list[np.ndarray], colours: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Give every point the mean colour of all the segments that cover its angle.
+
+    The colour counterpart of :func:`average_overlaps` (same polar centre, same cover
+    test, same interpolation and blending weights): a point seen in two views gets the
+    blend of its own colour and the other view's there, so colour has no seam either.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm, each ordered along its stripe.
+        colours: (K, 3) colours of those points (any numeric scale).
+
+    Returns:
+        The (N, 2) points, sorted by polar angle in (-pi, pi], and their (N, 3) float colours.
+    """
+    pairs = [
+        (np.asarray(s, float).reshape(-1, 2), np.asarray(c, float).reshape(-1, 3))
+        for s, c in zip(segments, colours, strict=True)
+    ]
+    pairs = [(s, c) for s, c in pairs if len(s)]
+    if not pairs:
+        return np.empty((0, 2)), np.empty((0, 3))
+    pts = np.concatenate([s for s, _ in pairs])
+    centre = pts.mean(axis=0)
+    polar = [_polar(s, centre) for s, _ in pairs]
+    _, mean = _overlap_means(polar, [c for _, c in pairs])
+    order = np.argsort(np.concatenate([a for a, _ in polar]), kind="stable")
+    return pts[order], mean
+
+
+def blend_weight(position: np.ndarray) -> np.ndarray:
+    """Return a segment's blending weight at ``position`` along it (0 and 1 are its ends).
+
+    A Hann window, sin^2(pi s): one at the segment's middle, falling smoothly to zero at
+    both ends, where its stripe grazes the surface. Overlapping segments blended with it
+    hand over gradually, so a small disagreement between two views (a residual of the
+    calibration, the turntable or the stripe) becomes a smooth ramp across their overlap
+    instead of a step where one segment ends. A floor keeps a point that no other segment
+    covers at its own value.
+    """
+    s = np.clip(np.asarray(position, dtype=float), 0.0, 1.0)
+    return np.maximum(np.sin(np.pi * s) ** 2, BLEND_FLOOR)
+
+
+BLEND_FLOOR = 1e-6
+"""Smallest blending weight, so a point at its segment's very end still has one."""
+
+
+def _overlap_means(
+    polar: list[tuple[np.ndarray, np.ndarray]], values: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return every point's angle and the blend of its values with the covering segments'.
+
+    ``polar`` holds each segment's (angles, radii); ``values`` its (K, D) per-point values.
+    Each segment covering a point's angle contributes its value there (linearly
+    interpolated, thesis 6.3 steps 3-4) weighted by :func:`blend_weight` of where that
+    angle lies along the segment; the point's own value is weighted the same way. Angles
+    are unwrapped along each segment so segments crossing +-pi and segments running
+    clockwise are handled; the result is sorted by angle.
+    """
+    tables, own_weight = [], []
+    for (ang_m, _), val in zip(polar, values, strict=True):
+        unwrapped = unwrap_angles(ang_m)
+        order = np.argsort(unwrapped, kind="stable")
+        tables.append((unwrapped[order], val[order]))
+        lo, hi = unwrapped[order[0]], unwrapped[order[-1]]
+        span = hi - lo if hi > lo else 1.0
+        own_weight.append(blend_weight((unwrapped - lo) / span))
+    ang = np.concatenate([a for a, _ in polar])
+    weight = np.concatenate(own_weight)
+    total = np.concatenate(values).astype(float) * weight[:, None]
+    owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
+    for m, (xp, fp) in enumerate(tables):
+        if len(xp) < 2:
+            continue
+        lo, hi = xp[0], xp[-1]
+        # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
+        shifted = lo + np.mod(ang - lo, TWO_PI)
+        covered = (shifted <= hi) & (owner != m)
+        w = blend_weight((shifted[covered] - lo) / (hi - lo))
+        for d in range(total.shape[1]):
+            total[covered, d] += w * np.interp(shifted[covered], xp, fp[:, d])
+        weight[covered] += w
+    mean = total / weight[:, None]
+    order = np.argsort(ang, kind="stable")
+    return ang[order], mean[order]
+
+
+def split_outlines(
+    segments: list[np.ndarray], gap_mm: float, min_points: int = 30
+) -> list[list[np.ndarray]]:
+    """Split a section's segments into separate outlines (fingers, two legs; thesis 9.2).
+
+    Points are binned on a grid of ``gap_mm / 2`` cells and 8-connected occupied cells
+    are joined, so outlines more than ``sqrt(2) gap_mm`` apart are always separate and
+    points closer than ``gap_mm / 2`` (a stripe's neighbouring points) always join. Each
+    segment is cut into its pieces per outline, so each outline can be overlap-averaged
+    and fitted on its own.
+
+    Args:
+        segments: object-frame (K, 2) arrays in mm.
+        gap_mm: the smallest gap that separates two outlines.
+        min_points: outlines with fewer points are stray and dropped.
+
+    Returns:
+        One list of segment pieces per outline, the outline with most points first.
+    """
+    if not gap_mm > 0:
+        raise ValueError(f"the outline gap must be a positive number of mm, not {gap_mm}")
+    segs = [np.asarray(s, dtype=float).reshape(-1, 2) for s in segments]
+    segs = [s for s in segs if len(s)]
+    if not segs:
+        return []
+    pts = np.concatenate(segs)
+    point_label, count = label_clusters(pts, gap_mm)
+    sizes = np.bincount(point_label, minlength=count)
+    owner = np.repeat(np.arange(len(segs)), [len(s) for s in segs])
+    outlines = []
+    for label in np.argsort(-sizes, kind="stable"):
+        if sizes[label] < min_points:
+            break
+        mine = point_label == label
+        pieces = [pts[mine & (owner == k)] for k in range(len(segs))]
+        outlines.append([p for p in pieces if len(p)])
+    return outlines

@@ -1,0 +1,197 @@
+"""The terminal UI's one door to the scan workflow (:mod:`lamina_host.workflow.job`).
+
+The workflow's steps block (serial I/O, calibration, meshing), so the UI calls them only
+from thread workers. What is here is the UI's own: reading the typed fields into a plan
+and a subject code, the list of serial ports, and the one line shown for an error a worker
+caught. Every error a user can act on derives from :class:`LaminaError` (:data:`USER_ERRORS`
+adds the library's and the file system's); anything else is a bug and is logged.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from contextlib import suppress
+from pathlib import Path
+
+import serial.tools.list_ports
+
+from lamina_host.link.client import DeviceError
+from lamina_host.reconstruct.efd import HARMONIC_RULES
+from lamina_host.reconstruct.mesh import MESH_METHODS
+from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.store.files import disk_full
+from lamina_host.store.subjects import check_subject as check_subject_code
+from lamina_host.workflow import check_plan
+from lamina_host.workflow.job import (
+    EXPORT_NAMES,
+    TRIM_FRACTION,
+    Busy,
+    DeviceTarget,
+    NoticeHandler,
+    ProgressHandler,
+    ScanJob,
+    ScanRequest,
+    SegmentHandler,
+)
+from lamina_host.workflow.results import (
+    Progress,
+    Results,
+    ScanData,
+    SectionRow,
+    radius_profile,
+    roundness,
+    section_rows,
+    volume_mm3,
+)
+from lamina_shared.errors import InputError, LaminaError
+from lamina_shared.link import LinkClosed
+from lamina_shared.types import ScanPlan, Segment
+
+# pymeshlab (the optional extra) must be first imported on the main thread: when its first
+# import happens in a worker thread (as meshing here does), the process aborts at exit with
+# heap corruption ("malloc_consolidate(): unaligned fastbin chunk detected"), seen with
+# pymeshlab 2025.7. Without it only ball pivoting and Poisson are unavailable.
+with suppress(ImportError):
+    import pymeshlab  # noqa: F401
+
+__all__ = [
+    "EXPORT_NAMES",
+    "TRIM_FRACTION",
+    "USER_ERRORS",
+    "Busy",
+    "Progress",
+    "Results",
+    "ScanData",
+    "SectionRow",
+    "Session",
+    "UserError",
+    "check_subject",
+    "parse_plan",
+    "radius_profile",
+    "roundness",
+    "section_rows",
+    "serial_ports",
+    "user_message",
+    "volume_mm3",
+]
+
+UserError = InputError
+"""Bad input typed into the UI; the text names the field and what to enter (the same
+refusals as the command line's, from :mod:`lamina_host.workflow`)."""
+
+USER_ERRORS: tuple[type[Exception], ...] = (LaminaError, sqlite3.Error, OSError)
+"""What a worker reports as a one-line message instead of failing: Lamina's own errors,
+and the library's and the file system's (not bugs of Lamina)."""
+
+
+def user_message(exc: BaseException) -> str:
+    """Return the one line the UI shows for an error a worker caught."""
+    if isinstance(exc, LinkClosed):
+        return f"the link to the device broke ({exc}); check the cable, then reconnect (c)"
+    if isinstance(exc, OSError) and not isinstance(exc, DeviceError):
+        return f"file error: {exc.strerror or exc} ({exc.filename or 'no file'})"
+    if isinstance(exc, sqlite3.Error) and disk_full(exc):
+        return (
+            f"the disk holding the scan library is full ({exc}): what was stored is kept; "
+            "free space on it, then go on (p resumes a scan)"
+        )
+    if isinstance(exc, sqlite3.Error):
+        return f"the scan library cannot be used ({exc}): if it is damaged, restore a backup"
+    return str(exc)
+
+
+def serial_ports() -> list[str]:
+    """Return the serial ports this machine has, by path (USB scanners first)."""
+    ports = sorted(serial.tools.list_ports.comports(), key=lambda p: (p.vid is None, p.device))
+    return [p.device for p in ports]
+
+
+def parse_plan(sections: str, pitch_mm: str, views: str) -> ScanPlan:
+    """Build a regular scan plan from three typed fields.
+
+    Raises:
+        UserError: a field is not a number or out of range (the command line's ranges).
+    """
+    try:
+        n_sections = int(sections)
+        n_views = int(views)
+    except ValueError:
+        raise UserError(
+            f"sections ({sections!r}) and views ({views!r}) must be whole numbers"
+        ) from None
+    try:
+        pitch = float(pitch_mm)
+    except ValueError:
+        raise UserError(f"pitch {pitch_mm!r} must be a number of mm, e.g. 2") from None
+    return check_plan(n_sections, pitch, n_views)
+
+
+def check_subject(subject_id: str) -> str:
+    """Return the typed subject code (spaces around it dropped) or raise :class:`UserError`."""
+    text = subject_id.strip()
+    if not text:
+        raise UserError("enter a subject id before scanning (letters, digits, - and _)")
+    return check_subject_code(text)
+
+
+class Session(ScanJob):
+    """One technician's session: the scan job, driven one key at a time.
+
+    The UI calibrates before it scans (the live plot needs the axis), keeps the received
+    views in memory for a resume after an abort or a drop, and processes with the
+    harmonics and mesh method chosen on the Results screen.
+    """
+
+    def __init__(
+        self,
+        device: str = "sim",
+        library_path: Path | None = None,
+        object_spec: str | None = None,
+        seed: int = 0,
+        noise: str = "thesis",
+    ) -> None:
+        super().__init__(DeviceTarget(device, object_spec, seed, noise), library_path)
+
+    def scan_object(
+        self,
+        subject_id: str,
+        plan: ScanPlan,
+        on_segment: SegmentHandler | None = None,
+        on_progress: ProgressHandler | None = None,
+        on_notice: NoticeHandler | None = None,
+        colour: bool = False,
+    ) -> list[Segment]:
+        """Start scanning the subject along ``plan`` (with each point's colour if asked)."""
+        request = ScanRequest(check_subject(subject_id), plan, colour=colour)
+        if self.axis is None:
+            raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
+        self.set_colour(colour)  # before the scan's identity is recorded
+        self.create(request)
+        return self.fetch_object(on_segment, on_progress, on_notice)
+
+    def process(
+        self,
+        harmonics: int | None = None,
+        mesh_method: str = MESH_METHODS[0],
+        harmonic_rule: str | None = None,
+    ) -> Results:
+        """Reconstruct the scan with the chosen harmonics and mesh method; store the result.
+
+        Args:
+            harmonics: a fixed EFD order for every section, or None to let the rule choose.
+            mesh_method: one of ``MESH_METHODS``.
+            harmonic_rule: one of ``HARMONIC_RULES``, or None for the pipeline's default.
+        """
+        if harmonics is not None and not 1 <= harmonics <= 100:
+            raise UserError(f"harmonics {harmonics} must be between 1 and 100, or blank for auto")
+        if mesh_method not in MESH_METHODS:
+            raise UserError(f"mesh method {mesh_method!r} is not one of {', '.join(MESH_METHODS)}")
+        if harmonic_rule is not None and harmonic_rule not in HARMONIC_RULES:
+            rules = ", ".join(HARMONIC_RULES)
+            raise UserError(f"harmonic rule {harmonic_rule!r} is not one of {rules}")
+        options = ProcessOptions(harmonics=harmonics, mesh=mesh_method)
+        if harmonic_rule is not None:
+            options = ProcessOptions(
+                harmonics=harmonics, mesh=mesh_method, harmonic_rule=harmonic_rule
+            )
+        return self.process_scan(options)

@@ -1,0 +1,97 @@
+"""The Lamina terminal UI: the whole workflow from connecting to exporting, by keyboard.
+
+``lamina tui --device sim`` runs it; over SSH it needs nothing but a terminal of at
+least 80 x 24. Every blocking step (serial I/O, calibration, meshing) runs in a thread
+worker of the screen that asked for it, so keys are answered while the scanner works.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from functools import partial
+from pathlib import Path
+from typing import ClassVar
+
+from textual.app import App, SystemCommand
+from textual.binding import Binding, BindingType
+from textual.reactive import reactive
+from textual.screen import Screen
+
+from lamina_host.ui.tui.adapter import Session
+from lamina_host.ui.tui.screens.calibrate import CalibrateScreen
+from lamina_host.ui.tui.screens.connect import ConnectScreen
+from lamina_host.ui.tui.screens.library import LibraryScreen
+from lamina_host.ui.tui.screens.live import LiveScreen
+from lamina_host.ui.tui.screens.results import ResultsScreen
+from lamina_host.ui.tui.screens.scan import ScanScreen
+from lamina_host.ui.tui.widgets import SCREENS, HelpScreen
+
+MIN_SIZE = (80, 24)
+"""The smallest terminal the layout is designed for (columns, rows)."""
+
+
+class LaminaApp(App[None]):
+    """Connect, calibrate, scan, process, export and browse past scans."""
+
+    CSS_PATH = "lamina.tcss"
+    TITLE = "Lamina"
+    MODES: ClassVar[dict[str, str | type[Screen]]] = {  # type: ignore[assignment]
+        "connect": ConnectScreen,
+        "live": LiveScreen,
+        "calibrate": CalibrateScreen,
+        "scan": ScanScreen,
+        "results": ResultsScreen,
+        "library": LibraryScreen,
+    }
+    DEFAULT_MODE = "connect"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("f1", "help", "Help"),
+        *(
+            Binding(key, f"switch_mode('{mode}')", title, show=False)
+            for mode, key, title in SCREENS
+        ),
+    ]
+    # Textual declares these without ClassVar, so mypy refuses one here.
+    HORIZONTAL_BREAKPOINTS = [  # noqa: RUF012
+        (0, "-too-narrow"),
+        (MIN_SIZE[0], "-normal"),
+    ]
+    VERTICAL_BREAKPOINTS = [  # noqa: RUF012
+        (0, "-too-short"),
+        (MIN_SIZE[1], "-normal-height"),
+    ]
+
+    status: reactive[tuple[str, bool]] = reactive(
+        ("F2 Connect to start; F1 shows every key", False)
+    )
+    """The latest status line (message, is_error), shown on every screen."""
+
+    def __init__(
+        self,
+        device: str = "sim",
+        library: Path | None = None,
+        object_spec: str | None = None,
+        noise: str = "thesis",
+    ) -> None:
+        super().__init__()
+        self.session = Session(device, library, object_spec, noise=noise)
+
+    def action_help(self) -> None:
+        """Show the keys and the workflow."""
+        if not isinstance(self.screen, HelpScreen):
+            self.push_screen(HelpScreen())
+
+    def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
+        """Offer every screen and the help in the command palette."""
+        yield from super().get_system_commands(screen)
+        for mode, key, title in SCREENS:
+            yield SystemCommand(
+                f"Go to {title}",
+                f"Show the {title} screen ({key.upper()})",
+                partial(self.switch_mode, mode),
+            )
+        yield SystemCommand("Help", "Show every key and the workflow (F1)", self.action_help)
+
+    def on_unmount(self) -> None:
+        """Stop the device program this host started, if any."""
+        self.session.close()

@@ -1,0 +1,256 @@
+"""Results: per-section measurements, radius profile, volume; process again; export."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+from rich.text import Text
+from textual import on
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal
+from textual.widgets import Button, DataTable, Input, Label, Select, Static
+from textual_plotext import PlotextPlot
+
+from lamina_host.clinical.measures import Visit
+from lamina_host.reconstruct.efd import HARMONIC_RULES
+from lamina_host.reconstruct.mesh import MESH_METHODS
+from lamina_host.reconstruct.status import ESTIMATED
+from lamina_host.ui.tui.adapter import Results, UserError, radius_profile
+from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
+from lamina_shared.errors import LaminaError
+
+COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
+"""Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
+the circumference the views saw; closed says how: measured all round, bridged (small gaps
+closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
+(not closed, not meshed) or failed (not processed: the summary says why). Bridged and
+interpolated stretches are estimated, not measured."""
+
+
+def coverage_cells(row: SectionRow) -> tuple[str, str]:
+    """Return the cover % and closed cells of one outline ("-" cover for a failed one)."""
+    return ("-" if row.failed else f"{row.coverage_percent:.0f}"), row.status
+
+
+def parse_harmonics(text: str) -> tuple[int | None, str | None]:
+    """Return (fixed harmonic count, harmonic rule) typed in the harmonics field.
+
+    A number fixes the count; a rule name (``noise``, ``power``, ``thesis``, ``nyquist``)
+    lets that rule choose per section; blank or ``auto`` keeps the default rule.
+    """
+    text = text.strip().lower()
+    if not text or text == "auto":
+        return None, None
+    if text in HARMONIC_RULES:
+        return None, text
+    try:
+        return int(text), None
+    except ValueError:
+        rules = ", ".join(HARMONIC_RULES)
+        raise UserError(
+            f"harmonics {text!r} must be a whole number, a rule ({rules}) or blank for auto"
+        ) from None
+
+
+COLOUR_SECTORS = 32
+"""Angular sectors of each section's colour strip on the Results screen."""
+
+
+def colour_strip(results: Results | None) -> Text | None:
+    """Return one strip per coloured outline: its mean colour round the section, or None.
+
+    Each block is one of :data:`COLOUR_SECTORS` sectors counter-clockwise from +x; a
+    sector no coloured point fell in is a blank.
+    """
+    if results is None:
+        return None
+    text = Text()
+    for section in results.reconstruction.sections:
+        bins = colour_bins(section, COLOUR_SECTORS)
+        if bins is None:
+            continue
+        text.append(f"\ncolour {section.index}.{section.part} z {section.z_mm:6.2f} ")
+        for r, g, b in bins.round().astype(int).tolist():
+            text.append(" " if r < 0 else "\u2588", style="" if r < 0 else f"rgb({r},{g},{b})")
+    return text if text else None
+
+
+def summary_text(results: Results | None) -> str:
+    """Return the volume, mesh and warnings as lines."""
+    if results is None:
+        return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
+    result = results.reconstruction
+    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report['mesh'])}"
+    lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
+    estimated = [s for s in result.sections if s.status in ESTIMATED]
+    if estimated or not all(s.closed for s in result.sections):
+        lines.append(
+            f"{len(estimated)} outline(s) closed across unseen gaps (estimated stretches, "
+            f"not in points.ply), {sum(not s.closed for s in result.sections)} left open "
+            "(meshed where seen)"
+        )
+    lines += [
+        f"outline {f.index}.{f.part} (z {f.z_mm:.2f}) {f.status}: {f.reason}" for f in result.failed
+    ]
+    return "\n".join(lines + [f"warning: {w}" for w in result.warnings])
+
+
+class ResultsScreen(LaminaScreen):
+    """The processed scan, the choices to process it again, and export."""
+
+    MODE = "results"
+    AUTO_FOCUS = "#sections"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("p", "process", "Process"),
+        Binding("e", "export", "Export"),
+        Binding("m", "clinical", "Measure", show=False),
+        Binding("escape", "leave_field", "Leave field", show=False),
+    ]
+
+    def body(self) -> ComposeResult:
+        """Options row, table and profile, summary, export row."""
+        with Horizontal(classes="row"):
+            yield Label("Harmonics ", classes="field-label")
+            yield Input(placeholder="auto", id="harmonics", compact=True)
+            yield Label(" Mesh ", classes="field-label")
+            yield Select(
+                [(m, m) for m in MESH_METHODS],
+                value=MESH_METHODS[0],
+                allow_blank=False,
+                id="mesh-method",
+                compact=True,
+            )
+            yield Button("Process", id="process", variant="primary", compact=True)
+        with Horizontal(id="results-main"):
+            yield DataTable(id="sections", cursor_type="row", zebra_stripes=True)
+            yield PlotextPlot(id="profile")
+        yield Static(summary_text(None), id="summary")
+        with Horizontal(classes="row"):
+            yield Label("Export to ", classes="field-label")
+            yield Input(placeholder="folder, e.g. out/P001", id="export-dir", compact=True)
+            yield Button("Export", id="export", compact=True)
+
+    def on_mount(self) -> None:
+        """Set up the table columns and the empty profile."""
+        self.query_one("#sections", DataTable).add_columns(*COLUMNS)
+        self._draw_profile(None)
+
+    def action_clinical(self) -> None:
+        """Open the clinical measurements (lamina_host.ui.tui.clinical_view) of the results."""
+        from lamina_host.clinical.measures import sections_from_reconstruction
+        from lamina_host.ui.tui.clinical_view import ClinicalView
+
+        results = self.session.results
+        if results is None:
+            self.say("process a scan first (p), then measure it (m)", error=True)
+            return
+        row = self.query_one("#sections", DataTable).cursor_row
+        picked = results.rows[row].z_mm if 0 <= row < len(results.rows) else None
+        self.app.push_screen(
+            ClinicalView(
+                sections_from_reconstruction(results.reconstruction), picked, self._visits()
+            )
+        )
+
+    def _visits(self) -> list[Visit]:
+        """Return the visits of the open scan's subject in the library (none if unsaved)."""
+        from lamina_host.clinical.report import MeasureRequest, subject_visits
+
+        scan_id = self.session.scan_id
+        if scan_id is None:
+            return []
+        try:
+            library = self.session.library()  # the session's own: one connection a process
+            return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
+        except LaminaError:
+            return []  # the view still measures this scan; only the history is missing
+
+    def action_leave_field(self) -> None:
+        """Leave the text field so the screen's keys work again."""
+        self.set_focus(None)
+
+    @on(Button.Pressed, "#process")
+    @on(Input.Submitted, "#harmonics")
+    def action_process(self) -> None:
+        """Process the scan again with the chosen harmonics and mesh method."""
+        try:
+            harmonics, rule = parse_harmonics(self.query_one("#harmonics", Input).value)
+        except UserError as exc:
+            self.say(str(exc), error=True)
+            return
+        method = str(self.query_one("#mesh-method", Select).value)
+        self.query_one("#process", Button).disabled = True
+        self.say("processing ...")
+        # In a thread: calibration, EFD and meshing take seconds.
+        self.in_thread(
+            "process", lambda: self.session.process(harmonics, method, rule), self.processed
+        )
+
+    def processed(self, results: Results) -> None:
+        """Show the new results."""
+        self.query_one("#process", Button).disabled = False
+        self.refresh_from_session()
+        failed = len(results.reconstruction.failed)
+        self.say(
+            f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
+            + (f"; {failed} outline(s) failed (see the summary)" if failed else "")
+        )
+
+    def failed(self, message: str) -> None:
+        """Re-enable the controls and say what went wrong."""
+        self.query_one("#process", Button).disabled = False
+        self.query_one("#export", Button).disabled = False
+        super().failed(message)
+
+    @on(Button.Pressed, "#export")
+    @on(Input.Submitted, "#export-dir")
+    def action_export(self) -> None:
+        """Export PLY, OBJ, STL and the report into the folder typed."""
+        folder = self.query_one("#export-dir", Input).value.strip()
+        if not folder:
+            self.say("type the folder to export into (a new or empty folder)", error=True)
+            return
+        self.query_one("#export", Button).disabled = True
+        self.say(f"exporting to {folder} ...")
+        path = Path(folder).expanduser()
+        self.in_thread("export", lambda: self.session.export(path), self.exported)
+
+    def exported(self, paths: list[Path]) -> None:
+        """Say what was written."""
+        self.query_one("#export", Button).disabled = False
+        self.say(f"exported to {paths[0].parent}: {', '.join(p.name for p in paths)}")
+
+    def _draw_profile(self, results: Results | None) -> None:
+        plot = self.query_one("#profile", PlotextPlot)
+        plt = plot.plt
+        plt.clear_data()
+        plt.title("radius profile")
+        plt.xlabel("z mm")
+        if results is not None and results.rows:
+            z, radius = radius_profile(results.rows)
+            plt.plot(z, radius, marker="braille")
+        plot.refresh()
+
+    def refresh_from_session(self) -> None:
+        """Show the session's results."""
+        results = self.session.results
+        table = self.query_one("#sections", DataTable)
+        table.clear()
+        for r in results.rows if results else []:
+            measures = (
+                ("-", "-", "-", "-")
+                if r.failed
+                else (f"{r.perimeter_mm:.2f}", f"{r.area_mm2:.1f}", f"{r.roundness:.4f}",
+                      str(r.harmonics))
+            )  # fmt: skip
+            table.add_row(str(r.index), f"{r.z_mm:.2f}", str(r.points), *coverage_cells(r),
+                          *measures)  # fmt: skip
+        self._draw_profile(results)
+        summary: str | Text = summary_text(results)
+        strip = colour_strip(results)
+        if strip is not None:
+            summary = Text(str(summary)) + strip
+        self.query_one("#summary", Static).update(summary)

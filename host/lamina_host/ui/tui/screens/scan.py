@@ -1,0 +1,285 @@
+"""Subject and scan: plan, start, progress with time left, live section points, abort."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import ClassVar
+
+from textual import on, work
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal, Vertical
+from textual.message import Message
+from textual.widgets import Button, Checkbox, Input, Label, ProgressBar, Static
+from textual_plotext import PlotextPlot
+
+from lamina_host.ui.tui.adapter import (
+    USER_ERRORS,
+    Progress,
+    check_subject,
+    parse_plan,
+    user_message,
+)
+from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_shared.types import ScanPlan, Segment
+
+
+def progress_text(p: Progress) -> str:
+    """Return e.g. 'object view 5/16, section 0, 3 s left' for the progress line."""
+    left = p.left_s
+    left_text = "estimating time left" if left is None else f"{left:.0f} s left"
+    return f"{p.target} view {p.done}/{p.total}, section {p.section}, {left_text}"
+
+
+PLAN_ERRORS: tuple[type[Exception], ...] = (*USER_ERRORS, ValueError)
+"""What reading the typed plan may raise: each is told on the status line, never fatal."""
+
+PLOT_INTERVAL_S = 0.25
+"""How often the live section plot is redrawn while views arrive."""
+PLOT_MAX_POINTS = 800
+"""Points plotted at most; the section's points are thinned evenly beyond that."""
+
+
+class ScanEvent(Message):
+    """A segment or a progress report arrived from the device."""
+
+    def __init__(self, segment: Segment | None = None, progress: Progress | None = None) -> None:
+        super().__init__()
+        self.segment = segment
+        self.progress = progress
+
+
+class ScanScreen(LaminaScreen):
+    """Enter the subject and plan, run the scan and watch it."""
+
+    MODE = "scan"
+    AUTO_FOCUS = "#subject"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("s", "start", "Start"),
+        Binding("p", "pause", "Pause/resume"),
+        Binding("b", "abort", "Abort", show=False),
+        Binding("r", "reconnect", "Reconnect"),
+        Binding("escape", "leave_field", "Leave field", show=False),
+    ]
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._aborting = False
+        self.paused = False
+        self._section = -1
+        self._segments: list[Segment] = []
+        """The current section's views so far (the plot assembles them as the result will)."""
+        self._plot_stale = False
+        self.scanning = False
+
+    def body(self) -> ComposeResult:
+        """Form, progress and the live plot of the current section."""
+        with Horizontal(classes="row"):
+            yield Label("Subject ", classes="field-label")
+            yield Input(placeholder="e.g. P001-left-leg", id="subject", compact=True)
+            # Colour: each point's colour from the laser-off frames (a colour camera).
+            yield Checkbox("Colour", id="colour", compact=True)
+        with Horizontal(classes="row"):
+            yield Label("Sections ", classes="field-label")
+            yield Input("2", id="sections", type="integer", compact=True, classes="short")
+            yield Label(" Pitch mm ", classes="field-label")
+            yield Input("2", id="pitch", type="number", compact=True, classes="short")
+            yield Label(" Views ", classes="field-label")
+            yield Input("8", id="views", type="integer", compact=True, classes="short")
+            yield Button("Start", id="start", variant="primary", compact=True)
+            yield Button("Abort", id="abort", variant="error", compact=True)
+        with Horizontal(classes="row"):
+            yield ProgressBar(total=1, show_eta=False, id="scan-progress")
+            yield Static("not started", id="progress-text")
+        with Horizontal():
+            yield PlotextPlot(id="section-plot")
+            with Vertical(id="scan-side", classes="panel"):
+                yield Label("Link", classes="panel-title")
+                yield Static("not connected", id="link-state")
+
+    def on_mount(self) -> None:
+        """Label the empty plot and redraw it at a steady pace while views arrive."""
+        self._draw_points()
+        # Plotting every view as it lands kept the event loop busy for tens of ms per
+        # view; a few redraws a second look the same and keep keys answered promptly.
+        self.set_interval(PLOT_INTERVAL_S, self._redraw_if_stale)
+
+    def _redraw_if_stale(self) -> None:
+        if self._plot_stale:
+            self._draw_points()
+
+    @property
+    def plot_pending(self) -> bool:
+        """Return True while views have arrived that the plot does not show yet."""
+        return self._plot_stale
+
+    def action_leave_field(self) -> None:
+        """Leave the text field so the screen's keys work again."""
+        self.set_focus(None)
+
+    @on(Input.Submitted)
+    def _next_field(self) -> None:
+        self.focus_next()
+
+    def _plan(self) -> tuple[str, ScanPlan]:
+        value = {k: self.query_one(f"#{k}", Input).value for k in ("sections", "pitch", "views")}
+        subject = check_subject(self.query_one("#subject", Input).value)
+        return subject, parse_plan(value["sections"], value["pitch"], value["views"])
+
+    @on(Button.Pressed, "#start")
+    def action_start(self) -> None:
+        """Check the form and start the scan."""
+        if self.scanning:
+            self.say("a scan is running: abort it (b) before starting another", error=True)
+            return
+        try:
+            subject, plan = self._plan()
+        except PLAN_ERRORS as exc:  # a typed plan is the user's, whatever fails
+            self.say(user_message(exc), error=True)
+            return
+        self._aborting, self.paused = False, False
+        self._section, self._segments = -1, []
+        self._set_scanning(True)
+        self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
+        self.query_one("#progress-text", Static).update("starting ...")
+        self.say(f"scanning {subject}: {len(plan.sections)} sections, {len(plan.views)} views")
+        colour = self.query_one("#colour", Checkbox).value
+        # Segments and progress come back from the scan's thread as messages.
+        self.in_thread(
+            "scan",
+            lambda: self.session.scan_object(
+                subject,
+                plan,
+                on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
+                on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
+                on_notice=self._notice,
+                colour=colour,
+            ),
+            self.finished,
+        )
+
+    def _notice(self, text: str) -> None:
+        """Show a refused pause, resume or abort (called from the scan's thread)."""
+        self.app.call_from_thread(self.say, text, error=True)
+
+    def on_scan_event(self, event: ScanEvent) -> None:
+        """Show a new view: progress, time left, the section's points so far."""
+        if event.progress is not None:
+            p = event.progress
+            self.query_one("#scan-progress", ProgressBar).update(total=p.total, progress=p.done)
+            self.query_one("#progress-text", Static).update(progress_text(p))
+        if event.segment is not None:
+            self._add_segment(event.segment)
+
+    def _add_segment(self, segment: Segment) -> None:
+        if segment.section != self._section:
+            self._section, self._segments = segment.section, []
+        self._segments.append(segment)
+        self._plot_stale = True
+
+    def _draw_points(self) -> None:
+        self._plot_stale = False
+        plot = self.query_one("#section-plot", PlotextPlot)
+        plt = plot.plt
+        plt.clear_data()
+        plt.title("current section (mm)" if self._section < 0 else f"section {self._section} (mm)")
+        pts = self.session.section_points(self._segments)
+        if len(pts):
+            # A terminal plot cannot show more points than it has braille dots.
+            pts = pts[:: max(1, len(pts) // PLOT_MAX_POINTS)]
+            plt.scatter(pts[:, 0].tolist(), pts[:, 1].tolist(), marker="braille")
+        plot.refresh()
+
+    def finished(self, segments: list[Segment]) -> None:
+        """The scan is complete: say so and offer processing."""
+        self._redraw_if_stale()
+        self._set_scanning(False)
+        self.say(f"scan complete: {len(segments)} views received; process it on Results (F6)")
+
+    def failed(self, message: str) -> None:
+        """The scan stopped: keep what arrived and say what to do."""
+        self._set_scanning(False)
+        if self._aborting:
+            self.say(f"{message}; p resumes")
+        else:
+            super().failed(
+                message + ("; r reconnects, p resumes" if self.session.resumable else "")
+            )
+
+    def _set_scanning(self, scanning: bool) -> None:
+        self.scanning = scanning
+        self.paused = False
+        self.query_one("#start", Button).disabled = scanning
+        self.query_one("#abort", Button).disabled = not scanning
+        self.refresh_from_session()
+
+    @on(Button.Pressed, "#abort")
+    def action_abort(self) -> None:
+        """Abort the scan on the device after the view in flight; the views received are kept."""
+        if not self.scanning:
+            self.say("no scan is running", error=True)
+            return
+        self._aborting = True
+        self.say("aborting after the current view ...")
+        self.control_worker(self.session.abort_scan)
+
+    def action_pause(self) -> None:
+        """Pause or resume the running scan on the device, or resume an aborted (dropped) one."""
+        if self.scanning:
+            self.paused = not self.paused
+            if self.paused:
+                self.say("paused after the current view, laser off; p resumes, b aborts")
+                self.control_worker(self.session.pause_scan)
+            else:
+                self.say("resuming the scan ...")
+                self.control_worker(self.session.resume_scan)
+            return
+        if not self.session.resumable:
+            self.say("no scan to resume: start one (s)", error=True)
+            return
+        self._aborting = False
+        self._set_scanning(True)
+        self.say(f"resuming: {len(self.session.held)} views held, fetching the rest ...")
+        self.in_thread(
+            "scan",
+            lambda: self.session.fetch_object(
+                on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
+                on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
+                on_notice=self._notice,
+            ),
+            self.finished,
+        )
+
+    @work(thread=True, group="control")
+    def control_worker(self, send: Callable[[], None]) -> None:
+        """Send pause, resume or abort in a thread; the scan's thread reads the reply."""
+        try:
+            send()
+        except USER_ERRORS as exc:
+            # The scan itself goes on (or has just ended): only say why the key did nothing.
+            self.app.call_from_thread(self.say, user_message(exc), error=True)
+
+    def action_reconnect(self) -> None:
+        """Reconnect a dropped link; calibration and received views are kept."""
+        if self.scanning:
+            self.say("a scan is running: abort it (b) first", error=True)
+            return
+        self.say(f"reconnecting to {self.session.device} ...")
+        self.in_thread("connect", self.session.connect, lambda _: self.reconnected())
+
+    def reconnected(self) -> None:
+        """Show the recovered link."""
+        self.refresh_from_session()
+        self.say("link recovered: calibration kept; start the scan again (s)")
+
+    def refresh_from_session(self) -> None:
+        """Show the link state."""
+        s = self.session
+        if s.connected:
+            text = f"connected: {s.device}"
+        elif s.data.device:
+            text = f"LINK LOST to {s.device}: press r to reconnect"
+        else:
+            text = "not connected (F2)"
+        calibrated = "calibrated" if s.axis is not None else "not calibrated (F4)"
+        self.query_one("#link-state", Static).update(f"{text}\n{calibrated}")

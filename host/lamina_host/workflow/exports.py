@@ -1,0 +1,95 @@
+"""``lamina export`` beyond the stored files: DICOM Encapsulated STL and the compact record.
+
+The library writes the mesh formats and the report itself (:meth:`Library.export`);
+these two need more than a stored file: the DICOM object wraps the mesh with the
+scan's study data, and the compact record is rebuilt from the scan's segments and
+calibration by the current pipeline with the options its result recorded.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from lamina_host.reconstruct.mesh import load_ply
+from lamina_host.store.dicom import (
+    DICOM_SOPS,
+    SURFACE_SCAN_MESH,
+    DicomContext,
+    dicom_bytes,
+    encapsulated_stl,
+    surface_scan_mesh,
+)
+from lamina_host.store.library import EXPORT_FORMATS, Library, StoreError, check_new_file
+from lamina_host.store.record import record_bytes
+from lamina_host.workflow.batch import reprocess
+
+EXPORTERS = (".dcm", ".lrec")
+"""Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
+
+
+def export_scan(
+    library: Library,
+    scan_id: int,
+    path: Path,
+    institution: str = "",
+    dicom_sop: str = next(iter(DICOM_SOPS)),
+) -> Path:
+    """Write scan ``scan_id`` to the new file ``path`` in the format its extension names.
+
+    ``dicom_sop`` chooses the DICOM object of a ``.dcm`` (:data:`DICOM_SOPS`).
+
+    Raises:
+        StoreError: unknown extension, an existing file, or a scan without a result.
+    """
+    suffix = path.suffix.lower()
+    if suffix in EXPORT_FORMATS:
+        return library.export(scan_id, path)
+    if suffix not in EXPORTERS:
+        raise StoreError(
+            f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh), .json (report), "
+            ".dcm (DICOM Encapsulated STL) or .lrec (compact follow-up record)"
+        )
+    check_new_file(path)
+    if suffix == ".dcm":
+        data = dicom_export(library, scan_id, institution, dicom_sop)
+    else:
+        data = record_export(library, scan_id)
+    return library.write_export(scan_id, path, data)
+
+
+def _serial(identity: dict[str, Any]) -> str:
+    return str(identity.get("serial") or identity.get("source") or "unknown")
+
+
+def dicom_export(
+    library: Library, scan_id: int, institution: str = "", sop: str = next(iter(DICOM_SOPS))
+) -> bytes:
+    """Return the scan's stored mesh as a DICOM file: Encapsulated STL or Surface Scan Mesh."""
+    vertices, faces = load_ply(library.result_mesh(scan_id))
+    record = library.scan(scan_id)
+    context = DicomContext(
+        record.subject,
+        scan_id,
+        record.created,
+        institution,
+        _serial(record.identity),
+        str(record.device.get("software", "")),
+    )
+    if DICOM_SOPS[sop] == SURFACE_SCAN_MESH:
+        topology = (library.result(scan_id) or {}).get("mesh", {}).get("topology", {})
+        closed = bool(topology.get("watertight")) and bool(topology.get("two_manifold"))
+        return dicom_bytes(surface_scan_mesh(vertices, faces, context, closed))
+    return dicom_bytes(encapsulated_stl(vertices, faces, context))
+
+
+def record_export(library: Library, scan_id: int) -> bytes:
+    """Return the scan's compact record, reprocessed from its segments and calibration."""
+    library.scan(scan_id)
+    if library.result(scan_id) is None:
+        raise StoreError(
+            f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
+        )
+    inputs = library.inputs(scan_id)
+    result = reprocess(inputs)
+    return record_bytes(result, scan_id, inputs.subject, inputs.created)
