@@ -17,7 +17,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from gpiozero import DigitalInputDevice, DigitalOutputDevice
@@ -454,12 +454,13 @@ class StepperLift:
         """
         self.move_with(None, z_mm, 0.0)
 
-    def move_with(self, turntable: StepperTurntable | None, z_mm: float, angle_deg: float) -> None:
+    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
         """Move to ``z_mm`` while ``turntable`` (if any) turns to ``angle_deg``, both at once.
 
-        The lift and the table's first run share one pulse time line
+        The lift and a stepper table's first run share one pulse time line
         (:func:`run_together`; the table's backlash return, if any, follows), so a
-        section change costs the longer of the two moves, not their sum.
+        section change costs the longer of the two moves, not their sum. Another kind
+        of table turns after the lift has arrived.
 
         Raises:
             MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
@@ -473,6 +474,10 @@ class StepperLift:
         if not self._homed:
             log.info("homing the lift before its first move")
             self.home()
+        if turntable is not None and not isinstance(turntable, StepperTurntable):
+            self.move_with(None, z_mm, angle_deg)
+            turntable.move_to(angle_deg)
+            return
         steps = round(z_mm * self.steps_per_mm) - self._position
         lift = self._lift_run(steps) if steps else None
         table = turntable.runs_to(angle_deg) if turntable is not None else ()
@@ -553,17 +558,26 @@ class StepperLift:
         self._switch.close()
 
 
+@runtime_checkable
+class JointLift(Protocol):
+    """A lift that can move while a turntable turns (both axes at once)."""
+
+    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
+        """Move to ``z_mm`` while ``turntable`` (if any) turns to ``angle_deg``."""
+        ...  # pragma: no cover - protocol
+
+
 def move_axes(lift: Lift, turntable: Turntable, z_mm: float, angle_deg: float) -> None:
     """Take the lift to ``z_mm`` and the turntable to ``angle_deg``, together where they can.
 
-    Steppers of the box move at once (:meth:`StepperLift.move_with`); other axes (the
-    simulator's) one after the other, lift first.
+    A :class:`JointLift` (the box's stepper lift, the simulator's) moves beside the
+    table; any other lift first, then the table.
 
     Raises:
         MotionError: a height outside the lift's soft limits, an angle that is not finite,
             or the lift's switch tripping on the way.
     """
-    if isinstance(lift, StepperLift) and isinstance(turntable, StepperTurntable):
+    if isinstance(lift, JointLift):
         lift.move_with(turntable, z_mm, angle_deg)
     else:
         lift.move_to(z_mm)

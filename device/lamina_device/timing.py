@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from lamina_device.config import DeviceConfig
+from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
 from lamina_device.motion import (
     lift_intervals_s,
     lift_steps_per_mm,
@@ -29,7 +29,15 @@ from lamina_device.motion import (
 )
 from lamina_shared.types import ScanPlan
 
-__all__ = ["FRAMES_PER_VIEW", "ScanTime", "estimate_scan_time", "frame_wait_s", "minutes_text"]
+__all__ = [
+    "FRAMES_PER_VIEW",
+    "ScanTime",
+    "estimate_scan_time",
+    "frame_wait_s",
+    "lift_move_s",
+    "minutes_text",
+    "turntable_move_s",
+]
 
 FRAMES_PER_VIEW = 2
 """A view is a laser-off and a laser-on frame (the difference image, thesis 5.1)."""
@@ -69,13 +77,13 @@ def frame_wait_s(frame_duration_us: float, exposure_us: float) -> float:
     """Return the mean time from a request to a frame exposed entirely after it.
 
     Args:
-        frame_duration_us: the camera's frame period.
+        frame_duration_us: the camera's frame period (an exposure beyond it stretches it).
         exposure_us: the exposure time.
 
     Returns:
         Half a period to the next frame start, the exposure, and one period of read-out.
     """
-    period_s = frame_duration_us * 1e-6
+    period_s = max(frame_duration_us, exposure_us) * 1e-6
     return 0.5 * period_s + exposure_us * 1e-6 + period_s
 
 
@@ -95,26 +103,41 @@ class _ViewMoves:
         return max(self.lift_s, self.table_first_s) + self.table_rest_s
 
 
+def lift_move_s(config: LiftConfig, from_steps: int, to_steps: int) -> float:
+    """Return the duration of a lift move between two microstep positions."""
+    return float(lift_intervals_s(config, abs(to_steps - from_steps)).sum())
+
+
+def turntable_move_s(
+    config: TurntableConfig, position_steps: int, engaged: bool, angle_deg: float
+) -> tuple[tuple[int, ...], float, float]:
+    """Return a turntable move's runs, its first run's duration and the rest's.
+
+    The runs follow the steppers' own rule (:func:`lamina_device.motion.turntable_runs`):
+    the short way, arriving counter-clockwise.
+    """
+    runs = turntable_runs(config, position_steps, engaged, angle_deg)
+    runs_s = [float(turntable_intervals_s(config, abs(run)).sum()) for run in runs]
+    return runs, (runs_s[0] if runs_s else 0.0), sum(runs_s[1:])
+
+
 def _moves_s(config: DeviceConfig, plan: ScanPlan) -> list[_ViewMoves]:
     """Return each view's moves, in plan order, from the axes' own profiles and rules."""
-    lift, table = config.lift, config.turntable
-    steps_per_mm = lift_steps_per_mm(lift)
+    steps_per_mm = lift_steps_per_mm(config.lift)
     lift_at: int | None = None  # the lift homes first: the move from home is not modelled
     table_at, engaged = 0, False
     out: list[_ViewMoves] = []
     for view in plan.views:
         lift_to = round(view.z_mm * steps_per_mm)
-        lift_s = 0.0
-        if lift_at is not None and lift_to != lift_at:
-            lift_s = float(lift_intervals_s(lift, abs(lift_to - lift_at)).sum())
+        lift_s = 0.0 if lift_at is None else lift_move_s(config.lift, lift_at, lift_to)
         lift_at = lift_to
-        runs_s = []
-        for run in turntable_runs(table, table_at, engaged, view.angle_deg):
-            runs_s.append(float(turntable_intervals_s(table, abs(run)).sum()))
-            table_at += run
-            engaged = run > 0
-        first = runs_s[0] if runs_s else 0.0
-        out.append(_ViewMoves(lift_s, first, sum(runs_s[1:])))
+        runs, first_s, rest_s = turntable_move_s(
+            config.turntable, table_at, engaged, view.angle_deg
+        )
+        if runs:
+            table_at += sum(runs)
+            engaged = runs[-1] > 0
+        out.append(_ViewMoves(lift_s, first_s, rest_s))
     return out
 
 
