@@ -123,10 +123,29 @@ def status_meaning(code: int) -> str:
 
 @dataclass
 class _Seen:
-    """What the association's events showed (pynetdicom reports failures only as states)."""
+    """What the association's events showed (pynetdicom reports failures only as states).
+
+    ``rejection`` is the reason of an A-ASSOCIATE-RJ the PACS sent: taken from the PDU
+    itself, since a PACS that closes the connection right after its rejection can leave
+    pynetdicom reporting an abort instead.
+    """
 
     connected: bool = False
     answered: bool = False
+    rejection: str = ""
+
+    def connection_opened(self, event: Any) -> None:
+        """EVT_CONN_OPEN: something accepted the TCP connection."""
+        self.connected = True
+
+    def pdu_received(self, event: Any) -> None:
+        """EVT_PDU_RECV: the peer answered in DICOM; keep the reason of a rejection."""
+        self.answered = True
+        if type(event.pdu).__name__ == "A_ASSOCIATE_RJ":
+            try:
+                self.rejection = str(event.pdu.reason_str)
+            except ValueError:  # a reason outside PS3.8 9.3.4
+                self.rejection = "reason not given in the standard's terms"
 
 
 def _resolve(target: PacsTarget) -> None:
@@ -157,28 +176,45 @@ def _application_entity(calling_ae: str, sop_class: str, timeout_s: float) -> An
     return ae
 
 
-def _not_associated(assoc: Any, seen: _Seen, target: PacsTarget, calling_ae: str, waited_s: float,
-                    timeout_s: float) -> PacsError:  # fmt: skip
+@dataclass(frozen=True)
+class _Attempt:
+    """One send: where to, from which AE title, and how long each wait may last."""
+
+    target: PacsTarget
+    calling_ae: str
+    timeout_s: float
+
+    @property
+    def where(self) -> str:
+        """Return HOST:PORT, for the messages."""
+        return f"{self.target.host}:{self.target.port}"
+
+    def timed_out(self, waited_s: float) -> bool:
+        """Return whether a wait of ``waited_s`` ran into the timeout (not an early end)."""
+        return waited_s >= 0.9 * self.timeout_s
+
+
+def _not_associated(assoc: Any, seen: _Seen, attempt: _Attempt, waited_s: float) -> PacsError:
     """Return the error that says why an association was not established."""
-    where = f"{target.host}:{target.port}"
-    if assoc.is_rejected:
-        reason = assoc.acceptor.primitive.reason_str if assoc.acceptor.primitive else "no reason"
+    where, timeout_s = attempt.where, attempt.timeout_s
+    if assoc.is_rejected or seen.rejection:
+        reason = seen.rejection or "no reason given"
         return PacsError(
-            f"the PACS at {where} refused the association (called AE {target.called_ae!r}, "
-            f"calling AE {calling_ae!r}): {reason}; check both AE titles with the PACS's "
-            "configuration"
+            f"the PACS at {where} refused the association (called AE "
+            f"{attempt.target.called_ae!r}, calling AE {attempt.calling_ae!r}): {reason}; check "
+            "both AE titles with the PACS's configuration"
+        )
+    if not seen.connected and attempt.timed_out(waited_s):
+        return PacsError(
+            f"no connection to {where} within {timeout_s:g} s: check the address, the "
+            "network and any firewall, or raise --timeout-s"
         )
     if not seen.connected:
-        if waited_s >= 0.9 * timeout_s:
-            return PacsError(
-                f"no connection to {where} within {timeout_s:g} s: check the address, the "
-                "network and any firewall, or raise --timeout-s"
-            )
         return PacsError(
             f"nothing accepts DICOM connections at {where} (connection refused or host "
             "unreachable): check the address and that the PACS is running"
         )
-    if not seen.answered and waited_s >= 0.9 * timeout_s:
+    if not seen.answered and attempt.timed_out(waited_s):
         return PacsError(
             f"{where} accepted the connection but did not answer the association within "
             f"{timeout_s:g} s: check that the port is the PACS's DICOM port, or raise --timeout-s"
@@ -220,31 +256,36 @@ def send_dicom(
     _resolve(target)
     seen = _Seen()
     evt = _pynetdicom().evt
-    handlers = [
-        (evt.EVT_CONN_OPEN, lambda event: setattr(seen, "connected", True)),
-        (evt.EVT_PDU_RECV, lambda event: setattr(seen, "answered", True)),
-    ]
+    handlers = [(evt.EVT_CONN_OPEN, seen.connection_opened), (evt.EVT_PDU_RECV, seen.pdu_received)]
+    attempt = _Attempt(target, calling_ae, timeout_s)
     ae = _application_entity(calling_ae, str(ds.SOPClassUID), timeout_s)
     started = time.monotonic()
     assoc = ae.associate(target.host, target.port, ae_title=target.called_ae, evt_handlers=handlers)
     if not assoc.is_established:
-        raise _not_associated(
-            assoc, seen, target, calling_ae, time.monotonic() - started, timeout_s
-        )
+        raise _not_associated(assoc, seen, attempt, time.monotonic() - started)
+    started = time.monotonic()
     try:
         status = assoc.send_c_store(ds)
     finally:
         if assoc.is_established:
             assoc.release()
-    return _receipt(status, ds, target, timeout_s)
+    return _receipt(status, ds, attempt, time.monotonic() - started)
 
 
-def _receipt(status: Any, ds: Any, target: PacsTarget, timeout_s: float) -> SendReceipt:
+def _receipt(status: Any, ds: Any, attempt: _Attempt, waited_s: float) -> SendReceipt:
     """Return the receipt of a C-STORE response, or raise PacsError for a failure."""
-    if "Status" not in status:
+    if "Status" not in status and attempt.timed_out(waited_s):
         raise PacsError(
-            f"the PACS at {target.host}:{target.port} did not confirm the store within "
-            f"{timeout_s:g} s (or dropped the association): check its log, or raise --timeout-s"
+            f"the PACS at {attempt.where} did not confirm the store within "
+            f"{attempt.timeout_s:g} s: check its log, or raise --timeout-s"
+        )
+    if "Status" not in status:
+        # Orthanc, for one, accepts the association, then ends it at the store of an AE
+        # title it does not know.
+        raise PacsError(
+            f"the PACS at {attempt.where} ended the association without storing the scan: "
+            f"it may not accept stores from the calling AE {attempt.calling_ae!r}; check its "
+            "configuration and its log"
         )
     code = int(status.Status)
     meaning = status_meaning(code)
@@ -253,7 +294,7 @@ def _receipt(status: Any, ds: Any, target: PacsTarget, timeout_s: float) -> Send
     if code_to_category(code) not in STORED:
         comment = str(status.get("ErrorComment", "")).strip()
         raise PacsError(
-            f"the PACS at {target.host}:{target.port} did not store the scan: status "
+            f"the PACS at {attempt.where} did not store the scan: status "
             f"0x{code:04X} ({meaning}){f', {comment}' if comment else ''}"
         )
     return SendReceipt(str(ds.SOPInstanceUID), code, meaning)
