@@ -1,6 +1,6 @@
 """Store a scan's DICOM object in a PACS by DICOM C-STORE (``lamina send``).
 
-The object is the one ``lamina export --format dicom`` writes (:mod:`lamina_host.store.dicom`):
+The object is the one ``lamina export -o FILE.dcm`` writes (:mod:`lamina_host.store.dicom`):
 the caller passes its Part 10 bytes, and this module only carries them to the archive with
 pynetdicom. Nothing here touches the library: a send that fails leaves it as it was.
 
