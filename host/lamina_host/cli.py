@@ -34,6 +34,14 @@ from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
 from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
 from lamina_host.store.library import SIDES, Library, ScanRecord, default_library_path
+from lamina_host.store.pacs import (
+    DEFAULT_CALLING_AE,
+    DEFAULT_TIMEOUT_S,
+    check_ae_title,
+    check_timeout,
+    parse_target,
+    send_dicom,
+)
 from lamina_host.store.subjects import SUBJECT_RULE, check_subject
 from lamina_host.workflow import (
     DEFAULT_PITCH_MM,
@@ -51,7 +59,7 @@ from lamina_host.workflow.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.workflow.exports import export_scan
+from lamina_host.workflow.exports import dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
 from lamina_shared.errors import InputError, LaminaError, printable
@@ -235,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run on a dask.distributed scheduler, e.g. tcp://host:8786 (default: local)",
     )
     _add_report_parser(sub)
+    _add_send_parser(sub)
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
     _add_ui_options(tui)
     ui = sub.add_parser("serve-ui", help="serve the terminal UI to a web browser (textual-serve)")
@@ -889,6 +898,56 @@ def clinical_report(args: argparse.Namespace) -> int:
     return 0
 
 
+# ``lamina send``: the scan's DICOM object to a PACS (C-STORE). Self-contained block.
+def _add_send_parser(sub: Any) -> None:
+    """Add ``lamina send SCAN --to AE_TITLE@HOST:PORT``."""
+    send = sub.add_parser(
+        "send",
+        help="store a scan's DICOM object (as lamina export writes it) in a PACS (C-STORE)",
+    )
+    send.add_argument("scan", type=int, help="scan id (see lamina scans)")
+    send.add_argument(
+        "--to",
+        required=True,
+        metavar="AE_TITLE@HOST:PORT",
+        help="the PACS: its AE title, host and DICOM port, e.g. ORTHANC@pacs.local:4242",
+    )
+    send.add_argument(
+        "--calling-ae",
+        default=DEFAULT_CALLING_AE,
+        help=f"the AE title Lamina calls from (default: {DEFAULT_CALLING_AE})",
+    )
+    send.add_argument(
+        "--timeout-s",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        help=f"longest wait for the connection and each answer (default: {DEFAULT_TIMEOUT_S:g})",
+    )
+    send.add_argument("--institution", default="", help="Institution Name written into the object")
+    send.add_argument(
+        "--dicom-sop",
+        choices=DICOM_SOPS,
+        default=next(iter(DICOM_SOPS)),
+        help="the DICOM object: encapsulated-stl (default) or surface-scan (experimental)",
+    )
+    _add_library_option(send)
+
+
+def send_scan(args: argparse.Namespace) -> int:
+    """Run ``lamina send SCAN --to ...``: C-STORE the scan's DICOM object; the library unchanged."""
+    target = parse_target(args.to)
+    calling_ae = check_ae_title(args.calling_ae, "--calling-ae")
+    timeout_s = check_timeout(args.timeout_s)
+    institution = check_institution(args.institution)
+    with _open_library(args.library) as library:
+        data = dicom_export(library, args.scan, institution, args.dicom_sop)
+    receipt = send_dicom(data, target, calling_ae, timeout_s)
+    warning = f" (warning 0x{receipt.status:04X}: {receipt.meaning})" if receipt.status else ""
+    print(f"stored scan {args.scan} in {target.describe()}: instance {receipt.sop_instance_uid}"
+          f"{warning}")  # fmt: skip
+    return 0
+
+
 COMMANDS = {
     "scan": scan,
     "process": process,
@@ -898,6 +957,7 @@ COMMANDS = {
     "batch": batch,
     "tui": tui,
     "serve-ui": serve_ui,
+    "send": send_scan,
 }
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from lamina_host.clinical.limb_frame import limb_stl_files
 from lamina_host.reconstruct.mesh import load_ply
 from lamina_host.store.dicom import (
     DICOM_SOPS,
@@ -24,8 +25,16 @@ from lamina_host.store.library import EXPORT_FORMATS, Library, StoreError, check
 from lamina_host.store.record import record_bytes
 from lamina_host.workflow.batch import reprocess
 
-EXPORTERS = (".dcm", ".lrec")
+LIMB_STL = ".limb.stl"
+"""The mesh in the limb frame for prosthetic CAD (:mod:`lamina_host.clinical.limb_frame`),
+with a JSON sidecar of the same stem (``leg.limb.stl``, ``leg.limb.json``)."""
+EXPORTERS = (".dcm", ".lrec", LIMB_STL)
 """Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
+
+
+def export_format(path: Path) -> str:
+    """Return the format a file name asks for: its extension, or ``.limb.stl`` (two of them)."""
+    return LIMB_STL if path.name.lower().endswith(LIMB_STL) else path.suffix.lower()
 
 
 def export_scan(
@@ -42,13 +51,16 @@ def export_scan(
     Raises:
         StoreError: unknown extension, an existing file, or a scan without a result.
     """
-    suffix = path.suffix.lower()
+    suffix = export_format(path)
+    if suffix == LIMB_STL:
+        return _limb_export(library, scan_id, path)
     if suffix in EXPORT_FORMATS:
         return library.export(scan_id, path)
     if suffix not in EXPORTERS:
         raise StoreError(
             f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh), .json (report), "
-            ".dcm (DICOM Encapsulated STL) or .lrec (compact follow-up record)"
+            ".dcm (DICOM Encapsulated STL), .lrec (compact follow-up record) or .limb.stl "
+            "(mesh in the limb frame, for prosthetic CAD)"
         )
     check_new_file(path)
     if suffix == ".dcm":
@@ -56,6 +68,16 @@ def export_scan(
     else:
         data = record_export(library, scan_id)
     return library.write_export(scan_id, path, data)
+
+
+def _limb_export(library: Library, scan_id: int, path: Path) -> Path:
+    """Write the limb-frame STL to ``path`` and its JSON sidecar beside it (both new files)."""
+    sidecar = path.with_name(path.name[: -len(".stl")] + ".json")
+    check_new_file(path)
+    check_new_file(sidecar)
+    stl, frame = limb_stl_files(library, scan_id)
+    library.write_export(scan_id, sidecar, frame)
+    return library.write_export(scan_id, path, stl)
 
 
 def _serial(identity: dict[str, Any]) -> str:
