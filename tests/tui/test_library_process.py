@@ -73,7 +73,7 @@ async def test_library_p_processes_a_stored_scan_again_after_a_failure(
         summary = str(app.screen.query_one("#summary", Static).render())
         assert "outline 1.0 (z 2.00) failed: injected refusal" in summary
         # Section 0 is processed; alone, it is a curve without surface (said, not meshed).
-        warnings = app.session.results.report["warnings"]
+        warnings = app.session.results.report.warnings
         assert any("0.0 continue no outline" in w for w in warnings), warnings
     with Library(library) as lib:
         assert [(s.status, s.has_result) for s in lib.scans()] == [("processed", True)]

@@ -88,7 +88,7 @@ async def test_cli_and_tui_store_and_report_the_same(tmp_path: Path) -> None:
     assert _figures(cli_report) == _figures(tui_report)
 
     # The figures are the workflow's result objects', and right for the known cylinder.
-    assert results is not None and _figures(results.report) == _figures(tui_report)
+    assert results is not None and _figures(results.report.to_json()) == _figures(tui_report)
     assert [row.index for row in results.rows] == [0, 1]
     for row in results.rows:
         assert abs(row.area_mm2 - AREA_MM2) / AREA_MM2 < 0.02

@@ -15,6 +15,7 @@ from drive import calibrate, connect, fill_scan_form, open_library, wait_for
 from textual.widgets import DataTable, Input, Static
 
 from lamina_host.reconstruct.pipeline import assemble
+from lamina_host.store.outputs import OutlineEntry
 from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.screens.scan import ScanScreen
 from lamina_host.workflow.job import TRIM_FRACTION
@@ -76,7 +77,7 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         area_mm2 = math.pi * RADIUS_MM**2
         assert all(abs(r.area_mm2 - area_mm2) / area_mm2 < 0.02 for r in results.rows)
         assert f"volume {results.volume_mm3:.1f} mm3" in text_of(app, "#summary")
-        assert [s["area_mm2"] for s in results.report["sections"]] == [
+        assert [s.area_mm2 for s in results.report.sections if isinstance(s, OutlineEntry)] == [
             r.area_mm2 for r in results.rows
         ]
 

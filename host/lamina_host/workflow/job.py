@@ -687,18 +687,19 @@ class ScanJob:
             ) from exc
         rows = section_rows(result)
         device = report_device(data.device, self.identity)
-        report = build_report(result, device, data.segments, expect, dict(timings_s or {}))
-        report["subject_id"] = data.subject_id
-        report["volume_mm3"] = volume_mm3(rows)
-        paths: dict[str, Any] = {}
+        report = build_report(
+            result, device, data.segments, expect, dict(timings_s or {}), data.subject_id,
+            volume_mm3(rows),
+        )  # fmt: skip
+        paths: dict[str, Path] = {}
         if self.scan_id is not None or out is not None:
             with tempfile.TemporaryDirectory() as tmp:
                 paths = write_outputs(out or Path(tmp), result, report)
                 if self.scan_id is not None:
-                    self.library().save_result(self.scan_id, report, paths)
+                    self.library().save_result(self.scan_id, report.to_json(), paths)
             if out is None:
                 paths = {}
-        self.results = Results(result, rows, report["volume_mm3"], report, options.mesh, paths)
+        self.results = Results(result, rows, report, paths)
         return self.results
 
     def process_stored(

@@ -83,7 +83,7 @@ def summary_text(results: Results | None) -> str:
     if results is None:
         return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
     result = results.reconstruction
-    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report['mesh'])}"
+    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report.mesh)}"
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
     estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
