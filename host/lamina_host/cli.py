@@ -669,7 +669,9 @@ def _scan(args: argparse.Namespace) -> int:
         finally:
             job.close()
         try:
-            results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+            results = job.processing.process_scan(
+                _process_options(args), expect, acquired.timings_s, args.out
+            )
         except (sqlite3.Error, OutputError) as exc:
             if not disk_full(exc):
                 raise
@@ -686,8 +688,8 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     """Connect and acquire; a stop after the scan exists says how to finish it."""
     job.connect(on_notice=_notice)
     # Before calibrating: the extraction settings are part of what the scan records.
-    job.set_extract(request.extract)
-    job.set_colour(request.colour)
+    job.device.set_extract(request.extract)
+    job.device.set_colour(request.colour)
     try:
         return acquire(
             job,
@@ -764,7 +766,7 @@ def process(args: argparse.Namespace) -> int:
     if args.out is not None:
         prepare_output_folder(args.out)
     job = ScanJob(DeviceTarget(), path)
-    results = job.process_stored(args.scan, options, expect, args.out)
+    results = job.processing.process_stored(args.scan, options, expect, args.out)
     print_summary(results.report, results.paths)
     print(f"scan {args.scan} processed; the result is stored in library {path}")
     return 0

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 import lamina_host.reconstruct.pipeline as pipeline
-import lamina_host.workflow.job as job
+import lamina_host.workflow.processing as processing
 from lamina_host.cli import main, print_summary
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.pipeline import ProcessOptions
@@ -108,7 +108,7 @@ def test_a_scan_whose_processing_fails_stays_and_lamina_process_processes_it(
     def broken(*args, **kwargs):
         raise ZeroDivisionError("injected")
 
-    monkeypatch.setattr(job, "reconstruct", broken)
+    monkeypatch.setattr(processing, "reconstruct", broken)
     status = main(
         ["scan", "--device", "sim", "--object", ELLIPSOID, "--sections", "3", "--pitch", "2",
          "--views", "6", "--subject", "P9", "--expect", "ellipsoid:a=10,b=6.5,c=20,z=-1",

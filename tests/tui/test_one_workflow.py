@@ -73,12 +73,12 @@ async def test_cli_and_tui_store_and_report_the_same(tmp_path: Path) -> None:
         await calibrate(pilot)
         await fill_scan_form(pilot, "P001", sections, pitch, views)
         await pilot.press("s")
-        await wait_for(pilot, lambda: app.session.data.complete, "the scan")
+        await wait_for(pilot, lambda: app.job.acquisition.data.complete, "the scan")
         await pilot.press("f6")
         app.screen.query_one("#harmonics", Input).focus()
         await pilot.press("enter")  # blank harmonics: the rule chooses, as on the command line
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
-        results = app.session.results
+        await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
+        results = app.job.processing.results
 
     cli_segments, cli_report = _stored(cli_library)
     tui_segments, tui_report = _stored(tui_library)
