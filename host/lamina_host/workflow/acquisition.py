@@ -97,10 +97,18 @@ class Acquisition:
 
     def _storer(self) -> StoreHandler | None:
         """Return what commits each arriving view to the open scan (None: no scan open)."""
-        scan_id, identity, library = self.scan_id, self.identity, self.store.library()
+        scan_id, identity = self.scan_id, self.identity
         if scan_id is None:
             return None
+        library = self.store.library()
         return lambda seq, segment: library.add_segment(scan_id, seq, segment, identity)
+
+    def forget_scan(self, scan_id: int) -> None:
+        """Forget library scan ``scan_id`` if it is the open one (it was deleted)."""
+        if self.scan_id == scan_id:
+            self.scan_id, self.plan, self.held = None, None, {}
+            self.data = ScanData()
+            self._forget_results()
 
     def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
         """Fetch the calibration image and board from the device."""

@@ -110,11 +110,7 @@ class ScanJob:
     def delete_scan(self, scan_id: int) -> None:
         """Delete a scan from the library (forgetting it here too if it is open)."""
         self.store.library().delete_scan(scan_id)
-        acquisition = self.acquisition
-        if acquisition.scan_id == scan_id:
-            acquisition.scan_id, acquisition.plan, acquisition.held = None, None, {}
-            acquisition.data = ScanData()
-            self.processing.forget()
+        self.acquisition.forget_scan(scan_id)
 
 
 @dataclass
