@@ -113,7 +113,7 @@ class ScanJob:
         self.acquisition.forget_scan(scan_id)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Acquired:
     """What :func:`acquire` leaves: the scan's id and the acquisition's timings."""
 
