@@ -15,7 +15,7 @@ import math
 import signal
 import sqlite3
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import replace
 from importlib.util import find_spec
@@ -34,6 +34,7 @@ from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
 from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
 from lamina_host.store.library import SIDES, Library, ScanRecord, default_library_path
+from lamina_host.store.outputs import FailedEntry, ScanReport
 from lamina_host.store.pacs import (
     DEFAULT_CALLING_AE,
     DEFAULT_TIMEOUT_S,
@@ -573,42 +574,42 @@ def _progress(p: Progress) -> None:
         print(f"  {p.target}: {p.total} views", file=sys.stderr)
 
 
-def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
+def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
     """Print the short human summary of a scan."""
-    cal, axis = report["calibration"], report["axis"]
+    cal, axis = report.calibration, report.axis
     print(
-        f"calibration: {cal['n_corners']} corners, residual RMS {cal['rms_mm']:.4f} mm "
-        f"(max {cal['max_mm']:.4f} mm)"
+        f"calibration: {cal.n_corners} corners, residual RMS {cal.rms_mm:.4f} mm "
+        f"(max {cal.max_mm:.4f} mm)"
     )
-    if line := distortion_summary(cal.get("distortion")):
+    if line := distortion_summary(cal.distortion):
         print(f"lens: {line}")
     print(
-        f"axis: ({axis['axis_xy_mm'][0]:.3f}, {axis['axis_xy_mm'][1]:.3f}) mm, correction "
-        f"factor {report['correction_factor']:.5f}"
+        f"axis: ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm, correction "
+        f"factor {report.correction_factor:.5f}"
     )
-    accuracy = {r["section"]: r for r in report.get("accuracy", {}).get("rows", [])}
+    table = report.accuracy.table if report.accuracy is not None else None
+    accuracy = {r.section: r for r in table.rows} if table is not None else {}
     header = "section  z_mm  points  harmonics  cover%  status      "
     print(header + ("  rms_own_mm  rms_mean_mm" if accuracy else ""))
-    for s in report["sections"]:
-        line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}"
-        if s.get("status") == OutlineStatus.FAILED:
-            print(f"{line}  {'-':>9}  {'-':>6}  {OutlineStatus.FAILED:<12}  {s.get('reason', '')}")
+    for s in report.sections:
+        line = f"{s.section:>7}  {s.z_mm:4.1f}  {s.raw_points:>6}"
+        if isinstance(s, FailedEntry):
+            print(f"{line}  {'-':>9}  {'-':>6}  {OutlineStatus.FAILED:<12}  {s.reason}")
             continue
-        line += f"  {s['harmonics']:>9}"
-        cover = (s.get("coverage") or {}).get("fraction", float("nan"))
-        line += f"  {100 * cover:6.1f}  {s.get('status', OutlineStatus.MEASURED):<12}"
-        if s["section"] in accuracy:
-            row = accuracy[s["section"]]
-            line += f"  {row['rms_own_mm']:10.4f}  {row['rms_mean_mm']:11.4f}"
+        line += f"  {s.harmonics:>9}"
+        cover = s.coverage.fraction if s.coverage is not None else float("nan")
+        line += f"  {100 * cover:6.1f}  {s.status:<12}"
+        if s.section in accuracy:
+            row = accuracy[s.section]
+            line += f"  {row.rms_own_mm:10.4f}  {row.rms_mean_mm:11.4f}"
         print(line)
-    if accuracy:
-        acc = report["accuracy"]
+    if table is not None and accuracy:
         print(
-            f"   mean RMS radial error: {acc['mean_own_mm']:.4f} mm (own centroid), "
-            f"{acc['mean_mean_mm']:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
+            f"   mean RMS radial error: {table.mean_own_mm:.4f} mm (own centroid), "
+            f"{table.mean_mean_mm:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
         )
-    print(f"mesh: {mesh_summary(report['mesh'])}")
-    for warning in report["warnings"]:
+    print(f"mesh: {mesh_summary(report.mesh)}")
+    for warning in report.warnings:
         print(f"warning: {warning}")
     for path in paths.values():
         print(f"wrote {path}")
@@ -677,7 +678,9 @@ def _scan(args: argparse.Namespace) -> int:
         finally:
             job.close()
         try:
-            results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+            results = job.processing.process_scan(
+                _process_options(args), expect, acquired.timings_s, args.out
+            )
         except (sqlite3.Error, OutputError) as exc:
             if not disk_full(exc):
                 raise
@@ -694,8 +697,8 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     """Connect and acquire; a stop after the scan exists says how to finish it."""
     job.connect(on_notice=_notice)
     # Before calibrating: the extraction settings are part of what the scan records.
-    job.set_extract(request.extract)
-    job.set_colour(request.colour)
+    job.device.set_extract(request.extract)
+    job.device.set_colour(request.colour)
     try:
         return acquire(
             job,
@@ -772,7 +775,7 @@ def process(args: argparse.Namespace) -> int:
     if args.out is not None:
         prepare_output_folder(args.out)
     job = ScanJob(DeviceTarget(), path)
-    results = job.process_stored(args.scan, options, expect, args.out)
+    results = job.processing.process_stored(args.scan, options, expect, args.out)
     print_summary(results.report, results.paths)
     print(f"scan {args.scan} processed; the result is stored in library {path}")
     return 0

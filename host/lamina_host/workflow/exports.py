@@ -22,6 +22,7 @@ from lamina_host.store.dicom import (
     surface_scan_mesh,
 )
 from lamina_host.store.library import EXPORT_FORMATS, Library, StoreError, check_new_file
+from lamina_host.store.outputs import MeshEntry
 from lamina_host.store.record import record_bytes
 from lamina_host.workflow.batch import reprocess
 
@@ -99,8 +100,8 @@ def dicom_export(
         str(record.device.get("software", "")),
     )
     if DICOM_SOPS[sop] == SURFACE_SCAN_MESH:
-        topology = (library.result(scan_id) or {}).get("mesh", {}).get("topology", {})
-        closed = bool(topology.get("watertight")) and bool(topology.get("two_manifold"))
+        report = library.result(scan_id) or {}
+        closed = MeshEntry.from_json(report.get("mesh", {})).closed
         return dicom_bytes(surface_scan_mesh(vertices, faces, context, closed))
     return dicom_bytes(encapsulated_stl(vertices, faces, context))
 

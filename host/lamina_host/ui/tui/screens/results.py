@@ -17,7 +17,7 @@ from lamina_host.clinical.measures import Visit
 from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.status import ESTIMATED
-from lamina_host.ui.tui.adapter import Results, UserError, radius_profile
+from lamina_host.ui.tui.adapter import Results, UserError, process, radius_profile
 from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
@@ -83,7 +83,7 @@ def summary_text(results: Results | None) -> str:
     if results is None:
         return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
     result = results.reconstruction
-    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report['mesh'])}"
+    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report.mesh)}"
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
     estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
@@ -143,7 +143,7 @@ class ResultsScreen(LaminaScreen):
         from lamina_host.clinical.measures import sections_from_reconstruction
         from lamina_host.ui.tui.clinical_view import ClinicalView
 
-        results = self.session.results
+        results = self.job.processing.results
         if results is None:
             self.say("process a scan first (p), then measure it (m)", error=True)
             return
@@ -159,11 +159,11 @@ class ResultsScreen(LaminaScreen):
         """Return the visits of the open scan's subject in the library (none if unsaved)."""
         from lamina_host.clinical.report import MeasureRequest, subject_visits
 
-        scan_id = self.session.scan_id
+        scan_id = self.job.scan_id
         if scan_id is None:
             return []
         try:
-            library = self.session.library()  # the session's own: one connection a process
+            library = self.job.store.library()  # the job's own: one connection a process
             return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
         except LaminaError:
             return []  # the view still measures this scan; only the history is missing
@@ -186,13 +186,13 @@ class ResultsScreen(LaminaScreen):
         self.say("processing ...")
         # In a thread: calibration, EFD and meshing take seconds.
         self.in_thread(
-            "process", lambda: self.session.process(harmonics, method, rule), self.processed
+            "process", lambda: process(self.job, harmonics, method, rule), self.processed
         )
 
     def processed(self, results: Results) -> None:
         """Show the new results."""
         self.query_one("#process", Button).disabled = False
-        self.refresh_from_session()
+        self.refresh_from_job()
         failed = len(results.reconstruction.failed)
         self.say(
             f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
@@ -216,7 +216,7 @@ class ResultsScreen(LaminaScreen):
         self.query_one("#export", Button).disabled = True
         self.say(f"exporting to {folder} ...")
         path = Path(folder).expanduser()
-        self.in_thread("export", lambda: self.session.export(path), self.exported)
+        self.in_thread("export", lambda: self.job.processing.export(path), self.exported)
 
     def exported(self, paths: list[Path]) -> None:
         """Say what was written."""
@@ -234,9 +234,9 @@ class ResultsScreen(LaminaScreen):
             plt.plot(z, radius, marker="braille")
         plot.refresh()
 
-    def refresh_from_session(self) -> None:
-        """Show the session's results."""
-        results = self.session.results
+    def refresh_from_job(self) -> None:
+        """Show the job's results."""
+        results = self.job.processing.results
         table = self.query_one("#sections", DataTable)
         table.clear()
         for r in results.rows if results else []:
