@@ -71,6 +71,12 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
         default="thesis",
         help="simulated rig geometry: thesis scale (640x480) or limb scale (1536x864)",
     )
+    parser.add_argument(
+        "--sway",
+        default="none",
+        help="simulated patient motion during the scan: none (default), patient (1 mm/min "
+        "drift, 0.5 mm breathing at 0.25 Hz) or drift=MM_PER_MIN,breath=MM,hz=HZ (sim only)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -286,7 +292,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     watch_parent()  # a device a host started ends with it, even after kill -9 of the host
     try:
         hardware = open_hardware(
-            args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
+            args.hardware,
+            args.object,
+            args.seed,
+            args.noise,
+            args.config,
+            rig=args.rig,
+            sway=args.sway,
         )
     except CaptureError as exc:
         # The first problems one per line, then the summary last: a host that started this
