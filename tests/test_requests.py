@@ -125,7 +125,8 @@ def test_a_scan_uses_the_extraction_the_host_asks_for():
     with link() as ends:
         client = ends.client
         assert client.info is not None
-        assert client.info.welcome["extract"] == dataclasses.asdict(ExtractSettings())
+        assert client.info.extract is not None
+        assert client.info.extract.as_dict() == dataclasses.asdict(ExtractSettings())
         got = client.scan("object", PLAN, extract=ExtractChanges((("method", "thinning"),)))
         assert same(got, thinning)
         # Whole-pixel centres: the thinning method really ran on the device.
@@ -133,7 +134,7 @@ def test_a_scan_uses_the_extraction_the_host_asks_for():
         # The configuration's settings are reported and used when the scan changes none.
         ends.hardware.extract = ExtractSettings(method="thinning")
         info = client.hello()
-        assert info.welcome["extract"]["method"] == "thinning"
+        assert info.extract is not None and info.extract.as_dict()["method"] == "thinning"
         assert same(client.scan("object", PLAN), thinning)
 
 

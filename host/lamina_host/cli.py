@@ -53,9 +53,10 @@ from lamina_host.workflow.batch import (
 )
 from lamina_host.workflow.exports import export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
+from lamina_host.workflow.results import distortion_summary, mesh_summary
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
 import logging
 import os
 import queue
@@ -35,7 +36,7 @@ import zlib
 from collections import deque
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import IO, Any
 
 import cv2
@@ -46,7 +47,15 @@ from lamina_host.link.identity import scan_identity, spawned_source
 from lamina_host.link.local_box import is_endpoint, open_endpoint
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.errors import LaminaError, printable
+from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker
+from lamina_shared.messages import (
+    Ack,
+    Event,
+    MessageError,
+    Welcome,
+    parse_event,
+)
 from lamina_shared.ops import (
     ExposureArgs,
     ExtractChanges,
@@ -60,7 +69,6 @@ from lamina_shared.protocol import (
     CHUNK_BYTES,
     MAX_TRANSFER_BYTES,
     PROTOCOL_VERSION,
-    ROW_SCALE,
     Chunk,
     Kind,
     Message,
@@ -72,8 +80,6 @@ from lamina_shared.protocol import (
 from lamina_shared.spawned import PARENT_PID_ENV
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
-MAX_IMAGE_SIDE = 16_384
-"""Largest image side the host accepts from a device."""
 SPAWNED_STARTUP_S = 120.0
 """How long a device program started here may take to answer (a replay validating a big
 capture), as long as it is running."""
@@ -120,61 +126,12 @@ class Preview:
     stripe: Segment | None = None
 
 
-@dataclass(frozen=True)
-class DeviceInfo:
-    """What the device reported about itself at the handshake."""
-
-    protocol: int
-    software: str
-    hardware: str
-    description: str
-    image_size: tuple[int, int]
-    board: BoardSpec | None
-    cylinder_diameter_mm: float | None
-    default_plans: dict[str, ScanPlan]
-    axes: dict[str, Any] = field(default_factory=dict)
-    limits: dict[str, Any] = field(default_factory=dict)
-    operations: tuple[str, ...] = ()
-    welcome: dict[str, Any] = field(default_factory=dict)
-    """The WELCOME body as received (for :func:`lamina_host.link.identity.scan_identity`)."""
-    colour: bool = False
-    """The device samples colour per point (WELCOME ``colour``; absent on older devices)."""
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> DeviceInfo:
-        """Build from the WELCOME body; raise DeviceError if it is malformed or out of range."""
-        try:
-            protocol = int(data["protocol"])
-            if protocol != PROTOCOL_VERSION:
-                # Nothing else can be trusted to mean the same: report the versions only.
-                return cls(
-                    protocol, str(data.get("software", "?")), "?", "", (0, 0), None, None, {}
-                )
-            width, height = (int(v) for v in data["image_size"])
-            if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
-                raise ValueError(f"image size {width}x{height} is beyond this host's limits")
-            if int(data.get("segment_encoding", {}).get("row_scale", 0)) != ROW_SCALE:
-                raise ValueError("segment row scale differs from this host's")
-            board = BoardSpec.from_dict(data["board"]) if data.get("board") else None
-            plans = {k: ScanPlan.from_dict(v) for k, v in (data.get("default_plans") or {}).items()}
-            diameter = data.get("cylinder_diameter_mm")
-            return cls(
-                protocol,
-                str(data.get("software", "?")),
-                str(data["hardware"]),
-                str(data.get("description", "")),
-                (width, height),
-                board,
-                float(diameter) if diameter is not None else None,
-                plans,
-                dict(data.get("axes") or {}),
-                dict(data.get("limits") or {}),
-                tuple(str(op) for op in data.get("operations") or ()),
-                dict(data),
-                data.get("colour") is True,
-            )
-        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
-            raise DeviceError(f"the device's handshake is malformed ({exc})") from None
+def read_welcome(body: Any) -> Welcome:
+    """Return the WELCOME a device sent; raise DeviceError naming every problem."""
+    try:
+        return Welcome.from_wire(body)
+    except MessageError as exc:
+        raise DeviceError(f"the device's handshake is malformed ({exc})") from None
 
 
 class PtyBridge:
@@ -327,7 +284,7 @@ class DeviceClient:
         self.process = process
         self.idle_timeout_s = idle_timeout_s
         self.retry_s = retry_s
-        self.info: DeviceInfo | None = None
+        self.info: Welcome | None = None
         self.session = secrets.token_hex(8)
         self.stats = LinkStats()
         self._heartbeat = Ticker(0.5)
@@ -363,11 +320,11 @@ class DeviceClient:
         Its ``extract`` is the effective extraction: the device's configured settings
         (WELCOME) with this session's changes (:attr:`extract`).
         """
-        welcome = dict(self.info.welcome) if self.info else {}
+        welcome = self.info or Welcome(PROTOCOL_VERSION)
         if self.extract is not None:
-            configured = welcome.get("extract")
-            base = configured if isinstance(configured, dict) else {}
-            welcome["extract"] = {**base, **self.extract.as_dict()}
+            configured = welcome.extract.as_dict() if welcome.extract is not None else {}
+            effective = {**configured, **self.extract.as_dict()}
+            welcome = dataclasses.replace(welcome, extract=ExtractChanges(tuple(effective.items())))
         return scan_identity(welcome, self.spawned)
 
     def _device_exit_message(self) -> str | None:
@@ -389,7 +346,7 @@ class DeviceClient:
 
     def hello(
         self, timeout_s: float = 20.0, on_notice: Callable[[str], object] | None = None
-    ) -> DeviceInfo:
+    ) -> Welcome:
         """Handshake; return the device's information or raise :class:`DeviceError`.
 
         A device program started here is waited for while it runs, up to
@@ -435,8 +392,8 @@ class DeviceClient:
             "no answer from the device: check the cable and that lamina-device serve is running"
         )
 
-    def _welcome(self, body: dict[str, Any]) -> DeviceInfo:
-        info = DeviceInfo.from_dict(body)
+    def _welcome(self, body: dict[str, Any]) -> Welcome:
+        info = read_welcome(body)
         if info.protocol != PROTOCOL_VERSION:
             raise DeviceError(
                 f"the device speaks protocol version {info.protocol}, this host speaks "
@@ -560,7 +517,7 @@ class DeviceClient:
             raise DeviceError(f"the device's {op} reply names no transfer")
         assembly = assemblies.get(transfer) or _Assembly(total)
         assemblies = {transfer: assembly}
-        max_bytes = int(self.info.limits.get("max_fetch_bytes", 65536)) if self.info else 65536
+        max_bytes = (self.info.limits if self.info else DeviceLimits()).max_fetch_bytes
         while not assembly.have.all():
             before = int(assembly.have.sum())
             ranges = tuple((offset, length) for offset, length in assembly.missing(max_bytes))
@@ -668,7 +625,7 @@ class DeviceClient:
         self,
         target: str,
         plan: ScanPlan | None = None,
-        on_progress: Callable[[dict[str, Any]], None] | None = None,
+        on_event: Callable[[Event], object] | None = None,
         *,
         have: Collection[int] = (),
         on_segment: SegmentHandler | None = None,
@@ -684,7 +641,7 @@ class DeviceClient:
         Args:
             target: ``cylinder`` or ``object``.
             plan: the views; None for the device's default plan.
-            on_progress: receives each progress event's body.
+            on_event: receives the scan's events: progress per view, status, log.
             have: plan indices the caller already holds (a resumed scan).
             on_segment: receives (seq, segment) and must store it before returning;
                 only then is the segment acknowledged.
@@ -715,18 +672,21 @@ class DeviceClient:
                 # Stored (or already held): acknowledge, also a repeat whose ack was lost.
                 # Views come in plan order, so earlier ones still missing were lost.
                 lost = [s for s in expected if s < body.seq and s not in received]
-                ack = {"id": body.request_id, "seqs": [body.seq], "lost": lost[:64]}
-                self.channel.send(encode_json(Kind.ACK, ack))
+                ack = Ack.stored(body.request_id, body.seq, lost)
+                self.channel.send(encode_json(Kind.ACK, ack.to_wire()))
             elif message.kind is Kind.HEARTBEAT:
                 # The device still holds segments: if it is one we stored, our ACK was
                 # lost; acknowledging the latest again now beats the device's backoff.
-                unacked = message.body.get("unacked")
-                if isinstance(unacked, int) and unacked > 0 and received:
-                    recent = list(received)[-REACK_SEQS:]
-                    ack = {"id": request_id_of(message), "seqs": recent, "lost": []}
-                    self.channel.send(encode_json(Kind.ACK, ack))
-            elif message.kind is Kind.EVENT and on_progress is not None:
-                on_progress(message.body)
+                unacked, named = message.body.get("unacked"), request_id_of(message)
+                if isinstance(unacked, int) and unacked > 0 and received and named is not None:
+                    recent = tuple(received)[-REACK_SEQS:]
+                    ack = Ack(named, recent)
+                    self.channel.send(encode_json(Kind.ACK, ack.to_wire()))
+            elif message.kind is Kind.EVENT and on_event is not None:
+                try:
+                    on_event(parse_event(message.body))
+                except MessageError as exc:
+                    log.warning("ignoring a malformed event from the device (%s)", exc)
 
         if colour and not (self.info and self.info.colour):
             raise DeviceError(

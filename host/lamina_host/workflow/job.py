@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.link.client import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
+from lamina_host.link.client import DeviceClient, DeviceError, Preview, open_device
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import GridCalibration, calibrate_grid
 from lamina_host.reconstruct.expect import Expectation
@@ -34,7 +34,6 @@ from lamina_host.store.outputs import build_report, save_segments, write_outputs
 from lamina_host.store.subjects import check_subject
 from lamina_host.workflow.checks import check_plan_limits, check_positive_mm
 from lamina_host.workflow.results import (
-    Progress,
     Results,
     ScanData,
     device_summary,
@@ -44,6 +43,7 @@ from lamina_host.workflow.results import (
 )
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Event, Progress, ProgressEvent, Welcome
 from lamina_shared.ops import ExtractChanges
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
@@ -170,7 +170,7 @@ class ScanJob:
         self.target = replace(self.target, object_spec=spec)
 
     @property
-    def info(self) -> DeviceInfo | None:
+    def info(self) -> Welcome | None:
         """Return the connected device's information, or None."""
         return self._client.info if self._client else None
 
@@ -193,9 +193,7 @@ class ScanJob:
             raise InputError("no device connected: connect on the Connect screen (F2) first")
         return self._client
 
-    def connect(
-        self, device: str | None = None, on_notice: NoticeHandler | None = None
-    ) -> DeviceInfo:
+    def connect(self, device: str | None = None, on_notice: NoticeHandler | None = None) -> Welcome:
         """Connect to DEVICE (port, ``sim`` or ``replay:DIR``; default the target's)."""
         with self._busy():
             name = (device or self.target.device).strip()
@@ -440,7 +438,7 @@ class ScanJob:
         """
         client = self._device()
         identity = self._check_calibrated_here(client)
-        limits = client.info.limits if client.info else {}
+        limits = client.info.limits if client.info else None
         axes = client.info.axes if client.info else {}
         plans = {
             "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
@@ -479,7 +477,7 @@ class ScanJob:
         """
         client = self._device()
         identity = client.identity()
-        limits = client.info.limits if client.info else {}
+        limits = client.info.limits if client.info else None
         axes = client.info.axes if client.info else {}
         library = self.library()
         library.check_identity(scan_id, identity)
@@ -560,8 +558,17 @@ class ScanJob:
         def report(section: int, starting: bool = False) -> None:
             if on_progress is not None:
                 elapsed, done = time.monotonic() - start, len(held)
-                total = len(plan.views)
-                on_progress(Progress(target, done, total, section, elapsed, done - first, starting))
+                on_progress(
+                    Progress(
+                        target,
+                        done,
+                        len(plan.views),
+                        section,
+                        elapsed_s=elapsed,
+                        done_this_run=done - first,
+                        starting=starting,
+                    )
+                )
 
         def take(seq: int, segment: Segment) -> None:
             if library is not None and scan_id is not None:
@@ -571,9 +578,10 @@ class ScanJob:
             if on_segment is not None:
                 on_segment(segment)
 
-        def progress(body: dict[str, Any]) -> None:
-            if body.get("event") == "progress":
-                report(int(body.get("section", 0)))
+        def progress(event: Event) -> None:
+            if isinstance(event, ProgressEvent):
+                # The count is ours (what is held here); the device says where it is.
+                report(event.progress.section)
 
         if first:
             # A resumed run: say how many views are held, and where it goes on.
@@ -626,7 +634,7 @@ class ScanJob:
         # Before anything changes: a scan is only ever continued by what began it.
         library.check_identity(scan_id, identity)
         info = self.info
-        limits, axes = (info.limits, info.axes) if info else ({}, {})
+        limits, axes = (info.limits, info.axes) if info else (None, {})
         check_plan_limits("object", plan, limits, axes)
         self.identity = identity
         self.data.complete = False

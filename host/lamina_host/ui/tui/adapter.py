@@ -34,7 +34,6 @@ from lamina_host.workflow.job import (
     SegmentHandler,
 )
 from lamina_host.workflow.results import (
-    Progress,
     Results,
     ScanData,
     SectionRow,
@@ -45,6 +44,7 @@ from lamina_host.workflow.results import (
 )
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment
 
 # pymeshlab (the optional extra) must be first imported on the main thread: when its first
