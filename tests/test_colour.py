@@ -21,7 +21,8 @@ from lamina_device.extract import sample_colour
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
 from lamina_device.sim.texture import Texture, colour_errors
-from lamina_host.link.client import DeviceError, read_welcome
+from lamina_host.link.errors import DeviceError
+from lamina_host.link.handshake import read_welcome
 from lamina_host.reconstruct.assembly import average_overlap_colours, average_overlaps
 from lamina_host.reconstruct.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
 from lamina_host.store.library import Library

@@ -25,7 +25,10 @@ from hypothesis import strategies as st
 
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, DeviceError, PtyBridge, read_welcome
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import DeviceError
+from lamina_host.link.handshake import read_welcome
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import OPS as SCHEMAS

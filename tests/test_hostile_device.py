@@ -29,7 +29,9 @@ from lamina_device.camera import CameraError
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, PtyBridge, RequestRefused
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import RequestRefused
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel

@@ -33,8 +33,11 @@ import serial
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_host import cli
 from lamina_host.link import client as link
-from lamina_host.link.client import DeviceClient, DeviceError, PtyBridge, open_device
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError
 from lamina_host.link.identity import identity_difference, legacy_identity, scan_identity
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.library import Library, StoreError
 from lamina_host.store.outputs import load_segments
 from lamina_host.ui.tui.adapter import Session, UserError, parse_plan

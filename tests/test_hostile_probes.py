@@ -33,13 +33,10 @@ from lamina_device.motion import StepperLift
 from lamina_device.sim.specs import MAX_OBJECT_MM, parse_object
 from lamina_host import cli
 from lamina_host.link import client as link
-from lamina_host.link.client import (
-    DeviceClient,
-    DeviceError,
-    PtyBridge,
-    RequestRefused,
-    open_device,
-)
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError, RequestRefused
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.library import Library
 from lamina_host.store.outputs import load_segments
 from lamina_host.workflow import check_plan, check_plan_limits

@@ -11,7 +11,8 @@ import pytest
 from lamina_device.acquisition import grab_grid
 from lamina_device.server import ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, DeviceError
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import DeviceError
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.messages import Event, ProgressEvent, StatusEvent

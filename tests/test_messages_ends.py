@@ -10,10 +10,11 @@ from __future__ import annotations
 import lamina_device.operations as device_operations
 import lamina_device.server as device_server
 import lamina_host.link.client as host_client
+import lamina_host.link.scanning as host_scanning
 import lamina_host.workflow.job as host_job
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
-from lamina_host.link.client import read_welcome
+from lamina_host.link.handshake import read_welcome
 from lamina_shared import messages
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
@@ -26,7 +27,7 @@ def test_both_ends_import_the_one_schema():
     assert device_server.Welcome is messages.Welcome is host_client.Welcome
     assert device_operations.ProgressEvent is messages.ProgressEvent
     assert device_operations.Progress is messages.Progress is host_job.Progress
-    assert host_client.Ack is messages.Ack
+    assert host_scanning.Ack is messages.Ack
 
 
 def test_the_devices_welcome_is_what_the_host_reads():

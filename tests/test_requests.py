@@ -12,7 +12,8 @@ import serial
 
 from lamina_device.extract import ExtractSettings
 from lamina_host import cli
-from lamina_host.link.client import DeviceClient, RequestRefused, ScanStopped
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import RequestRefused, ScanStopped
 from lamina_host.testing import LineFaults
 from lamina_shared.link import Channel
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
@@ -24,7 +25,7 @@ from tests.test_link import PLAN, same
 
 def test_each_thread_gets_its_own_reply_and_events_in_any_order():
     """Two threads ask at once; the peer answers the second first, with an event between."""
-    from lamina_host.link.client import PtyBridge
+    from lamina_host.link.spawn import PtyBridge
 
     bridge = PtyBridge()
     host_port = serial.Serial(bridge.host_port, timeout=0.02)

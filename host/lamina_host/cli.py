@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host import __version__
-from lamina_host.link.client import DeviceError, RequestRefused
+from lamina_host.link.errors import DeviceError, RequestRefused
 from lamina_host.reconstruct.axis import AXIS_METHODS
 from lamina_host.reconstruct.calibration import CALIBRATION_METHODS, DISTORTION_MODES
 from lamina_host.reconstruct.efd import HARMONIC_RULES

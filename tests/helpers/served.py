@@ -18,7 +18,8 @@ from lamina_device.extract import ExtractSettings
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, PtyBridge
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.link import Channel
 from lamina_shared.messages import Welcome
 from lamina_shared.protocol import quantise_segment

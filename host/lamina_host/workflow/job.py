@@ -23,7 +23,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.link.client import DeviceClient, DeviceError, Preview, open_device
+from lamina_host.link.client import DeviceClient, Preview
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import GridCalibration, calibrate_grid
 from lamina_host.reconstruct.expect import Expectation

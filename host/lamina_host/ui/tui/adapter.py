@@ -15,7 +15,7 @@ from pathlib import Path
 
 import serial.tools.list_ports
 
-from lamina_host.link.client import DeviceError
+from lamina_host.link.errors import DeviceError
 from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.pipeline import ProcessOptions
