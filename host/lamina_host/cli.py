@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--device",
         required=True,
         help="serial port path, 'local' (the device service on this machine, or "
-        "socket://HOST:PORT), 'sim', or 'replay:CAPTURE_DIR'",
+        "socket://HOST:PORT), another pyserial URL (spy://PORT?file=LOG logs the wire), "
+        "'sim', or 'replay:CAPTURE_DIR'",
     )
     scan.add_argument(
         "-o", "--out", type=Path, help="new output folder (when resuming: the scan's own)"
