@@ -96,7 +96,7 @@ class Welcome:
     """What the device says about itself at the handshake (the WELCOME body).
 
     A device of another protocol version is read for ``protocol`` and ``software``
-    only (:meth:`versions_only`): nothing else can be trusted to mean the same.
+    only (all it sends such a peer): nothing else can be trusted to mean the same.
     """
 
     protocol: int
@@ -139,10 +139,6 @@ class Welcome:
             "extract": self.extract.to_wire() if self.extract else None,
             "colour": self.colour,
         }
-
-    def versions_only(self) -> dict[str, Any]:
-        """Return the short body for a peer of another version (it may not read fragments)."""
-        return {"protocol": self.protocol, "software": self.software}
 
     @classmethod
     def from_wire(cls, body: Any) -> Welcome:
