@@ -20,7 +20,7 @@ from types import FrameType
 import serial
 
 from lamina_device import __version__
-from lamina_device.acquisition import Progress, acquire, grab_grid
+from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.backends import open_hardware
 from lamina_device.config import check_config
 from lamina_device.hardware import Hardware
@@ -32,6 +32,7 @@ from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.local import EndpointError, local_url
+from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, Problems, check_plan
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.spawned import watch_parent

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host import __version__
-from lamina_host.link.client import DeviceError, RequestRefused
+from lamina_host.link.errors import DeviceError, RequestRefused
 from lamina_host.reconstruct.axis import AXIS_METHODS
 from lamina_host.reconstruct.calibration import CALIBRATION_METHODS, DISTORTION_MODES
 from lamina_host.reconstruct.efd import HARMONIC_RULES
@@ -62,9 +62,10 @@ from lamina_host.workflow.batch import (
 )
 from lamina_host.workflow.exports import dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
+from lamina_host.workflow.results import distortion_summary, mesh_summary
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
@@ -129,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--device",
         required=True,
         help="serial port path, 'local' (the device service on this machine, or "
-        "socket://HOST:PORT), 'sim', or 'replay:CAPTURE_DIR'",
+        "socket://HOST:PORT), another pyserial URL (spy://PORT?file=LOG logs the wire), "
+        "'sim', or 'replay:CAPTURE_DIR'",
     )
     scan.add_argument(
         "-o", "--out", type=Path, help="new output folder (when resuming: the scan's own)"
