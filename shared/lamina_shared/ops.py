@@ -407,6 +407,14 @@ class ScanArgs:
     colour: bool = False
 
 
+@dataclass(frozen=True)
+class EstimateArgs:
+    """``estimate``: how long acquiring ``plan`` (None: the device's default) would take."""
+
+    target: str
+    plan: ScanPlan | None = None
+
+
 Checker = Callable[[Any, DeviceLimits, Problems], Any]
 
 
@@ -476,6 +484,13 @@ def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Sca
     return ScanArgs(target or "", plan, tuple(have), extract, bool(colour))
 
 
+def _estimate(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> EstimateArgs:
+    check_keys(args, "estimate", {"target"}, {"plan"}, problems)
+    target = check_choice(args.get("target", MISSING), "estimate.target", TARGETS, problems)
+    plan = None if args.get("plan") is None else check_plan(args["plan"], limits, problems)
+    return EstimateArgs(target or "", plan)
+
+
 def _none(op: str) -> Callable[[dict[str, Any], DeviceLimits, Problems], NoArgs]:
     def parse(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> NoArgs:
         check_keys(args, op, set(), set(), problems)
@@ -507,6 +522,7 @@ OPS: dict[str, OpSpec] = {
         OpSpec("abort", NoArgs, False, _none("abort")),
         OpSpec("exposure", ExposureArgs, False, _exposure),
         OpSpec("status", NoArgs, False, _none("status")),
+        OpSpec("estimate", EstimateArgs, False, _estimate),
         OpSpec("shutdown", NoArgs, False, _none("shutdown")),
     )
 }
