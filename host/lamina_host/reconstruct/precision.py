@@ -45,9 +45,15 @@ def overlap_differences(views: list[np.ndarray]) -> np.ndarray:
         One difference per point of a view lying inside a later view's cover (each pair
         of views counted once), where the later view has no gap about that angle.
     """
+    pairs = pair_differences(views)
+    return np.concatenate(pairs) if pairs else np.zeros(0)
+
+
+def pair_differences(views: list[np.ndarray]) -> list[np.ndarray]:
+    """Return :func:`overlap_differences` pair by pair (pairs without overlap left out)."""
     usable = [v for v in views if len(v) >= 2]
     if len(usable) < 2:
-        return np.zeros(0)
+        return []
     centre = np.concatenate(usable).mean(axis=0)
     polar = [_polar_sorted(v, centre) for v in usable]
     differences = []
@@ -63,8 +69,10 @@ def overlap_differences(views: list[np.ndarray]) -> np.ndarray:
             gap = angle_n[at] - angle_n[at - 1]
             whole = gap <= _MAX_GAP_SPACINGS * max(spacing, 1e-12)
             other = np.interp(shifted[inside], angle_n, radius_n)
-            differences.append((radius_m[inside] - other)[whole])
-    return np.concatenate(differences) if differences else np.zeros(0)
+            difference = (radius_m[inside] - other)[whole]
+            if difference.size:
+                differences.append(difference)
+    return differences
 
 
 def section_precision_mm(views: list[np.ndarray]) -> float | None:
@@ -82,3 +90,36 @@ def section_precision_mm(views: list[np.ndarray]) -> float | None:
         return None
     spread = _MAD_SIGMAS * float(np.median(np.abs(d - np.median(d))))
     return spread / math.sqrt(_DIFFERENCE_VARIANCE)
+
+
+MOTION_WARN_MM = 0.15
+"""Two overlapping views whose outlines stand further apart than this (and beyond their
+noise) are taken to show the subject moving between them: a scan's own mechanics and
+calibration leave far less (a few hundredths of a millimetre on the simulator's harsh
+preset), a breath or a shift of weight far more."""
+_MOTION_SIGMAS = 4.0  # an offset counts only beyond this many standard errors
+
+
+def views_disagreement_mm(views: list[np.ndarray]) -> float:
+    """Return how far apart a section's overlapping views stand, beyond their noise (mm).
+
+    Noise scatters two views' differences about zero; a subject who moved between them
+    shifts one view's whole stretch, so the median of a pair's differences moves off
+    zero. Only offsets beyond :data:`_MOTION_SIGMAS` standard errors count.
+
+    Args:
+        views: each view's (K, 2) object-frame points of one section, in mm.
+
+    Returns:
+        The largest such offset of any pair (0.0 where none stands out).
+    """
+    largest = 0.0
+    for d in pair_differences(views):
+        if d.size < MIN_OVERLAP_POINTS:
+            continue
+        centre = float(np.median(d))
+        spread = _MAD_SIGMAS * float(np.median(np.abs(d - centre)))
+        # The median's standard error is about 1.25 sigma / sqrt(n) for Gaussian noise.
+        if abs(centre) > _MOTION_SIGMAS * 1.25 * spread / math.sqrt(d.size):
+            largest = max(largest, abs(centre))
+    return largest

@@ -38,7 +38,11 @@ from lamina_host.reconstruct.pipeline import (
     coloured_cloud,
     stack,
 )
-from lamina_host.reconstruct.precision import section_precision_mm
+from lamina_host.reconstruct.precision import (
+    MOTION_WARN_MM,
+    section_precision_mm,
+    views_disagreement_mm,
+)
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.files import json_text, replace_file
 from lamina_shared.types import Segment
@@ -320,7 +324,8 @@ def build_report(
         subject_id: the subject's code.
         volume_mm3: the volume between the first and last section.
     """
-    precision = _precision_mm(result, segments)
+    views = _single_outline_views(result, segments)
+    precision = {k: None if v is None else section_precision_mm(v) for k, v in views.items()}
     outlines: list[OutlineEntry | FailedEntry] = [
         outline_entry(s, precision.get(s.index)) for s in result.sections
     ]
@@ -348,7 +353,7 @@ def build_report(
         point_counts=counts,
         mesh=mesh,
         timings_s={**acquisition_s, **result.timings_s},
-        warnings=tuple(result.warnings),
+        warnings=(*result.warnings, *_motion_warnings(views)),
         accuracy=_accuracy(result, expect),
         subject_id=subject_id,
         volume_mm3=volume_mm3,
@@ -373,8 +378,10 @@ def _accuracy(result: Reconstruction, expect: Expectation | None) -> Accuracy | 
     return Accuracy(expect.spec, table, sphere)
 
 
-def _precision_mm(result: Reconstruction, segments: list[Segment]) -> dict[int, float | None]:
-    """Return each section's per-point precision from its views' overlaps (one outline only).
+def _single_outline_views(
+    result: Reconstruction, segments: list[Segment]
+) -> dict[int, list[np.ndarray] | None]:
+    """Return each section's views (object-frame points), None for a section of several.
 
     A section of several outlines (two legs) gets none: its views' polar overlaps about
     one centroid would pair different outlines.
@@ -382,7 +389,23 @@ def _precision_mm(result: Reconstruction, segments: list[Segment]) -> dict[int, 
     objects = [s for s in segments if s.target == "object"]
     by_section, _, _ = assemble(objects, result.grid, result.axis, result.options.trim_fraction)
     several = {s.index for s in result.sections if s.part > 0}
-    return {k: None if k in several else section_precision_mm(v) for k, v in by_section.items()}
+    return {k: None if k in several else v for k, v in by_section.items()}
+
+
+def _motion_warnings(views: Mapping[int, list[np.ndarray] | None]) -> list[str]:
+    """Return a warning for each section whose overlapping views show the subject moving."""
+    warnings = []
+    for section, section_views in sorted(views.items()):
+        if section_views is None:
+            continue
+        apart_mm = views_disagreement_mm(section_views)
+        if apart_mm > MOTION_WARN_MM:
+            warnings.append(
+                f"section {section}: its overlapping views stand {apart_mm:.2f} mm apart, "
+                "beyond their noise: the subject may have moved during the scan; scan again "
+                "with the limb supported and still"
+            )
+    return warnings
 
 
 def outline_entry(s: Section, precision_mm: float | None = None) -> OutlineEntry:

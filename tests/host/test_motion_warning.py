@@ -1,0 +1,71 @@
+"""A subject who moves during a scan is told, not hidden in a clean result (issue 22, part 3)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.sim import open_sim
+from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
+from lamina_host.reconstruct.pipeline import ProcessOptions, reconstruct
+from lamina_host.reconstruct.precision import MOTION_WARN_MM, views_disagreement_mm
+from lamina_host.store.outputs import build_report
+from lamina_shared.types import ScanPlan
+
+
+def arc_views(shift_mm: tuple[float, float] = (0.0, 0.0), noise_mm: float = 0.02) -> list:
+    """Return 8 views of a 10 mm circle, each 100 degrees of it, the fourth shifted."""
+    rng = np.random.default_rng(4)
+    views = []
+    for k in range(8):
+        phi = np.radians(np.linspace(45 * k - 50, 45 * k + 50, 200))
+        r = 10.0 + rng.normal(0.0, noise_mm, phi.size)
+        points = np.column_stack([r * np.cos(phi), r * np.sin(phi)])
+        views.append(points + (np.array(shift_mm) if k == 3 else 0.0))
+    return views
+
+
+def test_noise_alone_stands_out_nowhere_and_a_shifted_view_does():
+    assert views_disagreement_mm(arc_views()) < 0.02
+    moved = views_disagreement_mm(arc_views((0.3, 0.3)))
+    assert moved > MOTION_WARN_MM
+    # The shift's radial part where the fourth view overlaps its neighbours (at 112 and
+    # 157 degrees, about 135 +- 22): about 0.42 mm x cos(22 degrees).
+    assert moved == pytest.approx(math.hypot(0.3, 0.3) * math.cos(math.radians(22.5)), rel=0.3)
+    assert views_disagreement_mm([]) == 0.0 and views_disagreement_mm(arc_views()[:1]) == 0.0
+
+
+@pytest.fixture(scope="module")
+def calibration():
+    """The board and the calibration cylinder, taken once with nothing moving."""
+    hardware = open_sim("cylinder:d=19.05", seed=1)
+    cylinder: list = []
+    try:
+        grid = grab_grid(hardware)
+        acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
+    finally:
+        hardware.close()
+    return grid, hardware.board, cylinder, hardware.cylinder_diameter_mm
+
+
+def scan_report(calibration, sway: str):
+    grid, board, cylinder, diameter = calibration
+    hardware = open_sim("cylinder:d=19.05", seed=1, sway=sway)
+    segments: list = []
+    try:
+        acquire(hardware, "object", ScanPlan.regular(1, 2.0, 8), segments.append)
+    finally:
+        hardware.close()
+    recon = reconstruct(grid, board, cylinder, diameter, segments, ProcessOptions())
+    return build_report(recon, {"kind": "sim"}, segments, None, {})
+
+
+def test_a_breathing_subject_is_warned_of_and_a_still_one_is_not(calibration):
+    still = scan_report(calibration, "none")
+    assert not [w for w in still.warnings if "may have moved" in w]
+    breathing = scan_report(calibration, "drift=0,breath=0.5,hz=0.25")
+    moved = [w for w in breathing.warnings if "may have moved" in w]
+    assert moved and moved[0].startswith("section 0: its overlapping views stand")
