@@ -11,6 +11,7 @@ from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.widgets import Button, Checkbox, Input, Label, ProgressBar, Static
+from textual.worker import get_current_worker
 from textual_plotext import PlotextPlot
 
 from lamina_host.ui.tui.adapter import (
@@ -22,6 +23,8 @@ from lamina_host.ui.tui.adapter import (
     user_message,
 )
 from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_shared.durations import duration_text
+from lamina_shared.messages import ScanEstimate
 from lamina_shared.types import ScanPlan, Segment
 
 
@@ -122,10 +125,45 @@ class ScanScreen(LaminaScreen):
     def _next_field(self) -> None:
         self.focus_next()
 
-    def _plan(self) -> tuple[str, ScanPlan]:
+    @on(Input.Changed, "#sections, #pitch, #views")
+    def _plan_changed(self) -> None:
+        self.show_estimate()
+
+    def show_estimate(self) -> None:
+        """Ask the device how long the typed plan would keep the subject still."""
+        if self.scanning or not self.job.device.connected:
+            return
+        try:
+            _, plan = self._plan_numbers()
+        except PLAN_ERRORS:
+            self.query_one("#progress-text", Static).update("not started")
+            return
+        self.estimate_worker(plan)
+
+    @work(thread=True, group="estimate", exclusive=True)
+    def estimate_worker(self, plan: ScanPlan) -> None:
+        """Ask for the estimate in a thread; a newer plan's request supersedes this one."""
+        try:
+            estimate = self.job.device.estimate("object", plan)
+        except USER_ERRORS:
+            return  # busy (calibrating) or a plan beyond the device: Start will say why
+        if estimate is not None and not get_current_worker().is_cancelled:
+            self.app.call_from_thread(self._estimated, estimate)
+
+    def _estimated(self, estimate: ScanEstimate) -> None:
+        if not self.scanning:
+            self.query_one("#progress-text", Static).update(
+                f"not started: {estimate.views} views take about "
+                f"{duration_text(estimate.modelled_s)}; the subject holds still that long"
+            )
+
+    def _plan_numbers(self) -> tuple[str, ScanPlan]:
         value = {k: self.query_one(f"#{k}", Input).value for k in ("sections", "pitch", "views")}
+        return "", parse_plan(value["sections"], value["pitch"], value["views"])
+
+    def _plan(self) -> tuple[str, ScanPlan]:
         subject = check_subject(self.query_one("#subject", Input).value)
-        return subject, parse_plan(value["sections"], value["pitch"], value["views"])
+        return subject, self._plan_numbers()[1]
 
     @on(Button.Pressed, "#start")
     def action_start(self) -> None:
@@ -286,3 +324,4 @@ class ScanScreen(LaminaScreen):
             text = "not connected (F2)"
         calibrated = "calibrated" if acquisition.axis is not None else "not calibrated (F4)"
         self.query_one("#link-state", Static).update(f"{text}\n{calibrated}")
+        self.show_estimate()
