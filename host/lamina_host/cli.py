@@ -24,16 +24,20 @@ from typing import Any
 
 from lamina_host import __version__
 from lamina_host.link.client import DeviceError, RequestRefused
-from lamina_host.reconstruct.axis import AXIS_METHODS
-from lamina_host.reconstruct.calibration import CALIBRATION_METHODS, DISTORTION_MODES
-from lamina_host.reconstruct.efd import HARMONIC_RULES
+from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
-from lamina_host.reconstruct.mesh import MESH_METHODS, meshlab
-from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.reconstruct.mesh import meshlab
+from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
 from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
-from lamina_host.store.library import SIDES, Library, ScanRecord, default_library_path
+from lamina_host.store.library import (
+    SIDES,
+    Library,
+    ScanRecord,
+    default_library_path,
+    formats_text,
+)
 from lamina_host.store.subjects import SUBJECT_RULE, check_subject
 from lamina_host.workflow import (
     DEFAULT_PITCH_MM,
@@ -51,9 +55,10 @@ from lamina_host.workflow.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.workflow.exports import export_scan
+from lamina_host.workflow.exports import ALL_FORMATS, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
+from lamina_shared.device_specs import SIM, replay_folder, spawns_device
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
@@ -101,7 +106,7 @@ def _stop_signals_interrupt() -> Iterator[None]:
 
 SCAN_DEFAULTS: dict[str, Any] = {
     "subject": "anonymous",
-    "trim": 0.10,
+    "trim": DEFAULT_TRIM_FRACTION,
     "seed": 0,
     "noise": "thesis",
     "rig": "thesis",
@@ -170,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--trim",
         type=float,
-        help="fraction dropped from each segment end (default 0.10)",
+        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:.2f})",
     )
     scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
@@ -190,8 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_library_option(scans)
     export = sub.add_parser(
         "export",
-        help="export a scan's mesh (.ply/.obj/.stl), report (.json), DICOM Encapsulated STL "
-        "(.dcm) or compact follow-up record (.lrec)",
+        help=f"export a scan as {formats_text(ALL_FORMATS)}",
     )
     export.add_argument("scan", type=int, help="scan id (see lamina scans)")
     export.add_argument("-o", "--out", required=True, type=Path, help="new file to write")
@@ -270,7 +274,7 @@ def _add_ui_options(parser: argparse.ArgumentParser) -> None:
 
 def _check_ui_options(args: argparse.Namespace) -> list[str]:
     """Refuse sim-only options for another device; return them as ``lamina tui`` options."""
-    if (args.object or args.noise) and args.device != "sim":
+    if (args.object or args.noise) and args.device != SIM:
         raise UsageError("--object and --noise only apply to --device sim")
     options = ["--device", args.device]
     for flag, value in (("--object", args.object), ("--noise", args.noise)):
@@ -376,28 +380,46 @@ def _add_method_options(parser: argparse.ArgumentParser) -> None:
         default="best",
         help="start from Lamina's best methods or the thesis' (the options below override)",
     )
-    parser.add_argument("--calibration", choices=CALIBRATION_METHODS, help="homography estimator")
+    parser.add_argument(
+        "--calibration", choices=OPTION_CHOICES["calibration"], help="homography estimator"
+    )
     parser.add_argument(
         "--distortion",
         nargs="?",
         const="on",
-        choices=DISTORTION_MODES,
+        choices=OPTION_CHOICES["distortion"],
         help="radial lens distortion (ml only): auto estimates it from the board and keeps it "
         "where the board's rows show it (default), on always, off never; --distortion alone: on",
     )
-    parser.add_argument("--axis", choices=AXIS_METHODS, help="turntable axis method")
+    parser.add_argument("--axis", choices=OPTION_CHOICES["axis"], help="turntable axis method")
     parser.add_argument(
         "--angle-correction",
         action=argparse.BooleanOptionalAction,
-        help="estimate the turntable's angle scale from the cylinder (default with --axis joint)",
+        help="estimate the turntable's angle scale from the cylinder (default with --axis "
+        f"{ANGLE_CORRECTION_AXIS})",
     )
-    parser.add_argument("--harmonic-rule", choices=HARMONIC_RULES, help="EFD harmonic rule")
-    parser.add_argument("--mesh", choices=MESH_METHODS, help="surface method")
+    parser.add_argument(
+        "--harmonic-rule", choices=OPTION_CHOICES["harmonic_rule"], help="EFD harmonic rule"
+    )
+    parser.add_argument("--mesh", choices=OPTION_CHOICES["mesh"], help="surface method")
     parser.add_argument(
         "--split-gap",
         type=float,
         help="fit outlines further apart than this many mm separately (0: never split)",
     )
+
+
+OPTION_FLAGS = {
+    "trim_fraction": "--trim",
+    "harmonics": "--harmonics",
+    "calibration": "--calibration",
+    "distortion": "--distortion",
+    "axis": "--axis",
+    "angle_correction": "--angle-correction",
+    "harmonic_rule": "--harmonic-rule",
+    "mesh": "--mesh",
+}
+"""The flag naming each processing option in a refusal (the rules are ``ProcessOptions``')."""
 
 
 def _process_options(args: argparse.Namespace) -> ProcessOptions:
@@ -411,17 +433,15 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
         changes["distortion"] = args.distortion
     if args.angle_correction is not None:
         changes["angle_correction"] = args.angle_correction
-    elif changes.get("axis") == "centroid":
-        changes["angle_correction"] = False  # only the joint fit can estimate it
+    elif changes.get("axis", ANGLE_CORRECTION_AXIS) != ANGLE_CORRECTION_AXIS:
+        changes["angle_correction"] = False  # only that axis fit can estimate it
     if args.split_gap is not None:
         if not (math.isfinite(args.split_gap) and args.split_gap >= 0):
             raise UsageError("--split-gap must be 0 (never split) or a positive number of mm")
         changes["split_gap_mm"] = args.split_gap or None
     options = replace(base, **changes)
-    if options.distortion == "on" and options.calibration != "ml":
-        raise UsageError("--distortion on needs --calibration ml")
-    if options.angle_correction and options.axis != "joint":
-        raise UsageError("--angle-correction needs --axis joint")
+    if problem := options.problem(OPTION_FLAGS):
+        raise UsageError(problem)
     if options.mesh != "contours":
         meshlab(options.mesh)  # refuse now, one line, rather than after the scan
     return options
@@ -503,10 +523,6 @@ def _plan(args: argparse.Namespace) -> ScanPlan | None:
 
 def _check_numbers(args: argparse.Namespace) -> None:
     """Refuse any numeric option that is zero where it cannot be, negative or not finite."""
-    if not (math.isfinite(args.trim) and 0.0 <= args.trim < 0.5):
-        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
-    if args.harmonics is not None:
-        check_count("--harmonics", args.harmonics, 1, 100)
     if args.cylinder_mm is not None:
         check_positive_mm("--cylinder-mm", args.cylinder_mm, 1000.0)
     check_count("--seed", args.seed, 0, 2**32 - 1)
@@ -520,19 +536,18 @@ def _check_args(
         raise UsageError("name an output folder with -o OUT")
     check_subject(args.subject)
     _check_numbers(args)
-    spawns_device = args.device == "sim" or args.device.startswith("replay:")
-    if spawns_device and find_spec("lamina_device") is None:
+    if spawns_device(args.device) and find_spec("lamina_device") is None:
         raise UsageError(
             f"--device {args.device} runs the device program here, but "
             "lamina-device is not installed: pip install -e device"
         )
-    if args.device.startswith("replay:"):
-        capture = Path(args.device.removeprefix("replay:"))
+    if (folder := replay_folder(args.device)) is not None:
+        capture = Path(folder)
         if not (capture / "capture.json").is_file():
             raise UsageError(f"{capture} holds no capture.json: name a capture folder")
-    if args.object and args.device != "sim":
+    if args.object and args.device != SIM:
         raise UsageError("--object only applies to --device sim")
-    if args.rig != "thesis" and args.device != "sim":
+    if args.rig != "thesis" and args.device != SIM:
         raise UsageError("--rig only applies to --device sim")
     _process_options(args)  # refuse bad method combinations before scanning
     try:
@@ -751,11 +766,7 @@ def process(args: argparse.Namespace) -> int:
             setattr(args, name, record.options.get(name))
     if args.trim is None:
         args.trim = SCAN_DEFAULTS["trim"]
-    if not (isinstance(args.trim, int | float) and 0.0 <= args.trim < 0.5):
-        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
-    if args.harmonics is not None:
-        check_count("--harmonics", args.harmonics, 1, 100)
-    options = _process_options(args)
+    options = _process_options(args)  # the trim and harmonics recorded are checked too
     try:
         expect = parse_expectation(args.expect) if args.expect else None
     except ValueError as exc:

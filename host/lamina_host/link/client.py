@@ -44,6 +44,7 @@ import serial
 
 from lamina_host.link.identity import scan_identity, spawned_source
 from lamina_host.link.local_box import is_endpoint, open_endpoint
+from lamina_shared.device_specs import spawns_device
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.errors import LaminaError, printable
 from lamina_shared.link import Channel, LinkClosed, Ticker
@@ -867,7 +868,7 @@ def open_device(
     ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
     ``on_notice`` hears about a slow start of a device program started here.
     """
-    if device == "sim" or device.startswith("replay:"):
+    if spawns_device(device):
         with _spawned_device(device, object_spec, seed, noise, transform, rig, on_notice) as client:
             yield client
         return

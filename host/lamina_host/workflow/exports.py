@@ -8,7 +8,9 @@ calibration by the current pipeline with the options its result recorded.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from lamina_host.reconstruct.mesh import load_ply
@@ -20,12 +22,23 @@ from lamina_host.store.dicom import (
     encapsulated_stl,
     surface_scan_mesh,
 )
-from lamina_host.store.library import EXPORT_FORMATS, Library, StoreError, check_new_file
+from lamina_host.store.library import (
+    EXPORT_FORMATS,
+    Library,
+    StoreError,
+    check_new_file,
+    unknown_format,
+)
 from lamina_host.store.record import record_bytes
 from lamina_host.workflow.batch import reprocess
 
-EXPORTERS = (".dcm", ".lrec")
+EXPORTERS: Mapping[str, str] = MappingProxyType(
+    {".dcm": "DICOM Encapsulated STL", ".lrec": "compact follow-up record"}
+)
 """Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
+
+ALL_FORMATS: Mapping[str, str] = MappingProxyType({**EXPORT_FORMATS, **EXPORTERS})
+"""Every format ``lamina export`` writes, by extension, with what each holds."""
 
 
 def export_scan(
@@ -46,10 +59,7 @@ def export_scan(
     if suffix in EXPORT_FORMATS:
         return library.export(scan_id, path)
     if suffix not in EXPORTERS:
-        raise StoreError(
-            f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh), .json (report), "
-            ".dcm (DICOM Encapsulated STL) or .lrec (compact follow-up record)"
-        )
+        raise unknown_format(path, ALL_FORMATS)
     check_new_file(path)
     if suffix == ".dcm":
         data = dicom_export(library, scan_id, institution, dicom_sop)
