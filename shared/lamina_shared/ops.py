@@ -407,9 +407,6 @@ class ScanArgs:
     colour: bool = False
 
 
-Checker = Callable[[Any, DeviceLimits, Problems], Any]
-
-
 def _preview(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> PreviewArgs:
     check_keys(args, "preview", set(), {"laser", "stripe"}, problems)
     laser = check_bool(args.get("laser", False), "preview.laser", problems)

@@ -229,7 +229,7 @@ class PtyBridge:
 
 
 EventHandler = Callable[[Message], None]
-SegmentHandler = Callable[[int, Segment], object]
+IndexedSegmentHandler = Callable[[int, Segment], object]
 """Receives (seq, segment) for each new segment; it must have stored it when it returns."""
 
 
@@ -672,7 +672,7 @@ class DeviceClient:
         on_progress: Callable[[dict[str, Any]], None] | None = None,
         *,
         have: Collection[int] = (),
-        on_segment: SegmentHandler | None = None,
+        on_segment: IndexedSegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
         extract: ExtractChanges | None = None,
         colour: bool = False,

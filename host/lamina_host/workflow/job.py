@@ -1,6 +1,6 @@
 """The scan job: connect, calibrate, create or resume a scan, fetch, store, process, export.
 
-The command line runs the whole sequence at once (:func:`run_scan`); the terminal UI runs
+The command line runs the whole sequence at once (:func:`acquire`); the terminal UI runs
 the same steps one key at a time. Both hand in a typed :class:`ScanRequest` (checked once
 on construction, the plan against the device's limits when the scan is created) and get
 typed results back (:mod:`lamina_host.workflow.results`). Every step blocks (serial I/O,
