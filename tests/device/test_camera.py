@@ -67,6 +67,7 @@ def test_frames_match_the_laser_state_and_straddling_frames_are_dropped(pi_camer
     assert laser.mock_pin_history() == [False, True, False]
 
 
+@pytest.mark.wall_clock
 def test_a_stalled_camera_ends_the_capture_in_time_with_the_laser_off(pi_kit, fake_picamera2):
     factory = MockFactory()
     laser = Laser(17, pin_factory=factory)
