@@ -179,7 +179,7 @@ def device():
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    server.handle(Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": "fuzz"}))
+    _new_session(server, inbox)  # each WELCOME is taken by the HELLO that asked for it
     yield server, inbox
     server._stop_worker()
     stop.set()
@@ -207,6 +207,21 @@ def _replies(inbox: queue.Queue[Message], request_id: int, timeout_s: float = 10
         if message.body.get("event") == "status":
             return {"ok": True, "result": message.body}
     raise AssertionError(f"no reply to request {request_id}")
+
+
+def _new_session(server: DeviceServer, inbox: queue.Queue[Message]) -> None:
+    """Say HELLO anew and drop what the device sent before its WELCOME (a late reply of an
+    earlier example, under an id this one may draw again).
+
+    Every HELLO to the module's device goes through here, so the WELCOME reached is this
+    one's: the earlier ones were taken by their own HELLOs.
+    """
+    server.handle(
+        Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": f"fuzz-{time.monotonic()}"})
+    )
+    deadline = time.monotonic() + 10
+    while inbox.get(timeout=max(0.0, deadline - time.monotonic())).kind is not Kind.WELCOME:
+        pass
 
 
 DEVICE_REFUSALS = frozenset({"bad-args", "limit", "busy", "idle", "aborted", "gone", "failed"})
@@ -237,9 +252,7 @@ def test_device_answers_any_request_and_stays_responsive(device, request_id, op,
     server, host = device
     # A new session per example: request ids repeat across examples, and within one
     # session the device rightly answers a repeated id from its reply cache.
-    server.handle(
-        Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": f"fuzz-{time.monotonic()}"})
-    )
+    _new_session(server, host)
     if isinstance(args.get("plan"), dict | list):
         args["plan"] = {"views": [{"section": 0, "z_mm": 0.0, "angle_deg": 0.0}]}
     # Unsolicited or malformed messages of other kinds are ignored without harm.
