@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host import __version__
+from lamina_host.clinical.measures import AXES, COMPARISONS, Thresholds, parse_landmark
+from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
 from lamina_host.link.client import DeviceError, RequestRefused
 from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
@@ -284,8 +286,6 @@ def _check_ui_options(args: argparse.Namespace) -> list[str]:
 
 def _add_measure_options(parser: argparse.ArgumentParser) -> None:
     """Add how a limb is measured: level spacing, landmark and axis (report and batch)."""
-    from lamina_host.clinical.measures import AXES
-
     parser.add_argument(
         "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
     )
@@ -308,8 +308,6 @@ def _check_spacing(spacing_mm: float) -> float:
 
 def _add_report_parser(sub: Any) -> None:
     """Add ``lamina report``: a processed scan's clinical measurements on one page."""
-    from lamina_host.clinical.measures import COMPARISONS, Thresholds
-
     limits = Thresholds()
     report = sub.add_parser(
         "report", help="write a scan's clinical report (.pdf/.png) or its measurement table (.csv)"
@@ -827,8 +825,6 @@ def batch(args: argparse.Namespace) -> int:
         check_count("--workers", args.workers, 1, 256)
     check_pattern(args.subjects)
     check_output(args.out)
-    from lamina_host.clinical.measures import parse_landmark
-
     measure = ClinicalMeasure(
         _check_spacing(args.spacing_mm), parse_landmark(args.landmark), args.limb_axis
     )
@@ -874,9 +870,6 @@ def serve_ui(args: argparse.Namespace) -> int:
 
 def clinical_report(args: argparse.Namespace) -> int:
     """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
-    from lamina_host.clinical.measures import Thresholds, parse_landmark
-    from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
-
     limits: tuple[float, ...] = (args.flag_difference_ml, args.flag_difference_percent)
     limits += (args.flag_circumference_mm, args.flag_change_percent)
     if not all(math.isfinite(v) and v >= 0 for v in limits):
