@@ -54,7 +54,7 @@ def _tui_refusal(harmonics: int | None = None, mesh: str = "contours") -> str | 
     that refusal means the choices passed.
     """
     with pytest.raises(UserError) as refused:
-        Session().process(harmonics, mesh)
+        Session(library_path=Path("/nonexistent/never-opened.sqlite")).process(harmonics, mesh)
     text = str(refused.value)
     return None if text.startswith("nothing to process") else text
 
