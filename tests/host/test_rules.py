@@ -83,7 +83,7 @@ def test_the_command_line_refuses_the_trim_the_assembly_refuses(fraction: float)
         == (ProcessOptions(trim_fraction=fraction).problem() is None)
     )
     if allowed:
-        trim([[0.0, 0.0]] * 10, fraction)
+        assert len(trim([[0.0, 0.0]] * 10, fraction)) == 10 - 2 * math.floor(10 * fraction)
     else:
         assert cli_refusal == f"--trim {fraction} must be at least 0 and below 0.5"
         with pytest.raises(ValueError, match=r"must be at least 0 and below 0\.5"):
