@@ -37,7 +37,7 @@ class Stored:
 def _acquire(client: DeviceClient, library: Library, out: Path) -> int:
     """Run the workflow's acquisition (create, calibration, cylinder, object) on ``client``."""
     job = ScanJob(DeviceTarget("sim"), library=library)
-    job.attach(client)
+    job.attach_for_testing(client)
     return acquire(job, ScanRequest("T-01"), out=out).scan_id
 
 

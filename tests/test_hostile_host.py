@@ -37,7 +37,7 @@ from lamina_host.link.client import DeviceClient, DeviceError, PtyBridge, open_d
 from lamina_host.link.identity import identity_difference, scan_identity
 from lamina_host.store.library import Library, StoreError
 from lamina_host.store.outputs import load_segments
-from lamina_host.ui.tui.adapter import Session, UserError, parse_plan
+from lamina_host.ui.tui.adapter import UserError, parse_plan
 from lamina_host.workflow import check_plan_limits
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_shared.errors import InputError, printable
@@ -339,20 +339,20 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
     path, _ = library_copy
     before = dump(path)
-    other = Session("sim", path, object_spec="sphere:d=25")
+    other = ScanJob(DeviceTarget("sim", "sphere:d=25"), path)
     try:
         other.connect()
-        other.open_scan(1)
+        other.acquisition.open_scan(1)
         with pytest.raises(StoreError, match="another device or setup"):
-            other.fetch_object()
+            other.acquisition.fetch_object()
         assert dump(path) == before
         # Calibrated with one device, then connected to another: no scan may start.
-        other.calibrate_grid()
-        other.accept_grid(True)
-        other.object_spec = OBJECT
+        other.acquisition.calibrate_grid()
+        other.acquisition.accept_grid(True)
+        other.device.object_spec = OBJECT
         other.connect()
         with pytest.raises(UserError, match="not the one calibrated"):
-            other.calibrate_axis()
+            other.acquisition.calibrate_axis()
     finally:
         other.close()
     assert dump(path) == before
@@ -388,9 +388,9 @@ def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan
         Library(tmp_path / "library.sqlite") as library,
     ):
         job = ScanJob(DeviceTarget("sim"), library=library)
-        job.attach(client)
+        job.attach_for_testing(client)
         with pytest.raises(InputError, match=limit):
-            job.create(ScanRequest("P-01", plan))
+            job.acquisition.create(ScanRequest("P-01", plan))
         assert library.scans() == []
 
 

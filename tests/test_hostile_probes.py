@@ -180,12 +180,15 @@ def test_a_stored_plan_beyond_the_lift_is_not_advised_to_be_resumed(capsys, tmp_
 def test_a_device_refusing_the_plan_mid_scan_is_not_advised_to_be_resumed(monkeypatch, tmp_path):
     """The device's own limit refusal repeats on every resume: the advice must not loop."""
 
-    class Job:
-        scan_id, library_path = 3, tmp_path / "library.sqlite"
-
-        def connect(self, on_notice: Any = None) -> None: ...
+    class Device:
         def set_extract(self, changes: Any) -> None: ...
         def set_colour(self, colour: bool) -> None: ...
+
+    class Job:
+        scan_id, library_path = 3, tmp_path / "library.sqlite"
+        device = Device()
+
+        def connect(self, on_notice: Any = None) -> None: ...
 
     def refuse(*args: Any, **kwargs: Any) -> None:
         message = "the device refused scan: lift position 202.0 mm is outside 0..200"

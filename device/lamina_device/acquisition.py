@@ -26,6 +26,7 @@ import numpy as np
 from lamina_device.camera import CameraError, ColourCamera
 from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
+from lamina_device.motion import move_axes
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
 log = logging.getLogger(__name__)
@@ -265,8 +266,7 @@ def acquire(
         try:
             for done, view in enumerate(plan.views, start=1):
                 control.checkpoint()
-                hardware.lift.move_to(view.z_mm)
-                hardware.turntable.move_to(view.angle_deg)
+                move_axes(hardware.lift, hardware.turntable, view.z_mm, view.angle_deg)
                 hardware.settle()
                 on, off, rgb_off = capture_views(hardware, colour)
                 stage.put(_Captured(view, index_in_section[done - 1], done, on, off, rgb_off))

@@ -9,6 +9,7 @@ backends build on this module, and :mod:`lamina_device.backends` picks one by na
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,6 +50,8 @@ class Hardware:
     device, ``source`` what it images (WELCOME ``identity``)."""
     extract: ExtractSettings = field(default_factory=ExtractSettings)
     """The configured stripe extraction (``[extract]``; a scan request may change it)."""
+    sleep: Callable[[float], None] = time.sleep
+    """How the settle waits: real time on the box, the virtual clock in the simulator."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
@@ -57,7 +60,7 @@ class Hardware:
     def settle(self) -> None:
         """Wait for vibration after a move to die down before exposing."""
         if self.settle_s > 0:
-            time.sleep(self.settle_s)
+            self.sleep(self.settle_s)
 
     def close(self) -> None:
         """Switch the laser off and release everything (the laser first)."""

@@ -15,8 +15,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
-from typing import Protocol
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from gpiozero import DigitalInputDevice, DigitalOutputDevice
@@ -133,6 +134,59 @@ def _wait_until(deadline_s: float, clock: Callable[[], float]) -> None:
         pass
 
 
+@dataclass(frozen=True)
+class DriverRun:
+    """One driver's part of a move: its direction, step intervals and optional stop test."""
+
+    driver: StepperDriver
+    direction: int
+    intervals_s: np.ndarray
+    stop_when: Callable[[], bool] | None = None
+
+
+def run_together(
+    runs: Sequence[DriverRun], clock: Callable[[], float] = time.perf_counter
+) -> list[int]:
+    """Run several drivers at once from one thread; return each run's steps made.
+
+    The pulses of all runs are merged on one time line: each axis keeps its own profile,
+    and each pulse waits its planned interval after that axis's previous pulse (a late
+    pulse lengthens that axis's move, never shortens its next interval), so two axes
+    move together as each would alone. One thread rather than one per axis: two Python
+    threads spinning on the clock would take turns with the interpreter lock and make
+    both axes' pulses late by milliseconds.
+
+    Args:
+        runs: the moves, one per driver (a driver at most once).
+        clock: the time source the intervals are measured on.
+
+    Returns:
+        The steps each run made, in the order of ``runs`` (fewer where ``stop_when`` ended it).
+    """
+    switched = [run.driver._prepare(run.direction) for run in runs]  # every one, in order
+    if any(switched):
+        _wait_until(clock() + _ENABLE_SETTLE_S, clock)
+    intervals = [run.intervals_s.tolist() for run in runs]
+    start_s = clock()
+    last_s = [start_s] * len(runs)
+    next_k = [0] * len(runs)
+    live = [i for i, steps in enumerate(intervals) if steps]
+    while live:
+        i = min(live, key=lambda j: last_s[j] + intervals[j][next_k[j]])
+        _wait_until(last_s[i] + intervals[i][next_k[i]], clock)
+        run = runs[i]
+        if run.stop_when is not None and run.stop_when():
+            live.remove(i)
+            continue
+        run.driver._pulse()
+        # Read after the edge, so the next interval is timed from no earlier than it.
+        last_s[i] = clock()
+        next_k[i] += 1
+        if next_k[i] == len(intervals[i]):
+            live.remove(i)
+    return [run.driver.last_run_steps for run in runs]
+
+
 class StepperDriver:
     """One step/dir driver: STEP, DIR and EN lines as gpiozero outputs.
 
@@ -182,23 +236,22 @@ class StepperDriver:
         returns True. ``last_run_steps`` counts pulses as they go out, so the caller
         knows the position even if the move is interrupted by an exception.
         """
+        return run_together([DriverRun(self, direction, intervals_s, stop_when)], self._clock)[0]
+
+    def _prepare(self, direction: int) -> bool:
+        """Set DIR for ``direction``; return True if EN had to be switched on first."""
         self.last_run_steps = 0
-        if not self._enable.is_active:
+        switched = not self._enable.is_active
+        if switched:
             self._enable.on()
-            _wait_until(self._clock() + _ENABLE_SETTLE_S, self._clock)
         self._dir.value = (direction > 0) == self._dir_high_positive
-        pulse_s = self._clock()
-        for interval_s in intervals_s.tolist():
-            _wait_until(pulse_s + interval_s, self._clock)
-            if stop_when is not None and stop_when():
-                break
-            # Each gpiozero call takes longer than the drivers' minimum pulse (<= 2 us).
-            self._step.on()
-            # Read after the edge, so the next interval is timed from no earlier than it.
-            pulse_s = self._clock()
-            self._step.off()
-            self.last_run_steps += 1
-        return self.last_run_steps
+        return switched
+
+    def _pulse(self) -> None:
+        # Each gpiozero call takes longer than the drivers' minimum pulse (<= 2 us).
+        self._step.on()
+        self._step.off()
+        self.last_run_steps += 1
 
     def disable(self) -> None:
         """Cut the motor current (the axis may then be turned by hand)."""
@@ -212,8 +265,62 @@ class StepperDriver:
             device.close()
 
 
-def _speed_sps(units_per_s: float, steps_per_unit: float) -> float:
-    return units_per_s * steps_per_unit
+def turntable_steps_per_rev(config: TurntableConfig) -> int:
+    """Return the microsteps of one table revolution."""
+    return round(config.full_steps_per_rev * config.microsteps * config.gear_ratio)
+
+
+def lift_steps_per_mm(config: LiftConfig) -> float:
+    """Return the lift's microsteps per millimetre of travel."""
+    return config.full_steps_per_rev * config.microsteps * config.gear_ratio / config.lead_mm
+
+
+def turntable_intervals_s(config: TurntableConfig, steps: int) -> np.ndarray:
+    """Return the step intervals of a turntable move of ``steps`` microsteps (one direction)."""
+    spd = turntable_steps_per_rev(config) / 360.0
+    return trapezoid_intervals_s(
+        steps,
+        config.start_speed_deg_s * spd,
+        config.max_speed_deg_s * spd,
+        config.accel_deg_s2 * spd,
+    )
+
+
+def lift_intervals_s(config: LiftConfig, steps: int) -> np.ndarray:
+    """Return the step intervals of a lift move of ``steps`` microsteps (one direction)."""
+    spm = lift_steps_per_mm(config)
+    return trapezoid_intervals_s(
+        steps, config.start_speed_mm_s * spm, config.max_speed_mm_s * spm, config.accel_mm_s2 * spm
+    )
+
+
+def turntable_runs(
+    config: TurntableConfig, position_steps: int, engaged: bool, angle_deg: float
+) -> tuple[int, ...]:
+    """Return the signed runs of microsteps that take the table to ``angle_deg``.
+
+    The short way round, arriving counter-clockwise: a move that would end clockwise (or
+    a first move, with the backlash not yet taken up) overshoots by ``backlash_deg`` and
+    comes back. The one rule for both the stepper and the scan-time model.
+
+    Args:
+        config: the turntable's configuration.
+        position_steps: where the table is, in microsteps since power-up.
+        engaged: whether the last move ended counter-clockwise (backlash taken up).
+        angle_deg: the target angle.
+
+    Returns:
+        The runs in order (an empty tuple when the table is there already).
+    """
+    rev = turntable_steps_per_rev(config)
+    target = round((angle_deg % 360.0) * rev / 360.0) % rev
+    delta = (target - position_steps) % rev
+    if delta > rev // 2:
+        delta -= rev
+    backlash = round(config.backlash_deg * rev / 360.0)
+    if backlash == 0 or (delta >= 0 and engaged):
+        return (delta,) if delta else ()
+    return tuple(run for run in (delta - backlash, backlash) if run)
 
 
 class ContinuousTurntable:
@@ -234,9 +341,7 @@ class StepperTurntable(ContinuousTurntable):
     def __init__(self, config: TurntableConfig, pin_factory: Factory | None = None) -> None:
         self.config = config
         self.driver = StepperDriver(config, pin_factory)
-        self.steps_per_rev = round(
-            config.full_steps_per_rev * config.microsteps * config.gear_ratio
-        )
+        self.steps_per_rev = turntable_steps_per_rev(config)
         self._position = 0
         # Unknown at power-up: the first move takes the backlash up before it arrives.
         self._engaged = False
@@ -258,36 +363,32 @@ class StepperTurntable(ContinuousTurntable):
 
     def move_to(self, angle_deg: float) -> None:
         """Rotate to ``angle_deg`` the short way, arriving counter-clockwise."""
-        if not math.isfinite(angle_deg):
-            raise MotionError(f"turntable angle must be finite, not {angle_deg}")
-        rev = self.steps_per_rev
-        target = round((angle_deg % 360.0) * self.steps_per_deg) % rev
-        delta = (target - self._position) % rev
-        if delta > rev // 2:
-            delta -= rev
-        backlash = round(self.config.backlash_deg * self.steps_per_deg)
-        if backlash == 0 or (delta >= 0 and self._engaged):
-            self._move(delta)
-        else:
-            self._move(delta - backlash)
-            self._move(backlash)
+        for run in self.runs_to(angle_deg):
+            self._move(run)
 
     def _move(self, steps: int) -> None:
-        if steps == 0:
-            return
-        spd = self.steps_per_deg
-        intervals = trapezoid_intervals_s(
-            abs(steps),
-            _speed_sps(self.config.start_speed_deg_s, spd),
-            _speed_sps(self.config.max_speed_deg_s, spd),
-            self.config.accel_deg_s2 * spd,
-        )
+        if steps:
+            self._run_with(steps, None)
+
+    def runs_to(self, angle_deg: float) -> tuple[int, ...]:
+        """Return the signed runs of microsteps a move to ``angle_deg`` makes from here."""
+        if not math.isfinite(angle_deg):
+            raise MotionError(f"turntable angle must be finite, not {angle_deg}")
+        return turntable_runs(self.config, self._position, self._engaged, angle_deg)
+
+    def _run_with(self, steps: int, other: DriverRun | None) -> list[int]:
+        """Turn ``steps`` (non-zero) while ``other`` runs beside it; return both runs' steps.
+
+        The caller owns ``other``'s position; this keeps the table's, even if the move fails.
+        """
         direction = 1 if steps > 0 else -1
+        run = DriverRun(self.driver, direction, turntable_intervals_s(self.config, abs(steps)))
+        runs = [run] if other is None else [run, other]
         try:
-            self.driver.run(direction, intervals)
+            return run_together(runs, self.driver._clock)
         finally:
             self._position += direction * self.driver.last_run_steps
-        self._engaged = direction > 0
+            self._engaged = direction > 0
 
     def close(self) -> None:
         """Disable the driver and release the pins."""
@@ -306,9 +407,7 @@ class StepperLift:
         self.config = config
         self.driver = StepperDriver(config, pin_factory)
         self._switch = DigitalInputDevice(config.limit_pin, pull_up=True, pin_factory=pin_factory)
-        self.steps_per_mm = (
-            config.full_steps_per_rev * config.microsteps * config.gear_ratio / config.lead_mm
-        )
+        self.steps_per_mm = lift_steps_per_mm(config)
         self._position = 0
         self._homed = False
 
@@ -353,6 +452,19 @@ class StepperLift:
         Raises:
             MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
         """
+        self.move_with(None, z_mm, 0.0)
+
+    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
+        """Move to ``z_mm`` while ``turntable`` (if any) turns to ``angle_deg``, both at once.
+
+        The lift and a stepper table's first run share one pulse time line
+        (:func:`run_together`; the table's backlash return, if any, follows), so a
+        section change costs the longer of the two moves, not their sum. Another kind
+        of table turns after the lift has arrived.
+
+        Raises:
+            MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
+        """
         low, high = self.min_mm, self.max_mm
         if not (math.isfinite(z_mm) and low <= z_mm <= high):
             raise MotionError(
@@ -362,16 +474,36 @@ class StepperLift:
         if not self._homed:
             log.info("homing the lift before its first move")
             self.home()
-        self._travel(round(z_mm * self.steps_per_mm) - self._position)
+        if turntable is not None and not isinstance(turntable, StepperTurntable):
+            self.move_with(None, z_mm, angle_deg)
+            turntable.move_to(angle_deg)
+            return
+        steps = round(z_mm * self.steps_per_mm) - self._position
+        lift = self._lift_run(steps) if steps else None
+        table = turntable.runs_to(angle_deg) if turntable is not None else ()
+        done = 0
+        if turntable is not None and table:
+            try:
+                done = turntable._run_with(table[0], lift)[-1]
+            finally:
+                if lift is not None:
+                    self._position += lift.direction * self.driver.last_run_steps
+            for run in table[1:]:
+                turntable._move(run)
+        elif lift is not None:
+            done = self._run(lift.direction, lift.intervals_s, lift.stop_when)
+        if lift is not None and done < abs(steps):
+            self._homed = False
+            raise MotionError(
+                f"the lift hit its limit switch at z={self.z_mm:.2f} mm on the way down: it has "
+                "lost steps or the switch wire is broken; it will home again before its next move"
+            )
 
-    def _profile(self, steps: int) -> np.ndarray:
-        spm, cfg = self.steps_per_mm, self.config
-        return trapezoid_intervals_s(
-            steps,
-            _speed_sps(cfg.start_speed_mm_s, spm),
-            _speed_sps(cfg.max_speed_mm_s, spm),
-            cfg.accel_mm_s2 * spm,
-        )
+    def _lift_run(self, steps: int) -> DriverRun:
+        """Return the run of ``steps`` (non-zero); a move down stops at the switch."""
+        direction = 1 if steps > 0 else -1
+        stop = self.switch_hit if direction < 0 else None
+        return DriverRun(self.driver, direction, lift_intervals_s(self.config, abs(steps)), stop)
 
     def _run(
         self, direction: int, intervals: np.ndarray, stop_when: Callable[[], bool] | None
@@ -382,24 +514,10 @@ class StepperLift:
         finally:
             self._position += direction * self.driver.last_run_steps
 
-    def _travel(self, steps: int) -> None:
-        if steps == 0:
-            return
-        direction = 1 if steps > 0 else -1
-        done = self._run(
-            direction, self._profile(abs(steps)), self.switch_hit if direction < 0 else None
-        )
-        if done < abs(steps):
-            self._homed = False
-            raise MotionError(
-                f"the lift hit its limit switch at z={self.z_mm:.2f} mm on the way down: it has "
-                "lost steps or the switch wire is broken; it will home again before its next move"
-            )
-
     def _creep(self, direction: int, max_mm: float, until_hit: bool) -> bool:
         """Step slowly until the switch reads ``until_hit``; return False if it never did."""
         count = max(1, math.ceil(max_mm * self.steps_per_mm))
-        interval_s = 1.0 / _speed_sps(self.config.homing_speed_mm_s, self.steps_per_mm)
+        interval_s = 1.0 / (self.config.homing_speed_mm_s * self.steps_per_mm)
         intervals = np.full(count, interval_s)
         self._run(direction, intervals, lambda: self.switch_hit() == until_hit)
         return self.switch_hit() == until_hit
@@ -423,7 +541,7 @@ class StepperLift:
             above_mm = self.z_mm - (cfg.home_mm + slow_zone_mm)
             if above_mm > 0:
                 steps = round(above_mm * self.steps_per_mm)
-                self._run(-1, self._profile(steps), self.switch_hit)
+                self._run(-1, lift_intervals_s(self.config, steps), self.switch_hit)
             search_mm = 2.0 * slow_zone_mm + 5.0
         if not self._creep(-1, search_mm, until_hit=True):
             self._homed = False
@@ -438,3 +556,29 @@ class StepperLift:
         """Disable the driver and release the pins."""
         self.driver.close()
         self._switch.close()
+
+
+@runtime_checkable
+class JointLift(Protocol):
+    """A lift that can move while a turntable turns (both axes at once)."""
+
+    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
+        """Move to ``z_mm`` while ``turntable`` (if any) turns to ``angle_deg``."""
+        ...  # pragma: no cover - protocol
+
+
+def move_axes(lift: Lift, turntable: Turntable, z_mm: float, angle_deg: float) -> None:
+    """Take the lift to ``z_mm`` and the turntable to ``angle_deg``, together where they can.
+
+    A :class:`JointLift` (the box's stepper lift, the simulator's) moves beside the
+    table; any other lift first, then the table.
+
+    Raises:
+        MotionError: a height outside the lift's soft limits, an angle that is not finite,
+            or the lift's switch tripping on the way.
+    """
+    if isinstance(lift, JointLift):
+        lift.move_with(turntable, z_mm, angle_deg)
+    else:
+        lift.move_to(z_mm)
+        turntable.move_to(angle_deg)

@@ -15,7 +15,7 @@ import math
 import signal
 import sqlite3
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import replace
 from importlib.util import find_spec
@@ -32,13 +32,27 @@ from lamina_host.reconstruct.mesh import meshlab
 from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
-from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
+from lamina_host.store.files import (
+    OutputError,
+    disk_full,
+    new_file_problem,
+    prepare_output_folder,
+)
 from lamina_host.store.library import (
     SIDES,
     Library,
     ScanRecord,
     default_library_path,
     formats_text,
+)
+from lamina_host.store.outputs import FailedEntry, ScanReport
+from lamina_host.store.pacs import (
+    DEFAULT_CALLING_AE,
+    DEFAULT_TIMEOUT_S,
+    check_ae_title,
+    check_timeout,
+    parse_target,
+    send_dicom,
 )
 from lamina_host.store.subjects import SUBJECT_RULE, check_subject
 from lamina_host.workflow import (
@@ -57,7 +71,7 @@ from lamina_host.workflow.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.workflow.exports import ALL_FORMATS, export_scan
+from lamina_host.workflow.exports import ALL_FORMATS, dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
 from lamina_shared.device_specs import SIM, replay_folder, spawns_device
@@ -241,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run on a dask.distributed scheduler, e.g. tcp://host:8786 (default: local)",
     )
     _add_report_parser(sub)
+    _add_send_parser(sub)
     tui = sub.add_parser("tui", help="the terminal UI for the whole workflow (works over SSH)")
     _add_ui_options(tui)
     ui = sub.add_parser("serve-ui", help="serve the terminal UI to a web browser (textual-serve)")
@@ -577,42 +592,42 @@ def _progress(p: Progress) -> None:
         print(f"  {p.target}: {p.total} views", file=sys.stderr)
 
 
-def print_summary(report: dict[str, Any], paths: dict[str, Path]) -> None:
+def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
     """Print the short human summary of a scan."""
-    cal, axis = report["calibration"], report["axis"]
+    cal, axis = report.calibration, report.axis
     print(
-        f"calibration: {cal['n_corners']} corners, residual RMS {cal['rms_mm']:.4f} mm "
-        f"(max {cal['max_mm']:.4f} mm)"
+        f"calibration: {cal.n_corners} corners, residual RMS {cal.rms_mm:.4f} mm "
+        f"(max {cal.max_mm:.4f} mm)"
     )
-    if line := distortion_summary(cal.get("distortion")):
+    if line := distortion_summary(cal.distortion):
         print(f"lens: {line}")
     print(
-        f"axis: ({axis['axis_xy_mm'][0]:.3f}, {axis['axis_xy_mm'][1]:.3f}) mm, correction "
-        f"factor {report['correction_factor']:.5f}"
+        f"axis: ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm, correction "
+        f"factor {report.correction_factor:.5f}"
     )
-    accuracy = {r["section"]: r for r in report.get("accuracy", {}).get("rows", [])}
+    table = report.accuracy.table if report.accuracy is not None else None
+    accuracy = {r.section: r for r in table.rows} if table is not None else {}
     header = "section  z_mm  points  harmonics  cover%  status      "
     print(header + ("  rms_own_mm  rms_mean_mm" if accuracy else ""))
-    for s in report["sections"]:
-        line = f"{s['section']:>7}  {s['z_mm']:4.1f}  {s['raw_points']:>6}"
-        if s.get("status") == OutlineStatus.FAILED:
-            print(f"{line}  {'-':>9}  {'-':>6}  {OutlineStatus.FAILED:<12}  {s.get('reason', '')}")
+    for s in report.sections:
+        line = f"{s.section:>7}  {s.z_mm:4.1f}  {s.raw_points:>6}"
+        if isinstance(s, FailedEntry):
+            print(f"{line}  {'-':>9}  {'-':>6}  {OutlineStatus.FAILED:<12}  {s.reason}")
             continue
-        line += f"  {s['harmonics']:>9}"
-        cover = (s.get("coverage") or {}).get("fraction", float("nan"))
-        line += f"  {100 * cover:6.1f}  {s.get('status', OutlineStatus.MEASURED):<12}"
-        if s["section"] in accuracy:
-            row = accuracy[s["section"]]
-            line += f"  {row['rms_own_mm']:10.4f}  {row['rms_mean_mm']:11.4f}"
+        line += f"  {s.harmonics:>9}"
+        cover = s.coverage.fraction if s.coverage is not None else float("nan")
+        line += f"  {100 * cover:6.1f}  {s.status:<12}"
+        if s.section in accuracy:
+            row = accuracy[s.section]
+            line += f"  {row.rms_own_mm:10.4f}  {row.rms_mean_mm:11.4f}"
         print(line)
-    if accuracy:
-        acc = report["accuracy"]
+    if table is not None and accuracy:
         print(
-            f"   mean RMS radial error: {acc['mean_own_mm']:.4f} mm (own centroid), "
-            f"{acc['mean_mean_mm']:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
+            f"   mean RMS radial error: {table.mean_own_mm:.4f} mm (own centroid), "
+            f"{table.mean_mean_mm:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
         )
-    print(f"mesh: {mesh_summary(report['mesh'])}")
-    for warning in report["warnings"]:
+    print(f"mesh: {mesh_summary(report.mesh)}")
+    for warning in report.warnings:
         print(f"warning: {warning}")
     for path in paths.values():
         print(f"wrote {path}")
@@ -681,7 +696,9 @@ def _scan(args: argparse.Namespace) -> int:
         finally:
             job.close()
         try:
-            results = job.process_scan(_process_options(args), expect, acquired.timings_s, args.out)
+            results = job.processing.process_scan(
+                _process_options(args), expect, acquired.timings_s, args.out
+            )
         except (sqlite3.Error, OutputError) as exc:
             if not disk_full(exc):
                 raise
@@ -698,8 +715,8 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     """Connect and acquire; a stop after the scan exists says how to finish it."""
     job.connect(on_notice=_notice)
     # Before calibrating: the extraction settings are part of what the scan records.
-    job.set_extract(request.extract)
-    job.set_colour(request.colour)
+    job.device.set_extract(request.extract)
+    job.device.set_colour(request.colour)
     try:
         return acquire(
             job,
@@ -772,7 +789,7 @@ def process(args: argparse.Namespace) -> int:
     if args.out is not None:
         prepare_output_folder(args.out)
     job = ScanJob(DeviceTarget(), path)
-    results = job.process_stored(args.scan, options, expect, args.out)
+    results = job.processing.process_stored(args.scan, options, expect, args.out)
     print_summary(results.report, results.paths)
     print(f"scan {args.scan} processed; the result is stored in library {path}")
     return 0
@@ -879,8 +896,8 @@ def clinical_report(args: argparse.Namespace) -> int:
     for path in outputs:
         if path.suffix.lower() not in (".pdf", ".png", ".csv"):
             raise UsageError(f"cannot write {path.name}: name the file .pdf, .png or .csv")
-        if path.exists() or path.is_symlink():
-            raise UsageError(f"{path} already exists: choose a new file name")
+        if problem := new_file_problem(path):
+            raise UsageError(problem)  # before the measuring, not after it
     request = MeasureRequest(
         args.spacing_mm, parse_landmark(args.landmark), args.limb_axis, Thresholds(*limits)
     )
@@ -893,6 +910,56 @@ def clinical_report(args: argparse.Namespace) -> int:
     return 0
 
 
+# ``lamina send``: the scan's DICOM object to a PACS (C-STORE). Self-contained block.
+def _add_send_parser(sub: Any) -> None:
+    """Add ``lamina send SCAN --to AE_TITLE@HOST:PORT``."""
+    send = sub.add_parser(
+        "send",
+        help="store a scan's DICOM object (as lamina export writes it) in a PACS (C-STORE)",
+    )
+    send.add_argument("scan", type=int, help="scan id (see lamina scans)")
+    send.add_argument(
+        "--to",
+        required=True,
+        metavar="AE_TITLE@HOST:PORT",
+        help="the PACS: its AE title, host and DICOM port, e.g. ORTHANC@pacs.local:4242",
+    )
+    send.add_argument(
+        "--calling-ae",
+        default=DEFAULT_CALLING_AE,
+        help=f"the AE title Lamina calls from (default: {DEFAULT_CALLING_AE})",
+    )
+    send.add_argument(
+        "--timeout-s",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        help=f"longest wait for the connection and each answer (default: {DEFAULT_TIMEOUT_S:g})",
+    )
+    send.add_argument("--institution", default="", help="Institution Name written into the object")
+    send.add_argument(
+        "--dicom-sop",
+        choices=DICOM_SOPS,
+        default=next(iter(DICOM_SOPS)),
+        help="the DICOM object: encapsulated-stl (default) or surface-scan (experimental)",
+    )
+    _add_library_option(send)
+
+
+def send_scan(args: argparse.Namespace) -> int:
+    """Run ``lamina send SCAN --to ...``: C-STORE the scan's DICOM object; the library unchanged."""
+    target = parse_target(args.to)
+    calling_ae = check_ae_title(args.calling_ae, "--calling-ae")
+    timeout_s = check_timeout(args.timeout_s)
+    institution = check_institution(args.institution)
+    with _open_library(args.library) as library:
+        data = dicom_export(library, args.scan, institution, args.dicom_sop)
+    receipt = send_dicom(data, target, calling_ae, timeout_s)
+    warning = f" (warning 0x{receipt.status:04X}: {receipt.meaning})" if receipt.status else ""
+    print(f"stored scan {args.scan} in {target.describe()}: instance {receipt.sop_instance_uid}"
+          f"{warning}")  # fmt: skip
+    return 0
+
+
 COMMANDS = {
     "scan": scan,
     "process": process,
@@ -902,6 +969,7 @@ COMMANDS = {
     "batch": batch,
     "tui": tui,
     "serve-ui": serve_ui,
+    "send": send_scan,
 }
 
 

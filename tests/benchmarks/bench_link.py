@@ -30,7 +30,7 @@ LINK_SEGMENTS = 3000
 def _acquire(client: DeviceClient, library: Library, out: Path) -> int:
     """Run the workflow's acquisition (create, calibration, cylinder, object) on ``client``."""
     job = ScanJob(DeviceTarget("sim"), library=library)
-    job.attach(client)
+    job.attach_for_testing(client)
     return acquire_scan(job, ScanRequest("B-01"), out=out).scan_id
 
 

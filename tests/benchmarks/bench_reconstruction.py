@@ -101,7 +101,7 @@ def timed(scan: dict[str, Any], options: ProcessOptions, scale_mm: float) -> dic
         mean_rms_mm=table.mean_mean_mm,
         max_rms_mm=table.max_mean_mm,
         points=int(sum(len(s) for s in scan["segments"])),
-        topology=result.mesh_topology,
+        topology=result.mesh_topology.to_dict() if result.mesh_topology else {},
     )
     return best
 

@@ -49,11 +49,11 @@ async def _measure(library: Path) -> dict[str, list[float]]:
     async with app.run_test(size=(80, 24)) as pilot:
         assert app._driver is not None
         await pilot.press("c")
-        await _until(lambda: app.session.connected)
+        await _until(lambda: app.job.device.connected)
         await pilot.press("f4", "g")
-        await _until(lambda: app.session.grid is not None)
+        await _until(lambda: app.job.acquisition.grid is not None)
         await pilot.press("a", "y")
-        await _until(lambda: app.session.axis is not None)
+        await _until(lambda: app.job.acquisition.axis is not None)
         await pilot.press("f5")
         for field, value in (("subject", "BENCH"), ("sections", "4"), ("views", "8")):
             app.screen.query_one(f"#{field}", Input).value = value
@@ -63,15 +63,15 @@ async def _measure(library: Path) -> dict[str, list[float]]:
         while _running(app, "scan"):
             samples["scan"] += list(await help_key_latencies_s(app, 0.0005, PAUSE_S))
             await asyncio.sleep(0.02)
-        await _until(lambda: app.session.data.complete)
+        await _until(lambda: app.job.acquisition.data.complete)
         await pilot.press("f6")
         # Straight into the driver: Pilot's press would wait for the processing to end.
         app._driver.send_message(events.Key("p", "p"))
-        await _until(lambda: _running(app, "process") or app.session.results is not None)
+        await _until(lambda: _running(app, "process") or app.job.processing.results is not None)
         while _running(app, "process"):
             samples["processing"] += list(await help_key_latencies_s(app, 0.0005, PAUSE_S))
             await asyncio.sleep(0.01)
-        await _until(lambda: app.session.results is not None)
+        await _until(lambda: app.job.processing.results is not None)
     return samples
 
 

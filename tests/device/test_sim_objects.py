@@ -160,3 +160,31 @@ def test_limb_phantoms_take_skin_relief_of_the_asked_height_and_wavelength():
         parse_object("hand:relief=0.3")
     with pytest.raises(ValueError, match="wave= needs relief="):
         parse_object("stump:wave=5")
+
+
+def test_a_mesh_reaching_behind_the_camera_casts_as_brute_force_does():
+    """Faces crossing the camera's plane (an object taller than the camera is high) and
+    faces behind it are culled or boxed, never tested against every pixel; the hits are
+    those of testing every ray against every face."""
+    from lamina_device.sim import Rig
+    from lamina_device.sim.objects import TriangleMesh
+
+    centre, dirs = Rig().pixel_rays()
+    rays = dirs.reshape(-1, 3)[::211]
+    # A tall tube around the camera's position: faces in front, crossing and behind it.
+    phi = np.linspace(0.0, 2 * np.pi, 40, endpoint=False)
+    rings = [np.c_[centre[0] + 30 * np.cos(phi), centre[1] + 30 * np.sin(phi), np.full(40, z)]
+             for z in np.linspace(-20.0, centre[2] + 60.0, 12)]  # fmt: skip
+    vertices = np.concatenate(rings)
+    faces = [(r * 40 + k, r * 40 + (k + 1) % 40, (r + 1) * 40 + k) for r in range(11)
+             for k in range(40)]  # fmt: skip
+    tube = TriangleMesh.from_triangles(vertices[np.array(faces)])
+    t, _ = tube.raycast(centre, rays)
+    best_t = np.full(len(rays), np.inf)
+    best_f = np.full(len(rays), -1)
+    origins = np.repeat(centre[None], len(rays), axis=0)
+    TriangleMesh._cast_brute(origins, rays, tube.triangles, np.arange(len(tube.triangles)),
+                             best_t, best_f)  # fmt: skip
+    assert np.isfinite(best_t).sum() > 100  # the tube surrounds the camera: most rays hit
+    np.testing.assert_array_equal(np.isfinite(t), np.isfinite(best_t))
+    np.testing.assert_allclose(t[np.isfinite(t)], best_t[np.isfinite(best_t)], atol=1e-9)

@@ -3,7 +3,7 @@
 ``python tests/helpers/tui_process.py LIBRARY library`` shows the Library screen and
 reloads it a few times; ``... LIBRARY scan SUBJECT OUT`` connects to the simulated
 device, calibrates and scans 2 x 8 while the Library screen reloads in the same process,
-then writes what the session holds (every view stored and acknowledged) to
+then writes what the job holds (every view stored and acknowledged) to
 ``OUT/segments.npz`` and ``OUT/cylinder-segments.npz`` and prints ``scan N``. Exit 0 only
 when it all worked; any error ends the process non-zero with the status line.
 """
@@ -45,19 +45,21 @@ async def _run(library: Path, mode: str, subject: str, out: Path | None) -> int:
         await connect_and_calibrate(pilot)
         await fill_scan_form(pilot, subject, "2", "2", "8")
         await pilot.press("s")
-        while not app.session.data.complete:
+        while not app.job.acquisition.data.complete:
             status, is_error = app.status
             if is_error:
                 raise SystemExit(f"the scan failed: {status}")
             await _reload_library(app, pilot)
             await pilot.press("f5")
-        session = app.session
-        assert out is not None and session.scan_id is not None
+        job = app.job
+        assert out is not None and job.scan_id is not None
         out.mkdir(parents=True, exist_ok=True)
-        save_segments(out / "segments.npz", [session.held[k] for k in sorted(session.held)])
-        cylinder = [session.cylinder_held[k] for k in sorted(session.cylinder_held)]
+        save_segments(
+            out / "segments.npz", [job.acquisition.held[k] for k in sorted(job.acquisition.held)]
+        )
+        cylinder = [job.acquisition.cylinder_held[k] for k in sorted(job.acquisition.cylinder_held)]
         save_segments(out / "cylinder-segments.npz", cylinder)
-        print(f"scan {session.scan_id}", flush=True)
+        print(f"scan {job.scan_id}", flush=True)
     return 0
 
 

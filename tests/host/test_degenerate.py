@@ -460,9 +460,9 @@ def test_processing_takes_any_degraded_views(
     assert all("\n" not in w for w in warnings)
     vertices, faces, _ = safe_mesh(sections, options)
     assert finite(vertices)
-    result = Reconstruction(grid, axis, sections, vertices, faces, {}, {}, warnings, options,
+    result = Reconstruction(grid, axis, sections, vertices, faces, None, {}, warnings, options,
                             rejected, None, failed)  # fmt: skip
-    report = build_report(result, {}, segments, None, {})
+    report = build_report(result, {}, segments, None, {}).to_json()
     # The axis' spread of view offsets is NaN with one view per angle: issue 19's own item.
     assert [p for p in not_finite(report) if p != ".axis.view_offset_sd_deg"] == []
     rows = section_rows(result)

@@ -38,9 +38,9 @@ def test_a_closed_object_still_gives_a_watertight_mesh_of_the_right_volume() -> 
     scan = synthetic_scan(Rig(), Mechanics.ideal(), dict.fromkeys(range(4), circle(CENTRE, 6.0)))
     result = run(scan)
     topo = result.mesh_topology
-    assert mesh_kind(topo) == "closed" and topo["watertight"] and topo["two_manifold"]
+    assert topo is not None and topo.kind == "closed" and topo.watertight and topo.two_manifold
     truth = np.pi * RADIUS_MM**2 * 6.0  # sections 0..3, 2 mm apart
-    assert topo["volume_mm3"] == pytest.approx(truth, rel=1e-3)
+    assert topo.volume_mm3 == pytest.approx(truth, rel=1e-3)
     assert not any("mesh" in w for w in result.warnings), result.warnings
 
 
@@ -59,8 +59,8 @@ def test_closed_and_open_outlines_of_one_object_mesh_as_one_surface_with_a_bound
     statuses = [s.status for s in result.sections]
     assert statuses[:2] == ["measured"] * 2 and statuses[-2:] == ["open"] * 2, statuses
     topo = result.mesh_topology
-    assert mesh_kind(topo) == "open surface" and topo["two_manifold"]
-    assert topo["components"] == 1 and topo["boundary_edges"] > 0
+    assert topo is not None and topo.kind == "open surface" and topo.two_manifold
+    assert topo.components == 1 and topo.boundary_edges > 0
     assert distance_to(result.vertices[:, :2], truth).max() < 0.25
     corners = result.vertices[result.faces]
     side = np.ptp(corners[:, :, 2], axis=1) > 0  # not the bottom cap's flat triangles
@@ -93,7 +93,7 @@ def test_outlines_that_appear_and_are_partly_seen_mesh_apart() -> None:
     result = run(whole, segments=whole["segments"] + partial["segments"])
     parts = {(s.index, s.status) for s in result.sections}
     assert {(k, "measured") for k in range(5)} <= parts and (3, "open") in parts, parts
-    assert mesh_kind(result.mesh_topology) == "open surface"
+    assert result.mesh_topology is not None and result.mesh_topology.kind == "open surface"
     v = result.vertices
     near_left = distance_to(v[:, :2], left) < 0.25
     near_right = distance_to(v[:, :2], right) < 0.25

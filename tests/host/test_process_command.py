@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import json
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 import lamina_host.reconstruct.pipeline as pipeline
-import lamina_host.workflow.job as job
+import lamina_host.workflow.processing as processing
 from lamina_host.cli import main, print_summary
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.pipeline import ProcessOptions
@@ -71,17 +72,20 @@ def test_an_outline_that_cannot_be_processed_fails_alone(
     for kept in result.sections:
         same = next(s for s in clean.sections if s.index == kept.index)
         assert kept.efd.coeffs == pytest.approx(same.efd.coeffs)
-    assert len(result.faces) and result.mesh_topology["watertight"]
+    assert (
+        len(result.faces) and result.mesh_topology is not None and result.mesh_topology.watertight
+    )
     assert min(result.vertices[:, 2]) == pytest.approx(clean.sections[0].z_mm)
     assert max(result.vertices[:, 2]) == pytest.approx(clean.sections[3].z_mm)
     assert any("1.0, 2.0 could not be processed" in w for w in result.warnings)
 
-    report = json.loads(json.dumps(build_report(result, {}, inputs.segments, None, {})))
+    typed = build_report(result, {}, inputs.segments, None, {})
+    report = json.loads(json.dumps(typed.to_json()))
     assert [(s["section"], s["status"]) for s in report["sections"]] == [
         (0, "measured"), (1, "failed"), (2, "failed"), (3, "measured"),
     ]  # fmt: skip
     assert report["sections"][1]["reason"] == "injected refusal"
-    print_summary(report, {})
+    print_summary(typed, {})
     printed = capsys.readouterr().out.splitlines()
     assert any(line.split()[:1] == ["1"] and "failed" in line and "injected refusal" in line
                for line in printed)  # fmt: skip
@@ -92,7 +96,7 @@ def test_an_outline_that_cannot_be_processed_fails_alone(
     ]  # fmt: skip
     assert rows[1].reason == "injected refusal"
     assert volume_mm3(rows) > 0
-    shown = summary_text(Results(result, rows, volume_mm3(rows), report, "contours"))
+    shown = summary_text(Results(result, rows, replace(typed, volume_mm3=volume_mm3(rows))))
     assert "outline 1.0 (z 2.00) failed: injected refusal" in shown
 
 
@@ -104,7 +108,7 @@ def test_a_scan_whose_processing_fails_stays_and_lamina_process_processes_it(
     def broken(*args, **kwargs):
         raise ZeroDivisionError("injected")
 
-    monkeypatch.setattr(job, "reconstruct", broken)
+    monkeypatch.setattr(processing, "reconstruct", broken)
     status = main(
         ["scan", "--device", "sim", "--object", ELLIPSOID, "--sections", "3", "--pitch", "2",
          "--views", "6", "--subject", "P9", "--expect", "ellipsoid:a=10,b=6.5,c=20,z=-1",

@@ -23,7 +23,6 @@ from lamina_device.sim import Mechanics, Rig
 from lamina_host.reconstruct.coverage import measure_coverage
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.mesh import (
-    mesh_kind,
     signed_volume,
     topology,
     triangulate_polygon,
@@ -259,7 +258,7 @@ def test_a_section_seen_from_one_side_reports_its_coverage_and_stays_open() -> N
         assert in_gap.any() and np.all(s.estimated[in_gap])
         error = distance_to(s.measured_contour, truth)
         assert np.median(error) < 0.05 and error.max() < 0.25
-    assert mesh_kind(result.mesh_topology) == "open surface"
+    assert result.mesh_topology is not None and result.mesh_topology.kind == "open surface"
     assert distance_to(result.vertices[:, :2], truth).max() < 0.25
     # Nothing is meshed in the unseen gap; the side boundary lies at the seen arc's ends.
     section = result.sections[0]
@@ -420,7 +419,7 @@ def test_two_posts_with_phantoms_give_exactly_two_contours(tmp_path: Path) -> No
         off_mm = distance_to(s.raw, truth)
         assert off_mm.max() < 1.0 and np.quantile(off_mm, 0.99) < 0.25
     topo = result.mesh_topology
-    assert topo["components"] == 2 and topo["watertight"] and topo["two_manifold"]
+    assert topo is not None and topo.components == 2 and topo.watertight and topo.two_manifold
 
 
 def test_thinning_a_long_outline_keeps_its_shape() -> None:

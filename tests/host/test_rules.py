@@ -23,9 +23,9 @@ from lamina_host.reconstruct.efd import HARMONICS_RANGE
 from lamina_host.reconstruct.pipeline import OPTION_CHOICES, ProcessOptions
 from lamina_host.store.files import OutputError, new_file_problem, write_new_file
 from lamina_host.store.library import EXPORT_FORMATS, StoreError, check_new_file
-from lamina_host.ui.tui.adapter import Session, UserError
+from lamina_host.ui.tui.adapter import UserError, process
 from lamina_host.workflow.exports import ALL_FORMATS, EXPORTERS
-from lamina_host.workflow.job import EXPORT_NAMES
+from lamina_host.workflow.job import EXPORT_NAMES, DeviceTarget, ScanJob
 from lamina_shared.device_specs import spawns_device
 from lamina_shared.errors import InputError, LaminaError
 
@@ -54,7 +54,8 @@ def _tui_refusal(harmonics: int | None = None, mesh: str = "contours") -> str | 
     that refusal means the choices passed.
     """
     with pytest.raises(UserError) as refused:
-        Session(library_path=Path("/nonexistent/never-opened.sqlite")).process(harmonics, mesh)
+        job = ScanJob(DeviceTarget(), Path("/nonexistent/never-opened.sqlite"))
+        process(job, harmonics, mesh)
     text = str(refused.value)
     return None if text.startswith("nothing to process") else text
 
@@ -165,3 +166,16 @@ def test_an_export_and_a_new_file_refuse_the_same_paths(tmp_path: Path) -> None:
         with pytest.raises(OutputError) as written:
             write_new_file(path, b"x")
         assert str(store.value) == str(written.value) == problem
+        assert str(store.value) == str(written.value) == problem
+
+
+@pytest.mark.parametrize("name", ["taken.pdf", "no/such/folder/report.pdf"])
+def test_lamina_report_refuses_what_an_export_refuses_before_measuring(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:
+    (tmp_path / "taken.pdf").write_bytes(b"")
+    path = tmp_path / name
+    library = tmp_path / "never-opened.sqlite"  # the refusal comes before the library
+    assert cli.main(["report", "1", "-o", str(path), "--library", str(library)]) == 2
+    assert capsys.readouterr().err == f"lamina: {new_file_problem(path)}\n"
+    assert not library.exists()

@@ -17,7 +17,7 @@ from textual.app import App
 from textual.pilot import Pilot
 from textual_plotext import PlotextPlot
 
-from lamina_host.ui.tui.adapter import Session, parse_plan
+from lamina_host.ui.tui.adapter import DeviceTarget, ScanJob, parse_plan, process, scan_object
 from lamina_host.ui.tui.widgets import FrameView
 
 # The helpers in drive.py sit beside the tests; pytest's importlib mode does not add
@@ -31,16 +31,16 @@ FIXED_CREATED = "2025-01-01T09:00:00+00:00"
 def scanned_library(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Return a library holding one 2 x 8 scan of the simulated 19.05 mm cylinder, processed."""
     path = tmp_path_factory.mktemp("library") / "library.sqlite"
-    session = Session("sim", path)
+    job = ScanJob(DeviceTarget("sim"), path)
     try:
-        session.connect()
-        session.calibrate_grid()
-        session.accept_grid(True)
-        session.calibrate_axis()
-        session.scan_object("CYL-1", parse_plan("2", "2", "8"))
-        session.process(harmonics=5)
+        job.connect()
+        job.acquisition.calibrate_grid()
+        job.acquisition.accept_grid(True)
+        job.acquisition.calibrate_axis()
+        scan_object(job, "CYL-1", parse_plan("2", "2", "8"))
+        process(job, harmonics=5)
     finally:
-        session.close()
+        job.close()
     # Snapshots must not show the clock: give the scan a fixed creation time.
     with sqlite3.connect(path) as db:
         db.execute("UPDATE scans SET created = ?", (FIXED_CREATED,))

@@ -47,7 +47,7 @@ async def connect(pilot: Pilot) -> None:
     app = pilot.app
     assert isinstance(app, LaminaApp)
     await pilot.press("f2", "home", "enter")
-    await wait_for(pilot, lambda: app.session.connected, "the connection")
+    await wait_for(pilot, lambda: app.job.device.connected, "the connection")
 
 
 async def calibrate(pilot: Pilot) -> None:
@@ -55,9 +55,9 @@ async def calibrate(pilot: Pilot) -> None:
     app = pilot.app
     assert isinstance(app, LaminaApp)
     await pilot.press("f4", "g")
-    await wait_for(pilot, lambda: app.session.grid is not None, "the chessboard")
+    await wait_for(pilot, lambda: app.job.acquisition.grid is not None, "the chessboard")
     await pilot.press("a", "y")
-    await wait_for(pilot, lambda: app.session.axis is not None, "the cylinder axis")
+    await wait_for(pilot, lambda: app.job.acquisition.axis is not None, "the cylinder axis")
 
 
 async def connect_and_calibrate(pilot: Pilot) -> LaminaApp:
@@ -99,7 +99,7 @@ async def open_first_scan(pilot: Pilot) -> None:
     assert isinstance(app, LaminaApp)
     await open_library(pilot)
     await pilot.press("o")
-    await wait_for(pilot, lambda: app.session.results is not None, "processing")
+    await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
     await pilot.pause(0.2)
 
 

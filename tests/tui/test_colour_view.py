@@ -24,15 +24,15 @@ async def test_a_colour_scan_shows_the_patches_round_each_section(tmp_path: Path
         await fill_scan_form(pilot, "P002", "1", "2", "8")
         app.screen.query_one("#colour", Checkbox).value = True
         await pilot.press("s")
-        await wait_for(pilot, lambda: app.session.data.complete, "the scan")
-        assert all(s.has_colour for s in app.session.data.segments)
+        await wait_for(pilot, lambda: app.job.acquisition.data.complete, "the scan")
+        assert all(s.has_colour for s in app.job.acquisition.data.segments)
         await pilot.press("f6")
         app.screen.query_one("#harmonics", Input).focus()
         await pilot.press("enter")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
         summary = app.screen.query_one("#summary", Static)
         shown = str(summary.render())
-        results = app.session.results
+        results = app.job.processing.results
     assert results is not None
     assert re.search(r"colour 0\.0 z +0\.00 ", shown), shown
     section = results.reconstruction.sections[0]

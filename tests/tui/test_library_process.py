@@ -14,7 +14,7 @@ from textual.pilot import Pilot
 from textual.widgets import DataTable, Static
 
 import lamina_host.reconstruct.pipeline as pipeline
-import lamina_host.workflow.job as job
+import lamina_host.workflow.processing as processing
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.store.library import Library
 from lamina_host.ui.tui.app import LaminaApp
@@ -38,13 +38,13 @@ async def test_library_p_processes_a_stored_scan_again_after_a_failure(
     async with app.run_test(size=(100, 30)) as pilot:
         table = await open_library(pilot)
         assert str(table.get_row_at(0)[3]) == "processed"
-        monkeypatch.setattr(job, "reconstruct", broken)
+        monkeypatch.setattr(processing, "reconstruct", broken)
         await pilot.press("p")
         await wait_until(pilot, lambda: app.status[1], "the failure")
         message = app.status[0]
         assert message.startswith("processing failed: internal error (ZeroDivisionError")
         assert "lamina process 1" in message and "Library screen" in message
-        assert app.session.results is None
+        assert app.job.processing.results is None
         monkeypatch.undo()
         with Library(library) as lib:  # nothing stored was touched by the failure
             assert lib.scans()[0].status == "processed" and lib.result(1) == before
@@ -60,10 +60,10 @@ async def test_library_p_processes_a_stored_scan_again_after_a_failure(
         monkeypatch.setattr(pipeline, "fit_section", fit)
         app.status = ("", False)
         await pilot.press("p")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
         await wait_for(pilot, lambda: app.current_mode == "results", "the Results screen")
         assert "scan 1 processed again" in app.status[0]
-        rows = app.session.results.rows
+        rows = app.job.processing.results.rows
         assert [r.status for r in rows] == ["measured", "failed"]
         assert rows[0].perimeter_mm == pytest.approx(math.pi * DIAMETER_MM, abs=0.3)
         await pilot.pause(0.2)
@@ -73,7 +73,7 @@ async def test_library_p_processes_a_stored_scan_again_after_a_failure(
         summary = str(app.screen.query_one("#summary", Static).render())
         assert "outline 1.0 (z 2.00) failed: injected refusal" in summary
         # Section 0 is processed; alone, it is a curve without surface (said, not meshed).
-        warnings = app.session.results.report["warnings"]
+        warnings = app.job.processing.results.report.warnings
         assert any("0.0 continue no outline" in w for w in warnings), warnings
     with Library(library) as lib:
         assert [(s.status, s.has_result) for s in lib.scans()] == [("processed", True)]

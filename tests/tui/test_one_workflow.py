@@ -73,12 +73,12 @@ async def test_cli_and_tui_store_and_report_the_same(tmp_path: Path) -> None:
         await calibrate(pilot)
         await fill_scan_form(pilot, "P001", sections, pitch, views)
         await pilot.press("s")
-        await wait_for(pilot, lambda: app.session.data.complete, "the scan")
+        await wait_for(pilot, lambda: app.job.acquisition.data.complete, "the scan")
         await pilot.press("f6")
         app.screen.query_one("#harmonics", Input).focus()
         await pilot.press("enter")  # blank harmonics: the rule chooses, as on the command line
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
-        results = app.session.results
+        await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
+        results = app.job.processing.results
 
     cli_segments, cli_report = _stored(cli_library)
     tui_segments, tui_report = _stored(tui_library)
@@ -88,7 +88,7 @@ async def test_cli_and_tui_store_and_report_the_same(tmp_path: Path) -> None:
     assert _figures(cli_report) == _figures(tui_report)
 
     # The figures are the workflow's result objects', and right for the known cylinder.
-    assert results is not None and _figures(results.report) == _figures(tui_report)
+    assert results is not None and _figures(results.report.to_json()) == _figures(tui_report)
     assert [row.index for row in results.rows] == [0, 1]
     for row in results.rows:
         assert abs(row.area_mm2 - AREA_MM2) / AREA_MM2 < 0.02

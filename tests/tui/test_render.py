@@ -126,19 +126,19 @@ def test_harmonics_field_takes_a_count_a_rule_or_nothing():
 def test_processing_again_with_a_harmonic_rule(scanned_library, tmp_path):
     import shutil
 
-    from lamina_host.ui.tui.adapter import Session
+    from lamina_host.ui.tui.adapter import DeviceTarget, ScanJob, process
 
     # A copy: the shared library feeds the snapshots, and processing stores a new result.
     library = tmp_path / "library.sqlite"
     shutil.copy(scanned_library, library)
-    session = Session("sim", library)
+    job = ScanJob(DeviceTarget("sim"), library)
     try:
-        scan_id = session.scans()[0].id
-        session.open_scan(scan_id)
-        fixed = session.process(harmonics=9)
-        thesis = session.process(harmonic_rule="thesis")
+        scan_id = job.store.scans()[0].id
+        job.acquisition.open_scan(scan_id)
+        fixed = process(job, harmonics=9)
+        thesis = process(job, harmonic_rule="thesis")
     finally:
-        session.close()
+        job.close()
     assert {s.harmonics for s in fixed.reconstruction.sections} == {9}
     # The thesis HN formula gives perimeter / (4 pi) = 4.76 -> 5 for the 19.05 mm cylinder.
     assert {s.harmonics for s in thesis.reconstruction.sections} == {5}

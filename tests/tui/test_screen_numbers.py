@@ -15,6 +15,7 @@ from drive import calibrate, connect, fill_scan_form, open_library, wait_for
 from textual.widgets import DataTable, Input, Static
 
 from lamina_host.reconstruct.pipeline import assemble
+from lamina_host.store.outputs import OutlineEntry
 from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.screens.scan import ScanScreen
 from lamina_host.workflow.job import TRIM_FRACTION
@@ -34,8 +35,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
     async with app.run_test(size=(80, 24)) as pilot:
         await connect(pilot)
         await calibrate(pilot)
-        session = app.session
-        grid, axis = session.grid, session.axis
+        job = app.job
+        grid, axis = job.acquisition.grid, job.acquisition.axis
         assert grid is not None and axis is not None
         grid_text, axis_text = text_of(app, "#grid-result"), text_of(app, "#axis-result")
         assert f"corners        {grid.n_corners}" in grid_text and grid.n_corners == 143
@@ -51,8 +52,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         assert isinstance(screen, ScanScreen)
         assert "object view 16/16" in text_of(app, "#progress-text")
         # The live plot's last section is assembled exactly as the final result is.
-        last = [s for s in session.data.segments if s.section == 1]
-        live = session.section_points(last)
+        last = [s for s in job.acquisition.data.segments if s.section == 1]
+        live = job.acquisition.section_points(last)
         by_section, _, _ = assemble(last, grid, axis, TRIM_FRACTION)
         np.testing.assert_array_equal(live, np.vstack(by_section[1]))
         radii = np.hypot(live[:, 0], live[:, 1])
@@ -61,8 +62,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         await pilot.press("f6")
         app.screen.query_one("#harmonics", Input).focus()
         await pilot.press("5", "enter")
-        await wait_for(pilot, lambda: session.results is not None, "processing")
-        results = session.results
+        await wait_for(pilot, lambda: job.processing.results is not None, "processing")
+        results = job.processing.results
         assert results is not None
         table = app.screen.query_one("#sections", DataTable)
         shown = [[str(c) for c in table.get_row_at(i)] for i in range(table.row_count)]
@@ -76,7 +77,7 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         area_mm2 = math.pi * RADIUS_MM**2
         assert all(abs(r.area_mm2 - area_mm2) / area_mm2 < 0.02 for r in results.rows)
         assert f"volume {results.volume_mm3:.1f} mm3" in text_of(app, "#summary")
-        assert [s["area_mm2"] for s in results.report["sections"]] == [
+        assert [s.area_mm2 for s in results.report.sections if isinstance(s, OutlineEntry)] == [
             r.area_mm2 for r in results.rows
         ]
 
@@ -86,7 +87,7 @@ async def test_library_screen_shows_the_stored_scan(scanned_library: Path) -> No
     app = LaminaApp("sim", scanned_library)
     async with app.run_test(size=(80, 24)) as pilot:
         table = await open_library(pilot)
-        (summary,) = app.session.scans()
+        (summary,) = app.job.store.scans()
         row = [str(c) for c in table.get_row_at(0)]
         assert row[0] == str(summary.id) and row[1] == summary.subject == "CYL-1"
         assert f"{summary.received}/{summary.views}" in row and summary.views == 16

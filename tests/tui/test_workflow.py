@@ -34,15 +34,15 @@ async def test_whole_workflow(tmp_path: Path) -> None:
     app = LaminaApp("sim", library)
     async with app.run_test(size=(80, 24)) as pilot:
         await connect(pilot)
-        assert app.session.info is not None and app.session.info.cylinder_diameter_mm == 19.05
+        assert app.job.device.info is not None and app.job.device.info.cylinder_diameter_mm == 19.05
         await calibrate(pilot)
-        assert app.session.grid is not None and app.session.grid.n_corners == 143
-        assert abs(app.session.axis.correction_factor - 1.0) < 0.01
+        assert app.job.acquisition.grid is not None and app.job.acquisition.grid.n_corners == 143
+        assert abs(app.job.acquisition.axis.correction_factor - 1.0) < 0.01
 
         await fill_scan_form(pilot, "P001", "2", "2", "8")
         await pilot.press("s")
         latencies = []
-        while not app.session.data.complete:
+        while not app.job.acquisition.data.complete:
             latencies.append((await help_key_latencies_s(app))[0])
             await asyncio.sleep(0.05)
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
@@ -51,13 +51,13 @@ async def test_whole_workflow(tmp_path: Path) -> None:
         assert latencies, "the scan ended before a key could be pressed during it"
         assert statistics.median(latencies) < 0.1, f"key latency during the scan: {latencies}"
         assert max(latencies) < 0.5, f"key latency during the scan: {latencies}"
-        assert len(app.session.data.segments) == 16
+        assert len(app.job.acquisition.data.segments) == 16
 
         await pilot.press("f6")
         harmonics = app.screen.query_one("#harmonics", Input)
         harmonics.focus()
         await pilot.press("5", "enter")
-        await wait_for(pilot, lambda: app.session.results is not None, "processing")
+        await wait_for(pilot, lambda: app.job.processing.results is not None, "processing")
         rows = table_rows(app)
         assert [r[0] for r in rows] == ["0", "1"]
         for _, _, _, cover, closed, perimeter, area, roundness, harm in rows:
@@ -66,7 +66,7 @@ async def test_whole_workflow(tmp_path: Path) -> None:
             assert abs(float(perimeter) - PERIMETER_MM) / PERIMETER_MM < 0.02
             assert float(roundness) > 0.98
             assert harm == "5"
-        assert abs(app.session.results.volume_mm3 - 2.0 * AREA_MM2) / (2.0 * AREA_MM2) < 0.02
+        assert abs(app.job.processing.results.volume_mm3 - 2.0 * AREA_MM2) / (2.0 * AREA_MM2) < 0.02
 
         export = app.screen.query_one("#export-dir", Input)
         export.focus()
@@ -96,24 +96,26 @@ async def test_abort_keeps_views_and_resume_finishes(tmp_path: Path) -> None:
         await calibrate(pilot)
         await fill_scan_form(pilot, "P002", "2", "2", "8")
         await pilot.press("s")
-        await wait_for(pilot, lambda: len(app.session.held) >= 3, "three views")
+        await wait_for(pilot, lambda: len(app.job.acquisition.held) >= 3, "three views")
         # Pause on the device: after the view in flight, no more views arrive.
         await pilot.press("p")
         await pilot.pause(1.5)
-        paused_at = len(app.session.held)
+        paused_at = len(app.job.acquisition.held)
         await pilot.pause(1.0)
-        assert app.screen.paused and len(app.session.held) == paused_at < 16
+        assert app.screen.paused and len(app.job.acquisition.held) == paused_at < 16
         await pilot.press("p")
-        await wait_for(pilot, lambda: len(app.session.held) > paused_at, "the resumed views")
+        await wait_for(
+            pilot, lambda: len(app.job.acquisition.held) > paused_at, "the resumed views"
+        )
         await pilot.press("b")
         await wait_for(pilot, lambda: not app.screen.scanning, "the abort")
-        kept = len(app.session.held)
+        kept = len(app.job.acquisition.held)
         assert 3 <= kept < 16
         assert "views received are kept" in app.status[0]
         app.status = ("", False)
         await pilot.press("p")
-        await wait_for(pilot, lambda: app.session.data.complete, "the resumed scan")
-        assert sorted(app.session.held) == list(range(16))
+        await wait_for(pilot, lambda: app.job.acquisition.data.complete, "the resumed scan")
+        assert sorted(app.job.acquisition.held) == list(range(16))
 
 
 @pytest.mark.parametrize(

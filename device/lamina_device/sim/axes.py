@@ -1,7 +1,10 @@
 """Simulated motion axes: a turntable and a lift that land where real mechanics would.
 
 They answer :class:`lamina_device.motion.Turntable` and :class:`~lamina_device.motion.Lift`
-like the stepper axes, but move instantly and carry a mechanical error model, so the
+like the stepper axes, but move without waiting: each move advances the simulator's
+virtual clock (:class:`SimClock`) by the time the box's steppers would take (the shipped
+configuration's profiles, :mod:`lamina_device.timing`), so a simulated scan knows how long
+it kept the patient still in no time at all. They carry a mechanical error model, so the
 simulated scanner puts objects where real mechanics would, not where they were asked
 to go: a gear-ratio error (the thesis measured about 0.2 degrees undershoot per 45
 degree step, section 8.3), a once-per-revolution runout, and a small repeatable jitter
@@ -15,15 +18,41 @@ import hashlib
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from lamina_device.motion import ContinuousTurntable, MotionError
+from lamina_device.config import DeviceConfig, load_config
+from lamina_device.motion import ContinuousTurntable, MotionError, Turntable, lift_steps_per_mm
+from lamina_device.timing import frame_wait_s, lift_move_s, turntable_move_s
 from lamina_shared.presets import make_preset
 
-__all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimLift", "SimTurntable"]
+__all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimClock", "SimLift", "SimTurntable"]
 
 SIM_LIFT_TRAVEL_MM = 200.0
 """The simulated lift's travel above its home (z = 0)."""
+
+
+@dataclass
+class SimClock:
+    """The simulator's virtual time: moves, settles and frames advance it, nothing waits.
+
+    Its rates are the shipped configuration's (the box the simulator stands in for).
+    """
+
+    config: DeviceConfig = field(default_factory=load_config)
+    now_s: float = 0.0
+
+    def advance(self, seconds: float) -> None:
+        """Let ``seconds`` pass."""
+        self.now_s += seconds
+
+    def frame(self, exposure_us: float) -> None:
+        """Let the wait for one fresh frame at ``exposure_us`` pass."""
+        self.advance(frame_wait_s(self.config.camera.frame_duration_us, exposure_us))
+
+    @property
+    def settle_s(self) -> float:
+        """Return the settle after a move (the longer of the two axes')."""
+        return max(self.config.turntable.settle_s, self.config.lift.settle_s)
 
 
 def _repeatable_unit_noise(*key: float) -> float:
@@ -98,9 +127,12 @@ class Mechanics:
 class SimTurntable(ContinuousTurntable):
     """A simulated continuous turntable: instant moves, real positions from :class:`Mechanics`."""
 
-    def __init__(self, mechanics: Mechanics) -> None:
+    def __init__(self, mechanics: Mechanics, clock: SimClock | None = None) -> None:
         self.mechanics = mechanics
+        self.clock = clock if clock is not None else SimClock()
         self._angle_deg = 0.0
+        self._steps = 0  # where the box's stepper would be, for the move's duration
+        self._engaged = False
 
     @property
     def angle_deg(self) -> float:
@@ -114,9 +146,25 @@ class SimTurntable(ContinuousTurntable):
 
     def move_to(self, angle_deg: float) -> None:
         """Rotate to ``angle_deg``."""
+        first_s, rest_s = self.plan_move(angle_deg)
+        self.clock.advance(first_s + rest_s)
+        self._angle_deg = angle_deg
+
+    def plan_move(self, angle_deg: float) -> tuple[float, float]:
+        """Take the move to ``angle_deg`` as the box would; return its runs' durations (s).
+
+        Returns:
+            The first run's duration and the rest's (a backlash return).
+        """
         if not math.isfinite(angle_deg):
             raise MotionError(f"turntable angle must be finite, not {angle_deg}")
-        self._angle_deg = angle_deg
+        runs, first_s, rest_s = turntable_move_s(
+            self.clock.config.turntable, self._steps, self._engaged, angle_deg
+        )
+        if runs:
+            self._steps += sum(runs)
+            self._engaged = runs[-1] > 0
+        return first_s, rest_s
 
     def close(self) -> None:
         """Nothing to release."""
@@ -125,9 +173,15 @@ class SimTurntable(ContinuousTurntable):
 class SimLift:
     """A simulated lift between soft limits ``0..travel_mm``."""
 
-    def __init__(self, mechanics: Mechanics, travel_mm: float = SIM_LIFT_TRAVEL_MM) -> None:
+    def __init__(
+        self,
+        mechanics: Mechanics,
+        travel_mm: float = SIM_LIFT_TRAVEL_MM,
+        clock: SimClock | None = None,
+    ) -> None:
         self.mechanics = mechanics
         self.travel_mm = travel_mm
+        self.clock = clock if clock is not None else SimClock()
         self._z_mm = 0.0
 
     @property
@@ -150,14 +204,36 @@ class SimLift:
         """Return the height the laser plane is really at."""
         return self.mechanics.true_z_mm(self._z_mm)
 
-    def move_to(self, z_mm: float) -> None:
-        """Move to ``z_mm``; refuse heights outside ``0..travel_mm``."""
+    def _travel(self, z_mm: float) -> float:
+        """Go to ``z_mm`` (refusing heights outside ``0..travel_mm``); return the move's s."""
         if not (math.isfinite(z_mm) and self.min_mm <= z_mm <= self.max_mm):
             raise MotionError(
                 f"lift height {z_mm} mm is outside {self.min_mm:g}..{self.max_mm:g} mm; "
                 "choose sections within the simulated lift's travel"
             )
+        config = self.clock.config.lift
+        steps_per_mm = lift_steps_per_mm(config)
+        duration_s = lift_move_s(
+            config, round(self._z_mm * steps_per_mm), round(z_mm * steps_per_mm)
+        )
         self._z_mm = z_mm
+        return duration_s
+
+    def move_to(self, z_mm: float) -> None:
+        """Move to ``z_mm``; refuse heights outside ``0..travel_mm``."""
+        self.clock.advance(self._travel(z_mm))
+
+    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
+        """Move to ``z_mm`` while a simulated ``turntable`` turns: the longer move counts."""
+        if not isinstance(turntable, SimTurntable):
+            self.move_to(z_mm)
+            if turntable is not None:
+                turntable.move_to(angle_deg)
+            return
+        lift_s = self._travel(z_mm)
+        first_s, rest_s = turntable.plan_move(angle_deg)
+        turntable._angle_deg = angle_deg
+        self.clock.advance(max(lift_s, first_s) + rest_s)
 
     def home(self) -> None:
         """Return to z = 0."""

@@ -15,7 +15,7 @@ from gpiozero.pins.mock import MockFactory
 from lamina_device.camera import Stage
 from lamina_device.hardware import Hardware, HardwareError, watched
 from lamina_device.laser import MOCK_LASER_PIN, Laser
-from lamina_device.sim.axes import Mechanics, SimLift, SimTurntable
+from lamina_device.sim.axes import Mechanics, SimClock, SimLift, SimTurntable
 from lamina_device.sim.camera import SimCamera
 from lamina_device.sim.render import NoiseModel, SimScene
 from lamina_device.sim.rig import Rig
@@ -73,7 +73,9 @@ def open_sim(
     source = sim_source(spec, obj, rig, noise_model, mechanics, seed)
     scene = SimScene(rig, obj, noise_model, seed)
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory())
-    turntable, lift, stage = SimTurntable(mechanics), SimLift(mechanics), Stage()
+    clock = SimClock()
+    turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
+    stage = Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser)
     hardware = Hardware(
         "sim",
@@ -86,6 +88,8 @@ def open_sim(
         rig.cylinder_diameter_mm,
         {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
         f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
+        settle_s=clock.settle_s,
         identity={"serial": "sim", "source": source},
+        sleep=clock.advance,
     )
     return watched(hardware)

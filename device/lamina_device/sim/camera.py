@@ -51,6 +51,7 @@ class SimCamera:
     def capture(self) -> np.ndarray:
         """Render one frame of the current scene."""
         self.frames_taken += 1
+        self.turntable.clock.frame(self.exposure_us)
         return self._render(self.scene.render)
 
     @property
@@ -70,6 +71,7 @@ class SimCamera:
                 "for colour"
             )
         self.frames_taken += 1
+        self.turntable.clock.frame(self.exposure_us)
         return self._render(self.scene.render), self._render(self.scene.render_rgb)
 
     def _render(self, render: Callable[..., np.ndarray]) -> np.ndarray:

@@ -306,28 +306,65 @@ def _inside_2d(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
     return ((s0 >= -eps) & (s1 >= -eps) & (s2 >= -eps)) | ((s0 <= eps) & (s1 <= eps) & (s2 <= eps))
 
 
+def _straddle_boxes(rel: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the projected 2D boxes of the parts of triangles in front of ``z = eps``.
+
+    ``rel`` holds triangles (M, 3, 3) in the projection frame, each with some vertex in
+    front and some not. A ray ahead that hits one hits its front part, whose projection
+    lies in the box of the front vertices and the points where its edges cross the plane.
+    """
+    z = rel[..., 2]
+    points = []
+    for k in range(3):
+        ahead = (z[:, k] > eps)[:, None]
+        points.append(np.where(ahead, rel[:, k, :2] / np.maximum(z[:, k, None], eps), np.nan))
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        crosses = (z[:, a] - eps) * (z[:, b] - eps) < 0
+        w = np.where(crosses, (eps - z[:, a]) / np.where(crosses, z[:, b] - z[:, a], 1.0), 0.0)
+        cut = rel[:, a, :2] + w[:, None] * (rel[:, b, :2] - rel[:, a, :2])
+        points.append(np.where(crosses[:, None], cut / eps, np.nan))
+    stacked = np.stack(points, axis=1)
+    return np.nanmin(stacked, axis=1), np.nanmax(stacked, axis=1)
+
+
 def _cast_pinhole(
     origin: np.ndarray, d: np.ndarray, tri: np.ndarray, best_t: np.ndarray, best_f: np.ndarray
-) -> np.ndarray:
-    """Cast rays sharing one origin via a 2D bucket grid; return faces left for brute force."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cast rays sharing one origin via a 2D bucket grid; return (faces, rays) left over.
+
+    What is left for brute force is only the rays that do not point ahead of the mean
+    ray (none, for a camera), against every face not wholly ahead.
+    """
     # Gnomonic projection about the mean ray maps straight lines to straight lines, so a
     # triangle wholly in front of the origin projects to a triangle holding exactly the rays
     # that hit it. Buckets pair each triangle with nearby rays, a cheap 2D test culls most
-    # pairs, and Möller–Trumbore in 3D decides the rest exactly.
+    # pairs, and Möller–Trumbore in 3D decides the rest exactly. A triangle that crosses
+    # the origin's plane (an object taller than the camera is high) is paired by the box
+    # of its front part, without the 2D test; one wholly behind meets no ray ahead.
+    eps = 1e-6
     axis = d.mean(axis=0)
     axis /= np.linalg.norm(axis)
     side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
     side /= np.linalg.norm(side)
     frame = np.stack([side, np.cross(axis, side), axis])
     rel = (tri - origin) @ frame.T
-    front = np.all(rel[..., 2] > 1e-6, axis=1)
-    fidx = np.flatnonzero(front)
-    tri_xy = rel[fidx, :, :2] / rel[fidx, :, 2:3]
+    front = np.all(rel[..., 2] > eps, axis=1)
+    straddle = ~front & np.any(rel[..., 2] > eps, axis=1)
     rd = d @ frame.T
-    live = np.flatnonzero(rd[:, 2] > 1e-6)
+    ahead = rd[:, 2] > eps
+    left = (np.flatnonzero(~front), np.flatnonzero(~ahead))
+    fidx = np.concatenate([np.flatnonzero(front), np.flatnonzero(straddle)])
+    exact_2d = np.arange(fidx.size) < np.count_nonzero(front)
+    lo = np.empty((fidx.size, 2))
+    hi = np.empty((fidx.size, 2))
+    tri_xy = np.zeros((fidx.size, 3, 2))
+    tri_xy[exact_2d] = rel[front, :, :2] / rel[front, :, 2:3]
+    lo[exact_2d], hi[exact_2d] = tri_xy[exact_2d].min(axis=1), tri_xy[exact_2d].max(axis=1)
+    if straddle.any():
+        lo[~exact_2d], hi[~exact_2d] = _straddle_boxes(rel[straddle], eps)
+    live = np.flatnonzero(ahead)
     ray_xy = rd[live, :2] / rd[live, 2:3]
     if fidx.size and live.size:
-        lo, hi = tri_xy.min(axis=1), tri_xy.max(axis=1)
         inside = np.all((ray_xy >= lo.min(0)) & (ray_xy <= hi.max(0)), axis=1)
         live, ray_xy = live[inside], ray_xy[inside]
         if live.size:
@@ -335,8 +372,9 @@ def _cast_pinhole(
             # rays, as the truth's visibility test casts, then skip most of the mesh).
             near = np.all((hi >= ray_xy.min(0)) & (lo <= ray_xy.max(0)), axis=1)
             fidx, tri_xy, lo, hi = fidx[near], tri_xy[near], lo[near], hi[near]
+            exact_2d = exact_2d[near]
     if not (fidx.size and live.size):
-        return np.flatnonzero(~front)
+        return left
     buckets = _RayBuckets.build(ray_xy)
     c0, c1 = buckets.cell_range(lo, hi)
     load = np.cumsum(buckets.count_in(c0, c1))
@@ -345,12 +383,13 @@ def _cast_pinhole(
         if chunk.size == 0:
             continue
         owner, ray = buckets.pairs(c0[chunk], c1[chunk])
-        keep = _inside_2d(tri_xy[chunk][owner], ray_xy[ray])
+        keep = ~exact_2d[chunk][owner]
+        keep[~keep] = _inside_2d(tri_xy[chunk][owner[~keep]], ray_xy[ray[~keep]])
         face, ray = fidx[chunk][owner[keep]], live[ray[keep]]
         v0 = tri[face, 0]
         t = _moller_trumbore(origin[None], d[ray], v0, tri[face, 1] - v0, tri[face, 2] - v0)
         _keep_nearest(best_t, best_f, ray, t, face)
-    return np.flatnonzero(~front)
+    return left
 
 
 @dataclass(frozen=True, eq=False)
@@ -388,10 +427,13 @@ class TriangleMesh:
         best_f = np.full(len(d), -1)
         tri = self.triangles
         if np.all(o == o[0]):
-            rest = _cast_pinhole(o[0], d, tri, best_t, best_f)
+            faces, rays = _cast_pinhole(o[0], d, tri, best_t, best_f)
         else:
-            rest = np.arange(len(tri))
-        self._cast_brute(o, d, tri, rest, best_t, best_f)
+            faces, rays = np.arange(len(tri)), np.arange(len(d))
+        if faces.size and rays.size:
+            sub_t, sub_f = best_t[rays], best_f[rays]
+            self._cast_brute(o[rays], d[rays], tri, faces, sub_t, sub_f)
+            best_t[rays], best_f[rays] = sub_t, sub_f
         n = np.zeros_like(d)
         hit = best_f >= 0
         t3 = tri[best_f[hit]]

@@ -43,13 +43,6 @@ LANDMARK_KINDS = ("distal", "bottom", "top")
 DEFAULT_SPACING_MM = 40.0
 """Tape spacing in clinics: 4 cm (8 cm is also in use)."""
 
-MEASURED = OutlineStatus.MEASURED
-"""The status of an outline seen all round (the coverage work's other statuses mean
-estimated in part: ``bridged``, ``interpolated``; ``open`` and ``failed`` outlines are not
-closed); also the source of a level resting on such outlines only."""
-
-OPEN = OutlineStatus.OPEN
-
 OUTLINE_SAMPLES = 1024
 """Samples per outline for a circumference: the polygon's shortfall on a circle is
 (pi / n)^2 / 6 of it, 1.6e-6 (0.001 mm on a 600 mm thigh)."""
@@ -75,7 +68,7 @@ class LimbSection:
 
     z_mm: float
     efd: EllipticFourier | None
-    status: str = MEASURED
+    status: OutlineStatus = OutlineStatus.MEASURED
 
     @property
     def closed(self) -> bool:
@@ -349,9 +342,13 @@ def _level_source(
         k = int(np.clip(np.searchsorted(heights, z_mm), 1, len(heights) - 1))
         used = [closed[k - 1], closed[k]]
         between = [s for s in opened if used[0].z_mm < s.z_mm < used[1].z_mm]
-    notes = [f"outline at z={s.z_mm:.1f} mm {s.status}" for s in used if s.status != MEASURED]
+    notes = [
+        f"outline at z={s.z_mm:.1f} mm {s.status}"
+        for s in used
+        if s.status != OutlineStatus.MEASURED
+    ]
     notes += [f"{s.status} section at z={s.z_mm:.1f} mm bridged by interpolation" for s in between]
-    return ("estimated", "; ".join(notes)) if notes else (MEASURED, "")
+    return ("estimated", "; ".join(notes)) if notes else (OutlineStatus.MEASURED, "")
 
 
 def _landmark_position(
@@ -459,7 +456,7 @@ def sections_from_reconstruction(result: Any) -> list[LimbSection]:
     one (part 0) is the limb.
     """
     outlines = [
-        LimbSection(s.z_mm, s.efd, getattr(s, "status", MEASURED))
+        LimbSection(s.z_mm, s.efd, getattr(s, "status", OutlineStatus.MEASURED))
         for s in result.sections
         if s.part == 0
     ]
@@ -487,7 +484,9 @@ def sections_from_report(report: dict[str, Any], scan_id: int | None = None) -> 
         )
     outlines = [
         LimbSection(
-            float(r["z_mm"]), EllipticFourier.from_dict(r["efd"]), r.get("status", MEASURED)
+            float(r["z_mm"]),
+            EllipticFourier.from_dict(r["efd"]),
+            OutlineStatus(r.get("status", OutlineStatus.MEASURED)),
         )
         for r in rows
     ]

@@ -20,7 +20,6 @@ from lamina_host.clinical.measures import (
     AXES,
     COMPARISONS,
     DEFAULT_SPACING_MM,
-    MEASURED,
     ClinicalError,
     Comparison,
     Landmark,
@@ -32,6 +31,7 @@ from lamina_host.clinical.measures import (
     measure_limb,
     sections_from_report,
 )
+from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.files import OutputError, write_new_file
 from lamina_host.store.library import Library
 from lamina_shared.errors import printable
@@ -150,7 +150,7 @@ def _header_lines(data: ReportData) -> list[str]:
         if not c.flags:
             lines.append("no threshold crossed")
     lines += [f"note: {n}" for n in m.notes]
-    estimated = [r for r in m.levels if r.source != MEASURED]
+    estimated = [r for r in m.levels if r.source != OutlineStatus.MEASURED]
     if estimated:
         lines.append(
             f"{len(estimated)} level(s) rest on estimated outlines (marked * in the table)"
@@ -166,7 +166,7 @@ def _draw_table(ax: Any, data: ReportData) -> None:
         labels += ["other mm", "difference mm"]
     cells = []
     for row in table_rows(data.measurement, data.comparison):
-        mark = "" if row["source"] == MEASURED else " *"
+        mark = "" if row["source"] == OutlineStatus.MEASURED else " *"
         line = [
             f"{row['offset_mm']:.0f}",
             f"{row['z_mm']:.1f}",

@@ -12,6 +12,7 @@ is numpy only, so the host runs where pymeshlab cannot be installed.
 from __future__ import annotations
 
 import importlib
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -269,6 +270,49 @@ def mesh_kind(topo: dict[str, Any]) -> str:
     if topo["boundary_edges"]:
         return "open surface"
     return "closed" if topo["two_manifold"] else "non-manifold"
+
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """The topological measures of a mesh with faces (:func:`topology`, MeshLab's names)."""
+
+    watertight: bool
+    two_manifold: bool
+    components: int
+    faces: int
+    vertices: int
+    boundary_edges: int
+    non_manifold_edges: int
+    non_manifold_vertices: int
+    genus: int
+    """-1 when undefined (not two-manifold)."""
+    volume_mm3: float
+    """The signed volume enclosed."""
+
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray) -> MeshTopology | None:
+        """Measure a mesh; None when it has no faces (nothing to measure)."""
+        if not len(faces):
+            return None
+        measures: dict[str, Any] = topology(vertices, faces)
+        return cls(**measures)
+
+    @classmethod
+    def from_dict(cls, measures: dict[str, Any]) -> MeshTopology | None:
+        """Return the measures a report recorded; None for none, or too few to read."""
+        names = cls.__dataclass_fields__
+        if not measures or not all(name in measures for name in names):
+            return None
+        return cls(**{name: measures[name] for name in names})
+
+    @property
+    def kind(self) -> str:
+        """Return which of ``MESH_KINDS`` the mesh is."""
+        return mesh_kind(self.to_dict())
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the measures in :func:`topology`'s keys and order (the report's form)."""
+        return asdict(self)
 
 
 def screened_poisson(

@@ -58,12 +58,12 @@ from lamina_host.reconstruct.measure import centroid, perimeter, signed_area
 from lamina_host.reconstruct.mesh import (
     MESH_METHODS,
     MeshlabMissing,
+    MeshTopology,
     ball_pivoting,
     contour_normals,
     mesh_kind,
     open_tube_mesh,
     screened_poisson,
-    topology,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
@@ -273,7 +273,7 @@ class Section:
     contour: np.ndarray
     part: int = 0
     coverage: Coverage | None = None
-    status: str = OutlineStatus.MEASURED
+    status: OutlineStatus = OutlineStatus.MEASURED
     estimated: np.ndarray | None = None
     colour_points: np.ndarray | None = None
     """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
@@ -311,7 +311,7 @@ class FailedSection:
     reason: str
 
     @property
-    def status(self) -> str:
+    def status(self) -> OutlineStatus:
         """Return ``failed`` (the report's and the screens' status of the outline)."""
         return OutlineStatus.FAILED
 
@@ -347,7 +347,8 @@ class Reconstruction:
     sections: list[Section]
     vertices: np.ndarray
     faces: np.ndarray
-    mesh_topology: dict[str, Any]
+    mesh_topology: MeshTopology | None
+    """The mesh's topology; None when there is no mesh."""
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     options: ProcessOptions = field(default_factory=ProcessOptions)
@@ -1146,7 +1147,7 @@ def rejection_warning(rejected: Rejected) -> str:
 def gap_warnings(sections: list[Section]) -> list[str]:
     """Return lines naming the outlines that are estimated in part or left open."""
 
-    def names(status: str) -> str:
+    def names(status: OutlineStatus) -> str:
         return ", ".join(f"{s.index}.{s.part}" for s in sections if s.status == status)
 
     lines = []
@@ -1259,9 +1260,9 @@ def reconstruct(
     warnings = [*grid.warnings, *axis.warnings, *warnings]
     with timer.stage("mesh"):
         vertices, faces, mesh_warnings = safe_mesh(sections, options)
-        topo = topology(vertices, faces) if len(faces) else {}
+        topo = MeshTopology.of(vertices, faces)
     warnings += mesh_warnings
-    if line := mesh_warning(options.mesh, topo):
+    if line := mesh_warning(options.mesh, topo.to_dict() if topo else {}):
         warnings.append(line)
     points, colours = coloured_cloud(sections)
     colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None

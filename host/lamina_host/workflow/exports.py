@@ -13,6 +13,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from lamina_host.clinical.limb_frame import limb_stl_files
 from lamina_host.reconstruct.mesh import load_ply
 from lamina_host.store.dicom import (
     DICOM_SOPS,
@@ -29,16 +30,29 @@ from lamina_host.store.library import (
     check_new_file,
     unknown_format,
 )
+from lamina_host.store.outputs import MeshEntry
 from lamina_host.store.record import record_bytes
 from lamina_host.workflow.batch import reprocess
 
+LIMB_STL = ".limb.stl"
+"""The mesh in the limb frame for prosthetic CAD (:mod:`lamina_host.clinical.limb_frame`),
+with a JSON sidecar of the same stem (``leg.limb.stl``, ``leg.limb.json``)."""
 EXPORTERS: Mapping[str, str] = MappingProxyType(
-    {".dcm": "DICOM Encapsulated STL", ".lrec": "compact follow-up record"}
+    {
+        ".dcm": "DICOM Encapsulated STL",
+        ".lrec": "compact follow-up record",
+        LIMB_STL: "mesh in the limb frame, for prosthetic CAD",
+    }
 )
 """Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
 
 ALL_FORMATS: Mapping[str, str] = MappingProxyType({**EXPORT_FORMATS, **EXPORTERS})
 """Every format ``lamina export`` writes, by extension, with what each holds."""
+
+
+def export_format(path: Path) -> str:
+    """Return the format a file name asks for: its extension, or ``.limb.stl`` (two of them)."""
+    return LIMB_STL if path.name.lower().endswith(LIMB_STL) else path.suffix.lower()
 
 
 def export_scan(
@@ -55,7 +69,9 @@ def export_scan(
     Raises:
         StoreError: unknown extension, an existing file, or a scan without a result.
     """
-    suffix = path.suffix.lower()
+    suffix = export_format(path)
+    if suffix == LIMB_STL:
+        return _limb_export(library, scan_id, path)
     if suffix in EXPORT_FORMATS:
         return library.export(scan_id, path)
     if suffix not in EXPORTERS:
@@ -66,6 +82,16 @@ def export_scan(
     else:
         data = record_export(library, scan_id)
     return library.write_export(scan_id, path, data)
+
+
+def _limb_export(library: Library, scan_id: int, path: Path) -> Path:
+    """Write the limb-frame STL to ``path`` and its JSON sidecar beside it (both new files)."""
+    sidecar = path.with_name(path.name[: -len(".stl")] + ".json")
+    check_new_file(path)
+    check_new_file(sidecar)
+    stl, frame = limb_stl_files(library, scan_id)
+    library.write_export(scan_id, sidecar, frame)
+    return library.write_export(scan_id, path, stl)
 
 
 def _serial(identity: dict[str, Any]) -> str:
@@ -87,8 +113,8 @@ def dicom_export(
         str(record.device.get("software", "")),
     )
     if DICOM_SOPS[sop] == SURFACE_SCAN_MESH:
-        topology = (library.result(scan_id) or {}).get("mesh", {}).get("topology", {})
-        closed = bool(topology.get("watertight")) and bool(topology.get("two_manifold"))
+        report = library.result(scan_id) or {}
+        closed = MeshEntry.from_json(report.get("mesh", {})).closed
         return dicom_bytes(surface_scan_mesh(vertices, faces, context, closed))
     return dicom_bytes(encapsulated_stl(vertices, faces, context))
 

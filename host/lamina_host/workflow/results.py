@@ -9,14 +9,17 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lamina_host.link.client import DeviceInfo
+from lamina_host.reconstruct.calibration import DistortionTest
 from lamina_host.reconstruct.measure import perimeter, polygon_area
 from lamina_host.reconstruct.pipeline import Reconstruction, Section
 from lamina_host.reconstruct.status import OutlineStatus
+from lamina_host.store.outputs import MeshEntry, ScanReport
 from lamina_shared.types import BoardSpec, Segment
 
 
@@ -35,35 +38,32 @@ def report_device(device: Mapping[str, Any], identity: Mapping[str, Any] | None)
     return report
 
 
-def mesh_summary(mesh: Mapping[str, Any]) -> str:
-    """Return one line on a report's ``mesh`` entry: what kind of surface, faces, vertices.
+def mesh_summary(mesh: MeshEntry) -> str:
+    """Return one line on a report's mesh: what kind of surface, faces, vertices.
 
     A closed mesh is watertight and two-manifold; an open surface has a boundary where
-    nothing was seen (its edge count is given); a report from before mesh kinds were
-    recorded names none.
+    nothing was seen (its edge count is given).
     """
-    kind = mesh.get("kind")
-    size = f"{mesh.get('faces', 0)} faces, {mesh.get('vertices', 0)} vertices"
-    if kind == "closed":
+    size = f"{mesh.faces} faces, {mesh.vertices} vertices"
+    if mesh.kind == "closed":
         return f"closed (watertight), {size}"
-    if kind == "open surface":
-        return f"open surface ({mesh.get('boundary_edges', 0)} boundary edges), {size}"
-    return f"{kind}, {size}" if kind else size
+    if mesh.kind == "open surface":
+        return f"open surface ({mesh.boundary_edges} boundary edges), {size}"
+    return f"{mesh.kind}, {size}"
 
 
-def distortion_summary(test: Mapping[str, Any] | None) -> str | None:
-    """Return one line on a report's calibration ``distortion`` entry (None without one)."""
-    if not test:
+def distortion_summary(test: DistortionTest | None) -> str | None:
+    """Return one line on a calibration's lens distortion test (None without one)."""
+    if test is None:
         return None
     change = (
-        f"corner residual {test['rms_px_without']:.3f} px without, "
-        f"{test['rms_px_with']:.3f} px with it"
+        f"corner residual {test.rms_px_without:.3f} px without, {test.rms_px_with:.3f} px with it"
     )
-    if test["applied"]:
-        return f"radial distortion k = {test['division_k']:.5f} removed ({change})"
-    if test["significant"]:
+    if test.applied:
+        return f"radial distortion k = {test.division_k:.5f} removed ({change})"
+    if test.significant:
         return f"radial distortion shown by the board but kept (--distortion off; {change})"
-    return f"no measurable distortion (F {test['f_statistic']:.1f} < {test['f_critical']:.1f})"
+    return f"no measurable distortion (F {test.f_statistic:.1f} < {test.f_critical:.1f})"
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ class SectionRow:
     harmonics: int
     coverage_percent: float = 100.0
     """Share of the circumference the views saw (``lamina_host.reconstruct.coverage``)."""
-    status: str = OutlineStatus.MEASURED
+    status: OutlineStatus = OutlineStatus.MEASURED
     """How the outline was closed (:class:`OutlineStatus`): measured,
     bridged, interpolated, open, or failed (then the measurements are NaN)."""
     reason: str = ""
@@ -127,17 +127,25 @@ class SectionRow:
         return self.status == OutlineStatus.FAILED
 
 
-@dataclass
+@dataclass(frozen=True)
 class Results:
-    """A processed scan: the reconstruction, its section rows, volume and report."""
+    """A processed scan: the reconstruction, its section rows and its report."""
 
     reconstruction: Reconstruction
     rows: list[SectionRow]
-    volume_mm3: float
-    report: dict[str, Any]
-    mesh_method: str
-    paths: dict[str, Any] = field(default_factory=dict)
+    report: ScanReport
+    paths: dict[str, Path] = field(default_factory=dict)
     """The files written for the scan (empty when they went only into the library)."""
+
+    @property
+    def volume_mm3(self) -> float:
+        """Return the volume between the first and last section."""
+        return self.report.volume_mm3
+
+    @property
+    def mesh_method(self) -> str:
+        """Return how the mesh was made."""
+        return self.report.mesh.method
 
 
 def colour_bins(section: Section, bins: int = 32) -> np.ndarray | None:

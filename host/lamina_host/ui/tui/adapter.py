@@ -1,10 +1,12 @@
 """The terminal UI's one door to the scan workflow (:mod:`lamina_host.workflow.job`).
 
-The workflow's steps block (serial I/O, calibration, meshing), so the UI calls them only
-from thread workers. What is here is the UI's own: reading the typed fields into a plan
-and a subject code, the list of serial ports, and the one line shown for an error a worker
-caught. Every error a user can act on derives from :class:`LaminaError` (:data:`USER_ERRORS`
-adds the library's and the file system's); anything else is a bug and is logged.
+The app holds one :class:`~lamina_host.workflow.job.ScanJob`; its steps block (serial
+I/O, calibration, meshing), so the UI calls them only from thread workers. What is here
+is the UI's own: reading the typed fields into a plan and a subject code, starting a scan
+and processing with the UI's checks (:func:`scan_object`, :func:`process`), the list of
+serial ports, and the one line shown for an error a worker caught. Every error a user
+can act on derives from :class:`LaminaError` (:data:`USER_ERRORS` adds the library's and
+the file system's); anything else is a bug and is logged.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ from __future__ import annotations
 import sqlite3
 from contextlib import suppress
 from dataclasses import replace
-from pathlib import Path
 
 import serial.tools.list_ports
 
@@ -59,16 +60,19 @@ __all__ = [
     "TRIM_FRACTION",
     "USER_ERRORS",
     "Busy",
+    "DeviceTarget",
     "Progress",
     "Results",
     "ScanData",
+    "ScanJob",
     "SectionRow",
-    "Session",
     "UserError",
     "check_subject",
     "parse_plan",
+    "process",
     "radius_profile",
     "roundness",
+    "scan_object",
     "section_rows",
     "serial_ports",
     "user_message",
@@ -141,57 +145,45 @@ def check_subject(subject_id: str) -> str:
     return check_subject_code(text)
 
 
-class Session(ScanJob):
-    """One technician's session: the scan job, driven one key at a time.
+def scan_object(
+    job: ScanJob,
+    subject_id: str,
+    plan: ScanPlan,
+    on_segment: SegmentHandler | None = None,
+    on_progress: ProgressHandler | None = None,
+    on_notice: NoticeHandler | None = None,
+    colour: bool = False,
+) -> list[Segment]:
+    """Start scanning the subject along ``plan`` (with each point's colour if asked).
 
-    The UI calibrates before it scans (the live plot needs the axis), keeps the received
-    views in memory for a resume after an abort or a drop, and processes with the
-    harmonics and mesh method chosen on the Results screen.
+    The UI calibrates before it scans (the live plot needs the axis); the received views
+    stay in the job's acquisition for a resume after an abort or a drop.
     """
+    request = ScanRequest(check_subject(subject_id), plan, colour=colour)
+    if job.acquisition.axis is None:
+        raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
+    job.device.set_colour(colour)  # before the scan's identity is recorded
+    job.acquisition.create(request)
+    return job.acquisition.fetch_object(on_segment, on_progress, on_notice)
 
-    def __init__(
-        self,
-        device: str = "sim",
-        library_path: Path | None = None,
-        object_spec: str | None = None,
-        seed: int = 0,
-        noise: str = "thesis",
-    ) -> None:
-        super().__init__(DeviceTarget(device, object_spec, seed, noise), library_path)
 
-    def scan_object(
-        self,
-        subject_id: str,
-        plan: ScanPlan,
-        on_segment: SegmentHandler | None = None,
-        on_progress: ProgressHandler | None = None,
-        on_notice: NoticeHandler | None = None,
-        colour: bool = False,
-    ) -> list[Segment]:
-        """Start scanning the subject along ``plan`` (with each point's colour if asked)."""
-        request = ScanRequest(check_subject(subject_id), plan, colour=colour)
-        if self.axis is None:
-            raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
-        self.set_colour(colour)  # before the scan's identity is recorded
-        self.create(request)
-        return self.fetch_object(on_segment, on_progress, on_notice)
+def process(
+    job: ScanJob,
+    harmonics: int | None = None,
+    mesh_method: str = MESH_METHODS[0],
+    harmonic_rule: str | None = None,
+) -> Results:
+    """Reconstruct the job's scan with the chosen harmonics and mesh method; store the result.
 
-    def process(
-        self,
-        harmonics: int | None = None,
-        mesh_method: str = MESH_METHODS[0],
-        harmonic_rule: str | None = None,
-    ) -> Results:
-        """Reconstruct the scan with the chosen harmonics and mesh method; store the result.
-
-        Args:
-            harmonics: a fixed EFD order for every section, or None to let the rule choose.
-            mesh_method: one of ``MESH_METHODS``.
-            harmonic_rule: one of ``HARMONIC_RULES``, or None for the pipeline's default.
-        """
-        options = ProcessOptions(harmonics=harmonics, mesh=mesh_method)
-        if harmonic_rule is not None:
-            options = replace(options, harmonic_rule=harmonic_rule)
-        if problem := options.problem(FIELD_NAMES, FIELD_HINTS):
-            raise UserError(problem)
-        return self.process_scan(options)
+    Args:
+        job: the UI's scan job.
+        harmonics: a fixed EFD order for every section, or None to let the rule choose.
+        mesh_method: one of ``MESH_METHODS``.
+        harmonic_rule: one of ``HARMONIC_RULES``, or None for the pipeline's default.
+    """
+    options = ProcessOptions(harmonics=harmonics, mesh=mesh_method)
+    if harmonic_rule is not None:
+        options = replace(options, harmonic_rule=harmonic_rule)
+    if problem := options.problem(FIELD_NAMES, FIELD_HINTS):
+        raise UserError(problem)
+    return job.processing.process_scan(options)

@@ -12,25 +12,24 @@ from functools import partial
 from pathlib import Path
 from typing import ClassVar
 
-from textual.app import App, SystemCommand
+from textual.app import SystemCommand
 from textual.binding import Binding, BindingType
-from textual.reactive import reactive
 from textual.screen import Screen
 
-from lamina_host.ui.tui.adapter import Session
+from lamina_host.ui.tui.adapter import DeviceTarget, ScanJob
 from lamina_host.ui.tui.screens.calibrate import CalibrateScreen
 from lamina_host.ui.tui.screens.connect import ConnectScreen
 from lamina_host.ui.tui.screens.library import LibraryScreen
 from lamina_host.ui.tui.screens.live import LiveScreen
 from lamina_host.ui.tui.screens.results import ResultsScreen
 from lamina_host.ui.tui.screens.scan import ScanScreen
-from lamina_host.ui.tui.widgets import SCREENS, HelpScreen
+from lamina_host.ui.tui.widgets import SCREENS, HelpScreen, JobApp
 
 MIN_SIZE = (80, 24)
 """The smallest terminal the layout is designed for (columns, rows)."""
 
 
-class LaminaApp(App[None]):
+class LaminaApp(JobApp):
     """Connect, calibrate, scan, process, export and browse past scans."""
 
     CSS_PATH = "lamina.tcss"
@@ -61,11 +60,6 @@ class LaminaApp(App[None]):
         (MIN_SIZE[1], "-normal-height"),
     ]
 
-    status: reactive[tuple[str, bool]] = reactive(
-        ("F2 Connect to start; F1 shows every key", False)
-    )
-    """The latest status line (message, is_error), shown on every screen."""
-
     def __init__(
         self,
         device: str = "sim",
@@ -73,8 +67,7 @@ class LaminaApp(App[None]):
         object_spec: str | None = None,
         noise: str = "thesis",
     ) -> None:
-        super().__init__()
-        self.session = Session(device, library, object_spec, noise=noise)
+        super().__init__(ScanJob(DeviceTarget(device, object_spec, noise=noise), library))
 
     def action_help(self) -> None:
         """Show the keys and the workflow."""
@@ -94,4 +87,4 @@ class LaminaApp(App[None]):
 
     def on_unmount(self) -> None:
         """Stop the device program this host started, if any."""
-        self.session.close()
+        self.job.close()

@@ -1,4 +1,5 @@
-"""Pieces every Lamina screen shares: navigation bar, status line, frame view, worker helper."""
+"""Pieces every Lamina screen shares: the app's state, navigation bar, status line, frame
+view and the worker helper."""
 
 from __future__ import annotations
 
@@ -8,16 +9,19 @@ from typing import ClassVar, TypeVar
 
 import numpy as np
 from rich.text import Text
-from textual.app import ComposeResult, RenderResult
+from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
 from textual.containers import Container
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
 from textual.widgets import Footer, Input, Markdown, Static
+from textual.worker import get_current_worker
 
-from lamina_host.ui.tui.adapter import USER_ERRORS, Session, user_message
+from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
 from lamina_host.ui.tui.render import cell_grid, grid_text
+from lamina_host.workflow.device_session import Pose
+from lamina_shared.types import Segment
 
 T = TypeVar("T")
 
@@ -30,6 +34,27 @@ SCREENS: tuple[tuple[str, str, str], ...] = (
     ("library", "f7", "Library"),
 )
 """(mode name, key, title) of each screen, in workflow order."""
+
+
+class JobApp(App[None]):
+    """An app holding one scan job, and the state its screens show as it changes.
+
+    Worker threads never change these: a screen sets them on the UI thread (from a
+    worker's result or a message), and the screens that show them watch them.
+    """
+
+    status: reactive[tuple[str, bool]] = reactive(
+        ("F2 Connect to start; F1 shows every key", False)
+    )
+    """The latest status line (message, is_error), shown on every screen."""
+    latest_segment: reactive[Segment | None] = reactive(None)
+    """The view the device sent last during a scan (the live screen draws its stripe)."""
+    pose: reactive[Pose] = reactive(Pose())
+    """Where the axes stand since the last move."""
+
+    def __init__(self, job: ScanJob) -> None:
+        super().__init__()
+        self.job = job
 
 
 class NavBar(Static):
@@ -133,14 +158,21 @@ class LaminaScreen(Screen[None]):
         yield from ()
 
     @property
-    def session(self) -> Session:
-        """Return the app's session (device, calibration, scan, results)."""
-        session: Session = getattr(self.app, "session")  # noqa: B009 - avoids an import cycle
-        return session
+    def lamina(self) -> JobApp:
+        """Return the app this screen belongs to (every Lamina screen runs in a JobApp)."""
+        app = self.app
+        if not isinstance(app, JobApp):
+            raise TypeError(f"a Lamina screen runs in a JobApp, not in {type(app).__name__}")
+        return app
+
+    @property
+    def job(self) -> ScanJob:
+        """Return the app's scan job (device, acquisition, processing, library)."""
+        return self.lamina.job
 
     def say(self, message: str, error: bool = False) -> None:
         """Show ``message`` on the status line (and as a notification when it is an error)."""
-        setattr(self.app, "status", (message, error))  # noqa: B010 - see session
+        self.lamina.status = (message, error)
         if error:
             self.notify(message, severity="error", timeout=8)
 
@@ -148,26 +180,45 @@ class LaminaScreen(Screen[None]):
         """In a thread worker: run ``job``; hand its result to ``done``, or say what went wrong.
 
         Errors a user can act on become one line on the status line; anything else is
-        logged and reported as an internal error, so the UI never shows a traceback.
+        logged and reported as an internal error, so the UI never shows a traceback. A
+        worker cancelled meanwhile (a newer one of its group replaced it) delivers
+        nothing: its result or failure would overwrite the newer one's.
         """
         try:
             value = job()
         except USER_ERRORS as exc:
-            self.app.call_from_thread(self.failed, user_message(exc))
+            self._deliver(self.failed, user_message(exc))
             return
         except Exception as exc:  # the app must outlive a bug; the log keeps the details
             self.log.error("worker failed", exc_info=exc)
-            self.app.call_from_thread(
+            self._deliver(
                 self.failed, f"internal error ({type(exc).__name__}: {exc}); please report"
             )
             return
-        self.app.call_from_thread(done, value)
+        self._deliver(done, value)
+
+    def _deliver(self, to: Callable[[T], None], value: T) -> None:
+        """Hand ``value`` to ``to`` on the UI thread, unless this worker was cancelled.
+
+        The check runs on the UI thread, where a newer worker cancels this one, so a
+        cancellation just before delivery is seen too.
+        """
+        worker = get_current_worker()
+
+        def deliver() -> None:
+            if worker.is_cancelled:
+                self.log.info(f"worker {worker.name!r} was superseded; its outcome is dropped")
+                return
+            to(value)
+
+        self.app.call_from_thread(deliver)
 
     def in_thread(self, group: str, job: Callable[[], T], done: Callable[[T], None]) -> None:
         """Run ``job`` in a thread worker (a new one cancels the running one of its ``group``).
 
         ``done`` gets the result on the UI thread; failures go to :meth:`failed`, as
-        :meth:`attempt` says.
+        :meth:`attempt` says; a cancelled worker's outcome is dropped. (A thread cannot be
+        stopped: a cancelled ``job`` still runs to its end.)
         """
         self.run_worker(partial(self.attempt, job, done), thread=True, exclusive=True, group=group)
 
@@ -176,11 +227,11 @@ class LaminaScreen(Screen[None]):
         self.say(message, error=True)
 
     def on_screen_resume(self) -> None:
-        """Refresh from the session whenever the screen is shown."""
-        self.refresh_from_session()
+        """Refresh from the job whenever the screen is shown."""
+        self.refresh_from_job()
 
-    def refresh_from_session(self) -> None:
-        """Show what the session holds now (screens override)."""
+    def refresh_from_job(self) -> None:
+        """Show what the job holds now (screens override)."""
 
 
 class ConfirmScreen(ModalScreen[bool]):

@@ -16,6 +16,7 @@ from lamina_host.reconstruct.calibration import GridCalibration
 from lamina_host.ui.tui.adapter import Progress
 from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_shared.errors import LaminaError
+from lamina_shared.types import Segment
 
 
 def grid_summary(grid: GridCalibration | None, accepted: bool) -> str:
@@ -55,6 +56,14 @@ class CylinderProgress(Message):
         self.progress = progress
 
 
+class CylinderView(Message):
+    """A view of the calibration cylinder arrived (the live screen draws its stripe)."""
+
+    def __init__(self, segment: Segment) -> None:
+        super().__init__()
+        self.segment = segment
+
+
 class CalibrateScreen(LaminaScreen):
     """Grid calibration, then the turntable axis and correction factor."""
 
@@ -86,12 +95,12 @@ class CalibrateScreen(LaminaScreen):
     def action_capture(self) -> None:
         """Capture the chessboard and fit the homography."""
         self.say("capturing the chessboard ...")
-        self.in_thread("grid", self.session.calibrate_grid, lambda _: self.calibrated())
+        self.in_thread("grid", self.job.acquisition.calibrate_grid, lambda _: self.calibrated())
 
     def calibrated(self) -> None:
         """Show the chessboard result."""
-        self.refresh_from_session()
-        grid = self.session.grid
+        self.refresh_from_job()
+        grid = self.job.acquisition.grid
         if grid is not None:
             self.say(f"chessboard: {grid.n_corners} corners, RMS {grid.rms_mm:.4f} mm; a/x")
 
@@ -106,11 +115,11 @@ class CalibrateScreen(LaminaScreen):
     def action_accept(self, accept: bool) -> None:
         """Accept or reject the chessboard calibration."""
         try:
-            self.session.accept_grid(accept)
+            self.job.acquisition.accept_grid(accept)
         except LaminaError as exc:
             self.say(str(exc), error=True)
             return
-        self.refresh_from_session()
+        self.refresh_from_job()
         self.say("chessboard accepted" if accept else "chessboard rejected: capture it again")
 
     @on(Button.Pressed, "#cylinder")
@@ -120,9 +129,16 @@ class CalibrateScreen(LaminaScreen):
         self.say("scanning the calibration cylinder ...")
         self.in_thread(
             "cylinder",
-            lambda: self.session.calibrate_axis(lambda p: self.post_message(CylinderProgress(p))),
+            lambda: self.job.acquisition.calibrate_axis(
+                lambda p: self.post_message(CylinderProgress(p)),
+                lambda s: self.post_message(CylinderView(s)),
+            ),
             self.axis_found,
         )
+
+    def on_cylinder_view(self, message: CylinderView) -> None:
+        """Keep the view as the latest one scanned."""
+        self.lamina.latest_segment = message.segment
 
     def on_cylinder_progress(self, message: CylinderProgress) -> None:
         """Advance the progress bar."""
@@ -131,7 +147,7 @@ class CalibrateScreen(LaminaScreen):
 
     def axis_found(self, axis: AxisCalibration) -> None:
         """Show the axis and the correction factor (and flag a factor far from 1)."""
-        self.refresh_from_session()
+        self.refresh_from_job()
         far = abs(axis.correction_factor - 1.0) > CF_WARNING
         self.say(
             f"correction factor {axis.correction_factor:.5f}"
@@ -139,9 +155,9 @@ class CalibrateScreen(LaminaScreen):
             error=far,
         )
 
-    def refresh_from_session(self) -> None:
-        """Show the session's calibration."""
-        s = self.session
+    def refresh_from_job(self) -> None:
+        """Show the job's calibration."""
+        s = self.job.acquisition
         self.query_one("#grid-result", Static).update(grid_summary(s.grid, s.grid_accepted))
         axis_text = self.query_one("#axis-result", Static)
         axis_text.update(axis_summary(s.axis))

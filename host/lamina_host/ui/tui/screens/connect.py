@@ -66,7 +66,7 @@ class ConnectScreen(LaminaScreen):
 
     def on_mount(self) -> None:
         """Fill in the device and the port list."""
-        self.query_one("#device", Input).value = self.session.device
+        self.query_one("#device", Input).value = self.job.device.name
         self.action_list_ports()
 
     def action_list_ports(self) -> None:
@@ -91,27 +91,27 @@ class ConnectScreen(LaminaScreen):
         self.say(f"connecting to {device} ...")
         self.query_one("#device-info", Static).update("connecting ...")
         # In a thread: the handshake and the device's start-up take seconds.
-        self.in_thread("connect", lambda: self.session.connect(device), self.connected)
+        self.in_thread("connect", lambda: self.job.connect(device), self.connected)
 
     def connected(self, info: DeviceInfo) -> None:
         """Show the device that answered."""
-        self.refresh_from_session()
-        self.say(f"connected to {self.session.device}: {info.software}, protocol {info.protocol}")
+        self.refresh_from_job()
+        self.say(f"connected to {self.job.device.name}: {info.software}, protocol {info.protocol}")
 
     def failed(self, message: str) -> None:
         """Show why connecting failed."""
-        self.refresh_from_session()
+        self.refresh_from_job()
         super().failed(message)
 
     def action_disconnect(self) -> None:
         """Close the link (in a thread: it waits for the device program to stop)."""
-        self.in_thread("connect", self.session.close, lambda _: self.disconnected())
+        self.in_thread("connect", self.job.close, lambda _: self.disconnected())
 
     def disconnected(self) -> None:
         """Show that no device is connected."""
-        self.refresh_from_session()
+        self.refresh_from_job()
         self.say("disconnected")
 
-    def refresh_from_session(self) -> None:
+    def refresh_from_job(self) -> None:
         """Show the current device information."""
-        self.query_one("#device-info", Static).update(describe(self.session.info))
+        self.query_one("#device-info", Static).update(describe(self.job.device.info))

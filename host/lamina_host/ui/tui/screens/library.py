@@ -13,7 +13,7 @@ from textual.screen import ModalScreen
 from textual.widgets import DataTable, Static
 
 from lamina_host.store.library import ScanSummary
-from lamina_host.ui.tui.adapter import Results
+from lamina_host.ui.tui.adapter import Results, process
 from lamina_host.ui.tui.widgets import AskScreen, ConfirmScreen, LaminaScreen
 from lamina_shared.errors import printable
 
@@ -44,13 +44,13 @@ class LibraryScreen(LaminaScreen):
         """Set up the columns."""
         self.query_one("#scans", DataTable).add_columns(*COLUMNS)
 
-    def refresh_from_session(self) -> None:
+    def refresh_from_job(self) -> None:
         """Reload the list whenever the screen is shown."""
         self.action_reload()
 
     def action_reload(self) -> None:
         """Read the library's scans (in a thread: the file may be large or on a slow disk)."""
-        self.in_thread("library", self.session.scans, self.listed)
+        self.in_thread("library", self.job.store.scans, self.listed)
 
     def listed(self, scans: list[ScanSummary]) -> None:
         """Fill the table."""
@@ -94,8 +94,8 @@ class LibraryScreen(LaminaScreen):
 
     def _open(self, scan_id: int) -> Results | int:
         """Load and process (in a worker); an incomplete scan gives its view count."""
-        data = self.session.open_scan(scan_id)
-        return self.session.process() if data.complete else len(data.segments)
+        data = self.job.acquisition.open_scan(scan_id)
+        return process(self.job) if data.complete else len(data.segments)
 
     def opened(self, scan_id: int, outcome: Results | int) -> None:
         """Show the processed scan, or say how to finish an incomplete one."""
@@ -112,7 +112,7 @@ class LibraryScreen(LaminaScreen):
             self.say(f"processing scan {scan_id} again ...")
             self.in_thread(
                 "library-open",
-                lambda: self.session.process_stored(scan_id),
+                lambda: self.job.processing.process_stored(scan_id),
                 lambda _: self.processed(scan_id),
             )
 
@@ -145,7 +145,7 @@ class LibraryScreen(LaminaScreen):
             path = Path(folder).expanduser()
             self.in_thread(
                 "library-export",
-                lambda: self.session.export_scan(scan_id, path),
+                lambda: self.job.store.export_scan(scan_id, path),
                 lambda paths: self.say(
                     f"exported scan {scan_id}: {', '.join(p.name for p in paths)}"
                 ),
@@ -164,7 +164,7 @@ class LibraryScreen(LaminaScreen):
             self.say(f"scan {scan_id} kept")
             return
         self.in_thread(
-            "library", lambda: self.session.delete_scan(scan_id), lambda _: self.deleted(scan_id)
+            "library", lambda: self.job.delete_scan(scan_id), lambda _: self.deleted(scan_id)
         )
 
     def deleted(self, scan_id: int) -> None:

@@ -55,12 +55,12 @@ class LiveScreen(LaminaScreen):
                 yield Static("exposure: grab a frame (g), then + / -", id="exposure")
 
     def on_mount(self) -> None:
-        """Follow the stripe while a scan runs on another screen."""
-        self.set_interval(0.25, self._follow)
+        """Follow the stripe while a scan runs on another screen, and the axes as they move."""
+        self.watch(self.lamina, "latest_segment", self._follow, init=False)
+        self.watch(self.lamina, "pose", lambda _: self._show_axes(), init=False)
 
-    def _follow(self) -> None:
-        latest = self.session.latest_segment
-        # Only a newly scanned view replaces what is shown (a preview's stripe stays).
+    def _follow(self, latest: Segment | None) -> None:
+        """Show a newly scanned view (a preview's stripe stays until one arrives)."""
         if self.is_current and latest is not None and latest is not self._followed:
             self._followed = latest
             self.show_segment(latest)
@@ -70,7 +70,7 @@ class LiveScreen(LaminaScreen):
         self.say(f"grabbing a frame, laser {'on' if self.laser else 'off'} ...")
         laser = self.laser
         # In a thread: the frame crosses the serial link in chunks.
-        self.in_thread("grab", lambda: self.session.preview(laser), self.grabbed)
+        self.in_thread("grab", lambda: self.job.device.preview(laser), self.grabbed)
 
     def action_laser(self) -> None:
         """Switch the laser for the next preview frames and grab one."""
@@ -95,10 +95,10 @@ class LiveScreen(LaminaScreen):
         """Read the exposure if unknown, step it, then grab a frame (all in a thread)."""
 
         def job() -> tuple[int, Preview]:
-            current = self.exposure_us or self.session.exposure()[0]
+            current = self.exposure_us or self.job.device.exposure()[0]
             wanted = round(current * EXPOSURE_STEP**direction)
-            exposure_us = self.session.set_exposure(wanted)
-            return exposure_us, self.session.preview(self.laser)
+            exposure_us = self.job.device.set_exposure(wanted)
+            return exposure_us, self.job.device.preview(self.laser)
 
         def done(result: tuple[int, Preview]) -> None:
             self.exposure_us = result[0]
@@ -114,7 +114,7 @@ class LiveScreen(LaminaScreen):
     def action_jog(self, axis: str, direction: int) -> None:
         """Move the turntable by 15 deg or the lift by 1 mm, then grab a frame."""
         step = JOG_DEG if axis == "turntable" else JOG_MM
-        self.move_worker({axis: self.session.pose[axis] + direction * step})
+        self.move_worker({axis: self.lamina.pose.at(axis) + direction * step})
 
     def action_home(self) -> None:
         """Move the lift and the turntable back to 0."""
@@ -126,11 +126,17 @@ class LiveScreen(LaminaScreen):
 
         def job() -> Preview:
             for axis, position in targets.items():
-                self.session.move(axis, position)
-            return self.session.preview(self.laser)
+                self.job.device.move(axis, position)
+            return self.job.device.preview(self.laser)
 
         self.attempt(job, self.grabbed)
-        self.app.call_from_thread(self._show_axes)
+        # Where the axes went, also when a move failed half way (the pose is a value).
+        pose = self.job.device.pose
+
+        def show_pose() -> None:
+            self.lamina.pose = pose
+
+        self.app.call_from_thread(show_pose)
 
     def show_segment(self, segment: Segment, source: str = "scanned") -> None:
         """Draw ``segment``'s stripe over the frame and say where it came from (live or scanned)."""
@@ -147,19 +153,19 @@ class LiveScreen(LaminaScreen):
         )
 
     def _show_axes(self) -> None:
-        pose = self.session.pose
+        pose = self.lamina.pose
         self.query_one("#axes", Static).update(
-            f"turntable {pose['turntable']:.1f} deg\nlift {pose['lift']:.1f} mm\n"
+            f"turntable {pose.turntable_deg:.1f} deg\nlift {pose.lift_mm:.1f} mm\n"
             f"laser {'on' if self.laser else 'off'}"
         )
 
-    def refresh_from_session(self) -> None:
-        """Show the session's frame, axes and latest segment."""
+    def refresh_from_job(self) -> None:
+        """Show the job's frame, the axes and the latest scanned view."""
         self._show_axes()
         view = self.query_one(FrameView)
-        if view.image is None and self.session.data.grid_image is not None:
-            view.image = self.session.data.grid_image
-        latest = self.session.latest_segment
-        if latest is not None and self._shown is None:
+        if view.image is None and self.job.acquisition.data.grid_image is not None:
+            view.image = self.job.acquisition.data.grid_image
+        latest = self.lamina.latest_segment
+        if latest is not None and latest is not self._followed:
             self._followed = latest
             self.show_segment(latest)

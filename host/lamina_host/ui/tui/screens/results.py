@@ -18,7 +18,7 @@ from lamina_host.clinical.report import MeasureRequest, subject_visits
 from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.status import ESTIMATED
-from lamina_host.ui.tui.adapter import Results, UserError, radius_profile
+from lamina_host.ui.tui.adapter import Results, UserError, process, radius_profile
 from lamina_host.ui.tui.clinical_view import ClinicalView
 from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
@@ -85,7 +85,7 @@ def summary_text(results: Results | None) -> str:
     if results is None:
         return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
     result = results.reconstruction
-    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report['mesh'])}"
+    mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report.mesh)}"
     lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
     estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
@@ -142,7 +142,7 @@ class ResultsScreen(LaminaScreen):
 
     def action_clinical(self) -> None:
         """Open the clinical measurements (lamina_host.ui.tui.clinical_view) of the results."""
-        results = self.session.results
+        results = self.job.processing.results
         if results is None:
             self.say("process a scan first (p), then measure it (m)", error=True)
             return
@@ -156,11 +156,11 @@ class ResultsScreen(LaminaScreen):
 
     def _visits(self) -> list[Visit]:
         """Return the visits of the open scan's subject in the library (none if unsaved)."""
-        scan_id = self.session.scan_id
+        scan_id = self.job.scan_id
         if scan_id is None:
             return []
         try:
-            library = self.session.library()  # the session's own: one connection a process
+            library = self.job.store.library()  # the job's own: one connection a process
             return subject_visits(library, library.scan(scan_id).subject, MeasureRequest())
         except LaminaError:
             return []  # the view still measures this scan; only the history is missing
@@ -183,13 +183,13 @@ class ResultsScreen(LaminaScreen):
         self.say("processing ...")
         # In a thread: calibration, EFD and meshing take seconds.
         self.in_thread(
-            "process", lambda: self.session.process(harmonics, method, rule), self.processed
+            "process", lambda: process(self.job, harmonics, method, rule), self.processed
         )
 
     def processed(self, results: Results) -> None:
         """Show the new results."""
         self.query_one("#process", Button).disabled = False
-        self.refresh_from_session()
+        self.refresh_from_job()
         failed = len(results.reconstruction.failed)
         self.say(
             f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
@@ -213,7 +213,7 @@ class ResultsScreen(LaminaScreen):
         self.query_one("#export", Button).disabled = True
         self.say(f"exporting to {folder} ...")
         path = Path(folder).expanduser()
-        self.in_thread("export", lambda: self.session.export(path), self.exported)
+        self.in_thread("export", lambda: self.job.processing.export(path), self.exported)
 
     def exported(self, paths: list[Path]) -> None:
         """Say what was written."""
@@ -231,9 +231,9 @@ class ResultsScreen(LaminaScreen):
             plt.plot(z, radius, marker="braille")
         plot.refresh()
 
-    def refresh_from_session(self) -> None:
-        """Show the session's results."""
-        results = self.session.results
+    def refresh_from_job(self) -> None:
+        """Show the job's results."""
+        results = self.job.processing.results
         table = self.query_one("#sections", DataTable)
         table.clear()
         for r in results.rows if results else []:

@@ -18,6 +18,7 @@ from lamina_host.ui.tui.adapter import (
     Progress,
     check_subject,
     parse_plan,
+    scan_object,
     user_message,
 )
 from lamina_host.ui.tui.widgets import LaminaScreen
@@ -147,7 +148,8 @@ class ScanScreen(LaminaScreen):
         # Segments and progress come back from the scan's thread as messages.
         self.in_thread(
             "scan",
-            lambda: self.session.scan_object(
+            lambda: scan_object(
+                self.job,
                 subject,
                 plan,
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
@@ -172,6 +174,7 @@ class ScanScreen(LaminaScreen):
             self._add_segment(event.segment)
 
     def _add_segment(self, segment: Segment) -> None:
+        self.lamina.latest_segment = segment  # the live screen draws its stripe
         if segment.section != self._section:
             self._section, self._segments = segment.section, []
         self._segments.append(segment)
@@ -183,7 +186,7 @@ class ScanScreen(LaminaScreen):
         plt = plot.plt
         plt.clear_data()
         plt.title("current section (mm)" if self._section < 0 else f"section {self._section} (mm)")
-        pts = self.session.section_points(self._segments)
+        pts = self.job.acquisition.section_points(self._segments)
         if len(pts):
             # A terminal plot cannot show more points than it has braille dots.
             pts = pts[:: max(1, len(pts) // PLOT_MAX_POINTS)]
@@ -203,7 +206,7 @@ class ScanScreen(LaminaScreen):
             self.say(f"{message}; p resumes")
         else:
             super().failed(
-                message + ("; r reconnects, p resumes" if self.session.resumable else "")
+                message + ("; r reconnects, p resumes" if self.job.acquisition.resumable else "")
             )
 
     def _set_scanning(self, scanning: bool) -> None:
@@ -211,7 +214,7 @@ class ScanScreen(LaminaScreen):
         self.paused = False
         self.query_one("#start", Button).disabled = scanning
         self.query_one("#abort", Button).disabled = not scanning
-        self.refresh_from_session()
+        self.refresh_from_job()
 
     @on(Button.Pressed, "#abort")
     def action_abort(self) -> None:
@@ -221,7 +224,7 @@ class ScanScreen(LaminaScreen):
             return
         self._aborting = True
         self.say("aborting after the current view ...")
-        self.control_worker(self.session.abort_scan)
+        self.control_worker(self.job.device.abort_scan)
 
     def action_pause(self) -> None:
         """Pause or resume the running scan on the device, or resume an aborted (dropped) one."""
@@ -229,20 +232,20 @@ class ScanScreen(LaminaScreen):
             self.paused = not self.paused
             if self.paused:
                 self.say("paused after the current view, laser off; p resumes, b aborts")
-                self.control_worker(self.session.pause_scan)
+                self.control_worker(self.job.device.pause_scan)
             else:
                 self.say("resuming the scan ...")
-                self.control_worker(self.session.resume_scan)
+                self.control_worker(self.job.device.resume_scan)
             return
-        if not self.session.resumable:
+        if not self.job.acquisition.resumable:
             self.say("no scan to resume: start one (s)", error=True)
             return
         self._aborting = False
         self._set_scanning(True)
-        self.say(f"resuming: {len(self.session.held)} views held, fetching the rest ...")
+        self.say(f"resuming: {len(self.job.acquisition.held)} views held, fetching the rest ...")
         self.in_thread(
             "scan",
-            lambda: self.session.fetch_object(
+            lambda: self.job.acquisition.fetch_object(
                 on_segment=lambda s: self.post_message(ScanEvent(segment=s)),
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
@@ -264,22 +267,22 @@ class ScanScreen(LaminaScreen):
         if self.scanning:
             self.say("a scan is running: abort it (b) first", error=True)
             return
-        self.say(f"reconnecting to {self.session.device} ...")
-        self.in_thread("connect", self.session.connect, lambda _: self.reconnected())
+        self.say(f"reconnecting to {self.job.device.name} ...")
+        self.in_thread("connect", self.job.connect, lambda _: self.reconnected())
 
     def reconnected(self) -> None:
         """Show the recovered link."""
-        self.refresh_from_session()
+        self.refresh_from_job()
         self.say("link recovered: calibration kept; start the scan again (s)")
 
-    def refresh_from_session(self) -> None:
+    def refresh_from_job(self) -> None:
         """Show the link state."""
-        s = self.session
-        if s.connected:
-            text = f"connected: {s.device}"
-        elif s.data.device:
-            text = f"LINK LOST to {s.device}: press r to reconnect"
+        device, acquisition = self.job.device, self.job.acquisition
+        if device.connected:
+            text = f"connected: {device.name}"
+        elif acquisition.data.device:
+            text = f"LINK LOST to {device.name}: press r to reconnect"
         else:
             text = "not connected (F2)"
-        calibrated = "calibrated" if s.axis is not None else "not calibrated (F4)"
+        calibrated = "calibrated" if acquisition.axis is not None else "not calibrated (F4)"
         self.query_one("#link-state", Static).update(f"{text}\n{calibrated}")

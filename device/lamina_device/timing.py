@@ -1,0 +1,199 @@
+"""How long a scan plan keeps the patient still: a model of the acquisition from the config.
+
+The figure a patient feels is the time from the first view to the last, so the model
+follows the acquisition loop view by view with the axes' own move profiles (the same
+trapezoids and backlash rule the steppers run, :mod:`lamina_device.motion`), the settle
+after every move, and the camera frames a view waits for: after a move or a laser
+switch, the next frame whose exposure starts afterwards (half a frame period on
+average), its exposure, and its rolling read-out (at most one frame period). Extraction
+and sending run in a worker thread beside the next move, so they add only where they
+are slower than the mechanics, and once for the last view.
+
+The *mechanical minimum* is what no loop can beat on this hardware: every move with the
+lift and the turntable turning together, its settle and its two frames, nothing else.
+Homing the lift before the first view and after the last is not the patient's wait and
+is left out of both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
+from lamina_device.motion import (
+    lift_intervals_s,
+    lift_steps_per_mm,
+    turntable_intervals_s,
+    turntable_runs,
+)
+from lamina_shared.types import ScanPlan
+
+__all__ = [
+    "FRAMES_PER_VIEW",
+    "ScanTime",
+    "estimate_scan_time",
+    "frame_wait_s",
+    "lift_move_s",
+    "minutes_text",
+    "turntable_move_s",
+]
+
+FRAMES_PER_VIEW = 2
+"""A view is a laser-off and a laser-on frame (the difference image, thesis 5.1)."""
+
+
+@dataclass(frozen=True)
+class ScanTime:
+    """A plan's modelled duration, and what it is made of (seconds).
+
+    Attributes:
+        modelled_s: first move to the last view's segment sent, as the loop runs.
+        mechanical_minimum_s: the axes moving together, settle and frames, nothing else.
+        turntable_s: the turntable's moves, summed.
+        lift_s: the lift's moves, summed.
+        settle_s: the settles after each view's move, summed.
+        frames_s: waiting for and exposing each view's frames, summed.
+        processing_s: extraction and sending not hidden behind the mechanics.
+        views: the plan's views.
+    """
+
+    modelled_s: float
+    mechanical_minimum_s: float
+    turntable_s: float
+    lift_s: float
+    settle_s: float
+    frames_s: float
+    processing_s: float
+    views: int
+
+    @property
+    def ratio(self) -> float:
+        """Return the modelled time over the mechanical minimum (1.0 for an empty plan)."""
+        return self.modelled_s / self.mechanical_minimum_s if self.mechanical_minimum_s else 1.0
+
+
+def frame_wait_s(frame_duration_us: float, exposure_us: float) -> float:
+    """Return the mean time from a request to a frame exposed entirely after it.
+
+    Args:
+        frame_duration_us: the camera's frame period (an exposure beyond it stretches it).
+        exposure_us: the exposure time.
+
+    Returns:
+        Half a period to the next frame start, the exposure, and one period of read-out.
+    """
+    period_s = max(frame_duration_us, exposure_us) * 1e-6
+    return 0.5 * period_s + exposure_us * 1e-6 + period_s
+
+
+@dataclass(frozen=True)
+class _ViewMoves:
+    """One view's moves (seconds): the lift's, the table's first run, its backlash return."""
+
+    lift_s: float
+    table_first_s: float
+    table_rest_s: float
+
+    def sequential_s(self) -> float:
+        return self.lift_s + self.table_first_s + self.table_rest_s
+
+    def together_s(self) -> float:
+        # The lift runs beside the table's first run (motion.StepperLift.move_with).
+        return max(self.lift_s, self.table_first_s) + self.table_rest_s
+
+
+def lift_move_s(config: LiftConfig, from_steps: int, to_steps: int) -> float:
+    """Return the duration of a lift move between two microstep positions."""
+    return float(lift_intervals_s(config, abs(to_steps - from_steps)).sum())
+
+
+def turntable_move_s(
+    config: TurntableConfig, position_steps: int, engaged: bool, angle_deg: float
+) -> tuple[tuple[int, ...], float, float]:
+    """Return a turntable move's runs, its first run's duration and the rest's.
+
+    The runs follow the steppers' own rule (:func:`lamina_device.motion.turntable_runs`):
+    the short way, arriving counter-clockwise.
+    """
+    runs = turntable_runs(config, position_steps, engaged, angle_deg)
+    runs_s = [float(turntable_intervals_s(config, abs(run)).sum()) for run in runs]
+    return runs, (runs_s[0] if runs_s else 0.0), sum(runs_s[1:])
+
+
+def _moves_s(config: DeviceConfig, plan: ScanPlan) -> list[_ViewMoves]:
+    """Return each view's moves, in plan order, from the axes' own profiles and rules."""
+    steps_per_mm = lift_steps_per_mm(config.lift)
+    lift_at: int | None = None  # the lift homes first: the move from home is not modelled
+    table_at, engaged = 0, False
+    out: list[_ViewMoves] = []
+    for view in plan.views:
+        lift_to = round(view.z_mm * steps_per_mm)
+        lift_s = 0.0 if lift_at is None else lift_move_s(config.lift, lift_at, lift_to)
+        lift_at = lift_to
+        runs, first_s, rest_s = turntable_move_s(
+            config.turntable, table_at, engaged, view.angle_deg
+        )
+        if runs:
+            table_at += sum(runs)
+            engaged = runs[-1] > 0
+        out.append(_ViewMoves(lift_s, first_s, rest_s))
+    return out
+
+
+def estimate_scan_time(
+    config: DeviceConfig,
+    plan: ScanPlan,
+    processing_s_per_view: float = 0.0,
+    exposure_us: float | None = None,
+    axes_together: bool = True,
+) -> ScanTime:
+    """Return the modelled duration of ``plan`` on the hardware ``config`` describes.
+
+    Args:
+        config: the device's configuration (axes, settle, camera timing).
+        plan: the views to acquire, in order.
+        processing_s_per_view: extraction and sending of one view (the worker thread).
+        exposure_us: the exposure in use (default: the configured one at start).
+        axes_together: the lift moves beside the turntable (the box's steppers do,
+            :func:`lamina_device.motion.move_axes`); False: one after the other.
+
+    Returns:
+        The modelled time, the mechanical minimum and their parts.
+    """
+    if not plan.views:
+        return ScanTime(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+    camera = config.camera
+    exposure = camera.exposure_us if exposure_us is None else exposure_us
+    frames_s = FRAMES_PER_VIEW * frame_wait_s(camera.frame_duration_us, exposure)
+    settle_s = max(config.turntable.settle_s, config.lift.settle_s)
+    moves = _moves_s(config, plan)
+    fixed_s = settle_s + frames_s
+    minimum = sum(m.together_s() + fixed_s for m in moves)
+    mechanics = [(m.together_s() if axes_together else m.sequential_s()) + fixed_s for m in moves]
+    # The worker extracts view k while view k + 1 is acquired: it holds the loop up only
+    # where it is slower than the mechanics, and the last view's processing always shows.
+    finished_s = 0.0
+    worker_free_s = 0.0
+    for view_s in mechanics:
+        finished_s += view_s
+        worker_free_s = max(worker_free_s, finished_s) + processing_s_per_view
+    modelled = max(finished_s, worker_free_s)
+    return ScanTime(
+        modelled_s=modelled,
+        mechanical_minimum_s=minimum,
+        turntable_s=sum(m.table_first_s + m.table_rest_s for m in moves),
+        lift_s=sum(m.lift_s for m in moves),
+        settle_s=settle_s * len(moves),
+        frames_s=frames_s * len(moves),
+        processing_s=modelled - finished_s,
+        views=len(moves),
+    )
+
+
+def minutes_text(seconds: float) -> str:
+    """Return a duration for the technician: ``"7 min 05 s"`` or ``"42 s"``."""
+    if not math.isfinite(seconds) or seconds < 0:
+        return "unknown"
+    whole = round(seconds)
+    return f"{whole // 60} min {whole % 60:02d} s" if whole >= 60 else f"{whole} s"
