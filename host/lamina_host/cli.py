@@ -32,7 +32,12 @@ from lamina_host.reconstruct.mesh import meshlab
 from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
-from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
+from lamina_host.store.files import (
+    OutputError,
+    disk_full,
+    new_file_problem,
+    prepare_output_folder,
+)
 from lamina_host.store.library import (
     SIDES,
     Library,
@@ -879,8 +884,8 @@ def clinical_report(args: argparse.Namespace) -> int:
     for path in outputs:
         if path.suffix.lower() not in (".pdf", ".png", ".csv"):
             raise UsageError(f"cannot write {path.name}: name the file .pdf, .png or .csv")
-        if path.exists() or path.is_symlink():
-            raise UsageError(f"{path} already exists: choose a new file name")
+        if problem := new_file_problem(path):
+            raise UsageError(problem)  # before the measuring, not after it
     request = MeasureRequest(
         args.spacing_mm, parse_landmark(args.landmark), args.limb_axis, Thresholds(*limits)
     )

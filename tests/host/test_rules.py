@@ -165,3 +165,15 @@ def test_an_export_and_a_new_file_refuse_the_same_paths(tmp_path: Path) -> None:
         with pytest.raises(OutputError) as written:
             write_new_file(path, b"x")
         assert str(store.value) == str(written.value) == problem
+
+
+@pytest.mark.parametrize("name", ["taken.pdf", "no/such/folder/report.pdf"])
+def test_lamina_report_refuses_what_an_export_refuses_before_measuring(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:
+    (tmp_path / "taken.pdf").write_bytes(b"")
+    path = tmp_path / name
+    library = tmp_path / "never-opened.sqlite"  # the refusal comes before the library
+    assert cli.main(["report", "1", "-o", str(path), "--library", str(library)]) == 2
+    assert capsys.readouterr().err == f"lamina: {new_file_problem(path)}\n"
+    assert not library.exists()
