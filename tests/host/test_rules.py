@@ -166,7 +166,6 @@ def test_an_export_and_a_new_file_refuse_the_same_paths(tmp_path: Path) -> None:
         with pytest.raises(OutputError) as written:
             write_new_file(path, b"x")
         assert str(store.value) == str(written.value) == problem
-        assert str(store.value) == str(written.value) == problem
 
 
 @pytest.mark.parametrize("name", ["taken.pdf", "no/such/folder/report.pdf"])
