@@ -19,9 +19,7 @@ def device_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
     The program outlives each host that connects, as the box's service does.
     """
-    from lamina_host.link.client import (
-        SINGLE_THREADED,  # here: the device's tests run without a host
-    )
+    from lamina_host.link.spawn import SINGLE_THREADED
 
     log = tmp_path_factory.mktemp("device-service") / "stderr.log"
     command = [sys.executable, "-m", "lamina_device", "serve", "--hardware", "sim"]

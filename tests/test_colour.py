@@ -21,7 +21,8 @@ from lamina_device.extract import sample_colour
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
 from lamina_device.sim.texture import Texture, colour_errors
-from lamina_host.link.client import DeviceError, DeviceInfo
+from lamina_host.link.errors import DeviceError
+from lamina_host.link.handshake import read_welcome
 from lamina_host.reconstruct.assembly import average_overlap_colours, average_overlaps
 from lamina_host.reconstruct.mesh import load_coloured_ply, load_obj, obj_bytes, save_ply
 from lamina_host.store.library import Library
@@ -111,9 +112,9 @@ def test_an_older_device_welcome_offers_no_colour():
         "protocol": PROTOCOL_VERSION, "hardware": "pi", "image_size": [640, 480],
         "segment_encoding": {"row_scale": 64},
     }  # fmt: skip
-    assert DeviceInfo.from_dict(welcome).colour is False
-    assert DeviceInfo.from_dict({**welcome, "colour": True}).colour is True
-    assert DeviceInfo.from_dict({**welcome, "colour": "yes"}).colour is False
+    assert read_welcome(welcome).colour is False
+    assert read_welcome({**welcome, "colour": True}).colour is True
+    assert read_welcome({**welcome, "colour": "yes"}).colour is False
 
 
 # --- the device ---------------------------------------------------------------------------
@@ -165,8 +166,8 @@ def test_a_monochrome_device_refuses_colour():
 class OlderServer(DeviceServer):
     """A device from before colour: its WELCOME says nothing about it."""
 
-    def info(self) -> dict[str, Any]:
-        welcome = super().info()
+    def welcome(self) -> dict[str, Any]:
+        welcome = super().welcome()
         welcome.pop("colour")
         return welcome
 

@@ -21,7 +21,7 @@ import pymeshlab
 import pytest
 import serial
 
-from lamina_host.link.client import PtyBridge
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.outputs import load_segments
 from lamina_shared.link import Channel
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lamina_host.link.client import DeviceClient, open_device
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
 from lamina_host.store.library import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire

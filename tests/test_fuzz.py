@@ -25,7 +25,10 @@ from hypothesis import strategies as st
 
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, DeviceError, DeviceInfo, PtyBridge
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import DeviceError
+from lamina_host.link.handshake import read_welcome
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.ops import OPS as SCHEMAS
@@ -286,7 +289,7 @@ def test_host_turns_any_welcome_into_info_or_device_error(body, image_size, plan
     body = {**body, "image_size": image_size, "default_plans": plans, "protocol": protocol}
     for candidate in (body, {**body, "protocol": PROTOCOL_VERSION, "hardware": "x"}):
         try:
-            info = DeviceInfo.from_dict(candidate)
+            info = read_welcome(candidate)
         except DeviceError:
             continue
         if info.protocol == PROTOCOL_VERSION:

@@ -29,7 +29,9 @@ from lamina_device.camera import CameraError
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, PtyBridge, RequestRefused
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import RequestRefused
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.capture import load_capture
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
@@ -457,7 +459,7 @@ def test_a_plan_at_the_advertised_maximum_crosses_the_link_and_resumes(sections,
             "window_segments",
             "heartbeat_s",
         ):
-            assert info.limits[key] == getattr(LIMITS, key)
+            assert getattr(info.limits, key) == getattr(LIMITS, key)
         got = client.scan("object", plan, have=have)
         expected = reference(ScanPlan(plan.views[-2:]))
         assert len(got) == 2
@@ -499,8 +501,8 @@ def test_a_default_plan_too_long_for_the_welcome_is_left_out_not_fatal():
         hardware.default_plans["object"] = irregular
         server = DeviceServer(Channel(SilentStream()), hardware)
         info = server.info()
-        assert "object" not in info["default_plans"] and "cylinder" in info["default_plans"]
-        assert len(encode_json(Kind.WELCOME, info)) < MAX_PAYLOAD_BYTES
+        assert "object" not in info.default_plans and "cylinder" in info.default_plans
+        assert len(encode_json(Kind.WELCOME, server.welcome())) < MAX_PAYLOAD_BYTES
     finally:
         hardware.close()
 
@@ -512,7 +514,7 @@ def test_identity_names_the_device_and_what_it_images(tmp_path):
     def identity(**kwargs: Any) -> dict[str, str]:
         hardware = open_sim(**kwargs)
         try:
-            return DeviceServer(Channel(SilentStream()), hardware).info()["identity"]
+            return DeviceServer(Channel(SilentStream()), hardware).welcome()["identity"]
         finally:
             hardware.close()
 
@@ -546,7 +548,7 @@ def test_welcome_reports_the_extraction_settings():
 
     hardware = open_sim()
     try:
-        info = DeviceServer(Channel(SilentStream()), hardware).info()
+        info = DeviceServer(Channel(SilentStream()), hardware).welcome()
     finally:
         hardware.close()
     assert ExtractSettings(**info["extract"]) == ExtractSettings()

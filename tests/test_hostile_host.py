@@ -33,8 +33,11 @@ import serial
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_host import cli
 from lamina_host.link import client as link
-from lamina_host.link.client import DeviceClient, DeviceError, PtyBridge, open_device
-from lamina_host.link.identity import identity_difference, scan_identity
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError
+from lamina_host.link.identity import identity_difference, legacy_identity, scan_identity
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.library import Library, StoreError
 from lamina_host.store.outputs import load_segments
 from lamina_host.ui.tui.adapter import UserError, parse_plan
@@ -43,6 +46,8 @@ from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
 from lamina_shared.errors import InputError, printable
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
+from lamina_shared.messages import Welcome
+from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
 from lamina_shared.types import ScanPlan, Segment
 from tests.helpers.cli import device_command, host_command
 from tests.helpers.library import held_segments
@@ -280,23 +285,34 @@ def test_library_adds_segments_only_under_the_scans_identity_and_plan(tmp_path):
 
 
 def test_identity_prefers_what_the_device_reports_and_records_only_what_exists():
-    welcome = {
+    body = {
+        "protocol": PROTOCOL_VERSION,
         "software": "lamina-device 1",
         "hardware": "sim",
         "image_size": [640, 480],
+        "segment_encoding": {"row_scale": ROW_SCALE},
         "identity": {"serial": "rpi-1", "source": "sim cylinder:d=19.05 seed=0"},
         "extract": {"method": "otsu"},
-        "board": {"square_mm": 3},
+        "board": {"inner_corners": [3, 2], "square_mm": 3.0, "origin_mm": [0.0, 0.0]},
     }
+    welcome = Welcome.from_wire(body)
     identity = scan_identity(welcome, "sim object=sphere")
     assert identity["source"] == "sim cylinder:d=19.05 seed=0"
     assert identity["serial"] == "rpi-1" and identity["extract"] == {"method": "otsu"}
-    older = scan_identity({"software": "lamina-device 0", "hardware": "sim"}, "sim object=x")
-    assert older == {"software": "lamina-device 0", "hardware": "sim", "source": "sim object=x"}
-    recalibrated = scan_identity({**welcome, "cylinder_diameter_mm": 25.0})
+    unnamed = scan_identity(Welcome.from_wire({**body, "identity": None}), "sim object=x")
+    assert unnamed["source"] == "sim object=x" and "serial" not in unnamed
+    older = legacy_identity({"software": "lamina-device 0", "hardware": "sim"}, "sim object=x")
+    assert older == {
+        "legacy": True,
+        "software": "lamina-device 0",
+        "hardware": "sim",
+        "source": "sim object=x",
+    }
+    recalibrated = scan_identity(Welcome.from_wire({**body, "cylinder_diameter_mm": 25.0}))
     assert identity_difference(identity, recalibrated) is not None
     assert "calibration" in (identity_difference(identity, recalibrated) or "")
-    assert identity_difference(identity, scan_identity(json.loads(json.dumps(welcome)))) is None
+    again = scan_identity(Welcome.from_wire(json.loads(json.dumps(welcome.to_wire()))))
+    assert identity_difference(identity, again) is None
 
 
 def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
@@ -395,7 +411,7 @@ def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan
 
 
 def test_limits_unit_names_each_limit():
-    limits = {"max_views": 10, "max_sections": 2, "max_views_per_section": 4}
+    limits = DeviceLimits(max_views=10, max_sections=2, max_views_per_section=4)
     check_plan_limits("object", ScanPlan.regular(2, 1.0, 4), limits)
     for plan, name in (
         (ScanPlan.regular(3, 1.0, 3), "max_sections"),
@@ -406,7 +422,7 @@ def test_limits_unit_names_each_limit():
             with pytest.raises(InputError, match=name):
                 check_plan_limits("object", plan, limits)
     with pytest.raises(InputError, match="max_views"):
-        check_plan_limits("object", ScanPlan.regular(2, 1.0, 6), {"max_views": 11})
+        check_plan_limits("object", ScanPlan.regular(2, 1.0, 6), DeviceLimits(max_views=11))
 
 
 # --- 3. validate before acting, never substitute -----------------------------------------

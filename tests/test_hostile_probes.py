@@ -33,13 +33,10 @@ from lamina_device.motion import StepperLift
 from lamina_device.sim.specs import MAX_OBJECT_MM, parse_object
 from lamina_host import cli
 from lamina_host.link import client as link
-from lamina_host.link.client import (
-    DeviceClient,
-    DeviceError,
-    PtyBridge,
-    RequestRefused,
-    open_device,
-)
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError, RequestRefused
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.library import Library
 from lamina_host.store.outputs import load_segments
 from lamina_host.workflow import check_plan, check_plan_limits
@@ -109,15 +106,15 @@ def test_plans_are_checked_against_the_advertised_axes():
     """Random regular plans: refused exactly when they leave the lift's travel or step."""
     stepper = {**SIM_AXES, "lift": {**SIM_AXES["lift"], "step": 0.0025}}
     with pytest.raises(InputError, match=r"reaches 202 mm, beyond the lift's travel of 0\.\.200"):
-        check_plan_limits("object", ScanPlan.regular(102, 2.0, 8), {}, SIM_AXES)
-    check_plan_limits("object", ScanPlan.regular(101, 2.0, 8), {}, SIM_AXES)  # top at 200
+        check_plan_limits("object", ScanPlan.regular(102, 2.0, 8), None, SIM_AXES)
+    check_plan_limits("object", ScanPlan.regular(101, 2.0, 8), None, SIM_AXES)  # top at 200
     with pytest.raises(InputError, match=r"finer than the lift's step of 0\.0025 mm"):
-        check_plan_limits("object", ScanPlan.regular(3, 0.002, 8), {}, stepper)
-    check_plan_limits("object", ScanPlan.regular(3, 0.0025, 8), {}, stepper)
+        check_plan_limits("object", ScanPlan.regular(3, 0.002, 8), None, stepper)
+    check_plan_limits("object", ScanPlan.regular(3, 0.0025, 8), None, stepper)
     bounded = {**SIM_AXES, "turntable": {"unit": "deg", "min": 0.0, "max": 180.0}}
     with pytest.raises(InputError, match=r"beyond the turntable's travel of 0\.\.180 deg"):
-        check_plan_limits("object", ScanPlan.regular(1, 2.0, 4), {}, bounded)  # 270 deg
-    check_plan_limits("object", ScanPlan.regular(500, 2.0, 8), {}, {})  # no axes: not checked
+        check_plan_limits("object", ScanPlan.regular(1, 2.0, 4), None, bounded)  # 270 deg
+    check_plan_limits("object", ScanPlan.regular(500, 2.0, 8), None, {})  # no axes: not checked
     rng = np.random.default_rng(7)
     for _ in range(300):
         sections, pitch = int(rng.integers(1, 400)), float(rng.uniform(0.001, 5.0))
@@ -126,7 +123,7 @@ def test_plans_are_checked_against_the_advertised_axes():
         gaps = np.diff(sorted({v.z_mm for v in plan.views}))
         beyond = top > 200.0 or (len(gaps) > 0 and gaps.min() < 0.0025 * (1 - 1e-9))
         try:
-            check_plan_limits("object", plan, {}, stepper)
+            check_plan_limits("object", plan, None, stepper)
         except InputError:
             assert beyond, (sections, pitch)
         else:

@@ -11,9 +11,11 @@ import pytest
 from lamina_device.acquisition import grab_grid
 from lamina_device.server import ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, DeviceError
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import DeviceError
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
+from lamina_shared.messages import Event, ProgressEvent, StatusEvent
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
 from lamina_shared.types import ScanPlan, Segment
 from tests.helpers.served import link, reference
@@ -41,7 +43,7 @@ def test_handshake_reports_capabilities():
         assert {"scan", "grab_grid", "fetch", "move", "pause", "resume", "abort"} <= set(
             info.operations
         )
-        assert info.limits["window_segments"] == DeviceLimits().window_segments
+        assert info.limits.window_segments == DeviceLimits().window_segments
 
 
 def test_clean_scan_delivers_exactly_what_the_rig_produced(expected):
@@ -140,8 +142,8 @@ def test_pause_resume_and_abort_while_scanning():
             client.channel.send(frame)
             events.append(op)
 
-        def on_progress(event: dict) -> None:
-            if event.get("event") == "progress":
+        def on_event(event: Event) -> None:
+            if isinstance(event, ProgressEvent):
                 seen["progress"] += 1
                 if seen["progress"] == 1:
                     control("pause")
@@ -149,11 +151,11 @@ def test_pause_resume_and_abort_while_scanning():
                     control("resume")
                 elif seen["progress"] == 3:
                     control("abort")
-            elif event.get("event") == "status":
-                events.append(f"status:{event.get('state')}")
+            elif isinstance(event, StatusEvent):
+                events.append(f"status:{event.state}")
 
         with pytest.raises(DeviceError, match="aborted"):
-            client.scan("object", ScanPlan.regular(4, 2.0, 8), on_progress)
+            client.scan("object", ScanPlan.regular(4, 2.0, 8), on_event)
         assert events[:3] == ["status:busy", "pause", "status:paused"]
         assert "resume" in events and "abort" in events
         assert seen["progress"] < 32

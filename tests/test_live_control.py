@@ -13,7 +13,7 @@ from lamina_device.camera import CameraError
 from lamina_device.extract import extract, to_segment
 from lamina_device.replay import ReplayCamera
 from lamina_device.sim import SIM_EXPOSURE_US, open_sim
-from lamina_host.link.client import DeviceError, ScanStopped
+from lamina_host.link.errors import DeviceError, ScanStopped
 from lamina_shared.protocol import quantise_segment
 from lamina_shared.types import ScanPlan, Segment
 from tests.helpers.served import link

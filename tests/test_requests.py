@@ -12,7 +12,8 @@ import serial
 
 from lamina_device.extract import ExtractSettings
 from lamina_host import cli
-from lamina_host.link.client import DeviceClient, RequestRefused, ScanStopped
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.errors import RequestRefused, ScanStopped
 from lamina_host.testing import LineFaults
 from lamina_shared.link import Channel
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
@@ -24,7 +25,7 @@ from tests.test_link import PLAN, same
 
 def test_each_thread_gets_its_own_reply_and_events_in_any_order():
     """Two threads ask at once; the peer answers the second first, with an event between."""
-    from lamina_host.link.client import PtyBridge
+    from lamina_host.link.spawn import PtyBridge
 
     bridge = PtyBridge()
     host_port = serial.Serial(bridge.host_port, timeout=0.02)
@@ -125,7 +126,8 @@ def test_a_scan_uses_the_extraction_the_host_asks_for():
     with link() as ends:
         client = ends.client
         assert client.info is not None
-        assert client.info.welcome["extract"] == dataclasses.asdict(ExtractSettings())
+        assert client.info.extract is not None
+        assert client.info.extract.as_dict() == dataclasses.asdict(ExtractSettings())
         got = client.scan("object", PLAN, extract=ExtractChanges((("method", "thinning"),)))
         assert same(got, thinning)
         # Whole-pixel centres: the thinning method really ran on the device.
@@ -133,7 +135,7 @@ def test_a_scan_uses_the_extraction_the_host_asks_for():
         # The configuration's settings are reported and used when the scan changes none.
         ends.hardware.extract = ExtractSettings(method="thinning")
         info = client.hello()
-        assert info.welcome["extract"]["method"] == "thinning"
+        assert info.extract is not None and info.extract.as_dict()["method"] == "thinning"
         assert same(client.scan("object", PLAN), thinning)
 
 

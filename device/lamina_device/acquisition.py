@@ -27,6 +27,7 @@ from lamina_device.camera import CameraError, ColourCamera
 from lamina_device.extract import ExtractSettings, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_device.motion import move_axes
+from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
 log = logging.getLogger(__name__)
@@ -83,22 +84,6 @@ class ScanControl:
             self._changed.wait_for(lambda: self._aborted or not self._paused)
             if self._aborted:
                 raise ScanAborted("scan aborted")
-
-
-@dataclass(frozen=True)
-class Progress:
-    """Where a running scan is: ``done`` of ``total`` views.
-
-    ``state`` is ``scanning``, ``paused`` (a pause is pending or held) or ``done``;
-    ``eta_s`` estimates the time left from the pace so far.
-    """
-
-    target: str
-    done: int
-    total: int
-    section: int
-    state: str = "scanning"
-    eta_s: float | None = None
 
 
 FrameSink = Callable[[str, ViewSpec, int, np.ndarray, np.ndarray], None]
@@ -199,9 +184,8 @@ def _progress(
     target: str, item: _Captured, total: int, started_s: float, control: ScanControl
 ) -> Progress:
     elapsed_s = time.monotonic() - started_s
-    eta_s = elapsed_s / item.done * (total - item.done)
     state = "done" if item.done == total else "paused" if control.paused else "scanning"
-    return Progress(target, item.done, total, item.view.section, state, round(eta_s, 3))
+    return Progress(target, item.done, total, item.view.section, state, elapsed_s, item.done)
 
 
 def acquire(

@@ -28,6 +28,7 @@ def open_hardware(
     config_path: Path | str | None = None,
     pin_factory: Factory | None = None,
     rig: str = "thesis",
+    sway: str = "none",
 ) -> Hardware:
     """Return the hardware named by ``spec``: ``sim``, ``replay:DIR`` or ``pi``.
 
@@ -39,12 +40,13 @@ def open_hardware(
         config_path: the TOML configuration (pi only; the packaged default if None).
         pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
         rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
+        sway: how the simulated object moves while scanned, e.g. ``patient`` (sim only).
 
     Raises:
         HardwareError: naming what is wrong and what to do.
     """
     if spec == SIM:
-        return open_sim(object_spec, seed, noise, rig)
+        return open_sim(object_spec, seed, noise, rig, sway=sway)
     if (folder := replay_folder(spec)) is not None:
         if not folder:
             raise HardwareError("replay needs a capture folder: --hardware replay:DIR")

@@ -20,7 +20,7 @@ from types import FrameType
 import serial
 
 from lamina_device import __version__
-from lamina_device.acquisition import Progress, acquire, grab_grid
+from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.backends import open_hardware
 from lamina_device.config import check_config
 from lamina_device.hardware import Hardware
@@ -32,6 +32,7 @@ from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
 from lamina_shared.local import EndpointError, local_url
+from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, Problems, check_plan
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.spawned import watch_parent
@@ -70,6 +71,12 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
         choices=RIG_PRESETS,
         default="thesis",
         help="simulated rig geometry: thesis scale (640x480) or limb scale (1536x864)",
+    )
+    parser.add_argument(
+        "--sway",
+        default="none",
+        help="simulated patient motion during the scan: none (default), patient (1 mm/min "
+        "drift, 0.5 mm breathing at 0.25 Hz) or drift=MM_PER_MIN,breath=MM,hz=HZ (sim only)",
     )
 
 
@@ -286,7 +293,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     watch_parent()  # a device a host started ends with it, even after kill -9 of the host
     try:
         hardware = open_hardware(
-            args.hardware, args.object, args.seed, args.noise, args.config, rig=args.rig
+            args.hardware,
+            args.object,
+            args.seed,
+            args.noise,
+            args.config,
+            rig=args.rig,
+            sway=args.sway,
         )
     except CaptureError as exc:
         # The first problems one per line, then the summary last: a host that started this

@@ -23,7 +23,6 @@ import cv2
 import numpy as np
 
 from lamina_device.acquisition import (
-    Progress,
     ScanAborted,
     ScanControl,
     acquire,
@@ -35,6 +34,7 @@ from lamina_device.camera import ExposureRefused, camera_has_colour
 from lamina_device.extract import ExtractSettings, changed_settings, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_shared.endpoint import Abandoned, Handler, RequestError, SegmentBuffer, ServerSettings
+from lamina_shared.messages import Event, LogEvent, Progress, ProgressEvent, StatusEvent
 from lamina_shared.ops import (
     ArgsError,
     ExposureArgs,
@@ -66,7 +66,7 @@ class Link(Protocol):
 
     def offer(self, request_id: int, data: bytes) -> dict[str, Any]: ...  # pragma: no cover
 
-    def event(self, request_id: int, event: str, **fields: Any) -> None: ...  # pragma: no cover
+    def event(self, event: Event) -> None: ...  # pragma: no cover
 
     def send_segment(
         self, request_id: int, seq: int, segment: Segment
@@ -252,7 +252,7 @@ class Operations:
         self.link.buffer.ack(request_id, have & set(kept))
         resend = sorted(set(kept) - have)
         if kept:
-            self.link.event(request_id, "log", message=f"resending {len(resend)} buffered segments")
+            self.link.event(LogEvent(request_id, f"resending {len(resend)} buffered segments"))
         self.link.buffer.mark_resent(resend)
         for seq in resend:
             self.link.send_segment(request_id, seq, kept[seq])
@@ -300,14 +300,9 @@ class Operations:
             self.link.send_segment(request_id, seq, segment)
 
         def on_progress(progress: Progress) -> None:
-            self.link.event(
-                request_id,
-                "progress",
-                target=progress.target,
-                done=held + progress.done,
-                total=len(plan.views),
-                section=progress.section,
-            )
+            # The sub-plan's count, told as the whole plan's (held views included).
+            whole = dataclasses.replace(progress, done=held + progress.done, total=len(plan.views))
+            self.link.event(ProgressEvent(request_id, whole))
 
         sub_plan = ScanPlan(tuple(plan.views[s] for s in todo))
         self.control = ScanControl()
@@ -350,13 +345,13 @@ class Operations:
     def pause(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """Hold the running scan after the current view, laser off."""
         self._scan_control("pause").pause()
-        self.link.event(self.link.running_id or 0, "status", state="paused")
+        self.link.event(StatusEvent(self.link.running_id or 0, "paused"))
         return {"state": "paused"}
 
     def resume(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """Let a paused scan go on."""
         self._scan_control("resume").resume()
-        self.link.event(self.link.running_id or 0, "status", state="busy")
+        self.link.event(StatusEvent(self.link.running_id or 0, "busy"))
         return {"state": "busy"}
 
     def abort(self, request_id: int, args: NoArgs) -> dict[str, Any]:

@@ -37,8 +37,10 @@ from lamina_device.operations import Operations
 from lamina_shared.capture import FrameError
 from lamina_shared.endpoint import DeviceEndpoint, PortLost, RequestError, ServerSettings
 from lamina_shared.link import Channel
-from lamina_shared.ops import OPS
+from lamina_shared.messages import DeviceIdentity, Welcome
+from lamina_shared.ops import OPS, ExtractChanges
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
+from lamina_shared.types import ScanPlan
 
 log = logging.getLogger(__name__)
 
@@ -84,36 +86,35 @@ class DeviceServer(DeviceEndpoint):
     # --- the handshake ---------------------------------------------------------------
 
     def welcome(self) -> dict[str, Any]:
-        """Return what the device tells the host about itself at the handshake."""
-        return self.info()
+        """Return the WELCOME body: :meth:`info` in its wire form."""
+        return self.info().to_wire()
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> Welcome:
         """Return what the device tells the host about itself at the handshake.
 
         ``extract`` is the configured extraction (a scan request may change it).
         """
         hw = self.hardware
-        width, height = hw.camera.size
-        return {
-            "protocol": PROTOCOL_VERSION,
-            "software": f"lamina-device {__version__}",
-            "hardware": hw.kind,
-            "description": hw.description,
-            "image_size": [width, height],
-            "board": hw.board.to_dict() if hw.board else None,
-            "cylinder_diameter_mm": hw.cylinder_diameter_mm,
-            "default_plans": self._welcome_plans(),
-            "axes": self.operations.limits.to_dict(),
-            "operations": sorted(OPS),
-            "limits": self.settings.limits.to_dict(),
-            "segment_encoding": {"row_scale": ROW_SCALE},
-            "identity": dict(hw.identity),
-            "extract": dataclasses.asdict(hw.extract),
-            "colour": camera_has_colour(hw.camera),
-        }
+        return Welcome(
+            protocol=PROTOCOL_VERSION,
+            software=f"lamina-device {__version__}",
+            hardware=hw.kind,
+            description=hw.description,
+            image_size=hw.camera.size,
+            board=hw.board,
+            cylinder_diameter_mm=hw.cylinder_diameter_mm,
+            default_plans=self._welcome_plans(),
+            axes=self.operations.limits.to_dict(),
+            operations=tuple(sorted(OPS)),
+            limits=self.settings.limits,
+            row_scale=ROW_SCALE,
+            identity=DeviceIdentity(**hw.identity),
+            extract=ExtractChanges(tuple(dataclasses.asdict(hw.extract).items())),
+            colour=camera_has_colour(hw.camera),
+        )
 
-    def _welcome_plans(self) -> dict[str, Any]:
-        """Return the default plans in wire form, leaving out one too long for the WELCOME.
+    def _welcome_plans(self) -> dict[str, ScanPlan]:
+        """Return the default plans, leaving out one too long for the WELCOME.
 
         A regular plan takes a few bytes; a replayed capture's irregular plan is listed
         and may not fit one message: the host then passes a plan, or asks ``scan`` with
@@ -122,9 +123,8 @@ class DeviceServer(DeviceEndpoint):
         plans = {}
         budget = self.settings.limits.max_payload_bytes // 4
         for target, plan in self.hardware.default_plans.items():
-            wire = plan.to_wire()
-            if len(json.dumps(wire)) <= budget:
-                plans[target] = wire
+            if len(json.dumps(plan.to_wire())) <= budget:
+                plans[target] = plan
             else:
                 log.warning("the default %s plan is too long for the WELCOME", target)
         return plans

@@ -25,7 +25,7 @@ from typing import Any
 from lamina_host import __version__
 from lamina_host.clinical.measures import AXES, COMPARISONS, Thresholds, parse_landmark
 from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
-from lamina_host.link.client import DeviceError, RequestRefused
+from lamina_host.link.errors import DeviceError, RequestRefused
 from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
 from lamina_host.reconstruct.mesh import meshlab
@@ -73,10 +73,11 @@ from lamina_host.workflow.batch import (
 )
 from lamina_host.workflow.exports import ALL_FORMATS, dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import Progress, distortion_summary, mesh_summary
+from lamina_host.workflow.results import distortion_summary, mesh_summary
 from lamina_shared.device_specs import SIM, replay_folder, spawns_device
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
@@ -141,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--device",
         required=True,
         help="serial port path, 'local' (the device service on this machine, or "
-        "socket://HOST:PORT), 'sim', or 'replay:CAPTURE_DIR'",
+        "socket://HOST:PORT), another pyserial URL (spy://PORT?file=LOG logs the wire), "
+        "'sim', or 'replay:CAPTURE_DIR'",
     )
     scan.add_argument(
         "-o", "--out", type=Path, help="new output folder (when resuming: the scan's own)"

@@ -1,6 +1,6 @@
 """Test support, not used by the product: a faulty serial line for the link's tests.
 
-:class:`LineFaults` is a ``transform`` for :class:`lamina_host.link.client.PtyBridge`: it
+:class:`LineFaults` is a ``transform`` for :class:`lamina_host.link.spawn.PtyBridge`: it
 damages, drops, duplicates, delays and cuts bytes in flight, reproducibly (seeded), so
 the fault-injection tests and ``tests/benchmarks/bench_link.py`` run the real link
 (pyserial on real pseudo-terminals) over a bad cable.

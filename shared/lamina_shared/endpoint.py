@@ -29,6 +29,7 @@ from typing import Any
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker, error_body, is_count, ok_body
+from lamina_shared.messages import Ack, Event, MessageError, StatusEvent
 from lamina_shared.ops import OPS, ArgsError, FetchArgs, UnknownOp, parse_args
 from lamina_shared.protocol import (
     CHUNK_BYTES,
@@ -542,20 +543,15 @@ class DeviceEndpoint:
         self.channel.send(encode_json(Kind.WELCOME, welcome))
 
     def _ack(self, body: dict[str, Any]) -> None:
-        request_id, seqs, lost = body.get("id"), body.get("seqs"), body.get("lost", [])
-        if not (
-            is_count(request_id)
-            and isinstance(seqs, list)
-            and isinstance(lost, list)
-            and len(seqs) + len(lost) <= self.settings.limits.max_ack_seqs
-        ):
-            self.log.warning("ignoring a malformed acknowledgement")
+        try:
+            ack = Ack.from_wire(body, self.settings.limits)
+        except MessageError as exc:
+            self.log.warning("ignoring a malformed acknowledgement (%s)", exc)
             return
-        assert isinstance(request_id, int)
-        self.buffer.ack(request_id, [s for s in seqs if is_count(s)])
-        if request_id == self.buffer.request_id:
-            for seq, segment in self.buffer.resend_lost([s for s in lost if is_count(s)]):
-                self.channel.send(encode_segment(request_id, seq, segment))
+        self.buffer.ack(ack.request_id, list(ack.seqs))
+        if ack.request_id == self.buffer.request_id:
+            for seq, segment in self.buffer.resend_lost(list(ack.lost)):
+                self.channel.send(encode_segment(ack.request_id, seq, segment))
 
     # --- requests --------------------------------------------------------------------
 
@@ -632,7 +628,7 @@ class DeviceEndpoint:
                 )
             self._running_id = request_id
         self.abandoned.clear()
-        self.event(request_id, "status", state="busy", op=name)
+        self.event(StatusEvent(request_id, "busy", name))
         # The worker marks itself done in _finish, under the lock, with its reply cached.
         self._worker = threading.Thread(
             target=self._work, args=(request_id, op, args), name=f"device-{name}", daemon=True
@@ -668,9 +664,9 @@ class DeviceEndpoint:
             worker.join(timeout=30)
         self._worker = None
 
-    def event(self, request_id: int, event: str, **fields: Any) -> None:
-        """Send an EVENT of request ``request_id`` (progress, status, log)."""
-        self.channel.send(encode_json(Kind.EVENT, {"id": request_id, "event": event, **fields}))
+    def event(self, event: Event) -> None:
+        """Send an EVENT (progress, status, log)."""
+        self.channel.send(encode_json(Kind.EVENT, event.to_wire()))
 
     # --- binary transfers ------------------------------------------------------------
 

@@ -13,7 +13,9 @@ import serial
 
 from lamina_device.acquisition import acquire
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, PtyBridge, open_device
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.connect import open_device
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.store.library import Library
 from lamina_host.testing import LineFaults
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest

@@ -43,7 +43,7 @@ def _child() -> dict[str, Any]:
 
 def _run_child(single_thread: bool) -> dict[str, Any]:
     """Run :func:`_child` in a fresh interpreter, with or without the thread limits."""
-    from lamina_host.link.client import SINGLE_THREADED
+    from lamina_host.link.spawn import SINGLE_THREADED
 
     env = dict(os.environ)
     for name in SINGLE_THREADED:

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from gpiozero.pins.mock import MockFactory
 
-from lamina_device.acquisition import Progress, ScanAborted, ScanControl, acquire
+from lamina_device.acquisition import ScanAborted, ScanControl, acquire
 from lamina_device.backends import open_hardware
 from lamina_device.camera import CameraError
 from lamina_device.cli import main
 from lamina_shared.capture import load_capture
+from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan
 
 PLAN = ScanPlan.regular(sections=2, pitch_mm=2.0, views=4)
@@ -64,8 +65,10 @@ def test_segments_arrive_in_plan_order_with_progress_and_the_lift_home(sim):
     ]
     assert all(len(s.cols) > 100 for s in segments)
     assert [p.done for p in progress] == list(range(1, 9))
-    assert progress[-1].state == "done" and progress[-1].eta_s == 0.0
-    assert all(p.state == "scanning" and p.eta_s >= 0 for p in progress[:-1])
+    assert progress[-1].state == "done" and progress[-1].left_s == 0.0
+    assert all(
+        p.state == "scanning" and (p.left_s is not None and p.left_s >= 0) for p in progress[:-1]
+    )
     # One off frame then one on frame per view; the laser on only for the on frame.
     assert [on for _, on in sim.camera.log] == [False, True] * 8
     assert laser_levels(sim) == [False] + [True, False] * 8

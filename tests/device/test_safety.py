@@ -17,7 +17,8 @@ from gpiozero.pins.mock import MockFactory
 
 from lamina_device.laser import Laser
 from lamina_device.safety import LaserShutdown, LaserWatchdog
-from lamina_host.link.client import DeviceClient, PtyBridge
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.link import Channel
 
 

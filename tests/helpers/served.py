@@ -18,8 +18,10 @@ from lamina_device.extract import ExtractSettings
 from lamina_device.hardware import Hardware
 from lamina_device.server import DeviceServer, ServerSettings
 from lamina_device.sim import open_sim
-from lamina_host.link.client import DeviceClient, DeviceInfo, PtyBridge
+from lamina_host.link.client import DeviceClient
+from lamina_host.link.spawn import PtyBridge
 from lamina_shared.link import Channel
+from lamina_shared.messages import Welcome
 from lamina_shared.protocol import quantise_segment
 from lamina_shared.types import ScanPlan, Segment
 
@@ -62,7 +64,7 @@ class Link:
     server: DeviceServer
     hardware: Hardware
     faults: Transform | None
-    info: DeviceInfo
+    info: Welcome
 
 
 @contextmanager

@@ -13,7 +13,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lamina_host.link.client import PtyBridge
+from lamina_host.link.spawn import PtyBridge
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import (

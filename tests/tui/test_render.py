@@ -77,8 +77,10 @@ def test_volume_and_profile_of_a_cylinder_by_sections() -> None:
 
 def test_time_left_uses_this_runs_rate() -> None:
     """4 views in 2 s of this run, 10 of 16 done: 6 more take 3 s."""
-    assert Progress("object", 10, 16, 1, 2.0, 4).left_s == pytest.approx(3.0)
-    assert Progress("object", 6, 16, 0, 0.5, 0).left_s is None
+    assert Progress("object", 10, 16, 1, elapsed_s=2.0, done_this_run=4).left_s == pytest.approx(
+        3.0
+    )
+    assert Progress("object", 6, 16, 0, elapsed_s=0.5, done_this_run=0).left_s is None
 
 
 @pytest.mark.parametrize(

@@ -20,6 +20,7 @@ from lamina_device.sim.camera import SimCamera
 from lamina_device.sim.render import NoiseModel, SimScene
 from lamina_device.sim.rig import Rig
 from lamina_device.sim.specs import parse_object
+from lamina_device.sim.sway import parse_sway
 from lamina_shared.types import ScanPlan
 
 __all__ = [
@@ -54,10 +55,12 @@ def open_sim(
     noise: str = "thesis",
     rig_name: str = "thesis",
     rig: Rig | None = None,
+    sway: str = "none",
 ) -> Hardware:
     """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it.
 
     ``rig``, when given, replaces the preset (tests scan small, low-resolution variants).
+    ``sway`` moves the object during the scan (:func:`lamina_device.sim.sway.parse_sway`).
     """
     spec = object_spec or DEFAULT_OBJECT
     try:
@@ -68,15 +71,18 @@ def open_sim(
         noise_model = NoiseModel.preset(noise)
         mechanics = Mechanics.preset(noise)
         rig = rig if rig is not None else Rig.preset(rig_name)
+        motion = parse_sway(sway, seed)
     except ValueError as exc:
         raise HardwareError(str(exc)) from None
     source = sim_source(spec, obj, rig, noise_model, mechanics, seed)
+    if not motion.still:
+        source += f" sway={sway}"
     scene = SimScene(rig, obj, noise_model, seed)
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory())
     clock = SimClock()
     turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
-    camera = SimCamera(scene, stage, turntable, lift, laser)
+    camera = SimCamera(scene, stage, turntable, lift, laser, motion)
     hardware = Hardware(
         "sim",
         camera,

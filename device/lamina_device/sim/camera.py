@@ -16,6 +16,7 @@ from lamina_device.camera import CameraError, Stage, check_exposure
 from lamina_device.laser import Laser
 from lamina_device.sim.axes import SimLift, SimTurntable
 from lamina_device.sim.render import SimScene
+from lamina_device.sim.sway import Sway
 
 __all__ = ["SIM_EXPOSURE_RANGE_US", "SIM_EXPOSURE_US", "SimCamera"]
 
@@ -34,6 +35,8 @@ class SimCamera:
     turntable: SimTurntable
     lift: SimLift
     laser: Laser
+    sway: Sway = field(default_factory=Sway)
+    """How the object moves while it is scanned (a patient's drift and breathing)."""
     frames_taken: int = field(default=0, init=False)
     exposure_us: int = field(default=SIM_EXPOSURE_US, init=False)
     exposure_range_us: tuple[int, int] = field(default=SIM_EXPOSURE_RANGE_US, init=False)
@@ -82,6 +85,7 @@ class SimCamera:
             self.lift.true_z_mm,
             self.laser.is_on,
             exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
+            shift_mm=self.sway.offset_mm(self.turntable.clock.now_s),
         )
 
     def close(self) -> None:

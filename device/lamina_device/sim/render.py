@@ -353,7 +353,7 @@ class SimScene:
         self._centre, dirs = rig.pixel_rays()
         self._dirs = dirs.reshape(-1, 3)
         self._field = ambient_field(rig.image_size, self.noise)
-        self._views: OrderedDict[tuple[str, float, float], _View] = OrderedDict()
+        self._views: OrderedDict[tuple[str, float, float, float, float], _View] = OrderedDict()
         self._grid: np.ndarray | None = None
 
     def _target(self, target: str) -> SceneObject:
@@ -378,8 +378,12 @@ class SimScene:
         laser_on: bool,
         noise_key: tuple[object, ...] = (),
         exposure_scale: float = 1.0,
+        shift_mm: tuple[float, float] = (0.0, 0.0),
     ) -> np.ndarray:
         """Return one uint8 (H, W) frame of ``target`` at the true angle and section height.
+
+        ``shift_mm`` moves the target off its place on the turntable (world x, y): a
+        patient's sway at the moment of the frame.
 
         ``exposure_scale`` (exposure time over the nominal one) multiplies the light that
         reaches the sensor, ambient and laser alike, before noise and 8-bit clipping, so a
@@ -387,12 +391,14 @@ class SimScene:
         bit-identical to one rendered without it.
         """
         if self.noise.laser_rgb is not None:
-            rgb = self._channels(target, angle_deg, z_mm, laser_on, noise_key, exposure_scale)
+            rgb = self._channels(
+                target, angle_deg, z_mm, laser_on, noise_key, exposure_scale, shift_mm
+            )
             return luma(rgb)
         rng = self._rng(target, angle_deg, z_mm, laser_on, noise_key)
         if target == "grid":
             return _expose(rng, self._grid_expected(), self.noise)
-        view = self._view(target, float(angle_deg), float(z_mm))
+        view = self._view(target, float(angle_deg), float(z_mm), shift_mm)
         expected = (
             view.ambient_dn if view.tint is None else view.ambient_dn * (view.tint @ BT601_LUMA)
         )
@@ -412,13 +418,14 @@ class SimScene:
         laser_on: bool,
         noise_key: tuple[object, ...] = (),
         exposure_scale: float = 1.0,
+        shift_mm: tuple[float, float] = (0.0, 0.0),
     ) -> np.ndarray:
         """Return the (H, W, 3) uint8 RGB frame whose luma :meth:`render` returns.
 
         Only for colour models (``noise.laser_rgb`` set); the channels carry the same
         noise as the frame :meth:`render` gives for the same arguments.
         """
-        rgb = self._channels(target, angle_deg, z_mm, laser_on, noise_key, exposure_scale)
+        rgb = self._channels(target, angle_deg, z_mm, laser_on, noise_key, exposure_scale, shift_mm)
         return np.rint(rgb).astype(np.uint8)
 
     def _rng(
@@ -441,6 +448,7 @@ class SimScene:
         laser_on: bool,
         noise_key: tuple[object, ...],
         exposure_scale: float,
+        shift_mm: tuple[float, float] = (0.0, 0.0),
     ) -> np.ndarray:
         """Return the noisy (H, W, 3) float R, G, B of a colour model, clipped to 0..255."""
         n = self.noise
@@ -452,7 +460,7 @@ class SimScene:
         if target == "grid":
             ambient = self._grid_expected()
         else:
-            view = self._view(target, float(angle_deg), float(z_mm))
+            view = self._view(target, float(angle_deg), float(z_mm), shift_mm)
             ambient, tint = view.ambient_dn, view.tint
             if laser_on:
                 grain = n.speckle_grain_px
@@ -472,22 +480,27 @@ class SimScene:
             out[..., c] = _noisy(rng, expected * exposure_scale, n)
         return np.clip(out, 0.0, 255.0)
 
-    def _view(self, target: str, angle_deg: float, z_mm: float) -> _View:
+    def _view(
+        self, target: str, angle_deg: float, z_mm: float, shift_mm: tuple[float, float]
+    ) -> _View:
         """Return the cached noise-free images of a geometry, computing them on a miss."""
-        key = (target, angle_deg, z_mm)
+        key = (target, angle_deg, z_mm, float(shift_mm[0]), float(shift_mm[1]))
         if key in self._views:
             self._views.move_to_end(key)
             return self._views[key]
-        view = self._compute_view(self._target(target), angle_deg, z_mm)
+        view = self._compute_view(self._target(target), angle_deg, z_mm, shift_mm)
         self._views[key] = view
         if len(self._views) > _VIEW_CACHE_SIZE:
             self._views.popitem(last=False)
         return view
 
-    def _compute_view(self, obj: SceneObject, angle_deg: float, z_mm: float) -> _View:
+    def _compute_view(
+        self, obj: SceneObject, angle_deg: float, z_mm: float, shift_mm: tuple[float, float]
+    ) -> _View:
         """Ray cast every pixel and evaluate ambient and laser light, noise-free."""
         rig, n = self.rig, self.noise
-        axis = np.array([*rig.axis_xy_mm, 0.0])
+        # A target shifted off its place is the turntable's axis shifted, as it sees it.
+        axis = np.array([rig.axis_xy_mm[0] + shift_mm[0], rig.axis_xy_mm[1] + shift_mm[1], 0.0])
         to_obj = _rz(-angle_deg)
         lift = np.array([0.0, 0.0, z_mm])  # world z = object z - z_mm
         t, normal_obj = obj.raycast(to_obj @ (self._centre - axis) + lift, self._dirs @ to_obj.T)
@@ -501,7 +514,7 @@ class SimScene:
         shade = 0.35 + 0.65 * np.maximum(normal @ lamp, 0.0)
         ambient[hit] = n.albedo * n.ambient_dn * field[hit] * shade
         laser = np.zeros_like(ambient)
-        laser[np.flatnonzero(hit)] = self._laser_term(obj, p, normal, angle_deg, z_mm)
+        laser[np.flatnonzero(hit)] = self._laser_term(obj, p, normal, angle_deg, z_mm, axis[:2])
         laser_img = laser.reshape(self._shape)
         tint: np.ndarray | None = None
         if isinstance(obj, Textured):
@@ -521,7 +534,13 @@ class SimScene:
         return _View(ambient.reshape(self._shape), laser_img, halo, tint)
 
     def _laser_term(
-        self, obj: SceneObject, p: np.ndarray, normal: np.ndarray, angle_deg: float, z_mm: float
+        self,
+        obj: SceneObject,
+        p: np.ndarray,
+        normal: np.ndarray,
+        angle_deg: float,
+        z_mm: float,
+        axis_xy_mm: np.ndarray,
     ) -> np.ndarray:
         """Return the noise-free laser DN at world surface points ``p`` with world normals."""
         rig = self.rig
@@ -535,17 +554,23 @@ class SimScene:
         to_src /= np.linalg.norm(to_src, axis=1, keepdims=True)
         cosine = np.maximum(np.einsum("ij,ij->i", nrm, to_src), 0.0)
         sheet = np.exp(-(q[:, 2] ** 2) / (2.0 * sigma**2))
-        lit = self._lit(obj, q, nrm, angle_deg, z_mm)
+        lit = self._lit(obj, q, nrm, angle_deg, z_mm, axis_xy_mm)
         out[near] = self.noise.laser_peak_dn * sheet * cosine * lit
         return out
 
     def _lit(
-        self, obj: SceneObject, q: np.ndarray, nrm: np.ndarray, angle_deg: float, z_mm: float
+        self,
+        obj: SceneObject,
+        q: np.ndarray,
+        nrm: np.ndarray,
+        angle_deg: float,
+        z_mm: float,
+        axis_xy_mm: np.ndarray,
     ) -> np.ndarray:
         """Return True where the laser, travelling in the sheet, reaches world points ``q``."""
         rig = self.rig
         to_obj = _rz(-angle_deg)[:2, :2]
-        axis = np.asarray(rig.axis_xy_mm)
+        axis = np.asarray(axis_xy_mm, dtype=float)
         src = to_obj @ (np.asarray(rig.laser_source_xy_mm) - axis)
         q_obj = (q[:, :2] - axis) @ to_obj.T
         # Test each point against the section at (nearly) its own height: slabs every half

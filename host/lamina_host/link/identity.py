@@ -16,6 +16,7 @@ from typing import Any
 
 from lamina_shared.device_specs import SIM, replay_folder
 from lamina_shared.errors import printable
+from lamina_shared.messages import Welcome
 
 
 def spawned_source(
@@ -46,31 +47,56 @@ def _plain(value: Any) -> Any:
     return json.loads(json.dumps(value, sort_keys=True, default=str))
 
 
-def scan_identity(welcome: Mapping[str, Any], spawned: str | None = None) -> dict[str, Any]:
+def scan_identity(welcome: Welcome, spawned: str | None = None) -> dict[str, Any]:
     """Return the identity of what acquires a scan, from the device's WELCOME.
 
     Fields the device does not report (an older device) are left out. The device's own
     ``identity.source`` takes precedence over ``spawned`` (what the host asked a device it
     started to simulate or replay). ``calibration`` is a hash of the calibration setup the
-    device reported (board, cylinder, image size and any ``calibration`` record).
+    device reported (board, cylinder and image size).
     """
     identity: dict[str, Any] = {}
-    reported = welcome.get("identity")
-    if isinstance(reported, Mapping):
-        for key in ("serial", "source"):
-            if reported.get(key) is not None:
-                identity[key] = str(reported[key])
+    if welcome.identity is not None:
+        for key, value in welcome.identity.to_wire().items():
+            identity[key] = value
     if "source" not in identity and spawned is not None:
         identity["source"] = spawned
-    for key in ("software", "hardware", "description", "image_size", "protocol", "extract"):
-        if welcome.get(key) is not None:
-            identity[key] = _plain(welcome[key])
-    setup = {
-        k: welcome.get(k) for k in ("board", "cylinder_diameter_mm", "image_size", "calibration")
+    reported = {
+        "software": welcome.software,
+        "hardware": welcome.hardware,
+        "description": welcome.description,
+        "image_size": list(welcome.image_size),
+        "protocol": welcome.protocol,
+        "extract": welcome.extract.to_wire() if welcome.extract is not None else None,
     }
-    if any(v is not None for v in setup.values()):
-        blob = json.dumps(_plain(setup), sort_keys=True).encode()
-        identity["calibration"] = hashlib.sha256(blob).hexdigest()[:16]
+    identity.update({key: _plain(value) for key, value in reported.items() if value is not None})
+    setup = {
+        "board": welcome.board.to_dict() if welcome.board else None,
+        "cylinder_diameter_mm": welcome.cylinder_diameter_mm,
+        "image_size": list(welcome.image_size),
+        # No device reports a calibration record; the key stays in the hashed text so
+        # the hashes of scans recorded before the WELCOME was typed still match.
+        "calibration": None,
+    }
+    blob = json.dumps(_plain(setup), sort_keys=True).encode()
+    identity["calibration"] = hashlib.sha256(blob).hexdigest()[:16]
+    return identity
+
+
+def legacy_identity(device: Mapping[str, Any], spawned: str | None) -> dict[str, Any]:
+    """Return the identity a scan recorded before identities existed can be given.
+
+    Args:
+        device: what the scan recorded about its device (``software``, ``hardware``).
+        spawned: what the host asked a device it started to acquire
+            (:func:`spawned_source`), None for a real device.
+    """
+    identity: dict[str, Any] = {"legacy": True}
+    if spawned is not None:
+        identity["source"] = spawned
+    for key in ("software", "hardware"):
+        if device.get(key) is not None:
+            identity[key] = _plain(device[key])
     return identity
 
 

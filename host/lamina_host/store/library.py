@@ -53,7 +53,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.link.identity import identity_difference, scan_identity, spawned_source
+from lamina_host.link.identity import identity_difference, legacy_identity, spawned_source
 from lamina_host.reconstruct.mesh import load_coloured_ply, obj_bytes, stl_bytes
 from lamina_host.store.files import (
     OutputError,
@@ -356,8 +356,7 @@ def _legacy_identity(device: dict[str, Any], options: dict[str, Any]) -> dict[st
             options.get("noise"),
             options.get("rig"),
         )
-    welcome: dict[str, Any] = {k: device[k] for k in ("software", "hardware") if k in device}
-    return {"legacy": True, **scan_identity(welcome, spawned)}
+    return legacy_identity(device, spawned)
 
 
 class Library(Scoped):

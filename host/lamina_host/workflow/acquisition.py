@@ -215,7 +215,7 @@ class Acquisition:
         """
         client = self.device.client()
         identity = self._check_calibrated_here(client)
-        limits = client.info.limits if client.info else {}
+        limits = client.info.limits if client.info else None
         axes = client.info.axes if client.info else {}
         plans = {
             "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
@@ -254,7 +254,7 @@ class Acquisition:
         """
         client = self.device.client()
         identity = client.identity()
-        limits = client.info.limits if client.info else {}
+        limits = client.info.limits if client.info else None
         axes = client.info.axes if client.info else {}
         library = self.store.library()
         library.check_identity(scan_id, identity)
@@ -342,7 +342,7 @@ class Acquisition:
         # Before anything changes: a scan is only ever continued by what began it.
         library.check_identity(scan_id, identity)
         info = self.device.info
-        limits, axes = (info.limits, info.axes) if info else ({}, {})
+        limits, axes = (info.limits, info.axes) if info else (None, {})
         check_plan_limits("object", plan, limits, axes)
         self.identity = identity
         self.data.complete = False

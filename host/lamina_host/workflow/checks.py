@@ -131,20 +131,21 @@ def check_plan_axes(target: str, plan: ScanPlan, axes: Mapping[str, Any]) -> Non
 def check_plan_limits(
     target: str,
     plan: ScanPlan,
-    limits: Mapping[str, Any],
+    limits: DeviceLimits | None,
     axes: Mapping[str, Any] | None = None,
 ) -> None:
-    """Refuse a plan beyond the limits the device advertised (absent limits are not checked).
+    """Refuse a plan beyond the limits the device advertised (None: this version's).
 
     Args:
         target: what the plan scans (named in the refusal).
         plan: the plan to check.
-        limits: the WELCOME's ``limits`` (sizes).
+        limits: the WELCOME's ``limits`` (sizes; what an older device left out is the default).
         axes: the WELCOME's ``axes`` (travel of the lift and turntable, the lift's step).
 
     Raises:
         InputError: naming the limit, the plan's figure and the device's.
     """
+    limits = limits or DeviceLimits()
     per_section: dict[int, int] = {}
     for view in plan.views:
         per_section[view.section] = per_section.get(view.section, 0) + 1
@@ -154,8 +155,8 @@ def check_plan_limits(
         "max_views_per_section": (max(per_section.values(), default=0), "views in one section"),
     }
     for key, (figure, what) in figures.items():
-        limit = limits.get(key)
-        if isinstance(limit, int | float) and not isinstance(limit, bool) and figure > limit:
+        limit = getattr(limits, key)
+        if figure > limit:
             raise InputError(
                 f"the {target} plan has {figure} {what}, beyond the device's limit of {limit} "
                 f"({key}): plan a smaller scan"
@@ -163,6 +164,6 @@ def check_plan_limits(
     check_plan_axes(target, plan, axes or {})
     # The counts above name the limit; the shared check adds what only the wire knows
     # (an irregular plan too long for one request, heights and angles out of range).
-    problems = plan_fits(plan, DeviceLimits.from_welcome(dict(limits)))
+    problems = plan_fits(plan, limits)
     if problems:
         raise InputError(f"the {target} plan cannot be sent to the device: {problems[0]}")

@@ -13,10 +13,12 @@ from contextlib import ExitStack, contextmanager, suppress
 from dataclasses import dataclass, replace
 from typing import Any
 
-from lamina_host.link.client import DeviceClient, DeviceError, DeviceInfo, Preview, open_device
-from lamina_host.workflow.results import Progress
+from lamina_host.link.client import DeviceClient, Preview
+from lamina_host.link.connect import open_device
+from lamina_host.link.errors import DeviceError
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Event, Progress, ProgressEvent, Welcome
 from lamina_shared.ops import ExtractChanges
 from lamina_shared.types import ScanPlan, Segment
 
@@ -92,7 +94,7 @@ class DeviceSession:
         self.target = replace(self.target, object_spec=spec)
 
     @property
-    def info(self) -> DeviceInfo | None:
+    def info(self) -> Welcome | None:
         """Return the connected device's information, or None."""
         return self._client.info if self._client else None
 
@@ -126,9 +128,7 @@ class DeviceSession:
             self._close_link()
             raise
 
-    def connect(
-        self, device: str | None = None, on_notice: NoticeHandler | None = None
-    ) -> DeviceInfo:
+    def connect(self, device: str | None = None, on_notice: NoticeHandler | None = None) -> Welcome:
         """Connect to DEVICE (port, ``sim`` or ``replay:DIR``; default the target's)."""
         with self.busy():
             name = (device or self.target.device).strip()
@@ -262,7 +262,17 @@ class DeviceSession:
             if on_progress is not None:
                 elapsed, done = time.monotonic() - start, len(held)
                 total = len(plan.views)
-                on_progress(Progress(target, done, total, section, elapsed, done - first, starting))
+                on_progress(
+                    Progress(
+                        target,
+                        done,
+                        total,
+                        section,
+                        elapsed_s=elapsed,
+                        done_this_run=done - first,
+                        starting=starting,
+                    )
+                )
 
         def take(seq: int, segment: Segment) -> None:
             if on_store is not None:
@@ -271,9 +281,10 @@ class DeviceSession:
             if on_segment is not None:
                 on_segment(segment)
 
-        def progress(body: dict[str, Any]) -> None:
-            if body.get("event") == "progress":
-                report(int(body.get("section", 0)))
+        def progress(event: Event) -> None:
+            if isinstance(event, ProgressEvent):
+                # The count is ours (what is held here); the device says where it is.
+                report(event.progress.section)
 
         if first:
             # A resumed run: say how many views are held, and where it goes on.

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import cv2
 
-from lamina_host.link.client import DeviceClient, DeviceInfo
+from lamina_host.link.client import DeviceClient
 from lamina_host.store.files import OutputError, replace_file
 from lamina_host.store.library import Library
 from lamina_host.store.outputs import save_segments
@@ -39,6 +39,7 @@ from lamina_host.workflow.library_access import EXPORT_NAMES, LibraryAccess
 from lamina_host.workflow.processing import Processing, ProcessingError, process_again_hint
 from lamina_host.workflow.results import ScanData, device_summary
 from lamina_shared.errors import InputError
+from lamina_shared.messages import Welcome
 
 __all__ = [
     "EXPORT_NAMES",
@@ -86,9 +87,7 @@ class ScanJob:
         """Return the library's path (None: the default library)."""
         return self.store.path
 
-    def connect(
-        self, device: str | None = None, on_notice: NoticeHandler | None = None
-    ) -> DeviceInfo:
+    def connect(self, device: str | None = None, on_notice: NoticeHandler | None = None) -> Welcome:
         """Connect to DEVICE (port, ``sim`` or ``replay:DIR``; default the target's)."""
         info = self.device.connect(device, on_notice)
         self.acquisition.data.device = device_summary(info)

@@ -1,4 +1,4 @@
-"""Typed results of the scan workflow: progress, the raw scan, section rows, a processed scan.
+"""Typed results of the scan workflow: the raw scan, section rows, a processed scan.
 
 Both front ends show these; neither builds its own. :func:`device_summary` is the one
 place the device information recorded with a scan (and in its report) is built.
@@ -14,16 +14,16 @@ from typing import Any
 
 import numpy as np
 
-from lamina_host.link.client import DeviceInfo
 from lamina_host.reconstruct.calibration import DistortionTest
 from lamina_host.reconstruct.measure import perimeter, polygon_area
 from lamina_host.reconstruct.pipeline import Reconstruction, Section
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.outputs import MeshEntry, ScanReport
+from lamina_shared.messages import Welcome
 from lamina_shared.types import BoardSpec, Segment
 
 
-def device_summary(info: DeviceInfo | None) -> dict[str, str]:
+def device_summary(info: Welcome | None) -> dict[str, str]:
     """Return what a scan records about the device that acquires it (empty when unknown)."""
     if info is None:
         return {}
@@ -64,28 +64,6 @@ def distortion_summary(test: DistortionTest | None) -> str | None:
     if test.significant:
         return f"radial distortion shown by the board but kept (--distortion off; {change})"
     return f"no measurable distortion (F {test.f_statistic:.1f} < {test.f_critical:.1f})"
-
-
-@dataclass(frozen=True)
-class Progress:
-    """How far a scan has come, for the progress bar and the time left."""
-
-    target: str
-    done: int
-    total: int
-    section: int
-    elapsed_s: float
-    done_this_run: int
-    """Views received since this run (a start or a resume) began: the rate comes from these."""
-    starting: bool = False
-    """The report made as a resumed run starts, before any view: ``done`` are held already."""
-
-    @property
-    def left_s(self) -> float | None:
-        """Return the estimated seconds left (None before this run's first view)."""
-        if self.done_this_run <= 0:
-            return None
-        return self.elapsed_s / self.done_this_run * max(self.total - self.done, 0)
 
 
 @dataclass

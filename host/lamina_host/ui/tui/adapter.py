@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import serial.tools.list_ports
 
-from lamina_host.link.client import DeviceError
+from lamina_host.link.errors import DeviceError
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.pipeline import ProcessOptions
 from lamina_host.store.files import disk_full
@@ -35,7 +35,6 @@ from lamina_host.workflow.job import (
     SegmentHandler,
 )
 from lamina_host.workflow.results import (
-    Progress,
     Results,
     ScanData,
     SectionRow,
@@ -46,6 +45,7 @@ from lamina_host.workflow.results import (
 )
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
+from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment
 
 # pymeshlab (the optional extra) must be first imported on the main thread: when its first

@@ -10,12 +10,12 @@ from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Button, Input, Label, OptionList, Static
 
-from lamina_host.link.client import DeviceInfo
 from lamina_host.ui.tui.adapter import serial_ports
 from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_shared.messages import Welcome
 
 
-def describe(info: DeviceInfo | None) -> str:
+def describe(info: Welcome | None) -> str:
     """Return the device information as lines of text."""
     if info is None:
         return "not connected"
@@ -93,7 +93,7 @@ class ConnectScreen(LaminaScreen):
         # In a thread: the handshake and the device's start-up take seconds.
         self.in_thread("connect", lambda: self.job.connect(device), self.connected)
 
-    def connected(self, info: DeviceInfo) -> None:
+    def connected(self, info: Welcome) -> None:
         """Show the device that answered."""
         self.refresh_from_job()
         self.say(f"connected to {self.job.device.name}: {info.software}, protocol {info.protocol}")

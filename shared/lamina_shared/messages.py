@@ -1,0 +1,482 @@
+"""The link's messages other than requests: WELCOME, ACK, EVENT and the progress it carries.
+
+:mod:`lamina_shared.ops` types the requests; this module types what else crosses the
+line, in the same style: one frozen dataclass per message, ``to_wire()`` giving the JSON
+body the device sends and ``from_wire()`` reading one back, or raising
+:class:`MessageError` listing every problem found at once. Both ends use these classes,
+so the device and the host cannot disagree on a field's name or kind
+(``shared/PROTOCOL.md`` names the bodies).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from lamina_shared.limits import DeviceLimits, show
+from lamina_shared.ops import (
+    MAX_SHOWN_PROBLEMS,
+    MISSING,
+    ExtractChanges,
+    Problems,
+    check_int,
+    check_list,
+    is_int,
+)
+from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
+from lamina_shared.types import BoardSpec, ScanPlan
+
+MAX_LOST_SEQS = 64
+"""Earlier plan indices one ACK names as lost (the device resends them at once)."""
+MAX_SHORT_TEXT = 1_000
+"""Longest text field of a WELCOME or EVENT a reader keeps (a name, a description)."""
+MAX_COUNT = 2**32 - 1
+"""Largest request id, segment number or view count (they travel as u32)."""
+HOST_LIMITS = DeviceLimits()
+"""This version's limits: the host refuses a WELCOME beyond them (an image side)."""
+
+
+class MessageError(ValueError):
+    """A received message is unusable; ``problems`` lists every reason found."""
+
+    def __init__(self, kind: str, problems: list[str]) -> None:
+        self.kind, self.problems = kind, problems
+        shown = problems[:MAX_SHOWN_PROBLEMS]
+        more = len(problems) - len(shown)
+        super().__init__("; ".join(shown) + (f"; and {more} more" if more else ""))
+
+
+def _text(data: dict[str, Any], key: str, where: str, problems: Problems, default: Any) -> Any:
+    """Return the string ``data[key]`` (``default`` when absent); record any other kind."""
+    value = data.get(key, MISSING)
+    if value is MISSING:
+        return default
+    if not isinstance(value, str) or len(value) > MAX_SHORT_TEXT:
+        problems.add(f"{where}.{key}: a text of at most {MAX_SHORT_TEXT} characters is required")
+        return default
+    return value
+
+
+def _object(data: dict[str, Any], key: str, where: str, problems: Problems) -> dict[str, Any]:
+    """Return the JSON object ``data[key]`` ({} when absent or null); record any other kind."""
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        problems.add(f"{where}.{key}: an object is required, found {show(value)}")
+        return {}
+    return value
+
+
+def _refuse_non_object(body: Any, kind: str) -> dict[str, Any]:
+    if not isinstance(body, dict):
+        raise MessageError(kind, [f"{kind.lower()}: an object is required, found {show(body)}"])
+    return body
+
+
+# --- WELCOME ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """Which device it is (``serial``) and what it images (``source``); see PROTOCOL.md."""
+
+    serial: str | None = None
+    source: str | None = None
+
+    def to_wire(self) -> dict[str, str]:
+        """Return the WELCOME ``identity`` object (fields the device knows)."""
+        return {
+            k: v for k, v in (("serial", self.serial), ("source", self.source)) if v is not None
+        }
+
+
+@dataclass(frozen=True)
+class Welcome:
+    """What the device says about itself at the handshake (the WELCOME body).
+
+    A device of another protocol version is read for ``protocol`` and ``software``
+    only (all it sends such a peer): nothing else can be trusted to mean the same.
+    """
+
+    protocol: int
+    software: str = "?"
+    hardware: str = "?"
+    description: str = ""
+    image_size: tuple[int, int] = (0, 0)
+    board: BoardSpec | None = None
+    cylinder_diameter_mm: float | None = None
+    default_plans: dict[str, ScanPlan] = field(default_factory=dict)
+    axes: dict[str, Any] = field(default_factory=dict)
+    """The axes' travel as the device reports it (``lift``/``turntable``: unit, min, max)."""
+    operations: tuple[str, ...] = ()
+    limits: DeviceLimits = HOST_LIMITS
+    row_scale: int = ROW_SCALE
+    """The segment encoding's row scale (``segment_encoding.row_scale``)."""
+    identity: DeviceIdentity | None = None
+    extract: ExtractChanges | None = None
+    """The device's configured extraction settings, every one by name (None: not reported)."""
+    colour: bool = False
+    """The device samples colour per point (absent on devices before the extension)."""
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the device sends."""
+        width, height = self.image_size
+        return {
+            "protocol": self.protocol,
+            "software": self.software,
+            "hardware": self.hardware,
+            "description": self.description,
+            "image_size": [width, height],
+            "board": self.board.to_dict() if self.board else None,
+            "cylinder_diameter_mm": self.cylinder_diameter_mm,
+            "default_plans": {k: plan.to_wire() for k, plan in self.default_plans.items()},
+            "axes": self.axes,
+            "operations": list(self.operations),
+            "limits": self.limits.to_dict(),
+            "segment_encoding": {"row_scale": self.row_scale},
+            "identity": self.identity.to_wire() if self.identity else {},
+            "extract": self.extract.to_wire() if self.extract else None,
+            "colour": self.colour,
+        }
+
+    @classmethod
+    def from_wire(cls, body: Any) -> Welcome:
+        """Return the WELCOME a device sent.
+
+        Fields an older device of this protocol leaves out take their defaults; a field
+        present with the wrong kind or beyond this version's limits is a problem.
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = _refuse_non_object(body, "WELCOME")
+        problems = Problems()
+        protocol = check_int(
+            data.get("protocol", MISSING), "welcome.protocol", 0, MAX_COUNT, problems
+        )
+        if "protocol" not in data:
+            problems.add("welcome: protocol is required")
+        software = _text(data, "software", "welcome", problems, "?")
+        if protocol is not None and protocol != PROTOCOL_VERSION:
+            if problems.items:
+                raise MessageError("WELCOME", problems.items)
+            return cls(protocol, software)
+        if "hardware" not in data:
+            problems.add("welcome: hardware is required")
+        welcome = cls(
+            protocol or 0,
+            software,
+            _text(data, "hardware", "welcome", problems, "?"),
+            _text(data, "description", "welcome", problems, ""),
+            _image_size(data.get("image_size", MISSING), problems),
+            _board(data.get("board"), problems),
+            _diameter(data.get("cylinder_diameter_mm"), problems),
+            _plans(_object(data, "default_plans", "welcome", problems), problems),
+            _object(data, "axes", "welcome", problems),
+            _operations(data.get("operations"), problems),
+            DeviceLimits.from_welcome(data.get("limits")),
+            _row_scale(_object(data, "segment_encoding", "welcome", problems), problems),
+            _identity(data.get("identity"), problems),
+            _extract(data.get("extract"), problems),
+            data.get("colour") is True,
+        )
+        if problems.items:
+            raise MessageError("WELCOME", problems.items)
+        return welcome
+
+
+def _image_size(value: Any, problems: Problems) -> tuple[int, int]:
+    side = HOST_LIMITS.max_image_side_px
+    items = check_list(value, "welcome.image_size", 2, problems, min_items=2)
+    if value is MISSING:
+        problems.add("welcome: image_size is required")
+    if items is None:
+        return (0, 0)
+    width = check_int(items[0], "welcome.image_size[0]", 1, side, problems)
+    height = check_int(items[1], "welcome.image_size[1]", 1, side, problems)
+    return (width or 0, height or 0)
+
+
+def _board(value: Any, problems: Problems) -> BoardSpec | None:
+    if not value:
+        return None
+    try:
+        return BoardSpec.from_dict(value)
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        problems.add(f"welcome.board: unusable ({show(str(exc))})")
+        return None
+
+
+def _diameter(value: Any, problems: Problems) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        problems.add(f"welcome.cylinder_diameter_mm: a number is required, found {show(value)}")
+        return None
+    try:
+        return float(value)
+    except OverflowError:
+        problems.add("welcome.cylinder_diameter_mm: beyond any finite number")
+        return None
+
+
+def _plans(data: dict[str, Any], problems: Problems) -> dict[str, ScanPlan]:
+    plans: dict[str, ScanPlan] = {}
+    for target, wire in data.items():
+        try:
+            plans[str(target)] = ScanPlan.from_dict(wire)
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+            problems.add(f"welcome.default_plans.{show(target)}: unusable ({show(str(exc))})")
+    return plans
+
+
+def _operations(value: Any, problems: Problems) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    items = check_list(value, "welcome.operations", MAX_SHORT_TEXT, problems)
+    if items is None:
+        return ()
+    if not all(isinstance(op, str) for op in items):
+        problems.add("welcome.operations: a list of names is required")
+        return ()
+    return tuple(items)
+
+
+def _row_scale(encoding: dict[str, Any], problems: Problems) -> int:
+    scale = encoding.get("row_scale")
+    if scale != ROW_SCALE or not is_int(scale):
+        problems.add(
+            f"welcome.segment_encoding.row_scale: {show(scale)} is not this host's {ROW_SCALE}"
+        )
+    return ROW_SCALE
+
+
+def _identity(value: Any, problems: Problems) -> DeviceIdentity | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        problems.add(f"welcome.identity: an object is required, found {show(value)}")
+        return None
+    known = {}
+    for key in ("serial", "source"):
+        item = value.get(key)
+        if item is not None:
+            # Kept as text whatever its kind: an identity is compared, never computed with.
+            known[key] = str(item)[:MAX_SHORT_TEXT]
+    return DeviceIdentity(**known)
+
+
+def _extract(value: Any, problems: Problems) -> ExtractChanges | None:
+    """Return the configured extraction as reported, values untouched (they are hashed
+    into a scan's identity, so ``12`` must stay ``12``); kinds are the device's business."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        problems.add(f"welcome.extract: an object is required, found {show(value)}")
+        return None
+    scalar = (str, int, float, bool, type(None))
+    bad = [k for k, v in value.items() if not isinstance(v, scalar)]
+    for key in bad[:MAX_SHOWN_PROBLEMS]:
+        problems.add(
+            f"welcome.extract.{show(key)}: a number, text, true, false or null is required"
+        )
+    return None if bad else ExtractChanges(tuple(value.items()))
+
+
+# --- ACK --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Ack:
+    """The host has stored segments ``seqs`` of scan ``request_id``; ``lost`` were missed.
+
+    The device resends the ``lost`` plan indices at once (see PROTOCOL.md, *Segments*).
+    """
+
+    request_id: int
+    seqs: tuple[int, ...]
+    lost: tuple[int, ...] = ()
+
+    @classmethod
+    def stored(cls, request_id: int, seq: int, missing: list[int]) -> Ack:
+        """Return the ACK of one stored segment, naming at most :data:`MAX_LOST_SEQS` lost."""
+        return cls(request_id, (seq,), tuple(missing[:MAX_LOST_SEQS]))
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the host sends."""
+        return {"id": self.request_id, "seqs": list(self.seqs), "lost": list(self.lost)}
+
+    @classmethod
+    def from_wire(cls, body: Any, limits: DeviceLimits) -> Ack:
+        """Return the ACK the host sent (at most ``limits.max_ack_seqs`` numbers in all).
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = _refuse_non_object(body, "ACK")
+        problems = Problems()
+        request_id = check_int(data.get("id", MISSING), "ack.id", 0, MAX_COUNT, problems)
+        if "id" not in data:
+            problems.add("ack: id is required")
+        if "seqs" not in data:
+            problems.add("ack: seqs is required")
+        seqs = _seqs(data.get("seqs", MISSING), "ack.seqs", limits, problems)
+        lost = _seqs(data.get("lost", []), "ack.lost", limits, problems)
+        if len(seqs) + len(lost) > limits.max_ack_seqs:
+            problems.add(f"ack: {len(seqs) + len(lost)} numbers, at most {limits.max_ack_seqs}")
+        if problems.items or request_id is None:
+            raise MessageError("ACK", problems.items)
+        return cls(request_id, seqs, lost)
+
+
+def _seqs(value: Any, where: str, limits: DeviceLimits, problems: Problems) -> tuple[int, ...]:
+    items = check_list(value, where, limits.max_ack_seqs, problems)
+    if items is None:
+        return ()
+    bad = [k for k, item in enumerate(items) if not (is_int(item) and 0 <= item <= MAX_COUNT)]
+    for k in bad[:MAX_SHOWN_PROBLEMS]:
+        problems.add(f"{where}[{k}]: a segment number is required, found {show(items[k])}")
+    return () if bad else tuple(items)
+
+
+# --- EVENT and progress -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where a scan is: ``done`` of ``total`` views, the latest in ``section``.
+
+    The device's acquisition makes one after each view, the host one per progress EVENT
+    (adding the timing it measures itself); only the first four fields travel.
+    """
+
+    target: str
+    done: int
+    total: int
+    section: int
+    state: str = "scanning"
+    """``scanning``, ``paused`` (a pause is pending or held) or ``done`` (device side)."""
+    elapsed_s: float = 0.0
+    """Seconds since this run (a start or a resume) began."""
+    done_this_run: int = 0
+    """Views received since this run began: the rate comes from these."""
+    starting: bool = False
+    """The report made as a resumed run starts, before any view: ``done`` are held already."""
+
+    @property
+    def left_s(self) -> float | None:
+        """Return the estimated seconds left (None before this run's first view)."""
+        if self.done_this_run <= 0:
+            return None
+        return self.elapsed_s / self.done_this_run * max(self.total - self.done, 0)
+
+
+@dataclass(frozen=True)
+class ProgressEvent:
+    """EVENT ``progress``: a view of scan ``request_id`` was sent."""
+
+    request_id: int
+    progress: Progress
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the device sends."""
+        p = self.progress
+        return {
+            "id": self.request_id,
+            "event": "progress",
+            "target": p.target,
+            "done": p.done,
+            "total": p.total,
+            "section": p.section,
+        }
+
+
+@dataclass(frozen=True)
+class StatusEvent:
+    """EVENT ``status``: the device's state for request ``request_id`` (and the op begun)."""
+
+    request_id: int
+    state: str
+    op: str | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the device sends (``op`` only when a request begins)."""
+        body: dict[str, Any] = {"id": self.request_id, "event": "status", "state": self.state}
+        if self.op is not None:
+            body["op"] = self.op
+        return body
+
+
+@dataclass(frozen=True)
+class LogEvent:
+    """EVENT ``log``: one line the device has to say about request ``request_id``."""
+
+    request_id: int
+    message: str
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the device sends."""
+        return {"id": self.request_id, "event": "log", "message": self.message}
+
+
+Event = ProgressEvent | StatusEvent | LogEvent
+EVENTS = ("progress", "status", "log")
+"""The EVENT kinds a device sends."""
+
+
+def parse_event(body: Any) -> Event:
+    """Return the typed EVENT of a received body.
+
+    Raises:
+        MessageError: listing every problem (an unknown kind is one).
+    """
+    data = _refuse_non_object(body, "EVENT")
+    problems = Problems()
+    request_id = check_int(data.get("id", MISSING), "event.id", 0, MAX_COUNT, problems)
+    kind = data.get("event")
+    if "id" not in data:
+        problems.add("event: id is required")
+    if kind == "progress":
+        progress = _progress(data, problems)
+        if not problems.items and request_id is not None:
+            return ProgressEvent(request_id, progress)
+    elif kind == "status":
+        state = _text(data, "state", "event", problems, "")
+        op = _text(data, "op", "event", problems, None)
+        if not problems.items and request_id is not None:
+            return StatusEvent(request_id, state, op)
+    elif kind == "log":
+        message = _text(data, "message", "event", problems, "")
+        if not problems.items and request_id is not None:
+            return LogEvent(request_id, message)
+    else:
+        problems.add(f"event.event: one of {', '.join(EVENTS)} is required, found {show(kind)}")
+    raise MessageError("EVENT", problems.items)
+
+
+def _progress(data: dict[str, Any], problems: Problems) -> Progress:
+    for key in ("target", "done", "total", "section"):
+        if key not in data:
+            problems.add(f"event: {key} is required")
+    target = _text(data, "target", "event", problems, "")
+    done = check_int(data.get("done", MISSING), "event.done", 0, MAX_COUNT, problems)
+    total = check_int(data.get("total", MISSING), "event.total", 0, MAX_COUNT, problems)
+    section = check_int(data.get("section", MISSING), "event.section", 0, 65_535, problems)
+    return Progress(target, done or 0, total or 0, section or 0)
+
+
+__all__ = [
+    "EVENTS",
+    "MAX_LOST_SEQS",
+    "Ack",
+    "DeviceIdentity",
+    "Event",
+    "LogEvent",
+    "MessageError",
+    "Progress",
+    "ProgressEvent",
+    "StatusEvent",
+    "Welcome",
+    "parse_event",
+]
