@@ -51,6 +51,9 @@ class Hardware:
     extract: ExtractSettings = field(default_factory=ExtractSettings)
     """The configured stripe extraction (``[extract]``; a scan request may change it)."""
     sleep: Callable[[float], None] = time.sleep
+    timing: DeviceConfig | None = None
+    """The configuration whose axes and camera time a scan here (the ``estimate`` op):
+    the box's own; the shipped one for the simulator and a replay (None: unknown)."""
     """How the settle waits: real time on the box, the virtual clock in the simulator."""
 
     def place(self, target: str) -> None:
@@ -140,6 +143,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         },
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
+        timing=config,
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
         extract=config.extract,
     )

@@ -33,10 +33,19 @@ from lamina_device.acquisition import (
 from lamina_device.camera import ExposureRefused, camera_has_colour
 from lamina_device.extract import ExtractSettings, changed_settings, extract, to_segment
 from lamina_device.hardware import Hardware
+from lamina_device.timing import estimate_scan_time
 from lamina_shared.endpoint import Abandoned, Handler, RequestError, SegmentBuffer, ServerSettings
-from lamina_shared.messages import Event, LogEvent, Progress, ProgressEvent, StatusEvent
+from lamina_shared.messages import (
+    Event,
+    LogEvent,
+    Progress,
+    ProgressEvent,
+    ScanEstimate,
+    StatusEvent,
+)
 from lamina_shared.ops import (
     ArgsError,
+    EstimateArgs,
     ExposureArgs,
     MoveArgs,
     NoArgs,
@@ -179,6 +188,7 @@ class Operations:
             "abort": self.abort,
             "exposure": self.exposure,
             "status": self.status,
+            "estimate": self.estimate,
             "shutdown": self.shutdown,
         }
 
@@ -373,6 +383,19 @@ class Operations:
             except ExposureRefused as exc:
                 raise RequestError("limit", str(exc)) from None
         return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
+
+    def estimate(self, request_id: int, args: EstimateArgs) -> dict[str, Any]:
+        """Return how long the plan would keep the subject still (``lamina_device.timing``)."""
+        plan = self._plan(ScanArgs(args.target, args.plan))
+        config = self.hardware.timing
+        if config is None:
+            raise RequestError("unsupported", "this device cannot time a scan: no axis profiles")
+        # Frames wait for the exposure now in use, as the scan's would.
+        exposure_us = self.hardware.camera.exposure_us
+        modelled = estimate_scan_time(config, plan, exposure_us=exposure_us)
+        return ScanEstimate(
+            len(plan.views), modelled.modelled_s, modelled.mechanical_minimum_s
+        ).to_wire()
 
     def status(self, request_id: int, args: NoArgs) -> dict[str, Any]:
         """Report what a heartbeat says, and the retransmissions so far."""

@@ -130,5 +130,6 @@ def open_replay(folder: Path) -> Hardware:
         plans,
         f"replay of {folder}",
         identity={"serial": "replay", "source": f"{folder.resolve().name} sha256={manifest_sha}"},
+        timing=turntable.clock.config,
     )
     return watched(hardware)

@@ -17,7 +17,6 @@ is left out of both.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
@@ -35,7 +34,6 @@ __all__ = [
     "estimate_scan_time",
     "frame_wait_s",
     "lift_move_s",
-    "minutes_text",
     "turntable_move_s",
 ]
 
@@ -189,11 +187,3 @@ def estimate_scan_time(
         processing_s=modelled - finished_s,
         views=len(moves),
     )
-
-
-def minutes_text(seconds: float) -> str:
-    """Return a duration for the technician: ``"7 min 05 s"`` or ``"42 s"``."""
-    if not math.isfinite(seconds) or seconds < 0:
-        return "unknown"
-    whole = round(seconds)
-    return f"{whole // 60} min {whole % 60:02d} s" if whole >= 60 else f"{whole} s"

@@ -75,6 +75,7 @@ from lamina_host.workflow.exports import ALL_FORMATS, dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import distortion_summary, mesh_summary
 from lamina_shared.device_specs import SIM, replay_folder, spawns_device
+from lamina_shared.durations import duration_text
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
 from lamina_shared.messages import Progress
@@ -719,6 +720,7 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     # Before calibrating: the extraction settings are part of what the scan records.
     job.device.set_extract(request.extract)
     job.device.set_colour(request.colour)
+    _say_estimate(job, request.plan)
     try:
         return acquire(
             job,
@@ -756,6 +758,17 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
             f"{exc}; what arrived is kept: finish with lamina scan --resume {job.scan_id} "
             f"--device {args.device}"
         ) from None
+
+
+def _say_estimate(job: ScanJob, plan: ScanPlan | None) -> None:
+    """Say, before anything moves, how long the subject must hold still for the object."""
+    estimate = job.device.estimate("object", plan)
+    if estimate is not None and estimate.views:
+        print(
+            f"the object scan takes about {duration_text(estimate.modelled_s)} "
+            f"({estimate.views} views): ask the subject to hold still for that long",
+            file=sys.stderr,
+        )
 
 
 class DiskFull(LaminaError):

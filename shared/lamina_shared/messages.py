@@ -21,6 +21,7 @@ from lamina_shared.ops import (
     Problems,
     check_int,
     check_list,
+    check_number,
     is_int,
 )
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
@@ -340,6 +341,53 @@ def _seqs(value: Any, where: str, limits: DeviceLimits, problems: Problems) -> t
     return () if bad else tuple(items)
 
 
+# --- the estimate reply -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScanEstimate:
+    """The ``estimate`` reply: how long a plan keeps the subject still, on this device.
+
+    Attributes:
+        views: the plan's views.
+        modelled_s: first move to last view, as the device's loop would run it.
+        mechanical_minimum_s: the axes' moves (together), settles and frames alone.
+    """
+
+    views: int
+    modelled_s: float
+    mechanical_minimum_s: float
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON reply the device sends."""
+        return {
+            "views": self.views,
+            "modelled_s": round(self.modelled_s, 3),
+            "mechanical_minimum_s": round(self.mechanical_minimum_s, 3),
+        }
+
+    @classmethod
+    def from_wire(cls, body: Any) -> ScanEstimate:
+        """Return the estimate of a reply body.
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = _refuse_non_object(body, "estimate reply")
+        problems = Problems()
+        for key in ("views", "modelled_s", "mechanical_minimum_s"):
+            if key not in data:
+                problems.add(f"estimate: {key} is required")
+        views = check_int(data.get("views", MISSING), "estimate.views", 0, MAX_COUNT, problems)
+        times = [
+            check_number(data.get(key, MISSING), f"estimate.{key}", 0.0, 1e7, problems)
+            for key in ("modelled_s", "mechanical_minimum_s")
+        ]
+        if problems.items:
+            raise MessageError("estimate reply", problems.items)
+        return cls(views or 0, times[0] or 0.0, times[1] or 0.0)
+
+
 # --- EVENT and progress -----------------------------------------------------------------
 
 
@@ -476,6 +524,7 @@ __all__ = [
     "MessageError",
     "Progress",
     "ProgressEvent",
+    "ScanEstimate",
     "StatusEvent",
     "Welcome",
     "parse_event",

@@ -407,6 +407,14 @@ class ScanArgs:
     colour: bool = False
 
 
+@dataclass(frozen=True)
+class EstimateArgs:
+    """``estimate``: how long acquiring ``plan`` (None: the device's default) would take."""
+
+    target: str
+    plan: ScanPlan | None = None
+
+
 def _preview(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> PreviewArgs:
     check_keys(args, "preview", set(), {"laser", "stripe"}, problems)
     laser = check_bool(args.get("laser", False), "preview.laser", problems)
@@ -473,6 +481,13 @@ def _scan(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> Sca
     return ScanArgs(target or "", plan, tuple(have), extract, bool(colour))
 
 
+def _estimate(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> EstimateArgs:
+    check_keys(args, "estimate", {"target"}, {"plan"}, problems)
+    target = check_choice(args.get("target", MISSING), "estimate.target", TARGETS, problems)
+    plan = None if args.get("plan") is None else check_plan(args["plan"], limits, problems)
+    return EstimateArgs(target or "", plan)
+
+
 def _none(op: str) -> Callable[[dict[str, Any], DeviceLimits, Problems], NoArgs]:
     def parse(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> NoArgs:
         check_keys(args, op, set(), set(), problems)
@@ -504,6 +519,7 @@ OPS: dict[str, OpSpec] = {
         OpSpec("abort", NoArgs, False, _none("abort")),
         OpSpec("exposure", ExposureArgs, False, _exposure),
         OpSpec("status", NoArgs, False, _none("status")),
+        OpSpec("estimate", EstimateArgs, False, _estimate),
         OpSpec("shutdown", NoArgs, False, _none("shutdown")),
     )
 }

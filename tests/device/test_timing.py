@@ -20,7 +20,8 @@ from lamina_device.motion import (
     run_together,
     turntable_intervals_s,
 )
-from lamina_device.timing import estimate_scan_time, frame_wait_s, minutes_text
+from lamina_device.timing import estimate_scan_time, frame_wait_s
+from lamina_shared.durations import duration_text
 from lamina_shared.types import ScanPlan, ViewSpec
 
 
@@ -87,8 +88,8 @@ def test_processing_hides_behind_the_mechanics_unless_it_is_slower(config):
 def test_an_empty_plan_takes_no_time_and_durations_read_in_minutes(config):
     estimate = estimate_scan_time(config, ScanPlan(()))
     assert estimate.modelled_s == 0.0 and estimate.ratio == 1.0 and estimate.views == 0
-    assert minutes_text(425.4) == "7 min 05 s" and minutes_text(42.0) == "42 s"
-    assert minutes_text(float("nan")) == "unknown"
+    assert duration_text(425.4) == "7 min 05 s" and duration_text(42.0) == "42 s"
+    assert duration_text(float("nan")) == "unknown"
 
 
 def test_a_clockwise_plan_pays_the_backlash_approach(config):

@@ -95,6 +95,7 @@ def open_sim(
         {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
         f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
         settle_s=clock.settle_s,
+        timing=clock.config,
         identity={"serial": "sim", "source": source},
         sleep=clock.advance,
     )

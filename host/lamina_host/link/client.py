@@ -42,8 +42,9 @@ from lamina_host.link.transfer import fetch_transfer
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker
-from lamina_shared.messages import Welcome
+from lamina_shared.messages import MessageError, ScanEstimate, Welcome
 from lamina_shared.ops import (
+    EstimateArgs,
     ExposureArgs,
     ExtractChanges,
     NoArgs,
@@ -397,6 +398,22 @@ class DeviceClient:
             log.warning("%s", exc)
             if on_notice is not None:
                 on_notice(str(exc))
+            return None
+
+    def estimate(self, target: str, plan: ScanPlan | None = None) -> ScanEstimate | None:
+        """Return how long the device would take to acquire ``plan`` (None: default plan).
+
+        None from a device that cannot say (one from before the ``estimate`` operation).
+
+        Raises:
+            DeviceError: the plan is beyond the device's limits (the message names them).
+        """
+        if self.info is None or "estimate" not in self.info.operations:
+            return None
+        try:
+            return ScanEstimate.from_wire(self.request("estimate", EstimateArgs(target, plan)))
+        except MessageError as exc:
+            log.warning("the device's estimate is unreadable: %s", exc)
             return None
 
     def plan_for(self, target: str, plan: ScanPlan | None) -> ScanPlan:

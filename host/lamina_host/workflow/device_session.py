@@ -18,7 +18,7 @@ from lamina_host.link.connect import open_device
 from lamina_host.link.errors import DeviceError
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
-from lamina_shared.messages import Event, Progress, ProgressEvent, Welcome
+from lamina_shared.messages import Event, Progress, ProgressEvent, ScanEstimate, Welcome
 from lamina_shared.ops import ExtractChanges
 from lamina_shared.types import ScanPlan, Segment
 
@@ -213,6 +213,11 @@ class DeviceSession:
         """Return the camera's (exposure, min, max) in microseconds."""
         with self.busy(), self.link() as client:
             return client.exposure()
+
+    def estimate(self, target: str, plan: ScanPlan | None) -> ScanEstimate | None:
+        """Return how long ``plan`` (None: the device's default) would take, if it can say."""
+        with self.busy(), self.link() as client:
+            return client.estimate(target, plan)
 
     def set_exposure(self, exposure_us: int) -> int:
         """Set the camera's exposure; return the one the device now uses."""
