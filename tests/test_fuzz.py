@@ -20,7 +20,7 @@ from datetime import timedelta
 import numpy as np
 import pytest
 import serial
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from lamina_device.server import DeviceServer
@@ -182,7 +182,7 @@ def device():
 
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
-    server.handle(Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": "fuzz"}))
+    _new_session(server, inbox)  # each WELCOME is taken by the HELLO that asked for it
     yield server, inbox
     server._stop_worker()
     stop.set()
@@ -212,6 +212,37 @@ def _replies(inbox: queue.Queue[Message], request_id: int, timeout_s: float = 10
     raise AssertionError(f"no reply to request {request_id}")
 
 
+def _new_session(server: DeviceServer, inbox: queue.Queue[Message]) -> None:
+    """Say HELLO anew and drop what the device sent before its WELCOME (a late reply of an
+    earlier example, under an id this one may draw again).
+
+    Every HELLO to the module's device goes through here, so the WELCOME reached is this
+    one's: the earlier ones were taken by their own HELLOs.
+    """
+    server.handle(
+        Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": f"fuzz-{time.monotonic()}"})
+    )
+    deadline = time.monotonic() + 10
+    while inbox.get(timeout=max(0.0, deadline - time.monotonic())).kind is not Kind.WELCOME:
+        pass
+
+
+DEVICE_REFUSALS = frozenset({"bad-args", "limit", "busy", "idle", "aborted", "gone", "failed"})
+"""What a device may answer a well-formed request: the state it is in ("busy", "idle"...),
+or what only it knows (no default plan, a camera without colour, views beyond its plan)."""
+
+
+def _schema_refusal(op: object, args: object, limits: DeviceLimits) -> tuple[str, str] | None:
+    """Return the (code, message) the op schemas refuse the request with, or None."""
+    try:
+        parse_args(op, args, limits)
+    except UnknownOp as exc:
+        return "unknown-op", str(exc)
+    except ArgsError as exc:
+        return exc.code, str(exc)
+    return None
+
+
 @FUZZ
 @given(
     st.integers(1, 2**31),
@@ -224,18 +255,26 @@ def test_device_answers_any_request_and_stays_responsive(device, request_id, op,
     server, host = device
     # A new session per example: request ids repeat across examples, and within one
     # session the device rightly answers a repeated id from its reply cache.
-    server.handle(
-        Message(Kind.HELLO, {"protocol": PROTOCOL_VERSION, "session": f"fuzz-{time.monotonic()}"})
-    )
+    _new_session(server, host)
     if isinstance(args.get("plan"), dict | list):
         args["plan"] = {"views": [{"section": 0, "z_mm": 0.0, "angle_deg": 0.0}]}
     # Unsolicited or malformed messages of other kinds are ignored without harm.
     server.handle(Message(kind, junk if isinstance(junk, dict) else {"junk": junk}))
+    schema_refusal = _schema_refusal(op, args, server.settings.limits)
     server.handle(Message(Kind.REQUEST, {"id": request_id, "op": op, "args": args}))
     reply = _replies(host, request_id)
     assert isinstance(reply["ok"], bool)
-    if not reply["ok"]:
-        assert set(reply["error"]) == {"code", "message"}
+    event("refused by its schema" if schema_refusal else f"well-formed, ok={reply['ok']}")
+    if schema_refusal is not None:
+        # Refused for exactly the reason its schema names, and that reason is a sentence.
+        assert not reply["ok"] and set(reply["error"]) == {"code", "message"}, reply
+        assert (reply["error"]["code"], reply["error"]["message"]) == schema_refusal
+        assert schema_refusal[1].strip()
+    elif not reply["ok"]:
+        # A well-formed request may meet the device's state or its own plans and camera,
+        # never a refusal of its form, and never a fault of the device.
+        assert set(reply["error"]) == {"code", "message"}, reply
+        assert reply["error"]["code"] in DEVICE_REFUSALS and reply["error"]["message"].strip()
     # Still responsive: a status request gets its answer.
     server.handle(Message(Kind.REQUEST, {"id": request_id + 1, "op": "status"}))
     status = _replies(host, request_id + 1)
@@ -276,6 +315,7 @@ def test_host_refuses_odd_replies_with_device_error(result, request_id):
     assert client.stats.request_retries == 0
 
 
+@pytest.mark.wall_clock
 def test_a_frame_that_decodes_slowly_does_not_exist():
     """The worst case the decoder can meet: a maximal frame of the costliest kind."""
     worst = [

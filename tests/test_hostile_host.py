@@ -743,6 +743,7 @@ def _start_long_scan(tmp_path: Path) -> tuple[subprocess.Popen[str], Path, Path]
 
 
 @pytest.mark.parametrize("how", ["device killed", "host interrupted"])
+@pytest.mark.wall_clock
 def test_a_stopped_scan_says_why_within_seconds_and_keeps_what_arrived(tmp_path, how):
     host, path, out = _start_long_scan(tmp_path)
     stopped = time.monotonic()
@@ -790,6 +791,7 @@ def _client_for(bridge: PtyBridge, code: str) -> DeviceClient:
     return DeviceClient(Channel(port), process)
 
 
+@pytest.mark.wall_clock
 def test_a_starting_device_is_waited_for_while_it_runs_then_named(silent_device, monkeypatch):
     bridge, _ = silent_device
     monkeypatch.setattr(link, "SPAWNED_STARTUP_S", 3.0)

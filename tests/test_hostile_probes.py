@@ -265,6 +265,7 @@ def test_the_device_lists_the_first_problems_and_counts_the_rest(small_capture, 
     assert len(done.stderr) < 16_000
 
 
+@pytest.mark.wall_clock
 def test_the_host_reads_a_device_programs_stderr_while_it_runs(monkeypatch):
     """A child that writes far more than a pipe holds, then exits, is named at once."""
     monkeypatch.setattr(link, "SPAWNED_STARTUP_S", 20.0)
@@ -469,6 +470,7 @@ def test_finite_json_replaces_every_non_finite_number_only():
 # --- simulated objects beyond any rig ----------------------------------------------------
 
 
+@pytest.mark.wall_clock
 def test_simulated_objects_beyond_the_rig_are_one_line(capsys, tmp_path):
     """hand:scale=1e9 span the device at full CPU and 600 MB, the host silent."""
     beyond = ["hand:scale=1e9", "hand:scale=50", "cylinder:d=1e9", "sphere:d=25,x=1e7"]

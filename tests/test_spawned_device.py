@@ -37,6 +37,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.wall_clock
 def test_a_process_told_of_a_parent_that_is_not_its_own_ends_by_sigterm() -> None:
     """The watcher sees that its named parent is not (or no longer) its parent."""
     code = (

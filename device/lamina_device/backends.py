@@ -17,6 +17,7 @@ from lamina_device.config import ConfigError, load_config
 from lamina_device.hardware import Hardware, HardwareError, open_pi
 from lamina_device.replay import open_replay
 from lamina_device.sim.backend import open_sim
+from lamina_shared.device_specs import SIM, replay_folder
 
 
 def open_hardware(
@@ -44,10 +45,9 @@ def open_hardware(
     Raises:
         HardwareError: naming what is wrong and what to do.
     """
-    if spec == "sim":
+    if spec == SIM:
         return open_sim(object_spec, seed, noise, rig, sway=sway)
-    if spec.startswith("replay:"):
-        folder = spec.removeprefix("replay:")
+    if (folder := replay_folder(spec)) is not None:
         if not folder:
             raise HardwareError("replay needs a capture folder: --hardware replay:DIR")
         return open_replay(Path(folder))

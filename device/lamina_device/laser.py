@@ -75,8 +75,11 @@ class Laser:
                 self._output.off()
                 self._changed_ns = self._clock_ns()
 
-    def pin_history(self) -> list[bool] | None:
-        """Return the pin's recorded levels under gpiozero's MockFactory, else None."""
+    def mock_pin_history(self) -> list[bool] | None:
+        """Return the pin's recorded levels under gpiozero's MockFactory, else None.
+
+        For tests and the simulated device only: a real pin records nothing.
+        """
         with self._lock:
             pin = None if self._output.closed else self._output.pin
             states = getattr(pin, "states", None)
@@ -88,7 +91,7 @@ class Laser:
             if self._output.closed:
                 return
             self._output.off()
-            history = self.pin_history()
+            history = self.mock_pin_history()
             if history is not None:
                 # Test hook: a simulated device run with -v shows what its laser pin did.
                 active = self._output.active_high

@@ -23,17 +23,28 @@ from pathlib import Path
 from typing import Any
 
 from lamina_host import __version__
+from lamina_host.clinical.measures import AXES, COMPARISONS, Thresholds, parse_landmark
+from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
 from lamina_host.link.errors import DeviceError, RequestRefused
-from lamina_host.reconstruct.axis import AXIS_METHODS
-from lamina_host.reconstruct.calibration import CALIBRATION_METHODS, DISTORTION_MODES
-from lamina_host.reconstruct.efd import HARMONIC_RULES
+from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
-from lamina_host.reconstruct.mesh import MESH_METHODS, meshlab
-from lamina_host.reconstruct.pipeline import ProcessOptions
+from lamina_host.reconstruct.mesh import meshlab
+from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.dicom import DICOM_SOPS, check_institution
-from lamina_host.store.files import OutputError, disk_full, prepare_output_folder
-from lamina_host.store.library import SIDES, Library, ScanRecord, default_library_path
+from lamina_host.store.files import (
+    OutputError,
+    disk_full,
+    new_file_problem,
+    prepare_output_folder,
+)
+from lamina_host.store.library import (
+    SIDES,
+    Library,
+    ScanRecord,
+    default_library_path,
+    formats_text,
+)
 from lamina_host.store.outputs import FailedEntry, ScanReport
 from lamina_host.store.pacs import (
     DEFAULT_CALLING_AE,
@@ -60,9 +71,10 @@ from lamina_host.workflow.batch import (
     select_scans,
     write_table,
 )
-from lamina_host.workflow.exports import dicom_export, export_scan
+from lamina_host.workflow.exports import ALL_FORMATS, dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
 from lamina_host.workflow.results import distortion_summary, mesh_summary
+from lamina_shared.device_specs import SIM, replay_folder, spawns_device
 from lamina_shared.durations import duration_text
 from lamina_shared.errors import InputError, LaminaError, printable
 from lamina_shared.link import LinkClosed
@@ -112,7 +124,7 @@ def _stop_signals_interrupt() -> Iterator[None]:
 
 SCAN_DEFAULTS: dict[str, Any] = {
     "subject": "anonymous",
-    "trim": 0.10,
+    "trim": DEFAULT_TRIM_FRACTION,
     "seed": 0,
     "noise": "thesis",
     "rig": "thesis",
@@ -182,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--trim",
         type=float,
-        help="fraction dropped from each segment end (default 0.10)",
+        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:.2f})",
     )
     scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
@@ -202,8 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_library_option(scans)
     export = sub.add_parser(
         "export",
-        help="export a scan's mesh (.ply/.obj/.stl), report (.json), DICOM Encapsulated STL "
-        "(.dcm) or compact follow-up record (.lrec)",
+        help=f"export a scan as {formats_text(ALL_FORMATS)}",
     )
     export.add_argument("scan", type=int, help="scan id (see lamina scans)")
     export.add_argument("-o", "--out", required=True, type=Path, help="new file to write")
@@ -283,7 +294,7 @@ def _add_ui_options(parser: argparse.ArgumentParser) -> None:
 
 def _check_ui_options(args: argparse.Namespace) -> list[str]:
     """Refuse sim-only options for another device; return them as ``lamina tui`` options."""
-    if (args.object or args.noise) and args.device != "sim":
+    if (args.object or args.noise) and args.device != SIM:
         raise UsageError("--object and --noise only apply to --device sim")
     options = ["--device", args.device]
     for flag, value in (("--object", args.object), ("--noise", args.noise)):
@@ -293,8 +304,6 @@ def _check_ui_options(args: argparse.Namespace) -> list[str]:
 
 def _add_measure_options(parser: argparse.ArgumentParser) -> None:
     """Add how a limb is measured: level spacing, landmark and axis (report and batch)."""
-    from lamina_host.clinical.measures import AXES
-
     parser.add_argument(
         "--spacing-mm", type=float, default=40.0, help="distance between levels (default 40)"
     )
@@ -317,8 +326,6 @@ def _check_spacing(spacing_mm: float) -> float:
 
 def _add_report_parser(sub: Any) -> None:
     """Add ``lamina report``: a processed scan's clinical measurements on one page."""
-    from lamina_host.clinical.measures import COMPARISONS, Thresholds
-
     limits = Thresholds()
     report = sub.add_parser(
         "report", help="write a scan's clinical report (.pdf/.png) or its measurement table (.csv)"
@@ -389,28 +396,46 @@ def _add_method_options(parser: argparse.ArgumentParser) -> None:
         default="best",
         help="start from Lamina's best methods or the thesis' (the options below override)",
     )
-    parser.add_argument("--calibration", choices=CALIBRATION_METHODS, help="homography estimator")
+    parser.add_argument(
+        "--calibration", choices=OPTION_CHOICES["calibration"], help="homography estimator"
+    )
     parser.add_argument(
         "--distortion",
         nargs="?",
         const="on",
-        choices=DISTORTION_MODES,
+        choices=OPTION_CHOICES["distortion"],
         help="radial lens distortion (ml only): auto estimates it from the board and keeps it "
         "where the board's rows show it (default), on always, off never; --distortion alone: on",
     )
-    parser.add_argument("--axis", choices=AXIS_METHODS, help="turntable axis method")
+    parser.add_argument("--axis", choices=OPTION_CHOICES["axis"], help="turntable axis method")
     parser.add_argument(
         "--angle-correction",
         action=argparse.BooleanOptionalAction,
-        help="estimate the turntable's angle scale from the cylinder (default with --axis joint)",
+        help="estimate the turntable's angle scale from the cylinder (default with --axis "
+        f"{ANGLE_CORRECTION_AXIS})",
     )
-    parser.add_argument("--harmonic-rule", choices=HARMONIC_RULES, help="EFD harmonic rule")
-    parser.add_argument("--mesh", choices=MESH_METHODS, help="surface method")
+    parser.add_argument(
+        "--harmonic-rule", choices=OPTION_CHOICES["harmonic_rule"], help="EFD harmonic rule"
+    )
+    parser.add_argument("--mesh", choices=OPTION_CHOICES["mesh"], help="surface method")
     parser.add_argument(
         "--split-gap",
         type=float,
         help="fit outlines further apart than this many mm separately (0: never split)",
     )
+
+
+OPTION_FLAGS = {
+    "trim_fraction": "--trim",
+    "harmonics": "--harmonics",
+    "calibration": "--calibration",
+    "distortion": "--distortion",
+    "axis": "--axis",
+    "angle_correction": "--angle-correction",
+    "harmonic_rule": "--harmonic-rule",
+    "mesh": "--mesh",
+}
+"""The flag naming each processing option in a refusal (the rules are ``ProcessOptions``')."""
 
 
 def _process_options(args: argparse.Namespace) -> ProcessOptions:
@@ -424,17 +449,15 @@ def _process_options(args: argparse.Namespace) -> ProcessOptions:
         changes["distortion"] = args.distortion
     if args.angle_correction is not None:
         changes["angle_correction"] = args.angle_correction
-    elif changes.get("axis") == "centroid":
-        changes["angle_correction"] = False  # only the joint fit can estimate it
+    elif changes.get("axis", ANGLE_CORRECTION_AXIS) != ANGLE_CORRECTION_AXIS:
+        changes["angle_correction"] = False  # only that axis fit can estimate it
     if args.split_gap is not None:
         if not (math.isfinite(args.split_gap) and args.split_gap >= 0):
             raise UsageError("--split-gap must be 0 (never split) or a positive number of mm")
         changes["split_gap_mm"] = args.split_gap or None
     options = replace(base, **changes)
-    if options.distortion == "on" and options.calibration != "ml":
-        raise UsageError("--distortion on needs --calibration ml")
-    if options.angle_correction and options.axis != "joint":
-        raise UsageError("--angle-correction needs --axis joint")
+    if problem := options.problem(OPTION_FLAGS):
+        raise UsageError(problem)
     if options.mesh != "contours":
         meshlab(options.mesh)  # refuse now, one line, rather than after the scan
     return options
@@ -516,10 +539,6 @@ def _plan(args: argparse.Namespace) -> ScanPlan | None:
 
 def _check_numbers(args: argparse.Namespace) -> None:
     """Refuse any numeric option that is zero where it cannot be, negative or not finite."""
-    if not (math.isfinite(args.trim) and 0.0 <= args.trim < 0.5):
-        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
-    if args.harmonics is not None:
-        check_count("--harmonics", args.harmonics, 1, 100)
     if args.cylinder_mm is not None:
         check_positive_mm("--cylinder-mm", args.cylinder_mm, 1000.0)
     check_count("--seed", args.seed, 0, 2**32 - 1)
@@ -533,19 +552,18 @@ def _check_args(
         raise UsageError("name an output folder with -o OUT")
     check_subject(args.subject)
     _check_numbers(args)
-    spawns_device = args.device == "sim" or args.device.startswith("replay:")
-    if spawns_device and find_spec("lamina_device") is None:
+    if spawns_device(args.device) and find_spec("lamina_device") is None:
         raise UsageError(
             f"--device {args.device} runs the device program here, but "
             "lamina-device is not installed: pip install -e device"
         )
-    if args.device.startswith("replay:"):
-        capture = Path(args.device.removeprefix("replay:"))
+    if (folder := replay_folder(args.device)) is not None:
+        capture = Path(folder)
         if not (capture / "capture.json").is_file():
             raise UsageError(f"{capture} holds no capture.json: name a capture folder")
-    if args.object and args.device != "sim":
+    if args.object and args.device != SIM:
         raise UsageError("--object only applies to --device sim")
-    if args.rig != "thesis" and args.device != "sim":
+    if args.rig != "thesis" and args.device != SIM:
         raise UsageError("--rig only applies to --device sim")
     _process_options(args)  # refuse bad method combinations before scanning
     try:
@@ -778,11 +796,7 @@ def process(args: argparse.Namespace) -> int:
             setattr(args, name, record.options.get(name))
     if args.trim is None:
         args.trim = SCAN_DEFAULTS["trim"]
-    if not (isinstance(args.trim, int | float) and 0.0 <= args.trim < 0.5):
-        raise UsageError(f"--trim {args.trim} must be at least 0 and below 0.5")
-    if args.harmonics is not None:
-        check_count("--harmonics", args.harmonics, 1, 100)
-    options = _process_options(args)
+    options = _process_options(args)  # the trim and harmonics recorded are checked too
     try:
         expect = parse_expectation(args.expect) if args.expect else None
     except ValueError as exc:
@@ -843,8 +857,6 @@ def batch(args: argparse.Namespace) -> int:
         check_count("--workers", args.workers, 1, 256)
     check_pattern(args.subjects)
     check_output(args.out)
-    from lamina_host.clinical.measures import parse_landmark
-
     measure = ClinicalMeasure(
         _check_spacing(args.spacing_mm), parse_landmark(args.landmark), args.limb_axis
     )
@@ -890,9 +902,6 @@ def serve_ui(args: argparse.Namespace) -> int:
 
 def clinical_report(args: argparse.Namespace) -> int:
     """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
-    from lamina_host.clinical.measures import Thresholds, parse_landmark
-    from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
-
     limits: tuple[float, ...] = (args.flag_difference_ml, args.flag_difference_percent)
     limits += (args.flag_circumference_mm, args.flag_change_percent)
     if not all(math.isfinite(v) and v >= 0 for v in limits):
@@ -902,8 +911,8 @@ def clinical_report(args: argparse.Namespace) -> int:
     for path in outputs:
         if path.suffix.lower() not in (".pdf", ".png", ".csv"):
             raise UsageError(f"cannot write {path.name}: name the file .pdf, .png or .csv")
-        if path.exists() or path.is_symlink():
-            raise UsageError(f"{path} already exists: choose a new file name")
+        if problem := new_file_problem(path):
+            raise UsageError(problem)  # before the measuring, not after it
     request = MeasureRequest(
         args.spacing_mm, parse_landmark(args.landmark), args.limb_axis, Thresholds(*limits)
     )

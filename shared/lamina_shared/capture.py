@@ -17,7 +17,6 @@ import json
 import math
 import os
 import struct
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path, PurePosixPath
@@ -537,16 +536,3 @@ class CaptureWriter:
         tmp.write_text(json.dumps(self.manifest(), indent=2) + "\n", encoding="utf-8")
         tmp.replace(path)
         return path
-
-
-def iter_frames(capture: Capture) -> Iterator[Path]:
-    """Yield every frame path of a capture (grid, cylinder, scan)."""
-    if capture.grid_image:
-        yield capture.grid_image
-    for view in capture.cylinder_views + capture.scan_views:
-        yield view.laser_on
-        if view.laser_off:
-            yield view.laser_off
-
-
-FrameReader = Callable[[Path], np.ndarray]

@@ -415,9 +415,6 @@ class EstimateArgs:
     plan: ScanPlan | None = None
 
 
-Checker = Callable[[Any, DeviceLimits, Problems], Any]
-
-
 def _preview(args: dict[str, Any], limits: DeviceLimits, problems: Problems) -> PreviewArgs:
     check_keys(args, "preview", set(), {"laser", "stripe"}, problems)
     laser = check_bool(args.get("laser", False), "preview.laser", problems)

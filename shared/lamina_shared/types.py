@@ -212,11 +212,6 @@ class Segment:
         return len(self.cols)
 
     @property
-    def peak_over_noise(self) -> np.ndarray:
-        """Return each point's confidence as a float ratio (0 where unknown)."""
-        return self.confidence.astype(np.float64) / CONFIDENCE_SCALE
-
-    @property
     def uv(self) -> np.ndarray:
         """Return the (N, 2) image points ``(u, v)`` as float64."""
         return np.stack([self.cols.astype(float), self.rows.astype(float)], axis=1)

@@ -53,7 +53,7 @@ def sim():
 
 
 def laser_levels(hardware) -> list[bool]:
-    return hardware.laser.pin_history()
+    return hardware.laser.mock_pin_history()
 
 
 def test_segments_arrive_in_plan_order_with_progress_and_the_lift_home(sim):

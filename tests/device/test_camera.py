@@ -64,9 +64,10 @@ def test_frames_match_the_laser_state_and_straddling_frames_are_dropped(pi_camer
     assert straddling, "the fake sensor must have exposed a frame across the switch-on"
     assert camera.frames_dropped >= len(straddling)
     assert all(f.released for f in fake.frames)
-    assert laser.pin_history() == [False, True, False]
+    assert laser.mock_pin_history() == [False, True, False]
 
 
+@pytest.mark.wall_clock
 def test_a_stalled_camera_ends_the_capture_in_time_with_the_laser_off(pi_kit, fake_picamera2):
     factory = MockFactory()
     laser = Laser(17, pin_factory=factory)
@@ -80,7 +81,7 @@ def test_a_stalled_camera_ends_the_capture_in_time_with_the_laser_off(pi_kit, fa
             capture_pair(hardware)
         assert time.monotonic() - started < 1.5  # bounded by timeout_s, not hung
         assert fake_picamera2.cameras[0].cancellations == 1
-        assert laser.pin_history() == [False, True, False]
+        assert laser.mock_pin_history() == [False, True, False]
         fake_picamera2.stall_when_lit = False  # the cable is reseated: frames come again
         assert camera.capture().shape == (240, 320)
     finally:

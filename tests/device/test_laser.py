@@ -43,6 +43,6 @@ def test_close_switches_off_first_and_logs_the_history(caplog):
     assert "states seen on its pin: off on off" in caplog.text
     assert [s.state for s in factory.pin(17).states][-1] is False
     laser.off()  # harmless after release
-    assert not laser.is_on and laser.pin_history() is None
+    assert not laser.is_on and laser.mock_pin_history() is None
     with pytest.raises(RuntimeError, match="released"):
         laser.on()

@@ -45,7 +45,6 @@ from lamina_host.reconstruct.efd import (
     align,
     choose_harmonics,
     efd_fit,
-    resample_by_angle,
 )
 from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area, radial_error_table
 from lamina_host.reconstruct.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
@@ -276,7 +275,6 @@ def test_efd_takes_any_outline(points: np.ndarray, rule: str, parameter: str) ->
     contour = efd.evaluate(64)
     assert finite(contour)
     assert finite(align(efd).coeffs)
-    lamina_or_result(lambda: resample_by_angle(points, 1.0))
 
 
 @FAST

@@ -36,7 +36,7 @@ import numpy as np
 from lamina_host.link.errors import DeviceError, RequestRefused, ScanStopped
 from lamina_host.link.handshake import hello_body, in_use, read_welcome, refusal_of
 from lamina_host.link.identity import scan_identity
-from lamina_host.link.scanning import EventHandler, ScanReceiver, SegmentHandler
+from lamina_host.link.scanning import EventHandler, IndexedSegmentHandler, ScanReceiver
 from lamina_host.link.spawn import StderrTail
 from lamina_host.link.transfer import fetch_transfer
 from lamina_shared.endpoint import Dispatcher, request_id_of
@@ -432,7 +432,7 @@ class DeviceClient:
         on_event: EventHandler | None = None,
         *,
         have: Collection[int] = (),
-        on_segment: SegmentHandler | None = None,
+        on_segment: IndexedSegmentHandler | None = None,
         on_notice: Callable[[str], object] | None = None,
         extract: ExtractChanges | None = None,
         colour: bool = False,

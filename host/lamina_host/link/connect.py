@@ -18,15 +18,11 @@ from lamina_host.link.errors import DeviceError
 from lamina_host.link.identity import spawned_source
 from lamina_host.link.spawn import PtyBridge, device_command, start_device_program
 from lamina_host.link.transport import BAUD_RATE, READ_TIMEOUT_S, open_port
+from lamina_shared.device_specs import spawns_device
 from lamina_shared.link import Channel
 
 Transform = Callable[[bytes, str], bytes]
 """Alters bytes in flight between the host and a device started here (fault injection)."""
-
-
-def is_spawned(device: str) -> bool:
-    """Return True when DEVICE is a device program the host starts itself."""
-    return device == "sim" or device.startswith("replay:")
 
 
 @contextmanager
@@ -45,7 +41,7 @@ def open_device(
     ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
     ``on_notice`` hears about a slow start of a device program started here.
     """
-    if is_spawned(device):
+    if spawns_device(device):
         with _spawned_device(device, object_spec, seed, noise, transform, rig, on_notice) as client:
             yield client
         return

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from lamina_shared.device_specs import SIM, replay_folder
 from lamina_shared.errors import printable
 from lamina_shared.messages import Welcome
 
@@ -26,13 +27,13 @@ def spawned_source(
     For ``sim`` the object, rig, noise and seed; for ``replay:DIR`` the capture's name and
     the SHA-256 of its ``capture.json``. None for a real device (it reports its own).
     """
-    if device == "sim":
+    if device == SIM:
         return (
             f"sim object={object_spec or 'default'} rig={rig or 'thesis'} "
             f"noise={noise or 'thesis'} seed={0 if seed is None else seed}"
         )
-    if device.startswith("replay:"):
-        folder = Path(device.removeprefix("replay:"))
+    if (capture := replay_folder(device)) is not None:
+        folder = Path(capture)
         try:
             digest = hashlib.sha256((folder / "capture.json").read_bytes()).hexdigest()
         except OSError:

@@ -24,7 +24,7 @@ REACK_SEQS = 16
 """Segments acknowledged again when a heartbeat says the device still holds some (its
 window)."""
 
-SegmentHandler = Callable[[int, Segment], object]
+IndexedSegmentHandler = Callable[[int, Segment], object]
 """Receives (seq, segment) for each new segment; it must have stored it when it returns."""
 EventHandler = Callable[[Event], object]
 """Receives a scan's typed events: progress per view, status, log."""
@@ -52,7 +52,7 @@ class ScanReceiver:
         plan: ScanPlan,
         held: Collection[int],
         image_size: tuple[int, int],
-        on_segment: SegmentHandler | None = None,
+        on_segment: IndexedSegmentHandler | None = None,
         on_event: EventHandler | None = None,
     ) -> None:
         self.channel, self.target, self.plan = channel, target, plan

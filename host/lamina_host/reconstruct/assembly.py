@@ -12,7 +12,32 @@ from lamina_host.reconstruct.outliers import label_clusters
 TWO_PI = 2.0 * np.pi
 
 
-def trim(points: np.ndarray, fraction: float = 0.10) -> np.ndarray:
+TRIM_RANGE = (0.0, 0.5)
+"""The share of each segment's points :func:`trim` may drop at each end: from the first
+(included) to below the second (half of each end would leave nothing)."""
+
+DEFAULT_TRIM_FRACTION = 0.10
+"""The thesis' share dropped at each end (6.1)."""
+
+
+def trim_problem(fraction: object, name: str = "trim fraction") -> str | None:
+    """Return why ``fraction`` is no share :func:`trim` can drop, or None if it is one.
+
+    Args:
+        fraction: the share asked for (anything a user or a stored record may hold).
+        name: how the asking front end names the option (``--trim``).
+    """
+    low, high = TRIM_RANGE
+    if (
+        isinstance(fraction, int | float)
+        and not isinstance(fraction, bool)
+        and low <= fraction < high  # NaN fails this
+    ):
+        return None
+    return f"{name} {fraction} must be at least {low:g} and below {high:g}"
+
+
+def trim(points: np.ndarray, fraction: float = DEFAULT_TRIM_FRACTION) -> np.ndarray:
     """Drop the first and last ``fraction`` of a segment's points (thesis 6.1).
 
     The stripe is weakest and noisiest where it grazes the object's edges, so the thesis
@@ -20,13 +45,13 @@ def trim(points: np.ndarray, fraction: float = 0.10) -> np.ndarray:
 
     Args:
         points: (K, ...) points ordered along the segment (by image column).
-        fraction: share of the points dropped at each end, 0 <= fraction < 0.5.
+        fraction: share of the points dropped at each end, within :data:`TRIM_RANGE`.
 
     Returns:
         The middle points; ``floor(K * fraction)`` are removed from each end.
     """
-    if not 0.0 <= fraction < 0.5:
-        raise ValueError(f"trim fraction must be in [0, 0.5), not {fraction}")
+    if problem := trim_problem(fraction):
+        raise ValueError(problem)
     pts = np.asarray(points)
     k = int(np.floor(len(pts) * fraction + 1e-9))
     return pts[k : len(pts) - k]

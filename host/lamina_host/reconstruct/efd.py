@@ -263,6 +263,27 @@ def harmonics_binned_thesis(contour: np.ndarray) -> int:
 HARMONIC_RULES = ("residual", "noise", "power", "thesis", "nyquist")
 """Selectable harmonic-count rules; the first is the default."""
 
+HARMONICS_RANGE = (1, 100)
+"""The fixed EFD orders a user may ask for, first to last (None lets the rule choose)."""
+
+
+def harmonics_problem(harmonics: object, name: str = "harmonics") -> str | None:
+    """Return why ``harmonics`` is no fixed order a user may ask for, or None if it is.
+
+    Args:
+        harmonics: the order asked for; None (the harmonic rule chooses) is no problem.
+        name: how the asking front end names the option (``--harmonics``).
+    """
+    if harmonics is None:
+        return None
+    low, high = HARMONICS_RANGE
+    if not isinstance(harmonics, int) or isinstance(harmonics, bool):
+        return f"{name} {harmonics} must be a whole number between {low} and {high}"
+    if not low <= harmonics <= high:
+        return f"{name} {harmonics} must be between {low} and {high}"
+    return None
+
+
 POWER_FRACTION = 0.9999
 """The ``"power"`` rule keeps the fewest harmonics holding this share of the power."""
 
@@ -507,18 +528,6 @@ def choose_harmonics(
     if rule == "nyquist":
         return max(1, nyquist_max(len(_clean_closed(contour))))
     raise ValueError(f"unknown harmonic rule {rule!r}; use one of {', '.join(HARMONIC_RULES)}")
-
-
-def resample_by_angle(contour: np.ndarray, bin_deg: float) -> np.ndarray:
-    """Return the contour reduced to its mean radius per polar-angle bin about its centroid.
-
-    Dense, noisy, angle-sorted points zig-zag, which lengthens the polyline and warps the
-    arc-length parameter of the EFD; one mean point per bin keeps the outline and averages
-    the scatter. Assumes a star-shaped section, as overlap averaging does (thesis 6.3).
-    """
-    if not bin_deg > 0:
-        raise ValueError(f"bin_deg must be positive, not {bin_deg}")
-    return _bin_by_angle(_clean_closed(contour), bin_deg)
 
 
 def efd_area(efd: EllipticFourier) -> float:

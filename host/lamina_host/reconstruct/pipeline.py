@@ -9,20 +9,23 @@ method and Lamina's default side by side; ``ProcessOptions.thesis()`` runs the t
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from lamina_host.reconstruct.assembly import (
+    DEFAULT_TRIM_FRACTION,
     Blend,
     average_overlap_colours,
     blend_overlaps,
     split_outlines,
     to_object_frame,
     trim,
+    trim_problem,
 )
 from lamina_host.reconstruct.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
 from lamina_host.reconstruct.calibration import (
@@ -48,6 +51,7 @@ from lamina_host.reconstruct.efd import (
     MeasuredPoints,
     choose_harmonics,
     efd_fit,
+    harmonics_problem,
     nyquist_max,
 )
 from lamina_host.reconstruct.measure import centroid, perimeter, signed_area
@@ -72,6 +76,27 @@ MIN_SEGMENT_POINTS = 10
 
 DEFAULT_SPLIT_GAP_MM = 2.0
 """Outlines further apart than this are separate (also used to cluster for rejection)."""
+
+OPTION_CHOICES: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {
+        "calibration": CALIBRATION_METHODS,
+        "distortion": DISTORTION_MODES,
+        "axis": AXIS_METHODS,
+        "harmonic_rule": HARMONIC_RULES,
+        "efd_parameter": PARAMETERS,
+        "mesh": MESH_METHODS,
+        "interpolation": INTERPOLATIONS,
+    }
+)
+"""The :class:`ProcessOptions` fields that name a method, and the methods each may name:
+the one list the command line's choices, the terminal UI and :meth:`ProcessOptions.check`
+read."""
+
+ANGLE_CORRECTION_AXIS = "joint"
+"""The one axis method that estimates the turntable's angle scale (``angle_correction``)."""
+
+DISTORTION_CALIBRATION = "ml"
+"""The one calibration that estimates lens distortion (``distortion`` other than off)."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +136,7 @@ class ProcessOptions:
             fit (``thin_outline``); None fits every point (thesis).
     """
 
-    trim_fraction: float = 0.10
+    trim_fraction: float = DEFAULT_TRIM_FRACTION
     outline_points: int = 500
     harmonics: int | None = None
     ball_radius_mm: float | None = None
@@ -149,33 +174,59 @@ class ProcessOptions:
         )
 
     def check(self) -> None:
-        """Raise ValueError naming the first option that is not one of its choices."""
-        choices = {
-            "calibration": CALIBRATION_METHODS,
-            "axis": AXIS_METHODS,
-            "harmonic_rule": HARMONIC_RULES,
-            "efd_parameter": PARAMETERS,
-            "mesh": MESH_METHODS,
-            "interpolation": INTERPOLATIONS,
-            "distortion": DISTORTION_MODES,
-        }
-        for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"{name} {getattr(self, name)!r} is not one of {allowed}")
-        if self.angle_correction and self.axis != "joint":
-            raise ValueError("the angle correction needs the joint axis fit")
-        if self.distortion == "on" and self.calibration != "ml":
-            raise ValueError("lens distortion is only estimated by the ml calibration")
-        if not 0.0 <= self.trim_fraction < 0.5:
-            raise ValueError(f"trim fraction {self.trim_fraction} must be in [0, 0.5)")
+        """Raise ValueError naming the first option that is not allowed (:meth:`problem`)."""
+        if problem := self.problem():
+            raise ValueError(problem)
+
+    def problem(
+        self, names: Mapping[str, str] | None = None, hints: Mapping[str, str] | None = None
+    ) -> str | None:
+        """Return the one line naming the first option that is not allowed, or None.
+
+        The rules of the options live here alone; each front end only names the fields
+        its own way.
+
+        Args:
+            names: how the asking front end names each field (``{"axis": "--axis"}``);
+                a field not named is shown by its name with spaces.
+            hints: text added to the problem of a field (", or blank for auto").
+        """
+        named = dict(names or {})
+
+        def name(field_name: str) -> str:
+            return named.get(field_name, field_name.replace("_", " "))
+
+        for field_name, text in self._field_problems(name):
+            if text is not None:
+                return text + (hints or {}).get(field_name, "")
+        return None
+
+    def _field_problems(self, name: Callable[[str], str]) -> Iterator[tuple[str, str | None]]:
+        """Yield each field checked with its problem (None where it is allowed), in order."""
+        for option, allowed in OPTION_CHOICES.items():
+            value = getattr(self, option)
+            if value not in allowed:
+                yield option, f"{name(option)} {value!r} is not one of {', '.join(allowed)}"
+        if self.angle_correction and self.axis != ANGLE_CORRECTION_AXIS:
+            yield (
+                "angle_correction",
+                (f"{name('angle_correction')} needs {name('axis')} {ANGLE_CORRECTION_AXIS}"),
+            )
+        if self.distortion == "on" and self.calibration != DISTORTION_CALIBRATION:
+            yield (
+                "distortion",
+                (f"{name('distortion')} on needs {name('calibration')} {DISTORTION_CALIBRATION}"),
+            )
+        yield "trim_fraction", trim_problem(self.trim_fraction, name("trim_fraction"))
+        yield "harmonics", harmonics_problem(self.harmonics, name("harmonics"))
         if self.split_gap_mm is not None and not self.split_gap_mm > 0:
-            raise ValueError("the outline gap must be a positive number of mm")
+            yield "split_gap_mm", "the outline gap must be a positive number of mm"
         if self.working_radius_mm is not None and not self.working_radius_mm > 0:
-            raise ValueError("the working radius must be a positive number of mm")
+            yield "working_radius_mm", "the working radius must be a positive number of mm"
         if self.max_efd_points is not None and self.max_efd_points < 16:
-            raise ValueError("the EFD needs at least 16 points per outline")
+            yield "max_efd_points", "the EFD needs at least 16 points per outline"
         if self.max_bridge_deg is not None and not 0 <= self.max_bridge_deg <= 360:
-            raise ValueError("the widest gap to bridge must be 0 to 360 degrees")
+            yield "max_bridge_deg", "the widest gap to bridge must be 0 to 360 degrees"
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form (for the report)."""

@@ -147,21 +147,35 @@ def replace_file(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def _exists(path: Path) -> str:
+    return f"{path} already exists: choose a new file name"
+
+
+def new_file_problem(path: Path) -> str | None:
+    """Return why ``path`` cannot be a new file (it exists, or lies in no folder), or None.
+
+    A link counts as existing, a dangling one too: nothing is written through it.
+    """
+    if path.exists() or path.is_symlink():
+        return _exists(path)
+    if not path.parent.is_dir():
+        return f"folder {path.parent} does not exist: create it first or name a file in another"
+    return None
+
+
 def write_new_file(path: Path, data: bytes) -> Path:
     """Create ``path`` (0600) holding ``data``; refuse an existing file or link, never follow one.
 
     Raises:
         OutputError: the file exists, its folder does not, or it cannot be written.
     """
-    if not path.parent.is_dir():
-        raise OutputError(
-            f"folder {path.parent} does not exist: create it first or name a file in another"
-        )
+    if problem := new_file_problem(path):
+        raise OutputError(problem)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     try:
         fd = os.open(path, flags, PRIVATE_FILE)
-    except FileExistsError:
-        raise OutputError(f"{path} already exists: choose a new file name") from None
+    except FileExistsError:  # created since the check: the flags refuse it all the same
+        raise OutputError(_exists(path)) from None
     except OSError as exc:
         raise _cannot_write(path, exc) from None
     try:

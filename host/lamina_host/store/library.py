@@ -42,11 +42,12 @@ import os
 import sqlite3
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import cv2
@@ -54,7 +55,13 @@ import numpy as np
 
 from lamina_host.link.identity import identity_difference, legacy_identity, spawned_source
 from lamina_host.reconstruct.mesh import load_coloured_ply, obj_bytes, stl_bytes
-from lamina_host.store.files import OutputError, json_text, tighten, write_new_file
+from lamina_host.store.files import (
+    OutputError,
+    json_text,
+    new_file_problem,
+    tighten,
+    write_new_file,
+)
 from lamina_host.store.subjects import check_subject
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.scoped import Scoped
@@ -125,9 +132,32 @@ CREATE TABLE IF NOT EXISTS exports (
 );
 """
 
-EXPORT_FORMATS = (".ply", ".obj", ".stl", ".json")
-"""What :meth:`Library.export` writes; ``lamina export`` adds ``.dcm`` and ``.lrec``
-(:data:`lamina_host.workflow.exports.EXPORTERS`)."""
+EXPORT_FORMATS: Mapping[str, str] = MappingProxyType(
+    {".ply": "mesh", ".obj": "mesh", ".stl": "mesh", ".json": "report"}
+)
+"""What :meth:`Library.export` writes, by extension, with what each holds; ``lamina export``
+adds ``.dcm`` and ``.lrec`` (:data:`lamina_host.workflow.exports.EXPORTERS`)."""
+
+
+def formats_text(formats: Mapping[str, str]) -> str:
+    """Return export formats as a user reads them: ``.ply, .obj (mesh) or .json (report)``.
+
+    Args:
+        formats: what each extension holds, in the order to name them.
+    """
+    groups: list[tuple[list[str], str]] = []
+    for suffix, what in formats.items():
+        if groups and groups[-1][1] == what:
+            groups[-1][0].append(suffix)
+        else:
+            groups.append(([suffix], what))
+    named = [f"{', '.join(suffixes)} ({what})" for suffixes, what in groups]
+    return " or ".join([", ".join(named[:-1]), named[-1]]) if len(named) > 1 else named[0]
+
+
+def unknown_format(path: Path, formats: Mapping[str, str]) -> StoreError:
+    """Return the refusal of an export named with none of the ``formats``' extensions."""
+    return StoreError(f"cannot export {path.name}: name the file {formats_text(formats)}")
 
 
 class StoreError(LaminaError):
@@ -798,10 +828,7 @@ class Library(Scoped):
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix not in EXPORT_FORMATS:
-            raise StoreError(
-                f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh) "
-                "or .json (report)"
-            )
+            raise unknown_format(path, EXPORT_FORMATS)
         check_new_file(path)
         self.scan(scan_id)
         report = self.result(scan_id)
@@ -834,13 +861,10 @@ class Library(Scoped):
 
 
 def check_new_file(path: Path) -> None:
-    """Refuse (StoreError, one line) an export path that exists or lies in no folder."""
-    if path.exists() or path.is_symlink():
-        raise StoreError(f"{path} already exists: choose a new file name")
-    if not path.parent.is_dir():
-        raise StoreError(
-            f"folder {path.parent} does not exist: create it first or name a file in another"
-        )
+    """Refuse (StoreError, one line) an export path that cannot be new (:func:`new_file_problem`),
+    before the export's data is made."""
+    if problem := new_file_problem(path):
+        raise StoreError(problem)
 
 
 def _convert_mesh(ply: bytes, suffix: str) -> bytes:

@@ -8,7 +8,9 @@ calibration by the current pipeline with the options its result recorded.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from lamina_host.clinical.limb_frame import limb_stl_files
@@ -21,7 +23,13 @@ from lamina_host.store.dicom import (
     encapsulated_stl,
     surface_scan_mesh,
 )
-from lamina_host.store.library import EXPORT_FORMATS, Library, StoreError, check_new_file
+from lamina_host.store.library import (
+    EXPORT_FORMATS,
+    Library,
+    StoreError,
+    check_new_file,
+    unknown_format,
+)
 from lamina_host.store.outputs import MeshEntry
 from lamina_host.store.record import record_bytes
 from lamina_host.workflow.batch import reprocess
@@ -29,8 +37,17 @@ from lamina_host.workflow.batch import reprocess
 LIMB_STL = ".limb.stl"
 """The mesh in the limb frame for prosthetic CAD (:mod:`lamina_host.clinical.limb_frame`),
 with a JSON sidecar of the same stem (``leg.limb.stl``, ``leg.limb.json``)."""
-EXPORTERS = (".dcm", ".lrec", LIMB_STL)
+EXPORTERS: Mapping[str, str] = MappingProxyType(
+    {
+        ".dcm": "DICOM Encapsulated STL",
+        ".lrec": "compact follow-up record",
+        LIMB_STL: "mesh in the limb frame, for prosthetic CAD",
+    }
+)
 """Formats :func:`export_scan` adds to the library's own (:data:`EXPORT_FORMATS`)."""
+
+ALL_FORMATS: Mapping[str, str] = MappingProxyType({**EXPORT_FORMATS, **EXPORTERS})
+"""Every format ``lamina export`` writes, by extension, with what each holds."""
 
 
 def export_format(path: Path) -> str:
@@ -58,11 +75,7 @@ def export_scan(
     if suffix in EXPORT_FORMATS:
         return library.export(scan_id, path)
     if suffix not in EXPORTERS:
-        raise StoreError(
-            f"cannot export {path.name}: name the file .ply, .obj, .stl (mesh), .json (report), "
-            ".dcm (DICOM Encapsulated STL), .lrec (compact follow-up record) or .limb.stl "
-            "(mesh in the limb frame, for prosthetic CAD)"
-        )
+        raise unknown_format(path, ALL_FORMATS)
     check_new_file(path)
     if suffix == ".dcm":
         data = dicom_export(library, scan_id, institution, dicom_sop)

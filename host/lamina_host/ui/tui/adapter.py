@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import sqlite3
 from contextlib import suppress
+from dataclasses import replace
 
 import serial.tools.list_ports
 
 from lamina_host.link.errors import DeviceError
-from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.pipeline import ProcessOptions
 from lamina_host.store.files import disk_full
@@ -82,6 +82,13 @@ __all__ = [
 UserError = InputError
 """Bad input typed into the UI; the text names the field and what to enter (the same
 refusals as the command line's, from :mod:`lamina_host.workflow`)."""
+
+FIELD_NAMES = {"mesh": "mesh method"}
+"""How the Results screen names a processing option in a refusal (the rules are
+``ProcessOptions``'); the others by their own names."""
+
+FIELD_HINTS = {"harmonics": ", or blank for auto"}
+"""What a refusal of a typed field adds: how to leave the choice to the pipeline."""
 
 USER_ERRORS: tuple[type[Exception], ...] = (LaminaError, sqlite3.Error, OSError)
 """What a worker reports as a one-line message instead of failing: Lamina's own errors,
@@ -174,14 +181,9 @@ def process(
         mesh_method: one of ``MESH_METHODS``.
         harmonic_rule: one of ``HARMONIC_RULES``, or None for the pipeline's default.
     """
-    if harmonics is not None and not 1 <= harmonics <= 100:
-        raise UserError(f"harmonics {harmonics} must be between 1 and 100, or blank for auto")
-    if mesh_method not in MESH_METHODS:
-        raise UserError(f"mesh method {mesh_method!r} is not one of {', '.join(MESH_METHODS)}")
-    if harmonic_rule is not None and harmonic_rule not in HARMONIC_RULES:
-        rules = ", ".join(HARMONIC_RULES)
-        raise UserError(f"harmonic rule {harmonic_rule!r} is not one of {rules}")
     options = ProcessOptions(harmonics=harmonics, mesh=mesh_method)
     if harmonic_rule is not None:
-        options = ProcessOptions(harmonics=harmonics, mesh=mesh_method, harmonic_rule=harmonic_rule)
+        options = replace(options, harmonic_rule=harmonic_rule)
+    if problem := options.problem(FIELD_NAMES, FIELD_HINTS):
+        raise UserError(problem)
     return job.processing.process_scan(options)

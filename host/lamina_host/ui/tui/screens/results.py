@@ -13,11 +13,13 @@ from textual.containers import Horizontal
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 from textual_plotext import PlotextPlot
 
-from lamina_host.clinical.measures import Visit
+from lamina_host.clinical.measures import Visit, sections_from_reconstruction
+from lamina_host.clinical.report import MeasureRequest, subject_visits
 from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.status import ESTIMATED
 from lamina_host.ui.tui.adapter import Results, UserError, process, radius_profile
+from lamina_host.ui.tui.clinical_view import ClinicalView
 from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
@@ -140,9 +142,6 @@ class ResultsScreen(LaminaScreen):
 
     def action_clinical(self) -> None:
         """Open the clinical measurements (lamina_host.ui.tui.clinical_view) of the results."""
-        from lamina_host.clinical.measures import sections_from_reconstruction
-        from lamina_host.ui.tui.clinical_view import ClinicalView
-
         results = self.job.processing.results
         if results is None:
             self.say("process a scan first (p), then measure it (m)", error=True)
@@ -157,8 +156,6 @@ class ResultsScreen(LaminaScreen):
 
     def _visits(self) -> list[Visit]:
         """Return the visits of the open scan's subject in the library (none if unsaved)."""
-        from lamina_host.clinical.report import MeasureRequest, subject_visits
-
         scan_id = self.job.scan_id
         if scan_id is None:
             return []
