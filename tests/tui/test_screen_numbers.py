@@ -46,6 +46,10 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         assert abs(axis.estimated_diameter_mm - 2 * RADIUS_MM) < 0.1
 
         await fill_scan_form(pilot, "P001", "2", "2", "8")
+        # Before Start: the device's estimate of the typed plan, for the subject's sake.
+        await wait_for(
+            pilot, lambda: "16 views take about" in text_of(app, "#progress-text"), "estimate"
+        )
         await pilot.press("s")
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
         screen = app.screen

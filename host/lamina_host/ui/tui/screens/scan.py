@@ -127,11 +127,19 @@ class ScanScreen(LaminaScreen):
 
     @on(Input.Changed, "#sections, #pitch, #views")
     def _plan_changed(self) -> None:
-        self.show_estimate()
+        self.show_estimate(replace_progress=True)
 
-    def show_estimate(self) -> None:
-        """Ask the device how long the typed plan would keep the subject still."""
+    def show_estimate(self, replace_progress: bool = False) -> None:
+        """Ask the device how long the typed plan would keep the subject still.
+
+        Args:
+            replace_progress: show it in place of the last scan's progress too (the plan
+                was changed); otherwise only where nothing has been scanned yet.
+        """
+        shown = str(self.query_one("#progress-text", Static).render())
         if self.scanning or not self.job.device.connected:
+            return
+        if not (replace_progress or shown.startswith("not started")):
             return
         try:
             _, plan = self._plan_numbers()
@@ -324,4 +332,4 @@ class ScanScreen(LaminaScreen):
             text = "not connected (F2)"
         calibrated = "calibrated" if acquisition.axis is not None else "not calibrated (F4)"
         self.query_one("#link-state", Static).update(f"{text}\n{calibrated}")
-        self.show_estimate()
+        self.show_estimate()  # the device may have changed: only before any scan
