@@ -76,7 +76,9 @@ def test_each_thread_gets_its_own_reply_and_events_in_any_order():
 def test_pause_resume_abort_and_status_from_another_thread_over_a_faulty_line():
     plan = ScanPlan.regular(3, 2.0, 8)
     expected = reference(plan, settings=ExtractSettings())
-    faults = LineFaults(error_rate=1e-3, delay_rate=0.02, delay_s=0.01, seed=7)
+    # 3e-3: the few kilobytes that cross before the abort are damaged somewhere every time
+    # (at 1e-3 a run could cross them clean and prove nothing).
+    faults = LineFaults(error_rate=3e-3, delay_rate=0.02, delay_s=0.01, seed=7)
     with link(faults) as ends:
         client = ends.client
         arrived: dict[int, Segment] = {}
@@ -115,7 +117,8 @@ def test_pause_resume_abort_and_status_from_another_thread_over_a_faulty_line():
         got = info.value.segments
         assert 3 <= len(got) < len(plan.views)
         assert same([got[s] for s in sorted(got)], [expected[s] for s in sorted(got)])
-        assert faults.counts["flipped"] + faults.counts["dropped"] > 0  # the line did damage
+        damage = faults.counts["flipped"] + faults.counts["dropped"] + faults.counts["duplicated"]
+        assert damage > 0, faults.counts  # the line did damage
         assert not ends.hardware.laser.is_on
 
 
