@@ -75,14 +75,19 @@ def test_the_frame_puts_the_axis_on_z_and_the_distal_end_at_the_origin(distal_to
     assert np.allclose(homogeneous[:, :3], moved, atol=1e-9)
 
 
-def test_cli_exports_a_scan_in_the_limb_frame(scanned_library: Path, tmp_path: Path) -> None:
-    out = tmp_path / "leg.limb.stl"
-    done = subprocess.run(
-        host_command("export", "1", "-o", str(out), "--library", str(scanned_library)),
+def export_scan_1(library: Path, out: Path) -> subprocess.CompletedProcess[str]:
+    """Run ``lamina export 1 -o OUT`` on ``library``."""
+    return subprocess.run(
+        host_command("export", "1", "-o", str(out), "--library", str(library)),
         capture_output=True,
         text=True,
         timeout=120,
     )
+
+
+def test_cli_exports_a_scan_in_the_limb_frame(scanned_library: Path, tmp_path: Path) -> None:
+    out = tmp_path / "leg.limb.stl"
+    done = export_scan_1(scanned_library, out)
     assert done.returncode == 0, done.stderr
     sidecar = json.loads((tmp_path / "leg.limb.json").read_text())
     data = out.read_bytes()
@@ -109,12 +114,7 @@ def test_cli_refuses_a_limb_export_over_an_existing_sidecar(
 ) -> None:
     (tmp_path / "leg.limb.json").write_text("earlier")
     out = tmp_path / "leg.limb.stl"
-    done = subprocess.run(
-        host_command("export", "1", "-o", str(out), "--library", str(scanned_library)),
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = export_scan_1(scanned_library, out)
     assert done.returncode != 0 and done.stderr.count("\n") == 1
     assert "leg.limb.json already exists" in done.stderr
     assert not out.exists() and (tmp_path / "leg.limb.json").read_text() == "earlier"
