@@ -11,7 +11,7 @@ import lamina_device.operations as device_operations
 import lamina_device.server as device_server
 import lamina_host.link.client as host_client
 import lamina_host.link.scanning as host_scanning
-import lamina_host.workflow.job as host_job
+import lamina_host.workflow.device_session as host_session
 from lamina_device.server import DeviceServer
 from lamina_device.sim import open_sim
 from lamina_host.link.handshake import read_welcome
@@ -26,7 +26,7 @@ from tests.helpers.served import SilentStream, link
 def test_both_ends_import_the_one_schema():
     assert device_server.Welcome is messages.Welcome is host_client.Welcome
     assert device_operations.ProgressEvent is messages.ProgressEvent
-    assert device_operations.Progress is messages.Progress is host_job.Progress
+    assert device_operations.Progress is messages.Progress is host_session.Progress
     assert host_scanning.Ack is messages.Ack
 
 

@@ -11,6 +11,7 @@ from lamina_shared.limits import DeviceLimits
 from lamina_shared.messages import (
     MAX_LOST_SEQS,
     Ack,
+    AxesInfo,
     DeviceIdentity,
     LogEvent,
     MessageError,
@@ -41,7 +42,7 @@ def _welcome() -> Welcome:
         board=BoardSpec((13, 11), 2.0, (-12.0, -10.0)),
         cylinder_diameter_mm=19.05,
         default_plans={"object": ScanPlan.regular(4, 2.0, 8)},
-        axes={"lift": {"unit": "mm", "min": 0.0, "max": 200.0}},
+        axes=AxesInfo(0.0, 200.0, -90.0, 90.0, 0.0025),
         operations=("move", "scan"),
         limits=DeviceLimits(max_views=500),
         identity=DeviceIdentity("sim", "sim object=x"),
