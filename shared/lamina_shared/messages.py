@@ -74,6 +74,7 @@ def _object(data: dict[str, Any], key: str, where: str, problems: Problems) -> d
 
 
 def object_body(body: Any, kind: str) -> dict[str, Any]:
+    """Return ``body`` if it is a JSON object; else raise MessageError naming ``kind``."""
     if not isinstance(body, dict):
         raise MessageError(kind, [f"{kind.lower()}: an object is required, found {show(body)}"])
     return body
