@@ -9,7 +9,8 @@ import pytest
 from lamina_device.config import load_config
 from lamina_device.timing import estimate_scan_time
 from lamina_host.link.errors import RequestRefused
-from lamina_shared.messages import MessageError, ScanEstimate
+from lamina_shared.messages import MessageError
+from lamina_shared.replies import ScanEstimate
 from lamina_shared.types import ScanPlan
 from tests.helpers.served import link
 

@@ -10,6 +10,7 @@ real SQLite library and simulated devices on real pseudo-terminals or sockets.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import logging
@@ -43,6 +44,7 @@ from lamina_host.workflow import check_plan, check_plan_limits
 from lamina_host.workflow.job import ScanRequest
 from lamina_shared.errors import InputError
 from lamina_shared.link import Channel
+from lamina_shared.messages import AxesInfo
 from lamina_shared.types import ScanPlan
 from tests.helpers.cli import device_command
 from tests.helpers.library import held_segments
@@ -57,11 +59,8 @@ from tests.test_hostile_host import (
     strict_json,
 )
 
-SIM_AXES = {
-    "lift": {"unit": "mm", "min": 0.0, "max": 200.0},
-    "turntable": {"unit": "deg", "min": None, "max": None, "continuous": True},
-}
-"""The simulated device's WELCOME ``axes``."""
+SIM_AXES = AxesInfo(0.0, 200.0)
+"""The simulated device's WELCOME ``axes`` (a continuous turntable)."""
 
 
 def lamina_line(status: int, err: str) -> str:
@@ -104,17 +103,18 @@ def test_a_pitch_finer_than_any_lift_is_one_line_before_anything_exists(capsys, 
 
 def test_plans_are_checked_against_the_advertised_axes():
     """Random regular plans: refused exactly when they leave the lift's travel or step."""
-    stepper = {**SIM_AXES, "lift": {**SIM_AXES["lift"], "step": 0.0025}}
+    stepper = dataclasses.replace(SIM_AXES, lift_step_mm=0.0025)
     with pytest.raises(InputError, match=r"reaches 202 mm, beyond the lift's travel of 0\.\.200"):
         check_plan_limits("object", ScanPlan.regular(102, 2.0, 8), None, SIM_AXES)
     check_plan_limits("object", ScanPlan.regular(101, 2.0, 8), None, SIM_AXES)  # top at 200
     with pytest.raises(InputError, match=r"finer than the lift's step of 0\.0025 mm"):
         check_plan_limits("object", ScanPlan.regular(3, 0.002, 8), None, stepper)
     check_plan_limits("object", ScanPlan.regular(3, 0.0025, 8), None, stepper)
-    bounded = {**SIM_AXES, "turntable": {"unit": "deg", "min": 0.0, "max": 180.0}}
+    bounded = dataclasses.replace(SIM_AXES, turntable_min_deg=0.0, turntable_max_deg=180.0)
     with pytest.raises(InputError, match=r"beyond the turntable's travel of 0\.\.180 deg"):
         check_plan_limits("object", ScanPlan.regular(1, 2.0, 4), None, bounded)  # 270 deg
-    check_plan_limits("object", ScanPlan.regular(500, 2.0, 8), None, {})  # no axes: not checked
+    # No axes reported: the travel is not checked.
+    check_plan_limits("object", ScanPlan.regular(500, 2.0, 8), None, AxesInfo())
     rng = np.random.default_rng(7)
     for _ in range(300):
         sections, pitch = int(rng.integers(1, 400)), float(rng.uniform(0.001, 5.0))
@@ -134,7 +134,7 @@ def test_a_stepper_lift_advertises_its_step():
     from gpiozero.pins.mock import MockFactory
 
     from lamina_device.config import load_config
-    from lamina_device.operations import AxisLimits, check_section_gaps
+    from lamina_device.operations import check_section_gaps
     from lamina_device.server import RequestError
 
     config = load_config()
@@ -142,13 +142,13 @@ def test_a_stepper_lift_advertises_its_step():
     try:
         step = 1.0 / lift.steps_per_mm
         assert lift.step_mm == step
-        limits = AxisLimits(lift.min_mm, lift.max_mm, None, None, lift.step_mm)
-        assert limits.to_dict()["lift"]["step"] == step
-        assert "step" not in AxisLimits(0.0, 200.0).to_dict()["lift"]  # a lift without steps
+        limits = AxesInfo(lift.min_mm, lift.max_mm, None, None, lift.step_mm)
+        assert limits.to_wire()["lift"]["step"] == step
+        assert "step" not in AxesInfo(0.0, 200.0).to_wire()["lift"]  # a lift without steps
         check_section_gaps(limits, [0.0, step, 2 * step, 40.0])
         with pytest.raises(RequestError, match="finer than the lift's step"):
             check_section_gaps(limits, [0.0, step / 2])  # the device refuses it too
-        check_section_gaps(AxisLimits(0.0, 200.0), [0.0, 1e-9])  # no step: not checked
+        check_section_gaps(AxesInfo(0.0, 200.0), [0.0, 1e-9])  # no step: not checked
     finally:
         lift.close()
 

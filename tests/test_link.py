@@ -15,7 +15,7 @@ from lamina_host.link.client import DeviceClient
 from lamina_host.link.errors import DeviceError
 from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
-from lamina_shared.messages import Event, ProgressEvent, StatusEvent
+from lamina_shared.messages import AxesInfo, Event, ProgressEvent, StatusEvent
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
 from lamina_shared.types import ScanPlan, Segment
 from tests.helpers.served import link, reference
@@ -38,8 +38,8 @@ def test_handshake_reports_capabilities():
         assert info is not None
         assert info.protocol == PROTOCOL_VERSION and info.software.startswith("lamina-device")
         assert info.image_size == (640, 480)
-        assert info.axes["lift"] == {"unit": "mm", "min": 0.0, "max": 200.0}
-        assert info.axes["turntable"]["continuous"] is True
+        assert info.axes == AxesInfo(0.0, 200.0, None, None, None)
+        assert info.axes.continuous
         assert {"scan", "grab_grid", "fetch", "move", "pause", "resume", "abort"} <= set(
             info.operations
         )

@@ -100,7 +100,7 @@ def test_pause_resume_abort_from_another_thread():
             paused_count = len(arrived)
             time.sleep(1.0)
             held_still.append(len(arrived) == paused_count)
-            assert ends.server.state()["state"] == "paused"
+            assert ends.server.state().state == "paused"
             client.resume()
             deadline = time.monotonic() + 20
             while len(arrived) < paused_count + 3 and time.monotonic() < deadline:

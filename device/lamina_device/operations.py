@@ -9,14 +9,12 @@ used as a file path. Views are numbered in one place,
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import hashlib
 import itertools
 import json
 import math
 import threading
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import cv2
@@ -36,11 +34,12 @@ from lamina_device.hardware import Hardware
 from lamina_device.timing import estimate_scan_time
 from lamina_shared.endpoint import Abandoned, Handler, RequestError, SegmentBuffer, ServerSettings
 from lamina_shared.messages import (
+    AxesInfo,
+    DeviceHeartbeat,
     Event,
     LogEvent,
     Progress,
     ProgressEvent,
-    ScanEstimate,
     StatusEvent,
 )
 from lamina_shared.ops import (
@@ -55,6 +54,18 @@ from lamina_shared.ops import (
     check_plan,
 )
 from lamina_shared.protocol import encode_segment_body, quantise_segment
+from lamina_shared.replies import (
+    ControlReply,
+    EmptyReply,
+    ExposureReply,
+    GridReply,
+    MoveReply,
+    PreviewReply,
+    ScanEstimate,
+    ScanReply,
+    StatusReply,
+    TransferOffer,
+)
 from lamina_shared.types import ScanPlan, Segment
 
 """The simulated lift's travel, reported when the hardware does not say its own."""
@@ -73,7 +84,7 @@ class Link(Protocol):
     @property
     def abandoned(self) -> threading.Event: ...  # pragma: no cover - protocol
 
-    def offer(self, request_id: int, data: bytes) -> dict[str, Any]: ...  # pragma: no cover
+    def offer(self, request_id: int, data: bytes) -> TransferOffer: ...  # pragma: no cover
 
     def event(self, event: Event) -> None: ...  # pragma: no cover
 
@@ -81,66 +92,40 @@ class Link(Protocol):
         self, request_id: int, seq: int, segment: Segment
     ) -> None: ...  # pragma: no cover
 
-    def state(self) -> dict[str, Any]: ...  # pragma: no cover - protocol
+    def state(self) -> DeviceHeartbeat: ...  # pragma: no cover - protocol
 
 
-@dataclass(frozen=True)
-class AxisLimits:
-    """Soft limits of the two axes; None means the axis has no limit that way."""
+def axes_of(hardware: Hardware) -> AxesInfo:
+    """Return the soft limits the hardware's axes declare (what the WELCOME reports)."""
+    lift, turntable = hardware.lift, hardware.turntable
+    step = getattr(lift, "step_mm", None)  # only stepper lifts have one
+    return AxesInfo(
+        lift.min_mm,
+        lift.max_mm,
+        turntable.min_deg,
+        turntable.max_deg,
+        float(step) if isinstance(step, int | float) else None,
+    )
 
-    lift_min_mm: float
-    lift_max_mm: float
-    turntable_min_deg: float | None = None
-    turntable_max_deg: float | None = None
-    lift_step_mm: float | None = None
-    """The lift's smallest move (one microstep); None for a lift without steps."""
 
-    @classmethod
-    def of(cls, hardware: Hardware) -> AxisLimits:
-        """Return the limits the hardware's axes declare."""
-        lift, turntable = hardware.lift, hardware.turntable
-        step = getattr(lift, "step_mm", None)  # only stepper lifts have one
-        return cls(
-            lift.min_mm,
-            lift.max_mm,
-            turntable.min_deg,
-            turntable.max_deg,
-            float(step) if isinstance(step, int | float) else None,
+def check_position(limits: AxesInfo, axis: str, position: float) -> None:
+    """Raise RequestError(``limit``) unless ``position`` is within ``axis``'s limits."""
+    low: float | None
+    high: float | None
+    if axis == "lift":
+        low, high, unit = limits.lift_min_mm, limits.lift_max_mm, "mm"
+    else:
+        low, high, unit = limits.turntable_min_deg, limits.turntable_max_deg, "deg"
+    if not math.isfinite(position):
+        raise RequestError("limit", f"{axis} position must be a finite number of {unit}")
+    if (low is not None and position < low) or (high is not None and position > high):
+        raise RequestError(
+            "limit",
+            f"{axis} position {position} {unit} is outside its soft limits {low}..{high}",
         )
 
-    def to_dict(self) -> dict[str, Any]:
-        """Return the WELCOME form (the lift's ``step`` only when it has one)."""
-        lift: dict[str, Any] = {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm}
-        if self.lift_step_mm is not None:
-            lift["step"] = self.lift_step_mm
-        return {
-            "lift": lift,
-            "turntable": {
-                "unit": "deg",
-                "min": self.turntable_min_deg,
-                "max": self.turntable_max_deg,
-                "continuous": self.turntable_min_deg is None and self.turntable_max_deg is None,
-            },
-        }
 
-    def check(self, axis: str, position: float) -> None:
-        """Raise RequestError(``limit``) unless ``position`` is within ``axis``'s limits."""
-        low: float | None
-        high: float | None
-        if axis == "lift":
-            low, high, unit = self.lift_min_mm, self.lift_max_mm, "mm"
-        else:
-            low, high, unit = self.turntable_min_deg, self.turntable_max_deg, "deg"
-        if not math.isfinite(position):
-            raise RequestError("limit", f"{axis} position must be a finite number of {unit}")
-        if (low is not None and position < low) or (high is not None and position > high):
-            raise RequestError(
-                "limit",
-                f"{axis} position {position} {unit} is outside its soft limits {low}..{high}",
-            )
-
-
-def check_section_gaps(limits: AxisLimits, heights: list[float]) -> None:
+def check_section_gaps(limits: AxesInfo, heights: list[float]) -> None:
     """Raise RequestError(``limit``) if sorted ``heights`` are closer than the lift's step.
 
     Two sections less than a microstep apart would be scanned at one lift position.
@@ -171,7 +156,7 @@ class Operations:
     def __init__(self, hardware: Hardware, link: Link) -> None:
         self.hardware = hardware
         self.link = link
-        self.limits = AxisLimits.of(hardware)
+        self.limits = axes_of(hardware)
         self.control: ScanControl | None = None
         """The running scan's pause/resume/abort, while one runs."""
         """False once the host asked the device to shut down."""
@@ -192,13 +177,12 @@ class Operations:
             "shutdown": self.shutdown,
         }
 
-    def grab_grid(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def grab_grid(self, request_id: int, args: NoArgs) -> GridReply:
         """Offer a PNG of the calibration board (laser off) and the board's geometry."""
-        result = self.link.offer(request_id, _png(grab_grid(self.hardware)))
-        board = self.hardware.board
-        return {**result, "board": board.to_dict() if board else None}
+        offer = self.link.offer(request_id, _png(grab_grid(self.hardware)))
+        return GridReply(offer, self.hardware.board)
 
-    def preview(self, request_id: int, args: PreviewArgs) -> dict[str, Any]:
+    def preview(self, request_id: int, args: PreviewArgs) -> PreviewReply:
         """Capture one frame where the axes stand (laser on only during its exposure).
 
         With ``stripe`` the device takes the laser-off/laser-on pair a scan would, extracts
@@ -208,15 +192,14 @@ class Operations:
         hw = self.hardware
         if not stripe:
             frame = capture_pair(hw)[0] if laser else hw.camera.capture()
-            return self.link.offer(request_id, _png(frame))
+            return PreviewReply(self.link.offer(request_id, _png(frame)))
         on, off = capture_pair(hw)
         points = extract(on, off, hw.extract)
         segment = quantise_segment(
             to_segment(points, hw.stage.target, 0, 0, hw.lift.z_mm, hw.turntable.angle_deg)
         )
         body = encode_segment_body(request_id, 0, segment)
-        result = self.link.offer(request_id, _png(on if laser else off))
-        return {**result, "stripe": base64.b64encode(body).decode("ascii")}
+        return PreviewReply(self.link.offer(request_id, _png(on if laser else off)), body)
 
     # --- scanning --------------------------------------------------------------------
 
@@ -236,12 +219,12 @@ class Operations:
         angles = sorted({view.angle_deg for view in plan.views})
         # The extremes decide: every height and angle between them is within limits too.
         for axis, values in (("lift", lifts), ("turntable", angles)):
-            self.limits.check(axis, values[0])
-            self.limits.check(axis, values[-1])
+            check_position(self.limits, axis, values[0])
+            check_position(self.limits, axis, values[-1])
         check_section_gaps(self.limits, lifts)
         return plan
 
-    def scan(self, request_id: int, args: ScanArgs) -> dict[str, Any]:
+    def scan(self, request_id: int, args: ScanArgs) -> ScanReply:
         """Send every view of the plan the host does not hold: from the buffer or acquired."""
         target = args.target
         settings = self.extract_settings(args)
@@ -274,11 +257,7 @@ class Operations:
                 "unacknowledged",
                 f"{len(self.link.buffer)} segments unacknowledged; they stay buffered for a resume",
             )
-        return {
-            "segments": len(plan.views),
-            "acquired": len(todo),
-            "resent": len(resend),
-        }
+        return ScanReply(len(plan.views), len(todo), len(resend))
 
     def extract_settings(self, args: ScanArgs) -> ExtractSettings:
         """Return the configured extraction with the request's changes; refuse bad ones."""
@@ -337,14 +316,14 @@ class Operations:
 
     # --- quick operations ------------------------------------------------------------
 
-    def move(self, request_id: int, args: MoveArgs) -> dict[str, Any]:
+    def move(self, request_id: int, args: MoveArgs) -> MoveReply:
         """Move one axis within its soft limits (positioning before a preview)."""
         axis, position = args.axis, args.position
         if self.link.running_id is not None:
             raise RequestError("busy", f"request {self.link.running_id} is moving the axes")
-        self.limits.check(axis, position)
+        check_position(self.limits, axis, position)
         (self.hardware.lift if axis == "lift" else self.hardware.turntable).move_to(position)
-        return {"axis": axis, "position": position}
+        return MoveReply(axis, position)
 
     def _scan_control(self, op: str) -> ScanControl:
         control = self.control
@@ -352,24 +331,24 @@ class Operations:
             raise RequestError("idle", f"no scan is running to {op}")
         return control
 
-    def pause(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def pause(self, request_id: int, args: NoArgs) -> ControlReply:
         """Hold the running scan after the current view, laser off."""
         self._scan_control("pause").pause()
         self.link.event(StatusEvent(self.link.running_id or 0, "paused"))
-        return {"state": "paused"}
+        return ControlReply("paused")
 
-    def resume(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def resume(self, request_id: int, args: NoArgs) -> ControlReply:
         """Let a paused scan go on."""
         self._scan_control("resume").resume()
         self.link.event(StatusEvent(self.link.running_id or 0, "busy"))
-        return {"state": "busy"}
+        return ControlReply("busy")
 
-    def abort(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def abort(self, request_id: int, args: NoArgs) -> ControlReply:
         """End the running scan at the next view; what was sent stays valid."""
         self._scan_control("abort").abort()
-        return {"state": "aborting"}
+        return ControlReply("aborting")
 
-    def exposure(self, request_id: int, args: ExposureArgs) -> dict[str, Any]:
+    def exposure(self, request_id: int, args: ExposureArgs) -> ExposureReply:
         """Set the camera's exposure (``exposure_us``) within its limits; report it and them."""
         camera = self.hardware.camera
         low, high = camera.exposure_range_us
@@ -382,9 +361,9 @@ class Operations:
                 camera.set_exposure(value)
             except ExposureRefused as exc:
                 raise RequestError("limit", str(exc)) from None
-        return {"exposure_us": camera.exposure_us, "min_us": low, "max_us": high}
+        return ExposureReply(camera.exposure_us, low, high)
 
-    def estimate(self, request_id: int, args: EstimateArgs) -> dict[str, Any]:
+    def estimate(self, request_id: int, args: EstimateArgs) -> ScanEstimate:
         """Return how long the plan would keep the subject still (``lamina_device.timing``)."""
         plan = self._plan(ScanArgs(args.target, args.plan))
         config = self.hardware.timing
@@ -393,18 +372,16 @@ class Operations:
         # Frames wait for the exposure now in use, as the scan's would.
         exposure_us = self.hardware.camera.exposure_us
         modelled = estimate_scan_time(config, plan, exposure_us=exposure_us)
-        return ScanEstimate(
-            len(plan.views), modelled.modelled_s, modelled.mechanical_minimum_s
-        ).to_wire()
+        return ScanEstimate(len(plan.views), modelled.modelled_s, modelled.mechanical_minimum_s)
 
-    def status(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def status(self, request_id: int, args: NoArgs) -> StatusReply:
         """Report what a heartbeat says, and the retransmissions so far."""
-        return {**self.link.state(), "retransmissions": self.link.buffer.retransmissions}
+        return StatusReply(self.link.state(), self.link.buffer.retransmissions)
 
-    def shutdown(self, request_id: int, args: NoArgs) -> dict[str, Any]:
+    def shutdown(self, request_id: int, args: NoArgs) -> EmptyReply:
         """End the device program after this reply (the host started it)."""
         self.link.running = False
-        return {}
+        return EmptyReply()
 
 
 def _png(image: np.ndarray) -> bytes:

@@ -104,7 +104,7 @@ class DeviceServer(DeviceEndpoint):
             board=hw.board,
             cylinder_diameter_mm=hw.cylinder_diameter_mm,
             default_plans=self._welcome_plans(),
-            axes=self.operations.limits.to_dict(),
+            axes=self.operations.limits,
             operations=tuple(sorted(OPS)),
             limits=self.settings.limits,
             row_scale=ROW_SCALE,

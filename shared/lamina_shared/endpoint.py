@@ -29,7 +29,15 @@ from typing import Any
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker, error_body, is_count, ok_body
-from lamina_shared.messages import Ack, Event, MessageError, StatusEvent
+from lamina_shared.messages import (
+    Ack,
+    DeviceHeartbeat,
+    Event,
+    Hello,
+    HostHeartbeat,
+    MessageError,
+    StatusEvent,
+)
 from lamina_shared.ops import OPS, ArgsError, FetchArgs, UnknownOp, parse_args
 from lamina_shared.protocol import (
     CHUNK_BYTES,
@@ -43,6 +51,7 @@ from lamina_shared.protocol import (
     encode_json,
     encode_segment,
 )
+from lamina_shared.replies import REPLIES, FetchReply, Reply, TransferOffer
 from lamina_shared.types import Segment
 
 log = logging.getLogger(__name__)
@@ -58,7 +67,12 @@ def request_id_of(message: Message) -> int | None:
         return body.request_id
     if not isinstance(body, dict):
         return None
-    found = body.get("request") if message.kind is Kind.HEARTBEAT else body.get("id")
+    if message.kind is Kind.HEARTBEAT:
+        try:
+            return DeviceHeartbeat.from_wire(body).request
+        except MessageError:
+            return None  # names no request we could trust
+    found = body.get("id")
     return found if isinstance(found, int) and not isinstance(found, bool) else None
 
 
@@ -368,8 +382,9 @@ class SegmentBuffer:
             return True
 
 
-Handler = Callable[[int, Any], dict[str, Any]]
-"""An operation: (request id, typed arguments) -> the reply's result."""
+Handler = Callable[[int, Any], Reply]
+"""An operation: (request id, typed arguments) -> its typed reply
+(:data:`lamina_shared.replies.REPLIES` names the class of each)."""
 
 
 class DeviceEndpoint:
@@ -417,6 +432,9 @@ class DeviceEndpoint:
         missing = set(OPS) ^ set(self._handlers)
         if missing:
             raise ValueError(f"the operations table differs from lamina_shared.ops: {missing}")
+        unreplied = set(OPS) ^ set(REPLIES)
+        if unreplied:
+            raise ValueError(f"lamina_shared.replies differs from lamina_shared.ops: {unreplied}")
 
     # --- hooks of the device ---------------------------------------------------------
 
@@ -488,22 +506,22 @@ class DeviceEndpoint:
             # Nobody listens: writing would only fill the line's buffer and block.
             return
         if self._heartbeat.due():
-            self.channel.send(encode_json(Kind.HEARTBEAT, self.state()))
+            self.channel.send(encode_json(Kind.HEARTBEAT, self.state().to_wire()))
         overdue = self.buffer.overdue()
         if overdue:
             self.channel.sizer.penalise()
         for seq, segment in overdue:
             self.channel.send(encode_segment(self.buffer.request_id, seq, segment))
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> DeviceHeartbeat:
         """Return what a heartbeat says: idle, busy or paused, the running request, unacked."""
         busy = self._running_id is not None
-        return {
-            "state": "paused" if busy and self.paused() else "busy" if busy else "idle",
-            "request": self._running_id,
-            "unacked": len(self.buffer),
-            "uptime_s": round(time.monotonic() - self._started_s, 3),
-        }
+        return DeviceHeartbeat(
+            "paused" if busy and self.paused() else "busy" if busy else "idle",
+            self._running_id,
+            len(self.buffer),
+            time.monotonic() - self._started_s,
+        )
 
     def handle(self, message: Message) -> None:
         """Answer one message from the host."""
@@ -521,14 +539,19 @@ class DeviceEndpoint:
         elif message.kind is Kind.ACK:
             self._ack(message.body)
         elif message.kind is Kind.HEARTBEAT:
-            pass
+            self._host_heartbeat(message.body)
         else:
             self.log.warning("ignoring unexpected %s message from the host", message.kind.name)
 
     def _hello(self, body: dict[str, Any]) -> None:
-        self.greeted = body.get("protocol") == PROTOCOL_VERSION
-        session = body.get("session")
-        session = session if isinstance(session, str) and len(session) <= 64 else None
+        try:
+            hello: Hello | None = Hello.from_wire(body)
+        except MessageError as exc:
+            # Still answered, with the versions alone: the peer learns whom it talks to.
+            self.log.warning("a malformed HELLO (%s)", exc)
+            hello = None
+        self.greeted = hello is not None and hello.protocol == PROTOCOL_VERSION
+        session = hello.session if hello is not None else None
         if self.greeted and session != self.session:
             # A new host process (or one that lost track): what the old one asked for is
             # abandoned, but buffered segments stay for it to resume with.
@@ -541,6 +564,13 @@ class DeviceEndpoint:
             # whole, for it to name the mismatch.
             welcome = {k: welcome[k] for k in ("protocol", "software") if k in welcome}
         self.channel.send(encode_json(Kind.WELCOME, welcome))
+
+    def _host_heartbeat(self, body: dict[str, Any]) -> None:
+        """Check a host heartbeat's form; hearing it at all is what matters (see :meth:`handle`)."""
+        try:
+            HostHeartbeat.from_wire(body)
+        except MessageError as exc:
+            self.log.warning("ignoring a malformed heartbeat (%s)", exc)
 
     def _ack(self, body: dict[str, Any]) -> None:
         try:
@@ -581,7 +611,7 @@ class DeviceEndpoint:
             if OPS[name].long:
                 self._start(request_id, name, handler, args)
                 return
-            reply = ok_body(request_id, handler(request_id, args))
+            reply = ok_body(request_id, _wire_reply(name, handler(request_id, args)))
         except UnknownOp as exc:
             reply = error_body(request_id, "unknown-op", str(exc))
         except (RequestError, ArgsError) as exc:
@@ -631,13 +661,13 @@ class DeviceEndpoint:
         self.event(StatusEvent(request_id, "busy", name))
         # The worker marks itself done in _finish, under the lock, with its reply cached.
         self._worker = threading.Thread(
-            target=self._work, args=(request_id, op, args), name=f"device-{name}", daemon=True
+            target=self._work, args=(request_id, name, op, args), name=f"device-{name}", daemon=True
         )
         self._worker.start()
 
-    def _work(self, request_id: int, op: Handler, args: Any) -> None:
+    def _work(self, request_id: int, name: str, op: Handler, args: Any) -> None:
         try:
-            reply = ok_body(request_id, op(request_id, args))
+            reply = ok_body(request_id, _wire_reply(name, op(request_id, args)))
         except Abandoned:
             self.log.info("a request was abandoned by its host")
             with self._lock:
@@ -670,7 +700,7 @@ class DeviceEndpoint:
 
     # --- binary transfers ------------------------------------------------------------
 
-    def offer(self, request_id: int, data: bytes) -> dict[str, Any]:
+    def offer(self, request_id: int, data: bytes) -> TransferOffer:
         """Keep ``data`` for fetching, push it once, return its description."""
         transfer = self._next_transfer
         self._next_transfer += 1
@@ -678,7 +708,7 @@ class DeviceEndpoint:
         while len(self._transfers) > self.settings.kept_transfers:
             self._transfers.popitem(last=False)
         self._send_range(request_id, transfer, 0, len(data))
-        return {"transfer": transfer, "bytes": len(data), "crc32": zlib.crc32(data)}
+        return TransferOffer(transfer, len(data), zlib.crc32(data))
 
     def _send_range(self, request_id: int, transfer: int, offset: int, length: int) -> None:
         data = self._transfers[transfer]
@@ -686,7 +716,7 @@ class DeviceEndpoint:
             piece = data[at : min(at + CHUNK_BYTES, offset + length)]
             self.channel.send(encode_chunk(request_id, transfer, at, len(data), piece))
 
-    def _fetch(self, request_id: int, args: FetchArgs) -> dict[str, Any]:
+    def _fetch(self, request_id: int, args: FetchArgs) -> FetchReply:
         """Send pieces of a kept transfer again (the host asks for what it lacks)."""
         transfer = args.transfer
         if transfer not in self._transfers:
@@ -697,11 +727,24 @@ class DeviceEndpoint:
             raise RequestError("bad-args", f"range {past[0]} runs past the {total} bytes")
         for offset, length in args.ranges:
             self._send_range(request_id, transfer, offset, length)
-        return {"sent": sum(length for _, length in args.ranges)}
+        return FetchReply(sum(length for _, length in args.ranges))
 
     def send_segment(self, request_id: int, seq: int, segment: Segment) -> None:
         """Send view ``seq`` of a scan (the caller holds it in :attr:`buffer` first)."""
         self.channel.send(encode_segment(request_id, seq, segment))
+
+
+def _wire_reply(op: str, reply: Reply) -> dict[str, Any]:
+    """Return the wire form of ``op``'s reply; a reply of another class is a bug here.
+
+    Raises:
+        TypeError: ``reply`` is not of the class :data:`~lamina_shared.replies.REPLIES`
+            names for ``op`` (answered ``internal``: the host could not read it).
+    """
+    expected = REPLIES[op]
+    if type(reply) is not expected:
+        raise TypeError(f"{op} replied with a {type(reply).__name__}, not a {expected.__name__}")
+    return reply.to_wire()
 
 
 __all__ = [

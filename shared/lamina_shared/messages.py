@@ -1,8 +1,9 @@
-"""The link's messages other than requests: WELCOME, ACK, EVENT and the progress it carries.
+"""The link's messages other than requests and replies: HELLO, WELCOME, ACK, HEARTBEAT, EVENT.
 
-:mod:`lamina_shared.ops` types the requests; this module types what else crosses the
-line, in the same style: one frozen dataclass per message, ``to_wire()`` giving the JSON
-body the device sends and ``from_wire()`` reading one back, or raising
+:mod:`lamina_shared.ops` types the requests and :mod:`lamina_shared.replies` the
+operations' replies; this module types what else crosses the line, in the same style:
+one frozen dataclass per message, ``to_wire()`` giving the JSON body its sender sends
+and ``from_wire()`` reading one back, or raising
 :class:`MessageError` listing every problem found at once. Both ends use these classes,
 so the device and the host cannot disagree on a field's name or kind
 (``shared/PROTOCOL.md`` names the bodies).
@@ -10,6 +11,7 @@ so the device and the host cannot disagree on a field's name or kind
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +21,8 @@ from lamina_shared.ops import (
     MISSING,
     ExtractChanges,
     Problems,
+    check_bool,
+    check_choice,
     check_int,
     check_list,
     check_number,
@@ -47,7 +51,7 @@ class MessageError(ValueError):
         super().__init__("; ".join(shown) + (f"; and {more} more" if more else ""))
 
 
-def _text(data: dict[str, Any], key: str, where: str, problems: Problems, default: Any) -> Any:
+def check_text(data: dict[str, Any], key: str, where: str, problems: Problems, default: Any) -> Any:
     """Return the string ``data[key]`` (``default`` when absent); record any other kind."""
     value = data.get(key, MISSING)
     if value is MISSING:
@@ -69,10 +73,164 @@ def _object(data: dict[str, Any], key: str, where: str, problems: Problems) -> d
     return value
 
 
-def _refuse_non_object(body: Any, kind: str) -> dict[str, Any]:
+def object_body(body: Any, kind: str) -> dict[str, Any]:
+    """Return ``body`` if it is a JSON object; else raise MessageError naming ``kind``."""
     if not isinstance(body, dict):
         raise MessageError(kind, [f"{kind.lower()}: an object is required, found {show(body)}"])
     return body
+
+
+def require_keys(
+    data: dict[str, Any], keys: tuple[str, ...], where: str, problems: Problems
+) -> None:
+    """Record each of ``keys`` that ``data`` lacks."""
+    for key in keys:
+        if key not in data:
+            problems.add(f"{where}: {key} is required")
+
+
+def _optional_number(
+    data: dict[str, Any], key: str, where: str, problems: Problems, low: float = -math.inf
+) -> float | None:
+    """Return the finite number ``data[key]`` (None when absent or null); record any other."""
+    value = data.get(key)
+    if value is None:
+        return None
+    return check_number(value, f"{where}.{key}", low, math.inf, problems)
+
+
+# --- HELLO and HEARTBEAT ----------------------------------------------------------------
+
+MAX_SESSION_CHARS = 64
+"""Longest session a device keeps; a longer one (or one not a text) is no session."""
+
+
+@dataclass(frozen=True)
+class Hello:
+    """HELLO: a host (``session``, random per host process) asks for the device's WELCOME.
+
+    A device answers a HELLO of another ``protocol`` with a WELCOME of the versions only.
+    """
+
+    session: str | None
+    protocol: int = PROTOCOL_VERSION
+    software: str = "lamina-host"
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the host sends."""
+        return {"protocol": self.protocol, "software": self.software, "session": self.session}
+
+    @classmethod
+    def from_wire(cls, body: Any) -> Hello:
+        """Return the HELLO a host sent.
+
+        A ``session`` that is not a text of at most :data:`MAX_SESSION_CHARS` characters
+        reads as none (the device then takes the host for a new one), never as a problem.
+
+        Raises:
+            MessageError: listing every problem (no usable ``protocol``, a bad ``software``).
+        """
+        data = object_body(body, "HELLO")
+        problems = Problems()
+        require_keys(data, ("protocol",), "hello", problems)
+        protocol = check_int(
+            data.get("protocol", MISSING), "hello.protocol", 0, MAX_COUNT, problems
+        )
+        software = check_text(data, "software", "hello", problems, "?")
+        session = data.get("session")
+        usable = isinstance(session, str) and len(session) <= MAX_SESSION_CHARS
+        if problems.items or protocol is None:
+            raise MessageError("HELLO", problems.items)
+        return cls(session if usable else None, protocol, software)
+
+
+DEVICE_STATES = ("idle", "busy", "paused")
+"""What a device heartbeat says it is doing."""
+
+
+@dataclass(frozen=True)
+class DeviceHeartbeat:
+    """HEARTBEAT from the device: its state, the request it runs, segments unacknowledged."""
+
+    state: str
+    request: int | None
+    unacked: int
+    uptime_s: float
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the device sends."""
+        return {
+            "state": self.state,
+            "request": self.request,
+            "unacked": self.unacked,
+            "uptime_s": round(self.uptime_s, 3),
+        }
+
+    @classmethod
+    def from_wire(cls, body: Any) -> DeviceHeartbeat:
+        """Return the heartbeat a device sent.
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = object_body(body, "HEARTBEAT")
+        problems = Problems()
+        beat = cls.read(data, "heartbeat", problems)
+        if problems.items:
+            raise MessageError("HEARTBEAT", problems.items)
+        return beat
+
+    @classmethod
+    def read(cls, data: dict[str, Any], where: str, problems: Problems) -> DeviceHeartbeat:
+        """Return the heartbeat's fields of ``data`` (also a ``status`` reply's), recording
+        every problem in ``problems`` under ``where``."""
+        require_keys(data, ("state", "request", "unacked", "uptime_s"), where, problems)
+        state = check_choice(data.get("state", MISSING), f"{where}.state", DEVICE_STATES, problems)
+        request = data.get("request", MISSING)
+        request_id = (
+            None
+            if request is None
+            else check_int(request, f"{where}.request", 0, MAX_COUNT, problems)
+        )
+        unacked = check_int(
+            data.get("unacked", MISSING), f"{where}.unacked", 0, MAX_COUNT, problems
+        )
+        uptime = check_number(
+            data.get("uptime_s", MISSING), f"{where}.uptime_s", 0.0, 1e12, problems
+        )
+        return cls(state or "idle", request_id, unacked or 0, uptime or 0.0)
+
+
+@dataclass(frozen=True)
+class HostHeartbeat:
+    """HEARTBEAT from the host while a request is open: the host's ``session``."""
+
+    session: str
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON body the host sends."""
+        return {"session": self.session}
+
+    @classmethod
+    def from_wire(cls, body: Any) -> HostHeartbeat:
+        """Return the heartbeat a host sent.
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = object_body(body, "HEARTBEAT")
+        problems = Problems()
+        require_keys(data, ("session",), "heartbeat", problems)
+        session = data.get("session", MISSING)
+        if session is not MISSING and not (
+            isinstance(session, str) and len(session) <= MAX_SESSION_CHARS
+        ):
+            problems.add(
+                f"heartbeat.session: a text of at most {MAX_SESSION_CHARS} characters is required"
+            )
+        if problems.items:
+            raise MessageError("HEARTBEAT", problems.items)
+        return cls(session)
 
 
 # --- WELCOME ----------------------------------------------------------------------------
@@ -93,6 +251,76 @@ class DeviceIdentity:
 
 
 @dataclass(frozen=True)
+class AxesInfo:
+    """The axes' soft limits (WELCOME ``axes``); None means no limit that way (or unknown).
+
+    A device from before ``axes`` sends none: every field is then None and the host
+    checks no travel (the device checks every request itself).
+    """
+
+    lift_min_mm: float | None = None
+    lift_max_mm: float | None = None
+    turntable_min_deg: float | None = None
+    turntable_max_deg: float | None = None
+    lift_step_mm: float | None = None
+    """The lift's smallest move (one microstep); None for a lift without steps."""
+
+    @property
+    def continuous(self) -> bool:
+        """Return True when the turntable turns without limit either way."""
+        return self.turntable_min_deg is None and self.turntable_max_deg is None
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the WELCOME ``axes`` object (the lift's ``step`` only when it has one)."""
+        lift: dict[str, Any] = {"unit": "mm", "min": self.lift_min_mm, "max": self.lift_max_mm}
+        if self.lift_step_mm is not None:
+            lift["step"] = self.lift_step_mm
+        return {
+            "lift": lift,
+            "turntable": {
+                "unit": "deg",
+                "min": self.turntable_min_deg,
+                "max": self.turntable_max_deg,
+                "continuous": self.continuous,
+            },
+        }
+
+    @classmethod
+    def from_wire(cls, value: Any, problems: Problems) -> AxesInfo:
+        """Return the axes a WELCOME reports, recording every problem in ``problems``.
+
+        ``continuous`` is read for its kind only: it follows from the turntable's limits.
+        """
+        if value is None:
+            return cls()
+        if not isinstance(value, dict):
+            problems.add(f"welcome.axes: an object is required, found {show(value)}")
+            return cls()
+        lift = _axis(value, "lift", "mm", problems)
+        table = _axis(value, "turntable", "deg", problems)
+        where = "welcome.axes.lift"
+        step = _optional_number(lift, "step", where, problems, low=0.0)
+        check_bool(table.get("continuous", MISSING), "welcome.axes.turntable.continuous", problems)
+        where_t = "welcome.axes.turntable"
+        return cls(
+            _optional_number(lift, "min", where, problems),
+            _optional_number(lift, "max", where, problems),
+            _optional_number(table, "min", where_t, problems),
+            _optional_number(table, "max", where_t, problems),
+            step,
+        )
+
+
+def _axis(axes: dict[str, Any], name: str, unit: str, problems: Problems) -> dict[str, Any]:
+    """Return the object ``axes[name]`` ({} when absent) if it is in ``unit``."""
+    axis = _object(axes, name, "welcome.axes", problems)
+    found = axis.get("unit", unit)
+    if found != unit:
+        problems.add(f"welcome.axes.{name}.unit: {unit} is required, found {show(found)}")
+    return axis
+
+
+@dataclass(frozen=True)
 class Welcome:
     """What the device says about itself at the handshake (the WELCOME body).
 
@@ -108,8 +336,8 @@ class Welcome:
     board: BoardSpec | None = None
     cylinder_diameter_mm: float | None = None
     default_plans: dict[str, ScanPlan] = field(default_factory=dict)
-    axes: dict[str, Any] = field(default_factory=dict)
-    """The axes' travel as the device reports it (``lift``/``turntable``: unit, min, max)."""
+    axes: AxesInfo = AxesInfo()
+    """The axes' travel as the device reports it (none known from an older device)."""
     operations: tuple[str, ...] = ()
     limits: DeviceLimits = HOST_LIMITS
     row_scale: int = ROW_SCALE
@@ -132,7 +360,7 @@ class Welcome:
             "board": self.board.to_dict() if self.board else None,
             "cylinder_diameter_mm": self.cylinder_diameter_mm,
             "default_plans": {k: plan.to_wire() for k, plan in self.default_plans.items()},
-            "axes": self.axes,
+            "axes": self.axes.to_wire(),
             "operations": list(self.operations),
             "limits": self.limits.to_dict(),
             "segment_encoding": {"row_scale": self.row_scale},
@@ -151,14 +379,14 @@ class Welcome:
         Raises:
             MessageError: listing every problem.
         """
-        data = _refuse_non_object(body, "WELCOME")
+        data = object_body(body, "WELCOME")
         problems = Problems()
         protocol = check_int(
             data.get("protocol", MISSING), "welcome.protocol", 0, MAX_COUNT, problems
         )
         if "protocol" not in data:
             problems.add("welcome: protocol is required")
-        software = _text(data, "software", "welcome", problems, "?")
+        software = check_text(data, "software", "welcome", problems, "?")
         if protocol is not None and protocol != PROTOCOL_VERSION:
             if problems.items:
                 raise MessageError("WELCOME", problems.items)
@@ -168,13 +396,13 @@ class Welcome:
         welcome = cls(
             protocol or 0,
             software,
-            _text(data, "hardware", "welcome", problems, "?"),
-            _text(data, "description", "welcome", problems, ""),
+            check_text(data, "hardware", "welcome", problems, "?"),
+            check_text(data, "description", "welcome", problems, ""),
             _image_size(data.get("image_size", MISSING), problems),
             _board(data.get("board"), problems),
             _diameter(data.get("cylinder_diameter_mm"), problems),
             _plans(_object(data, "default_plans", "welcome", problems), problems),
-            _object(data, "axes", "welcome", problems),
+            AxesInfo.from_wire(data.get("axes"), problems),
             _operations(data.get("operations"), problems),
             DeviceLimits.from_welcome(data.get("limits")),
             _row_scale(_object(data, "segment_encoding", "welcome", problems), problems),
@@ -315,7 +543,7 @@ class Ack:
         Raises:
             MessageError: listing every problem.
         """
-        data = _refuse_non_object(body, "ACK")
+        data = object_body(body, "ACK")
         problems = Problems()
         request_id = check_int(data.get("id", MISSING), "ack.id", 0, MAX_COUNT, problems)
         if "id" not in data:
@@ -339,53 +567,6 @@ def _seqs(value: Any, where: str, limits: DeviceLimits, problems: Problems) -> t
     for k in bad[:MAX_SHOWN_PROBLEMS]:
         problems.add(f"{where}[{k}]: a segment number is required, found {show(items[k])}")
     return () if bad else tuple(items)
-
-
-# --- the estimate reply -----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ScanEstimate:
-    """The ``estimate`` reply: how long a plan keeps the subject still, on this device.
-
-    Attributes:
-        views: the plan's views.
-        modelled_s: first move to last view, as the device's loop would run it.
-        mechanical_minimum_s: the axes' moves (together), settles and frames alone.
-    """
-
-    views: int
-    modelled_s: float
-    mechanical_minimum_s: float
-
-    def to_wire(self) -> dict[str, Any]:
-        """Return the JSON reply the device sends."""
-        return {
-            "views": self.views,
-            "modelled_s": round(self.modelled_s, 3),
-            "mechanical_minimum_s": round(self.mechanical_minimum_s, 3),
-        }
-
-    @classmethod
-    def from_wire(cls, body: Any) -> ScanEstimate:
-        """Return the estimate of a reply body.
-
-        Raises:
-            MessageError: listing every problem.
-        """
-        data = _refuse_non_object(body, "estimate reply")
-        problems = Problems()
-        for key in ("views", "modelled_s", "mechanical_minimum_s"):
-            if key not in data:
-                problems.add(f"estimate: {key} is required")
-        views = check_int(data.get("views", MISSING), "estimate.views", 0, MAX_COUNT, problems)
-        times = [
-            check_number(data.get(key, MISSING), f"estimate.{key}", 0.0, 1e7, problems)
-            for key in ("modelled_s", "mechanical_minimum_s")
-        ]
-        if problems.items:
-            raise MessageError("estimate reply", problems.items)
-        return cls(views or 0, times[0] or 0.0, times[1] or 0.0)
 
 
 # --- EVENT and progress -----------------------------------------------------------------
@@ -479,7 +660,7 @@ def parse_event(body: Any) -> Event:
     Raises:
         MessageError: listing every problem (an unknown kind is one).
     """
-    data = _refuse_non_object(body, "EVENT")
+    data = object_body(body, "EVENT")
     problems = Problems()
     request_id = check_int(data.get("id", MISSING), "event.id", 0, MAX_COUNT, problems)
     kind = data.get("event")
@@ -490,12 +671,12 @@ def parse_event(body: Any) -> Event:
         if not problems.items and request_id is not None:
             return ProgressEvent(request_id, progress)
     elif kind == "status":
-        state = _text(data, "state", "event", problems, "")
-        op = _text(data, "op", "event", problems, None)
+        state = check_text(data, "state", "event", problems, "")
+        op = check_text(data, "op", "event", problems, None)
         if not problems.items and request_id is not None:
             return StatusEvent(request_id, state, op)
     elif kind == "log":
-        message = _text(data, "message", "event", problems, "")
+        message = check_text(data, "message", "event", problems, "")
         if not problems.items and request_id is not None:
             return LogEvent(request_id, message)
     else:
@@ -507,7 +688,7 @@ def _progress(data: dict[str, Any], problems: Problems) -> Progress:
     for key in ("target", "done", "total", "section"):
         if key not in data:
             problems.add(f"event: {key} is required")
-    target = _text(data, "target", "event", problems, "")
+    target = check_text(data, "target", "event", problems, "")
     done = check_int(data.get("done", MISSING), "event.done", 0, MAX_COUNT, problems)
     total = check_int(data.get("total", MISSING), "event.total", 0, MAX_COUNT, problems)
     section = check_int(data.get("section", MISSING), "event.section", 0, 65_535, problems)
@@ -515,16 +696,21 @@ def _progress(data: dict[str, Any], problems: Problems) -> Progress:
 
 
 __all__ = [
+    "DEVICE_STATES",
     "EVENTS",
     "MAX_LOST_SEQS",
+    "MAX_SESSION_CHARS",
     "Ack",
+    "AxesInfo",
+    "DeviceHeartbeat",
     "DeviceIdentity",
     "Event",
+    "Hello",
+    "HostHeartbeat",
     "LogEvent",
     "MessageError",
     "Progress",
     "ProgressEvent",
-    "ScanEstimate",
     "StatusEvent",
     "Welcome",
     "parse_event",

@@ -13,12 +13,13 @@ from gpiozero.pins.mock import MockFactory
 from lamina_device import cli as device_cli
 from lamina_device.backends import open_hardware
 from lamina_device.motion import MotionError, StepperLift, StepperTurntable
-from lamina_device.operations import AxisLimits
+from lamina_device.operations import axes_of
 from lamina_device.sim import SIM_LIFT_TRAVEL_MM, Mechanics, NoiseModel, Rig
 from lamina_host import cli as host_cli
 from lamina_shared.capture import CaptureWriter
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
+from lamina_shared.messages import AxesInfo
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.types import BoardSpec, ScanPlan
 
@@ -40,8 +41,8 @@ def test_the_pi_modules_load_neither_the_simulator_nor_the_replay():
 def test_the_simulated_axes_declare_their_limits_and_refuse_to_leave_them():
     hardware = open_hardware("sim", "cylinder:d=19.05", noise="none")
     try:
-        assert AxisLimits.of(hardware) == AxisLimits(0.0, SIM_LIFT_TRAVEL_MM, None, None)
-        assert AxisLimits.of(hardware).to_dict()["turntable"]["continuous"] is True
+        assert axes_of(hardware) == AxesInfo(0.0, SIM_LIFT_TRAVEL_MM, None, None)
+        assert axes_of(hardware).to_wire()["turntable"]["continuous"] is True
         hardware.lift.move_to(SIM_LIFT_TRAVEL_MM)
         with pytest.raises(MotionError, match=r"outside 0\.\.200 mm") as refused:
             hardware.lift.move_to(SIM_LIFT_TRAVEL_MM + 0.5)
@@ -79,8 +80,8 @@ def test_the_replay_lift_reaches_every_height_a_capture_may_name(tmp_path):
     writer.close()
     hardware = open_hardware(f"replay:{tmp_path / 'cap'}")
     try:
-        limits = AxisLimits.of(hardware)
-        assert limits == AxisLimits(0.0, DeviceLimits().max_z_mm, None, None)
+        limits = axes_of(hardware)
+        assert limits == AxesInfo(0.0, DeviceLimits().max_z_mm, None, None)
     finally:
         hardware.close()
 

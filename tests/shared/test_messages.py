@@ -10,8 +10,13 @@ import pytest
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.messages import (
     MAX_LOST_SEQS,
+    MAX_SESSION_CHARS,
     Ack,
+    AxesInfo,
+    DeviceHeartbeat,
     DeviceIdentity,
+    Hello,
+    HostHeartbeat,
     LogEvent,
     MessageError,
     Progress,
@@ -20,7 +25,7 @@ from lamina_shared.messages import (
     Welcome,
     parse_event,
 )
-from lamina_shared.ops import ExtractChanges
+from lamina_shared.ops import ExtractChanges, Problems
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
 from lamina_shared.types import BoardSpec, ScanPlan
 
@@ -41,7 +46,7 @@ def _welcome() -> Welcome:
         board=BoardSpec((13, 11), 2.0, (-12.0, -10.0)),
         cylinder_diameter_mm=19.05,
         default_plans={"object": ScanPlan.regular(4, 2.0, 8)},
-        axes={"lift": {"unit": "mm", "min": 0.0, "max": 200.0}},
+        axes=AxesInfo(0.0, 200.0, -90.0, 90.0, 0.0025),
         operations=("move", "scan"),
         limits=DeviceLimits(max_views=500),
         identity=DeviceIdentity("sim", "sim object=x"),
@@ -157,3 +162,79 @@ def test_a_bad_event_is_refused_with_every_problem():
 def test_progress_estimates_the_time_left_from_this_runs_rate():
     assert Progress("object", 10, 16, 1, elapsed_s=2.0, done_this_run=4).left_s == 3.0
     assert Progress("object", 6, 16, 0, elapsed_s=0.5).left_s is None
+
+
+def test_hello_round_trips_and_a_hostile_session_reads_as_none():
+    hello = Hello("ab12")
+    assert _json(hello.to_wire()) == {
+        "protocol": PROTOCOL_VERSION, "software": "lamina-host", "session": "ab12",
+    }  # fmt: skip
+    assert Hello.from_wire(_json(hello.to_wire())) == hello
+    for session in ({"x": [1]}, "s" * (MAX_SESSION_CHARS + 1), 7, None):
+        assert Hello.from_wire({"protocol": 2, "session": session}) == Hello(None, 2, "?")
+    with pytest.raises(MessageError) as info:
+        Hello.from_wire({"software": 3})
+    assert info.value.problems == [
+        "hello: protocol is required",
+        "hello.software: a text of at most 1000 characters is required",
+    ]
+    with pytest.raises(MessageError, match=r"hello\.protocol: a huge integer is outside"):
+        Hello.from_wire({"protocol": 10**400})
+
+
+def test_heartbeats_round_trip_and_a_bad_one_is_refused_with_every_problem():
+    beat = DeviceHeartbeat("paused", 3, 2, 1.23456)
+    assert _json(beat.to_wire()) == {
+        "state": "paused",
+        "request": 3,
+        "unacked": 2,
+        "uptime_s": 1.235,
+    }
+    assert DeviceHeartbeat.from_wire({**beat.to_wire(), "uptime_s": 1.5}) == DeviceHeartbeat(
+        "paused", 3, 2, 1.5
+    )
+    assert (
+        DeviceHeartbeat.from_wire(DeviceHeartbeat("idle", None, 0, 0.0).to_wire()).request is None
+    )
+    with pytest.raises(MessageError) as info:
+        DeviceHeartbeat.from_wire({"state": {"deep": []}, "request": "1", "unacked": -1})
+    assert info.value.problems == [
+        "heartbeat: uptime_s is required",
+        "heartbeat.state: one of idle, busy, paused is required, found {'deep': []}",
+        "heartbeat.request: a whole number is required, found '1'",
+        "heartbeat.unacked: -1 is outside 0..4294967295",
+    ]
+    assert HostHeartbeat.from_wire(HostHeartbeat("ab12").to_wire()) == HostHeartbeat("ab12")
+    for body, problem in (({}, "session is required"), ({"session": 10**400}, "a text of")):
+        with pytest.raises(MessageError, match=problem):
+            HostHeartbeat.from_wire(body)
+
+
+def test_axes_round_trip_and_bad_ones_are_refused_with_every_problem():
+    stepper = AxesInfo(0.0, 120.0, None, None, 0.0025)
+    assert _json(stepper.to_wire()) == {
+        "lift": {"unit": "mm", "min": 0.0, "max": 120.0, "step": 0.0025},
+        "turntable": {"unit": "deg", "min": None, "max": None, "continuous": True},
+    }
+    problems = Problems()
+    assert AxesInfo.from_wire(_json(stepper.to_wire()), problems) == stepper
+    assert AxesInfo.from_wire(None, problems) == AxesInfo() and not problems.items
+    assert not AxesInfo(0.0, 1.0, -90.0, 90.0).to_wire()["turntable"]["continuous"]
+    bad = {
+        "lift": {"unit": "inch", "min": "0", "max": 1e999, "step": -1.0},
+        "turntable": {"min": True, "continuous": "yes"},
+    }
+    AxesInfo.from_wire(bad, problems)
+    for part in (
+        "welcome.axes.lift.unit: mm is required, found 'inch'",
+        "welcome.axes.lift.min: a number is required",
+        "welcome.axes.lift.max: inf is not a finite number",
+        "welcome.axes.lift.step: -1.0 is outside 0..inf",
+        "welcome.axes.turntable.min: a number is required",
+        "welcome.axes.turntable.continuous: true or false is required",
+    ):
+        assert sum(part in p for p in problems.items) == 1, (part, problems.items)
+    assert len(problems.items) == 6
+    body = {**_json(_welcome().to_wire()), "axes": [1]}
+    with pytest.raises(MessageError, match=r"welcome\.axes: an object is required"):
+        Welcome.from_wire(body)

@@ -16,8 +16,6 @@ Which device to open, and how, is :mod:`lamina_host.link.connect`'s.
 
 from __future__ import annotations
 
-import base64
-import binascii
 import dataclasses
 import logging
 import queue
@@ -28,7 +26,7 @@ import time
 from collections.abc import Callable, Collection
 from contextlib import suppress
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -38,15 +36,16 @@ from lamina_host.link.handshake import hello_body, in_use, read_welcome, refusal
 from lamina_host.link.identity import scan_identity
 from lamina_host.link.scanning import EventHandler, IndexedSegmentHandler, ScanReceiver
 from lamina_host.link.spawn import StderrTail
-from lamina_host.link.transfer import fetch_transfer
+from lamina_host.link.transfer import Offering, fetch_transfer
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker
-from lamina_shared.messages import MessageError, ScanEstimate, Welcome
+from lamina_shared.messages import HostHeartbeat, MessageError, Welcome
 from lamina_shared.ops import (
     EstimateArgs,
     ExposureArgs,
     ExtractChanges,
+    MoveArgs,
     NoArgs,
     PreviewArgs,
     ScanArgs,
@@ -59,6 +58,16 @@ from lamina_shared.protocol import (
     ProtocolError,
     decode_segment_body,
     encode_json,
+)
+from lamina_shared.replies import (
+    ControlReply,
+    ExposureReply,
+    GridReply,
+    MoveReply,
+    PreviewReply,
+    ScanEstimate,
+    ScanReply,
+    StatusReply,
 )
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
@@ -74,6 +83,14 @@ log = logging.getLogger(__name__)
 
 MessageHandler = Callable[[Message], object]
 """Receives each message of one request but its reply (events, segments, chunks, heartbeats)."""
+
+
+class _Readable(Protocol):
+    @classmethod
+    def from_wire(cls, body: Any) -> Any: ...  # pragma: no cover - protocol
+
+
+R = TypeVar("R", bound=_Readable)
 
 
 @dataclass(frozen=True)
@@ -248,7 +265,7 @@ class DeviceClient:
     def _tick(self) -> None:
         """Send our heartbeat while a request is open (on the reader thread)."""
         if self.dispatcher.open_requests and self._heartbeat.due():
-            self.channel.send(encode_json(Kind.HEARTBEAT, {"session": self.session}))
+            self.channel.send(encode_json(Kind.HEARTBEAT, HostHeartbeat(self.session).to_wire()))
 
     def request(
         self, op: str, args: Any = None, on_event: MessageHandler | None = None
@@ -305,28 +322,49 @@ class DeviceClient:
         finally:
             self.dispatcher.close(request_id)
 
+    def call(
+        self,
+        op: str,
+        reply_type: type[R],
+        args: Any = None,
+        on_event: MessageHandler | None = None,
+    ) -> R:
+        """Run :meth:`request` and read its result as ``op``'s typed reply.
+
+        Raises:
+            DeviceError: the device refused, or its reply is malformed (every problem named).
+        """
+        result = self.request(op, args, on_event)
+        try:
+            reply: R = reply_type.from_wire(result)
+        except MessageError as exc:
+            raise DeviceError(f"the device's {op} reply is malformed ({exc})") from None
+        return reply
+
     def _resend(self, frame: bytes) -> None:
         self.channel.sizer.penalise()
         self.channel.send(frame)
         with self._id_lock:
             self.stats.request_retries += 1
 
-    def _fetch(self, op: str, args: Any = None) -> tuple[bytes, dict[str, Any]]:
+    def _fetch(
+        self, op: str, reply_type: type[Offering], args: Any = None
+    ) -> tuple[bytes, Offering]:
         """Run a request that offers a binary transfer; fetch what did not arrive."""
         max_bytes = (self.info.limits if self.info else DeviceLimits()).max_fetch_bytes
-        data, result, rounds = fetch_transfer(self.request, op, args, max_bytes)
+        data, reply, rounds = fetch_transfer(self.call, op, reply_type, args, max_bytes)
         self.stats.fetch_rounds += rounds
-        return data, result
+        return data, reply
 
     def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
         """Fetch the calibration board image and the board's geometry."""
-        data, result = self._fetch("grab_grid")
+        data, reply = self._fetch("grab_grid", GridReply)
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the calibration image could not be decoded")
-        if result.get("board") is None:
+        if reply.board is None:
             raise DeviceError("the device does not know its calibration board: configure it")
-        return image, BoardSpec.from_dict(result["board"])
+        return image, reply.board
 
     def preview(self, laser: bool = False, stripe: bool = True) -> Preview:
         """Fetch one camera frame taken where the axes stand, and the stripe found there.
@@ -336,15 +374,17 @@ class DeviceClient:
             stripe: also have the device take a laser-off/on pair and extract the stripe
                 (the laser then flashes for one frame even when ``laser`` is False).
         """
-        data, result = self._fetch("preview", PreviewArgs(laser, stripe))
+        data, reply = self._fetch("preview", PreviewReply, PreviewArgs(laser, stripe))
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the preview frame could not be decoded")
         found = None
         if stripe:
+            if reply.stripe is None:
+                raise DeviceError("the device's preview reply holds no stripe")
             try:
-                found = decode_segment_body(base64.b64decode(result["stripe"], validate=True))
-            except (KeyError, TypeError, binascii.Error, ProtocolError) as exc:
+                found = decode_segment_body(reply.stripe)
+            except ProtocolError as exc:
                 raise DeviceError(f"the device's preview stripe is malformed ({exc})") from None
             height, width = image.shape[:2]
             if len(found.segment) and (
@@ -359,12 +399,24 @@ class DeviceClient:
         Raises:
             DeviceError: outside the camera's range (the message names it) or a scan runs.
         """
-        return int(self.request("exposure", ExposureArgs(int(exposure_us)))["exposure_us"])
+        return self.call("exposure", ExposureReply, ExposureArgs(int(exposure_us))).exposure_us
 
     def exposure(self) -> tuple[int, int, int]:
         """Return the camera's (exposure, min, max) in microseconds."""
-        result = self.request("exposure")
-        return int(result["exposure_us"]), int(result["min_us"]), int(result["max_us"])
+        reply = self.call("exposure", ExposureReply)
+        return reply.exposure_us, reply.min_us, reply.max_us
+
+    def move(self, axis: str, position: float) -> float:
+        """Move ``lift`` (mm) or ``turntable`` (deg) to ``position``; return where it stands.
+
+        Raises:
+            DeviceError: beyond the axis's soft limits (the message names them) or a scan runs.
+        """
+        return self.call("move", MoveReply, MoveArgs(axis, position)).position
+
+    def status(self) -> StatusReply:
+        """Return what the device is doing (its heartbeat's fields) and its retransmissions."""
+        return self.call("status", StatusReply)
 
     def pause(self) -> str | None:
         """Ask the device to hold the running scan after the current view (thread-safe).
@@ -393,7 +445,7 @@ class DeviceClient:
         if not scanning:
             raise DeviceError(f"no scan is running to {op}")
         try:
-            return str(self.request(op, NoArgs()).get("state"))
+            return self.call(op, ControlReply, NoArgs()).state
         except RequestRefused as exc:
             log.warning("%s", exc)
             if on_notice is not None:
@@ -470,7 +522,7 @@ class DeviceClient:
         with self._id_lock:
             self._scanning, self._on_notice = True, on_notice
         try:
-            self.request("scan", args, on_event=receiver.take)
+            self.call("scan", ScanReply, args, on_event=receiver.take)
         except RequestRefused as exc:
             if exc.code != "aborted":
                 raise

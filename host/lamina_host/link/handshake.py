@@ -12,7 +12,7 @@ from typing import Any
 
 from lamina_host.link.errors import DeviceError
 from lamina_shared.errors import printable
-from lamina_shared.messages import MessageError, Welcome
+from lamina_shared.messages import Hello, MessageError, Welcome
 from lamina_shared.protocol import PROTOCOL_VERSION
 
 MAX_REFUSAL_CHARS = 200
@@ -21,7 +21,7 @@ MAX_REFUSAL_CHARS = 200
 
 def hello_body(session: str) -> dict[str, Any]:
     """Return the HELLO body of this host's ``session``."""
-    return {"protocol": PROTOCOL_VERSION, "software": "lamina-host", "session": session}
+    return Hello(session, PROTOCOL_VERSION, "lamina-host").to_wire()
 
 
 def read_welcome(body: Any) -> Welcome:

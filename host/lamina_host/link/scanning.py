@@ -14,9 +14,8 @@ import logging
 from collections.abc import Callable, Collection
 
 from lamina_host.link.errors import DeviceError
-from lamina_shared.endpoint import request_id_of
 from lamina_shared.link import Channel
-from lamina_shared.messages import Ack, Event, MessageError, parse_event
+from lamina_shared.messages import Ack, DeviceHeartbeat, Event, MessageError, parse_event
 from lamina_shared.protocol import Kind, Message, SegmentEvent, encode_json
 from lamina_shared.types import ScanPlan, Segment
 
@@ -99,9 +98,13 @@ class ScanReceiver:
     def _heartbeat(self, message: Message) -> None:
         # The device still holds segments: if it is one we stored, our ACK was lost;
         # acknowledging the latest again now beats the device's backoff.
-        unacked, named = message.body.get("unacked"), request_id_of(message)
-        if isinstance(unacked, int) and unacked > 0 and self.received and named is not None:
-            self._send(Ack(named, tuple(self.received)[-REACK_SEQS:]))
+        try:
+            beat = DeviceHeartbeat.from_wire(message.body)
+        except MessageError as exc:
+            log.warning("ignoring a malformed heartbeat from the device (%s)", exc)
+            return
+        if beat.unacked > 0 and self.received and beat.request is not None:
+            self._send(Ack(beat.request, tuple(self.received)[-REACK_SEQS:]))
 
     def _send(self, ack: Ack) -> None:
         self.channel.send(encode_json(Kind.ACK, ack.to_wire()))

@@ -9,19 +9,23 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from lamina_host.link.errors import DeviceError
 from lamina_shared.ops import FetchArgs
 from lamina_shared.protocol import CHUNK_BYTES, MAX_TRANSFER_BYTES, Chunk, Message
+from lamina_shared.replies import FetchReply, GridReply, PreviewReply
 
 MAX_FETCH_ROUNDS = 1000
 """Fetch rounds after which a transfer that no longer grows is given up."""
 
-Requester = Callable[[str, Any, Callable[[Message], None] | None], dict[str, Any]]
-"""Sends one request until answered, handing its messages on; returns the reply's result."""
+Offering = TypeVar("Offering", GridReply, PreviewReply)
+"""A reply that offers a binary transfer (its ``offer``)."""
+Requester = Callable[[str, Any, Any, Callable[[Message], None] | None], Any]
+"""Sends one request (op, reply class, arguments, message handler) until answered;
+returns the typed reply (``DeviceClient.call``)."""
 
 
 class Transfer:
@@ -75,38 +79,37 @@ class Transfers:
 
 
 def fetch_transfer(
-    request: Requester, op: str, args: Any, max_fetch_bytes: int
-) -> tuple[bytes, dict[str, Any], int]:
+    call: Requester, op: str, reply_type: type[Offering], args: Any, max_fetch_bytes: int
+) -> tuple[bytes, Offering, int]:
     """Run a request that offers a binary transfer; fetch what did not arrive.
 
     Args:
-        request: sends a request until answered (``DeviceClient.request``).
+        call: sends a request until answered and reads its reply (``DeviceClient.call``).
         op: the operation that offers the transfer (``grab_grid``, ``preview``).
+        reply_type: its reply class.
         args: its typed arguments.
         max_fetch_bytes: the most one ``fetch`` may ask for (the device's limits).
 
     Returns:
-        The transfer's bytes, the reply's result and the number of fetch rounds.
+        The transfer's bytes, the typed reply and the number of fetch rounds.
 
     Raises:
-        DeviceError: the reply names no transfer, it stopped growing, or arrived damaged.
+        DeviceError: the reply is malformed, the transfer stopped growing or arrived damaged.
     """
     transfers = Transfers()
-    result = request(op, args, transfers.take)
-    number, total = result.get("transfer"), result.get("bytes")
-    if not isinstance(number, int) or not isinstance(total, int):
-        raise DeviceError(f"the device's {op} reply names no transfer")
+    reply: Offering = call(op, reply_type, args, transfers.take)
+    number, total = reply.offer.transfer, reply.offer.size_bytes
     transfer = transfers.by_number.get(number) or Transfer(total)
     transfers.by_number = {number: transfer}
     rounds = 0
     while not transfer.have.all():
         before = int(transfer.have.sum())
         ranges = tuple((offset, length) for offset, length in transfer.missing(max_fetch_bytes))
-        request("fetch", FetchArgs(number, ranges), transfers.take)
+        call("fetch", FetchReply, FetchArgs(number, ranges), transfers.take)
         rounds += 1
         if int(transfer.have.sum()) == before and rounds > MAX_FETCH_ROUNDS:
             raise DeviceError(f"the {op} transfer makes no progress: check the cable")
     data = bytes(transfer.data)
-    if len(data) != total or zlib.crc32(data) != result.get("crc32"):
+    if len(data) != total or zlib.crc32(data) != reply.offer.crc32:
         raise DeviceError(f"the {op} transfer arrived damaged: try again")
-    return data, result, rounds
+    return data, reply, rounds

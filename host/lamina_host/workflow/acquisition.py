@@ -216,7 +216,7 @@ class Acquisition:
         client = self.device.client()
         identity = self._check_calibrated_here(client)
         limits = client.info.limits if client.info else None
-        axes = client.info.axes if client.info else {}
+        axes = client.info.axes if client.info else None
         plans = {
             "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
             "object": client.plan_for("object", request.plan),
@@ -255,7 +255,7 @@ class Acquisition:
         client = self.device.client()
         identity = client.identity()
         limits = client.info.limits if client.info else None
-        axes = client.info.axes if client.info else {}
+        axes = client.info.axes if client.info else None
         library = self.store.library()
         library.check_identity(scan_id, identity)
         record = library.scan(scan_id)
@@ -342,7 +342,7 @@ class Acquisition:
         # Before anything changes: a scan is only ever continued by what began it.
         library.check_identity(scan_id, identity)
         info = self.device.info
-        limits, axes = (info.limits, info.axes) if info else (None, {})
+        limits, axes = (info.limits, info.axes) if info else (None, None)
         check_plan_limits("object", plan, limits, axes)
         self.identity = identity
         self.data.complete = False

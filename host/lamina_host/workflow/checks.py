@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping
-from typing import Any
 
 from lamina_shared.errors import InputError
 from lamina_shared.limits import DeviceLimits
+from lamina_shared.messages import AxesInfo
 from lamina_shared.ops import plan_fits
 from lamina_shared.types import ScanPlan
 
@@ -83,15 +82,7 @@ def check_plan(sections: int | None, pitch_mm: float | None, views: int | None) 
         raise InputError(f"the plan cannot be made: {exc}") from None
 
 
-def _limit(axis: Mapping[str, Any], key: str) -> float | None:
-    """Return the finite number ``axis[key]`` of a WELCOME's ``axes``, else None."""
-    value = axis.get(key)
-    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
-        return float(value)
-    return None
-
-
-def check_plan_axes(target: str, plan: ScanPlan, axes: Mapping[str, Any]) -> None:
+def check_plan_axes(target: str, plan: ScanPlan, axes: AxesInfo) -> None:
     """Refuse a plan the axes cannot follow: heights or angles beyond their soft limits,
     or sections closer than the lift's step (limits the WELCOME does not give are not
     checked; the device checks every request again itself).
@@ -99,18 +90,14 @@ def check_plan_axes(target: str, plan: ScanPlan, axes: Mapping[str, Any]) -> Non
     Raises:
         InputError: naming the axis, the plan's figure and the device's limit.
     """
-    lift, table = (axes.get(name) for name in ("lift", "turntable"))
-    lift = lift if isinstance(lift, Mapping) else {}
-    table = table if isinstance(table, Mapping) else {}
     heights = sorted({view.z_mm for view in plan.views})
     angles = sorted({view.angle_deg for view in plan.views})
     if not heights:
         return
-    for name, unit, values, axis in (
-        ("lift", "mm", heights, lift),
-        ("turntable", "deg", angles, table),
+    for name, unit, values, low, high in (
+        ("lift", "mm", heights, axes.lift_min_mm, axes.lift_max_mm),
+        ("turntable", "deg", angles, axes.turntable_min_deg, axes.turntable_max_deg),
     ):
-        low, high = _limit(axis, "min"), _limit(axis, "max")
         if (low is not None and values[0] < low) or (high is not None and values[-1] > high):
             extreme = values[-1] if high is not None and values[-1] > high else values[0]
             travel = f"{'-inf' if low is None else f'{low:g}'}.."
@@ -119,7 +106,7 @@ def check_plan_axes(target: str, plan: ScanPlan, axes: Mapping[str, Any]) -> Non
                 f"the {target} plan reaches {extreme:g} {unit}, beyond the {name}'s travel of "
                 f"{travel} {unit}: plan fewer sections or a smaller pitch"
             )
-    step = _limit(lift, "step")
+    step = axes.lift_step_mm
     gaps = [b - a for a, b in itertools.pairwise(heights)]
     if step is not None and gaps and min(gaps) < step * (1 - 1e-9):
         raise InputError(
@@ -132,7 +119,7 @@ def check_plan_limits(
     target: str,
     plan: ScanPlan,
     limits: DeviceLimits | None,
-    axes: Mapping[str, Any] | None = None,
+    axes: AxesInfo | None = None,
 ) -> None:
     """Refuse a plan beyond the limits the device advertised (None: this version's).
 
@@ -161,7 +148,7 @@ def check_plan_limits(
                 f"the {target} plan has {figure} {what}, beyond the device's limit of {limit} "
                 f"({key}): plan a smaller scan"
             )
-    check_plan_axes(target, plan, axes or {})
+    check_plan_axes(target, plan, axes or AxesInfo())
     # The counts above name the limit; the shared check adds what only the wire knows
     # (an irregular plan too long for one request, heights and angles out of range).
     problems = plan_fits(plan, limits)

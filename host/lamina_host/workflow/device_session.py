@@ -18,8 +18,9 @@ from lamina_host.link.connect import open_device
 from lamina_host.link.errors import DeviceError
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
-from lamina_shared.messages import Event, Progress, ProgressEvent, ScanEstimate, Welcome
+from lamina_shared.messages import Event, Progress, ProgressEvent, Welcome
 from lamina_shared.ops import ExtractChanges
+from lamina_shared.replies import ScanEstimate
 from lamina_shared.types import ScanPlan, Segment
 
 ProgressHandler = Callable[[Progress], object]
@@ -227,8 +228,8 @@ class DeviceSession:
     def move(self, axis: str, position: float) -> Pose:
         """Move ``lift`` (mm) or ``turntable`` (deg) to ``position``; return the new pose."""
         with self.busy(), self.link() as client:
-            result = client.request("move", {"axis": axis, "position": position})
-        self.pose = self.pose.moved(axis, float(result.get("position", position)))
+            position = client.move(axis, position)
+        self.pose = self.pose.moved(axis, position)
         return self.pose
 
     def pause_scan(self) -> None:
