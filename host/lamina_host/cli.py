@@ -720,18 +720,14 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
     # Before calibrating: the extraction settings are part of what the scan records.
     job.device.set_extract(request.extract)
     job.device.set_colour(request.colour)
-    _say_estimate(job, request.plan)
+
+    def opened(scan_id: int) -> None:
+        # The scan exists: its plan passed every check, so the estimate is of what will run.
+        print(f"scan {scan_id} in library {job.library_path}", file=sys.stderr)
+        _say_estimate(job)
+
     try:
-        return acquire(
-            job,
-            request,
-            args.resume,
-            args.out,
-            _progress,
-            on_opened=lambda scan_id: print(
-                f"scan {scan_id} in library {job.library_path}", file=sys.stderr
-            ),
-        )
+        return acquire(job, request, args.resume, args.out, _progress, on_opened=opened)
     except KeyboardInterrupt:
         if job.scan_id is None:
             raise
@@ -760,9 +756,22 @@ def _acquire_scan(job: ScanJob, args: argparse.Namespace, request: ScanRequest) 
         ) from None
 
 
-def _say_estimate(job: ScanJob, plan: ScanPlan | None) -> None:
-    """Say, before anything moves, how long the subject must hold still for the object."""
-    estimate = job.device.estimate("object", plan)
+def _say_estimate(job: ScanJob) -> None:
+    """Say, before the object scan, how long the subject must hold still for it.
+
+    The views still to take (a resumed scan has some already). Only a word of advice: a
+    device that cannot say, or a refusal (the scan then meets it and says so), leaves it out.
+    """
+    plan, held = job.acquisition.plan, job.acquisition.held
+    if plan is None:
+        return
+    left = ScanPlan(tuple(v for k, v in enumerate(plan.views) if k not in held))
+    if not left.views:
+        return
+    try:
+        estimate = job.device.estimate("object", left)
+    except (DeviceError, LinkClosed, ProtocolError):
+        return
     if estimate is not None and estimate.views:
         print(
             f"the object scan takes about {duration_text(estimate.modelled_s)} "

@@ -24,7 +24,7 @@ from lamina_host.ui.tui.adapter import (
 )
 from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_shared.durations import duration_text
-from lamina_shared.messages import ScanEstimate
+from lamina_shared.replies import ScanEstimate
 from lamina_shared.types import ScanPlan, Segment
 
 
