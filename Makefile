@@ -28,8 +28,9 @@ demo: install
 		--pitch 2 --views 8 --expect ellipsoid:a=10,b=6.5,c=20,z=-1 $(DEMO_LIBRARY) \
 		-o $(OUT)/demo/oval-cap
 
+# The slowest tests are listed at the end, so the 15-minute budget can be kept in view.
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=25
 
 lint: install
 	$(BIN)/ruff check .
