@@ -18,6 +18,7 @@ is left out of both.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
 from lamina_device.motion import (
@@ -85,13 +86,15 @@ def frame_wait_s(frame_duration_us: float, exposure_us: float) -> float:
     return 0.5 * period_s + exposure_us * 1e-6 + period_s
 
 
-@dataclass(frozen=True)
-class _ViewMoves:
-    """One view's moves (seconds): the lift's, the table's first run, its backlash return."""
+class _ViewMoves(NamedTuple):
+    """One view's moves, in seconds."""
 
     lift_s: float
+    """The lift's move (none within a section)."""
     table_first_s: float
+    """The turntable's first run: the lift can move beside it."""
     table_rest_s: float
+    """The turntable's backlash return, if the move needed one."""
 
     def sequential_s(self) -> float:
         return self.lift_s + self.table_first_s + self.table_rest_s

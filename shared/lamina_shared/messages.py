@@ -213,24 +213,25 @@ class HostHeartbeat:
 
     @classmethod
     def from_wire(cls, body: Any) -> HostHeartbeat:
-        """Return the heartbeat a host sent.
-
-        Raises:
-            MessageError: listing every problem.
-        """
-        data = object_body(body, "HEARTBEAT")
+        """Return the heartbeat a host sent (:class:`MessageError` lists every problem)."""
         problems = Problems()
-        require_keys(data, ("session",), "heartbeat", problems)
-        session = data.get("session", MISSING)
-        if session is not MISSING and not (
-            isinstance(session, str) and len(session) <= MAX_SESSION_CHARS
-        ):
-            problems.add(
-                f"heartbeat.session: a text of at most {MAX_SESSION_CHARS} characters is required"
-            )
+        session = _heartbeat_session(object_body(body, "HEARTBEAT"), problems)
         if problems.items:
             raise MessageError("HEARTBEAT", problems.items)
         return cls(session)
+
+
+def _heartbeat_session(data: dict[str, Any], problems: Problems) -> str:
+    """Return a host HEARTBEAT's ``session``, recording what is wrong with it."""
+    require_keys(data, ("session",), "heartbeat", problems)
+    session = data.get("session", MISSING)
+    if session is not MISSING and not (
+        isinstance(session, str) and len(session) <= MAX_SESSION_CHARS
+    ):
+        problems.add(
+            f"heartbeat.session: a text of at most {MAX_SESSION_CHARS} characters is required"
+        )
+    return session if isinstance(session, str) else ""
 
 
 # --- WELCOME ----------------------------------------------------------------------------

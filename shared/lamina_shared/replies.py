@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import base64
 import binascii
-from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Protocol, Self
 
 from lamina_shared.limits import show
 from lamina_shared.messages import (
@@ -50,6 +50,31 @@ def _counts(
 def _finish(kind: str, problems: Problems) -> None:
     if problems.items:
         raise MessageError(kind, problems.items)
+
+
+@dataclass(frozen=True)
+class _WholeNumbers:
+    """A reply of whole numbers only, each field travelling under its own name."""
+
+    kind: ClassVar[str] = "reply"
+    op: ClassVar[str] = "reply"
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the JSON result the device sends."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_wire(cls, body: Any) -> Self:
+        """Return the reply of a result body.
+
+        Raises:
+            MessageError: listing every problem.
+        """
+        data = object_body(body, cls.kind)
+        problems = Problems()
+        values = _counts(data, tuple(f.name for f in fields(cls)), cls.op, problems)
+        _finish(cls.kind, problems)
+        return cls(*values)
 
 
 # --- binary transfers -------------------------------------------------------------------
@@ -173,30 +198,14 @@ class FetchReply:
 
 
 @dataclass(frozen=True)
-class ScanReply:
+class ScanReply(_WholeNumbers):
     """The ``scan`` reply: the plan's views, those acquired now and those resent."""
 
     kind: ClassVar[str] = "scan reply"
+    op: ClassVar[str] = "scan"
     segments: int
     acquired: int
     resent: int
-
-    def to_wire(self) -> dict[str, Any]:
-        """Return the JSON result the device sends."""
-        return {"segments": self.segments, "acquired": self.acquired, "resent": self.resent}
-
-    @classmethod
-    def from_wire(cls, body: Any) -> ScanReply:
-        """Return the reply of a result body.
-
-        Raises:
-            MessageError: listing every problem.
-        """
-        data = object_body(body, cls.kind)
-        problems = Problems()
-        counts = _counts(data, ("segments", "acquired", "resent"), "scan", problems)
-        _finish(cls.kind, problems)
-        return cls(*counts)
 
 
 @dataclass(frozen=True)
@@ -307,30 +316,14 @@ class MoveReply:
 
 
 @dataclass(frozen=True)
-class ExposureReply:
+class ExposureReply(_WholeNumbers):
     """The ``exposure`` reply: the camera's exposure now and its range, in microseconds."""
 
     kind: ClassVar[str] = "exposure reply"
+    op: ClassVar[str] = "exposure"
     exposure_us: int
     min_us: int
     max_us: int
-
-    def to_wire(self) -> dict[str, Any]:
-        """Return the JSON result the device sends."""
-        return {"exposure_us": self.exposure_us, "min_us": self.min_us, "max_us": self.max_us}
-
-    @classmethod
-    def from_wire(cls, body: Any) -> ExposureReply:
-        """Return the reply of a result body.
-
-        Raises:
-            MessageError: listing every problem.
-        """
-        data = object_body(body, cls.kind)
-        problems = Problems()
-        values = _counts(data, ("exposure_us", "min_us", "max_us"), "exposure", problems)
-        _finish(cls.kind, problems)
-        return cls(*values)
 
 
 @dataclass(frozen=True)

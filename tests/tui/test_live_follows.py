@@ -32,12 +32,11 @@ async def test_the_live_screen_shows_each_new_scanned_view(tmp_path: Path) -> No
         await pilot.press("f3")
         await pilot.pause()
         assert _text(app, "#stripe-info") == "no view scanned yet"
-        app.latest_segment = _segment(1, 2, 40)
-        await pilot.pause()
-        assert _text(app, "#stripe-info").startswith("object section 1, view 2: 40 points")
-        app.latest_segment = _segment(1, 3, 12)
-        await pilot.pause()
-        assert _text(app, "#stripe-info").startswith("object section 1, view 3: 12 points")
+        for view, points in ((2, 40), (3, 12)):
+            app.latest_segment = _segment(1, view, points)
+            await pilot.pause()
+            shown = _text(app, "#stripe-info")
+            assert shown.startswith(f"object section 1, view {view}: {points} points")
 
 
 async def test_a_view_scanned_while_away_is_shown_on_return(tmp_path: Path) -> None:

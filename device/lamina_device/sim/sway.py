@@ -35,11 +35,6 @@ class Sway:
     breathing_hz: float = 0.25
     seed: int = 0
 
-    @property
-    def still(self) -> bool:
-        """Return True when the limb does not move at all."""
-        return self.drift_mm_per_min == 0.0 and self.breathing_mm == 0.0
-
     def offset_mm(self, t_s: float) -> tuple[float, float]:
         """Return the limb's horizontal displacement (x, y) ``t_s`` seconds into the scan."""
         if self.still:
@@ -51,6 +46,11 @@ class Sway:
             drift * math.cos(drift_dir) + breath * math.cos(breath_dir),
             drift * math.sin(drift_dir) + breath * math.sin(breath_dir),
         )
+
+    @property
+    def still(self) -> bool:
+        """Return True when the limb does not move at all."""
+        return self.drift_mm_per_min == 0.0 and self.breathing_mm == 0.0
 
 
 SWAY_PRESETS = {

@@ -37,6 +37,7 @@ from lamina_host.link.identity import scan_identity
 from lamina_host.link.scanning import EventHandler, IndexedSegmentHandler, ScanReceiver
 from lamina_host.link.spawn import StderrTail
 from lamina_host.link.transfer import Offering, fetch_transfer
+from lamina_shared import replies
 from lamina_shared.endpoint import Dispatcher, request_id_of
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel, LinkClosed, Ticker
@@ -59,16 +60,7 @@ from lamina_shared.protocol import (
     decode_segment_body,
     encode_json,
 )
-from lamina_shared.replies import (
-    ControlReply,
-    ExposureReply,
-    GridReply,
-    MoveReply,
-    PreviewReply,
-    ScanEstimate,
-    ScanReply,
-    StatusReply,
-)
+from lamina_shared.replies import ScanEstimate, StatusReply
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 SPAWNED_STARTUP_S = 120.0
@@ -358,7 +350,7 @@ class DeviceClient:
 
     def grab_grid(self) -> tuple[np.ndarray, BoardSpec]:
         """Fetch the calibration board image and the board's geometry."""
-        data, reply = self._fetch("grab_grid", GridReply)
+        data, reply = self._fetch("grab_grid", replies.GridReply)
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the calibration image could not be decoded")
@@ -374,7 +366,7 @@ class DeviceClient:
             stripe: also have the device take a laser-off/on pair and extract the stripe
                 (the laser then flashes for one frame even when ``laser`` is False).
         """
-        data, reply = self._fetch("preview", PreviewReply, PreviewArgs(laser, stripe))
+        data, reply = self._fetch("preview", replies.PreviewReply, PreviewArgs(laser, stripe))
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise DeviceError("the preview frame could not be decoded")
@@ -399,11 +391,13 @@ class DeviceClient:
         Raises:
             DeviceError: outside the camera's range (the message names it) or a scan runs.
         """
-        return self.call("exposure", ExposureReply, ExposureArgs(int(exposure_us))).exposure_us
+        return self.call(
+            "exposure", replies.ExposureReply, ExposureArgs(int(exposure_us))
+        ).exposure_us
 
     def exposure(self) -> tuple[int, int, int]:
         """Return the camera's (exposure, min, max) in microseconds."""
-        reply = self.call("exposure", ExposureReply)
+        reply = self.call("exposure", replies.ExposureReply)
         return reply.exposure_us, reply.min_us, reply.max_us
 
     def move(self, axis: str, position: float) -> float:
@@ -412,7 +406,7 @@ class DeviceClient:
         Raises:
             DeviceError: beyond the axis's soft limits (the message names them) or a scan runs.
         """
-        return self.call("move", MoveReply, MoveArgs(axis, position)).position
+        return self.call("move", replies.MoveReply, MoveArgs(axis, position)).position
 
     def status(self) -> StatusReply:
         """Return what the device is doing (its heartbeat's fields) and its retransmissions."""
@@ -445,7 +439,7 @@ class DeviceClient:
         if not scanning:
             raise DeviceError(f"no scan is running to {op}")
         try:
-            return self.call(op, ControlReply, NoArgs()).state
+            return self.call(op, replies.ControlReply, NoArgs()).state
         except RequestRefused as exc:
             log.warning("%s", exc)
             if on_notice is not None:
@@ -522,7 +516,7 @@ class DeviceClient:
         with self._id_lock:
             self._scanning, self._on_notice = True, on_notice
         try:
-            self.call("scan", ScanReply, args, on_event=receiver.take)
+            self.call("scan", replies.ScanReply, args, on_event=receiver.take)
         except RequestRefused as exc:
             if exc.code != "aborted":
                 raise
