@@ -188,3 +188,12 @@ def test_a_mesh_reaching_behind_the_camera_casts_as_brute_force_does():
     assert np.isfinite(best_t).sum() > 100  # the tube surrounds the camera: most rays hit
     np.testing.assert_array_equal(np.isfinite(t), np.isfinite(best_t))
     np.testing.assert_allclose(t[np.isfinite(t)], best_t[np.isfinite(best_t)], atol=1e-9)
+
+
+def test_no_rays_cast_hit_nothing():
+    """A truth query with no point to test (nothing lit in a view) is empty, not an error."""
+    mesh = parse_object("stump:scale=1")
+    t, normals = mesh.raycast(np.zeros(3), np.zeros((0, 3)))
+    assert t.shape == (0,) and normals.shape == (0, 3)
+    t, normals = mesh.raycast(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert t.shape == (0,) and normals.shape == (0, 3)

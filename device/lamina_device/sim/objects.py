@@ -425,6 +425,8 @@ class TriangleMesh:
         o, d = _as_rays(origins, dirs)
         best_t = np.full(len(d), np.inf)
         best_f = np.full(len(d), -1)
+        if len(d) == 0:  # no ray to cast (a view where nothing is lit): nothing hit
+            return best_t, np.zeros((0, 3))
         tri = self.triangles
         if np.all(o == o[0]):
             faces, rays = _cast_pinhole(o[0], d, tri, best_t, best_f)
