@@ -136,13 +136,13 @@ class ScanScreen(LaminaScreen):
             replace_progress: show it in place of the last scan's progress too (the plan
                 was changed); otherwise only where nothing has been scanned yet.
         """
-        shown = str(self.query_one("#progress-text", Static).render())
         if self.scanning or not self.job.device.connected:
             return
+        shown = str(self.query_one("#progress-text", Static).render())
         if not (replace_progress or shown.startswith("not started")):
             return
         try:
-            _, plan = self._plan_numbers()
+            plan = self._plan_numbers()
         except PLAN_ERRORS:
             self.query_one("#progress-text", Static).update("not started")
             return
@@ -165,13 +165,13 @@ class ScanScreen(LaminaScreen):
                 f"{duration_text(estimate.modelled_s)}; the subject holds still that long"
             )
 
-    def _plan_numbers(self) -> tuple[str, ScanPlan]:
+    def _plan_numbers(self) -> ScanPlan:
         value = {k: self.query_one(f"#{k}", Input).value for k in ("sections", "pitch", "views")}
-        return "", parse_plan(value["sections"], value["pitch"], value["views"])
+        return parse_plan(value["sections"], value["pitch"], value["views"])
 
     def _plan(self) -> tuple[str, ScanPlan]:
         subject = check_subject(self.query_one("#subject", Input).value)
-        return subject, self._plan_numbers()[1]
+        return subject, self._plan_numbers()
 
     @on(Button.Pressed, "#start")
     def action_start(self) -> None:
