@@ -10,23 +10,38 @@ The laser is on only while its frame is exposed (thesis appendix A asks for
 automatic shut-off safeguards): it is switched on just before the laser-on capture
 and off straight after, and off again whatever goes wrong. The lift goes home at
 the end of every scan, finished, failed or aborted.
+
+A continuous plan (``ScanPlan.mode``, issue 22) is taken without stopping the table: it
+ramps up once and turns at constant speed through every section while the camera
+streams; the lift moves between sections with the table still turning. Each view is
+three frames in a row, laser off, on, off: the table turns a few degrees from one to the
+next, so the laser-off reference is the brighter of the two off frames at each pixel,
+which a moving edge or shading cannot make darker than the on frame's own room light
+(what motion leaves in the difference is never positive, never a stripe). Each view's
+angle is the table's step count when the laser-on frame exposed the stripe's middle row
+(the sensor's timestamp on the step clock), not the planned angle, which the view is
+only started to come near.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Generator, Sequence
+from contextlib import closing
 from dataclasses import dataclass
 
 import numpy as np
 
-from lamina_device.camera import CameraError, ColourCamera
-from lamina_device.extract import ExtractSettings, extract, to_segment
+from lamina_device.camera import CameraError, ColourCamera, TimedCamera, TimedFrame
+from lamina_device.extract import ExtractSettings, StripePoints, extract, to_segment
 from lamina_device.hardware import Hardware
-from lamina_device.motion import move_axes
+from lamina_device.motion import SpinningTable, move_axes
+from lamina_device.timing import laser_pulse, next_view, view_capture_s
 from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
@@ -100,6 +115,8 @@ class _Captured:
     on: np.ndarray
     off: np.ndarray
     rgb_off: np.ndarray | None = None
+    timed: TimedFrame | None = None
+    """The laser-on frame's timing (continuous scans: the angle comes from it)."""
 
 
 def grab_grid(hardware: Hardware) -> np.ndarray:
@@ -226,11 +243,16 @@ def acquire(
     total = len(plan.views)
     started_s = time.monotonic()
 
+    if plan.continuous and (problem := continuous_problem(hardware, plan, colour)):
+        raise CameraError(f"this device cannot scan continuously: {problem}")
+
     def handle(item: _Captured) -> None:
-        if sink is not None:
-            sink(target, item.view, item.index, item.on, item.off)
         view = item.view
         points = extract(item.on, item.off, settings)
+        if item.timed is not None:
+            view = ViewSpec(view.section, view.z_mm, _stripe_angle(hardware, points, item.timed))
+        if sink is not None:
+            sink(target, view, item.index, item.on, item.off)
         on_segment(
             to_segment(
                 points, target, view.section, item.index, view.z_mm, view.angle_deg, item.rgb_off
@@ -248,13 +270,12 @@ def acquire(
     ok = False
     try:
         try:
-            for done, view in enumerate(plan.views, start=1):
-                control.checkpoint()
-                move_axes(hardware.lift, hardware.turntable, view.z_mm, view.angle_deg)
-                hardware.settle()
-                on, off, rgb_off = capture_views(hardware, colour)
-                stage.put(_Captured(view, index_in_section[done - 1], done, on, off, rgb_off))
-                captured = done
+            take = _take_continuous if plan.continuous else _take_stopping
+            # Closed here, not when collected: its own cleanup stops a turning table.
+            with closing(take(hardware, plan, index_in_section, control, colour)) as views:
+                for done, item in enumerate(views, 1):
+                    stage.put(dataclasses.replace(item, done=done))
+                    captured = done
         finally:
             hardware.laser.off()
             # Views already captured are still extracted and sent: nothing recorded is lost.
@@ -268,6 +289,125 @@ def acquire(
         hardware.laser.off()
         _home(hardware, raise_errors=ok)
     return total
+
+
+def _take_stopping(
+    hardware: Hardware, plan: ScanPlan, numbers: list[int], control: ScanControl, colour: bool
+) -> Generator[_Captured, None, None]:
+    """Yield each view of a stop-and-go plan: move, settle, laser-off and laser-on frames."""
+    for view, number in zip(plan.views, numbers, strict=True):
+        control.checkpoint()
+        move_axes(hardware.lift, hardware.turntable, view.z_mm, view.angle_deg)
+        hardware.settle()
+        on, off, rgb_off = capture_views(hardware, colour)
+        yield _Captured(view, number, 0, on, off, rgb_off)
+
+
+def continuous_problem(hardware: Hardware, plan: ScanPlan, colour: bool = False) -> str | None:
+    """Return why ``hardware`` cannot take ``plan`` continuously, or None when it can.
+
+    The table must turn by itself at constant speed (its pulses timed by the pin factory),
+    the camera must stream timestamped frames, colour is not offered (the laser-off frames
+    are taken degrees away from the stripe), and the laser pulses a view asks for must be
+    accepted by the watchdog (:meth:`lamina_device.safety.LaserWatchdog.pulse_problem`).
+    """
+    table, camera = hardware.turntable, hardware.camera
+    if not isinstance(table, SpinningTable):
+        return "its turntable cannot turn at constant speed by itself"
+    if problem := table.spin_problem():
+        return problem
+    if not isinstance(camera, TimedCamera):
+        return "its camera does not stream timestamped frames"
+    if colour:
+        return (
+            "colour needs a stop-and-go scan (a continuous view's laser-off frames are "
+            "taken degrees away from its stripe)"
+        )
+    watchdog = hardware.watchdog
+    if watchdog is not None and plan.views:
+        per_turn = max(Counter(view.section for view in plan.views).values())
+        every_s = 360.0 / (per_turn * table.spin_speed_deg_s)
+        if problem := watchdog.pulse_problem(laser_pulse(camera.frame_timing), every_s):
+            return f"the laser watchdog refuses its pulses: {problem}"
+    return None
+
+
+def _take_continuous(
+    hardware: Hardware, plan: ScanPlan, numbers: list[int], control: ScanControl, colour: bool
+) -> Generator[_Captured, None, None]:
+    """Yield each view of a continuous plan, section by section, the table turning throughout.
+
+    The lift goes to the first section before the table starts; each later section waits
+    for its lift move and the lift's settle while the table turns on. A section's views
+    are taken in the order the table brings them round (:func:`~lamina_device.timing.next_view`),
+    each started a lead before its angle so that the laser-on frame meets it. A pause
+    stops the table (laser off) and starts it again on resume.
+    """
+    table, camera = hardware.turntable, hardware.camera
+    assert isinstance(table, SpinningTable) and isinstance(camera, TimedCamera)
+    lead_s, _ = view_capture_s(camera.frame_timing)
+    speed = table.spin_speed_deg_s
+    sections: dict[int, list[tuple[ViewSpec, int]]] = {}
+    for view, number in zip(plan.views, numbers, strict=True):
+        sections.setdefault(view.section, []).append((view, number))
+    first = plan.views[0]
+    hardware.lift.move_to(first.z_mm)
+    hardware.settle_lift()
+    table.spin(speed)
+    try:
+        for views in sections.values():
+            z_mm = views[0][0].z_mm
+            if hardware.lift.z_mm != z_mm:
+                hardware.lift.move_to(z_mm)
+                hardware.settle_lift()
+            while views:
+                if control.paused:
+                    table.stop_spin()
+                    control.checkpoint()
+                    table.spin(speed)
+                control.checkpoint()
+                reach = table.angle_at(hardware.clock_ns()) + speed * lead_s
+                k, angle = next_view([view.angle_deg for view, _ in views], reach)
+                view, number = views.pop(k)
+                hardware.sleep_until_ns(table.time_at(angle) - round(lead_s * 1e9))
+                lit, off = capture_moving(hardware, camera)
+                yield _Captured(view, number, 0, lit.image, off, None, lit)
+    finally:
+        hardware.laser.off()
+        table.stop_spin()
+
+
+def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame, np.ndarray]:
+    """Capture laser-off, laser-on and laser-off frames in a row; the laser ends off.
+
+    Returns:
+        The laser-on frame with its timing, and the laser-off reference: at each pixel the
+        brighter of the two off frames around it.
+    """
+    laser = hardware.laser
+    laser.off()
+    before = camera.capture_timed()
+    try:
+        laser.on()
+        lit = camera.capture_timed()
+    finally:
+        laser.off()
+    after = camera.capture_timed()
+    return lit, np.maximum(before.image, after.image)
+
+
+def _stripe_angle(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> float:
+    """Return the table's angle when the laser-on frame exposed the stripe's middle row.
+
+    The rolling shutter exposes each row at its own time; one angle serves a segment, so
+    it is taken at the median row of the stripe found (the frame's middle row if none).
+    """
+    table = hardware.turntable
+    assert isinstance(table, SpinningTable)
+    rows = points.rows
+    row = float(np.median(rows)) if len(rows) else 0.5 * (lit.image.shape[0] - 1)
+    angle = table.angle_at(lit.row_middle_ns(row)) % 360.0
+    return 0.0 if angle >= 360.0 else angle  # a hair below 0 wraps to 360.0 in floats
 
 
 def views_in_section(plan: ScanPlan) -> list[int]:

@@ -86,6 +86,65 @@ class ColourCamera(Camera, Protocol):
         ...  # pragma: no cover - protocol
 
 
+@dataclass(frozen=True)
+class FrameTiming:
+    """How a streaming camera's frames follow each other (seconds).
+
+    Attributes:
+        period_s: from one frame's start to the next (the sensor streams without pause).
+        exposure_s: each row's exposure.
+        readout_s: from the first row's exposure to the last row's (the rolling shutter).
+        rows: the frame's height in rows.
+    """
+
+    period_s: float
+    exposure_s: float
+    readout_s: float
+    rows: int
+
+    @property
+    def row_s(self) -> float:
+        """Return the delay from one row's exposure to the next one's."""
+        return self.readout_s / max(1, self.rows)
+
+    @property
+    def span_s(self) -> float:
+        """Return a frame's first row's exposure start to its last row's end."""
+        return self.exposure_s + self.readout_s
+
+
+@dataclass(frozen=True, eq=False)
+class TimedFrame:
+    """A frame and when its rows were exposed, from the sensor's own timestamp.
+
+    Row ``r`` was exposed from ``start_ns + r * row_ns`` for ``exposure_ns`` (monotonic
+    ns, the clock the step clock runs on).
+    """
+
+    image: np.ndarray
+    start_ns: int
+    exposure_ns: int
+    row_ns: float
+
+    def row_middle_ns(self, row: float) -> int:
+        """Return the middle of ``row``'s exposure."""
+        return self.start_ns + round(row * self.row_ns + 0.5 * self.exposure_ns)
+
+
+@runtime_checkable
+class TimedCamera(Camera, Protocol):
+    """A streaming camera that tells when each frame was exposed (continuous scans)."""
+
+    @property
+    def frame_timing(self) -> FrameTiming:
+        """Return the stream's frame period, exposure and rolling read-out."""
+        ...  # pragma: no cover - protocol
+
+    def capture_timed(self) -> TimedFrame:
+        """Return the next frame exposed wholly after the laser's last switch, with its timing."""
+        ...  # pragma: no cover - protocol
+
+
 def camera_has_colour(camera: Camera) -> bool:
     """Return True when ``camera`` can sample colour (WELCOME ``colour``)."""
     return isinstance(camera, ColourCamera) and camera.has_colour
@@ -109,7 +168,7 @@ class Stage:
 
 # The sensor timestamps a frame when its first row ends exposure; the last row ends up
 # to one frame period later (rolling shutter). GPIO and driver latency is well below this.
-_LASER_LATENCY_NS = 100_000
+LASER_LATENCY_NS = 100_000
 # Exposure is quantised to sensor lines: accept the metadata within this fraction.
 _EXPOSURE_TOLERANCE = 0.05
 _GAIN_TOLERANCE = 0.05
@@ -286,23 +345,43 @@ class PiCamera:
         """
         import cv2  # the device installs opencv; only colour scans need it here
 
-        i420 = self._read(self._yuv420)
+        i420 = self._read(self._yuv420)[0]
         height = self.size[1]
         return np.ascontiguousarray(i420[:height]), cv2.cvtColor(i420, cv2.COLOR_YUV2RGB_I420)
 
     def capture(self) -> np.ndarray:
         """Return the next frame exposed entirely under the laser's current state."""
-        return self._read(self._luminance)
+        return self._read(self._luminance)[0]
 
-    def _read(self, read: Callable[[Any], np.ndarray]) -> np.ndarray:
-        """Return ``read(request)`` of the next frame exposed under the laser's current state."""
+    @property
+    def frame_timing(self) -> FrameTiming:
+        """Return the configured frame period and read-out with the exposure now in use."""
+        cfg = self.config
+        period_s = max(cfg.frame_duration_us, self.exposure_us) * 1e-6
+        return FrameTiming(period_s, self.exposure_us * 1e-6, cfg.readout_s, cfg.height)
+
+    def capture_timed(self) -> TimedFrame:
+        """Return the next frame exposed under the laser's current state, with its timing.
+
+        ``SensorTimestamp`` marks the end of the first row's exposure (field notes), so
+        the first row started one exposure (as the frame reports it) before it.
+        """
+        frame, metadata = self._read(self._luminance)
+        start_ns, _ = exposure_window_ns(metadata)
+        exposure_ns = int(metadata["ExposureTime"]) * 1000
+        return TimedFrame(frame, start_ns, exposure_ns, self.frame_timing.row_s * 1e9)
+
+    def _read(self, read: Callable[[Any], np.ndarray]) -> tuple[np.ndarray, dict[str, Any]]:
+        """Return ``read(request)`` of the next frame exposed under the laser's current state,
+        and the frame's metadata."""
         state, changed_ns = self.laser.is_on, self.laser.changed_ns
         deadline = time.monotonic() + self.config.timeout_s
         while time.monotonic() < deadline:
             request = self._next_request(deadline)
             try:
-                start_ns, _ = exposure_window_ns(request.get_metadata())
-                fresh = start_ns >= changed_ns + _LASER_LATENCY_NS
+                metadata = request.get_metadata()
+                start_ns, _ = exposure_window_ns(metadata)
+                fresh = start_ns >= changed_ns + LASER_LATENCY_NS
                 frame: np.ndarray | None = read(request) if fresh else None
             finally:
                 request.release()
@@ -311,7 +390,7 @@ class PiCamera:
             if self.laser.changed_ns != changed_ns or self.laser.is_on != state:
                 raise CameraError("the laser switched while a frame was exposed")
             if frame is not None:
-                return frame
+                return frame, metadata
             self.frames_dropped += 1
             log.debug("dropped a frame whose exposure began before the laser switched")
         raise CameraError(

@@ -13,7 +13,7 @@ import math
 import re
 import tomllib
 import typing
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -24,6 +24,8 @@ from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import Problems, check_extract, check_plan
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
+MAX_SPIN_STEP_HZ = 10_000
+"""Highest step rate of a continuous turn: lgpio's software PWM runs from 0.1 to 10 kHz."""
 BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
 MICROSTEPS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 
@@ -43,9 +45,17 @@ def _spec(
     high: float | None = None,
     choices: tuple[Any, ...] | None = None,
     pin: bool = False,
+    default: Any = MISSING,
 ) -> Any:
-    """Declare a required config value with its allowed range (dataclass field metadata)."""
-    return field(metadata={"low": low, "high": high, "choices": choices, "pin": pin})
+    """Declare a config value with its allowed range (dataclass field metadata).
+
+    Without ``default`` the value is required; a key added after configurations were in
+    use has one, so a box's existing file stays valid (and keeps the older behaviour).
+    """
+    meta = {"low": low, "high": high, "choices": choices, "pin": pin}
+    if default is MISSING:
+        return field(metadata=meta)
+    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,14 @@ class TurntableConfig(DriverConfig):
     max_speed_deg_s: float = _spec(0.01, 3600.0)
     accel_deg_s2: float = _spec(0.01, 100_000.0)
     backlash_deg: float = _spec(0.0, 30.0)
+    # Continuous scans (issue 22): the table's constant speed through each section, its
+    # step pulses timed by the pin factory (lgpio); 0 leaves the box stop-and-go only.
+    continuous_speed_deg_s: float = _spec(0.0, 3600.0, default=0.0)
+
+
+def turntable_steps_per_deg(config: TurntableConfig) -> float:
+    """Return the turntable's microsteps per table degree."""
+    return config.full_steps_per_rev * config.microsteps * config.gear_ratio / 360.0
 
 
 @dataclass(frozen=True)
@@ -116,6 +134,13 @@ class CameraConfig:
     frame_duration_us: int = _spec(1000, 1_000_000)
     buffer_count: int = _spec(2, 8)
     timeout_s: float = _spec(0.05, 30.0)
+    # The rolling shutter's read-out of all rows (first row to last); 0: one frame period.
+    readout_us: int = _spec(0, 1_000_000, default=0)
+
+    @property
+    def readout_s(self) -> float:
+        """Return the time from the first row's exposure to the last row's, in seconds."""
+        return (self.readout_us or self.frame_duration_us) * 1e-6
 
 
 @dataclass(frozen=True)
@@ -241,7 +266,8 @@ def _build_table(cls: type, name: str, table: Any, problems: list[str]) -> Any:
     values: dict[str, Any] = {}
     for key, spec in known.items():
         if key not in table:
-            problems.append(f"[{name}] {key}: missing value ({_type_name(hints[key])})")
+            if spec.default is MISSING:
+                problems.append(f"[{name}] {key}: missing value ({_type_name(hints[key])})")
             continue
         try:
             value = _convert(table[key], hints[key])
@@ -255,7 +281,8 @@ def _build_table(cls: type, name: str, table: Any, problems: list[str]) -> Any:
             problems.append(f"[{name}] {key}: {why}")
             continue
         values[key] = value
-    return cls(**values) if len(values) == len(known) else None
+    required = [key for key, spec in known.items() if spec.default is MISSING]
+    return cls(**values) if all(key in values for key in required) else None
 
 
 def _device_id(table: Any, problems: list[str]) -> str | None:
@@ -335,6 +362,20 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
             f"[camera] exposure_us {camera.exposure_us} must fit in frame_duration_us "
             f"{camera.frame_duration_us}"
         )
+    if camera.readout_us > camera.frame_duration_us:
+        problems.append(
+            f"[camera] readout_us {camera.readout_us} must fit in frame_duration_us "
+            f"{camera.frame_duration_us}"
+        )
+    spin_hz = table.continuous_speed_deg_s * turntable_steps_per_deg(table)
+    if spin_hz > MAX_SPIN_STEP_HZ:
+        problems.append(
+            f"[turntable] continuous_speed_deg_s {table.continuous_speed_deg_s:g} asks for "
+            f"{spin_hz:.0f} steps/s, beyond the {MAX_SPIN_STEP_HZ} the pin factory times "
+            "(lgpio's PWM): lower it or the microsteps"
+        )
+    if 0.0 < table.continuous_speed_deg_s < table.start_speed_deg_s:
+        problems.append("[turntable] continuous_speed_deg_s must not be below start_speed_deg_s")
     plan = config.plan
     found = Problems()
     for sections, views in ((plan.sections, plan.views), (1, plan.cylinder_views)):

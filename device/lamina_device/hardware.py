@@ -51,10 +51,16 @@ class Hardware:
     extract: ExtractSettings = field(default_factory=ExtractSettings)
     """The configured stripe extraction (``[extract]``; a scan request may change it)."""
     sleep: Callable[[float], None] = time.sleep
+    """How the settle waits: real time on the box, the virtual clock in the simulator."""
     timing: DeviceConfig | None = None
     """The configuration whose axes and camera time a scan here (the ``estimate`` op):
     the box's own; the shipped one for the simulator and a replay (None: unknown)."""
-    """How the settle waits: real time on the box, the virtual clock in the simulator."""
+    clock_ns: Callable[[], int] = time.monotonic_ns
+    """The clock frames are stamped and the table's steps counted on (CLOCK_MONOTONIC on
+    the box, the virtual clock in the simulator)."""
+    lift_settle_s: float | None = None
+    """The lift's own settle, which a continuous scan waits after each section's lift move
+    (the table keeps turning); None: :attr:`settle_s`."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
@@ -64,6 +70,18 @@ class Hardware:
         """Wait for vibration after a move to die down before exposing."""
         if self.settle_s > 0:
             self.sleep(self.settle_s)
+
+    def settle_lift(self) -> None:
+        """Wait for the lift's vibration to die down (the table turning meanwhile)."""
+        settle_s = self.settle_s if self.lift_settle_s is None else self.lift_settle_s
+        if settle_s > 0:
+            self.sleep(settle_s)
+
+    def sleep_until_ns(self, at_ns: int) -> None:
+        """Wait until :attr:`clock_ns` reaches ``at_ns`` (nothing if it has passed)."""
+        wait_ns = at_ns - self.clock_ns()
+        if wait_ns > 0:
+            self.sleep(wait_ns * 1e-9)
 
     def close(self) -> None:
         """Switch the laser off and release everything (the laser first)."""
@@ -144,6 +162,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
         timing=config,
+        lift_settle_s=config.lift.settle_s,
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
         extract=config.extract,
     )

@@ -12,8 +12,10 @@ rest of the virtual rig in ``lamina_device/sim/axes.py``.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -218,6 +220,7 @@ class StepperDriver:
         self._dir_high_positive = config.dir_high_positive
         self._clock = clock
         self.last_run_steps = 0
+        self._pulse_problem: str | None = None
 
     @property
     def enabled(self) -> bool:
@@ -237,6 +240,39 @@ class StepperDriver:
         knows the position even if the move is interrupted by an exception.
         """
         return run_together([DriverRun(self, direction, intervals_s, stop_when)], self._clock)[0]
+
+    def pulse_train_problem(self) -> str | None:
+        """Return why this driver's STEP line cannot be pulsed by the pin factory, or None.
+
+        A continuous turn needs step pulses timed outside Python (lgpio's PWM thread on
+        the Pi): a probe at zero duty cycle, which sends no pulse, tells whether the pin
+        can. The answer is kept: the pin factory does not change while the device runs.
+        """
+        if self._pulse_problem is None:
+            pin = self._step.pin
+            try:
+                pin.frequency = 1000.0  # zero duty: no edge goes out
+                pin.frequency = None
+                self._pulse_problem = ""
+            except Exception as exc:  # gpiozero's PinPWMUnsupported and the like
+                self._pulse_problem = (
+                    f"the STEP pin cannot be pulsed by the pin factory ({type(exc).__name__}): "
+                    "a continuous turn needs the lgpio pin factory (GPIOZERO_PIN_FACTORY=lgpio)"
+                )
+        return self._pulse_problem or None
+
+    def pulse_at(self, rate_sps: float) -> None:
+        """Send step pulses at ``rate_sps`` (timed by the pin factory) until told otherwise.
+
+        The caller set the direction and enabled the driver (:meth:`_prepare`); 0 stops.
+        """
+        pin = self._step.pin
+        if rate_sps <= 0:
+            pin.frequency = None
+            self._step.off()
+            return
+        pin.frequency = rate_sps
+        pin.state = 0.5
 
     def _prepare(self, direction: int) -> bool:
         """Set DIR for ``direction``; return True if EN had to be switched on first."""
@@ -323,6 +359,134 @@ def turntable_runs(
     return tuple(run for run in (delta - backlash, backlash) if run)
 
 
+SPIN_TICK_S = 0.01
+"""A continuous turn's ramp changes the step rate this often (the pulses between are timed
+by the pin factory, so a late change only lengthens that rate's share)."""
+
+
+def pulse_rate(rate_sps: float) -> float:
+    """Return the step rate nearest ``rate_sps`` whose period is a whole microsecond.
+
+    lgpio times pulses in microseconds: a rate of such a period is sent exactly, so the
+    step clock that counts it is exact too.
+    """
+    return 1e6 / max(1, round(1e6 / rate_sps))
+
+
+def spin_rates(config: TurntableConfig, speed_deg_s: float) -> tuple[list[float], float]:
+    """Return a continuous turn's ramp (a rate per :data:`SPIN_TICK_S`) and its cruise rate.
+
+    The ramp starts at ``start_speed_deg_s`` and gains ``accel_deg_s2`` each second, as
+    every move of the table does; each rate is a :func:`pulse_rate`.
+
+    Returns:
+        The ramp's rates in steps per second (ramp-down: the same, reversed), and the rate
+        at ``speed_deg_s``.
+    """
+    per_deg = turntable_steps_per_rev(config) / 360.0
+    cruise = pulse_rate(speed_deg_s * per_deg)
+    start = min(config.start_speed_deg_s, speed_deg_s)
+    ticks = max(0, math.ceil((speed_deg_s - start) / (config.accel_deg_s2 * SPIN_TICK_S)))
+    ramp = [
+        pulse_rate((start + config.accel_deg_s2 * SPIN_TICK_S * k) * per_deg) for k in range(ticks)
+    ]
+    return ramp, cruise
+
+
+class StepClock:
+    """Where a turning table is at any moment: the step rates it was given, and when.
+
+    The pulses of a continuous turn are timed by the pin factory, not counted one by one
+    in Python, so the position at a time (a frame's exposure, say) is the sum of each
+    rate's steps over its share of the time line. Thread-safe: the scan's worker reads it
+    while the scan's thread gives new rates.
+    """
+
+    def __init__(self, start_ns: int, steps: float) -> None:
+        self._lock = threading.Lock()
+        self._times_ns = [start_ns]
+        self._steps = [float(steps)]
+        self._rates = [0.0]
+
+    def set_rate(self, at_ns: int, rate_sps: float) -> None:
+        """Note that the step rate became ``rate_sps`` at ``at_ns`` (monotonic, ns)."""
+        with self._lock:
+            at_ns = max(at_ns, self._times_ns[-1])
+            steps = self._steps[-1] + self._rates[-1] * (at_ns - self._times_ns[-1]) * 1e-9
+            self._times_ns.append(at_ns)
+            self._steps.append(steps)
+            self._rates.append(float(rate_sps))
+
+    @property
+    def rate_sps(self) -> float:
+        """Return the step rate now."""
+        return self._rates[-1]
+
+    def steps_at(self, at_ns: int) -> float:
+        """Return the (fractional) step count at ``at_ns``; before the first rate, the start."""
+        with self._lock:
+            k = max(0, bisect.bisect_right(self._times_ns, at_ns) - 1)
+            return self._steps[k] + self._rates[k] * max(0, at_ns - self._times_ns[k]) * 1e-9
+
+    def time_at(self, steps: float) -> int:
+        """Return when the count reaches ``steps`` at the present rate (ns).
+
+        Raises:
+            MotionError: the table is not turning forwards.
+        """
+        with self._lock:
+            rate, since_ns, since = self._rates[-1], self._times_ns[-1], self._steps[-1]
+        if rate <= 0:
+            raise MotionError("the turntable is not turning: no time reaches that angle")
+        return since_ns + round((steps - since) / rate * 1e9)
+
+
+@runtime_checkable
+class SpinningTable(Protocol):
+    """A turntable that can also turn at constant speed while frames stream (continuous scans).
+
+    Angles here are the step count's, unwrapped (360 is one turn on from 0): the host
+    corrects them for the gear exactly as it does a commanded angle.
+    """
+
+    def spin_problem(self) -> str | None:
+        """Return why this table cannot turn continuously, or None when it can."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def spin_speed_deg_s(self) -> float:
+        """Return the configured speed of a continuous turn."""
+        ...  # pragma: no cover - protocol
+
+    def spin(self, speed_deg_s: float | None = None) -> None:
+        """Ramp up counter-clockwise to ``speed_deg_s`` (default: configured); return at speed."""
+        ...  # pragma: no cover - protocol
+
+    def stop_spin(self) -> None:
+        """Ramp down and stop; the position is kept (a no-op when not turning)."""
+        ...  # pragma: no cover - protocol
+
+    def angle_at(self, at_ns: int) -> float:
+        """Return the table's angle at monotonic time ``at_ns`` from its step clock."""
+        ...  # pragma: no cover - protocol
+
+    def _steps_at(self, at_ns: int, position: int) -> float:
+        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
+
+        A finished turn's clock still answers for its own time (its last views are
+        extracted after the table has stopped); later, the position does.
+        """
+        if self._spin is not None:
+            return self._spin.steps_at(at_ns)
+        if self._last_spin is not None and at_ns <= self._last_spin[1]:
+            return self._last_spin[0].steps_at(at_ns)
+        return float(position)
+
+    def time_at(self, angle_deg: float) -> int:
+        """Return when a turning table reaches the unwrapped ``angle_deg`` (monotonic ns)."""
+        ...  # pragma: no cover - protocol
+
+
 class ContinuousTurntable:
     """Base of a turntable that turns without end: it has no angle limits."""
 
@@ -338,13 +502,21 @@ class StepperTurntable(ContinuousTurntable):
     always taken up the same way. Moves take the short way round.
     """
 
-    def __init__(self, config: TurntableConfig, pin_factory: Factory | None = None) -> None:
+    def __init__(
+        self,
+        config: TurntableConfig,
+        pin_factory: Factory | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self.config = config
         self.driver = StepperDriver(config, pin_factory)
         self.steps_per_rev = turntable_steps_per_rev(config)
         self._position = 0
         # Unknown at power-up: the first move takes the backlash up before it arrives.
         self._engaged = False
+        self._clock_ns = clock_ns
+        self._spin: StepClock | None = None
+        self._last_spin: tuple[StepClock, int] | None = None  # a finished turn, until when
 
     @property
     def steps_per_deg(self) -> float:
@@ -366,6 +538,74 @@ class StepperTurntable(ContinuousTurntable):
         for run in self.runs_to(angle_deg):
             self._move(run)
 
+    # --- continuous turns (SpinningTable) ----------------------------------------------
+
+    @property
+    def spin_speed_deg_s(self) -> float:
+        """Return ``[turntable] continuous_speed_deg_s``."""
+        return self.config.continuous_speed_deg_s
+
+    def spin_problem(self) -> str | None:
+        """Return why this table cannot turn continuously, or None when it can."""
+        if self.config.continuous_speed_deg_s <= 0:
+            return (
+                "[turntable] continuous_speed_deg_s is 0 in this box's configuration: set the "
+                "speed its table and load allow (hardware/README.md, Speeds)"
+            )
+        return self.driver.pulse_train_problem()
+
+    def spin(self, speed_deg_s: float | None = None) -> None:
+        """Ramp up counter-clockwise to ``speed_deg_s``; the pin factory times the pulses.
+
+        Raises:
+            MotionError: the table cannot turn continuously (:meth:`spin_problem`).
+        """
+        if self._spin is not None:
+            return
+        if problem := self.spin_problem():
+            raise MotionError(problem)
+        ramp, cruise = spin_rates(self.config, speed_deg_s or self.spin_speed_deg_s)
+        if self.driver._prepare(+1):
+            time.sleep(_ENABLE_SETTLE_S)
+        self._spin = StepClock(self._clock_ns(), self._position)
+        self._engaged = True
+        self._ramp([*ramp, cruise])
+
+    def _ramp(self, rates: Sequence[float]) -> None:
+        """Give the driver each rate in turn, one tick apart, noting each on the step clock."""
+        assert self._spin is not None
+        next_s = time.monotonic()
+        for rate in rates:
+            self.driver.pulse_at(rate)
+            self._spin.set_rate(self._clock_ns(), rate)
+            next_s += SPIN_TICK_S
+            _wait_until(next_s, time.monotonic)
+
+    def stop_spin(self) -> None:
+        """Ramp down and stop; the position becomes the step clock's count."""
+        spin = self._spin
+        if spin is None:
+            return
+        try:
+            ramp, _ = spin_rates(self.config, spin.rate_sps / (self.steps_per_rev / 360.0))
+            self._ramp(ramp[::-1])
+        finally:
+            self.driver.pulse_at(0.0)
+            spin.set_rate(self._clock_ns(), 0.0)
+            self._position = round(spin.steps_at(self._clock_ns()))
+            self._last_spin = (spin, self._clock_ns())
+            self._spin = None
+
+    def angle_at(self, at_ns: int) -> float:
+        """Return the table's unwrapped angle at ``at_ns`` from its step clock."""
+        return self._steps_at(at_ns, self._position) / self.steps_per_deg
+
+    def time_at(self, angle_deg: float) -> int:
+        """Return when the turning table reaches the unwrapped ``angle_deg``."""
+        if self._spin is None:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        return self._spin.time_at(angle_deg * self.steps_per_deg)
+
     def _move(self, steps: int) -> None:
         if steps:
             self._run_with(steps, None)
@@ -374,6 +614,8 @@ class StepperTurntable(ContinuousTurntable):
         """Return the signed runs of microsteps a move to ``angle_deg`` makes from here."""
         if not math.isfinite(angle_deg):
             raise MotionError(f"turntable angle must be finite, not {angle_deg}")
+        if self._spin is not None:
+            raise MotionError("the turntable is turning continuously: stop it before a move")
         return turntable_runs(self.config, self._position, self._engaged, angle_deg)
 
     def _run_with(self, steps: int, other: DriverRun | None) -> list[int]:
@@ -391,7 +633,10 @@ class StepperTurntable(ContinuousTurntable):
             self._engaged = direction > 0
 
     def close(self) -> None:
-        """Disable the driver and release the pins."""
+        """Stop any turn, disable the driver and release the pins."""
+        if self._spin is not None:
+            self.driver.pulse_at(0.0)  # no ramp: the box is closing (a fault, a shutdown)
+            self._spin = None
         self.driver.close()
 
 

@@ -25,6 +25,7 @@ from lamina_device.acquisition import (
     ScanControl,
     acquire,
     capture_pair,
+    continuous_problem,
     grab_grid,
     views_in_section,
 )
@@ -66,7 +67,7 @@ from lamina_shared.replies import (
     StatusReply,
     TransferOffer,
 )
-from lamina_shared.types import ScanPlan, Segment
+from lamina_shared.types import SCAN_MODES, ScanPlan, Segment
 
 """The simulated lift's travel, reported when the hardware does not say its own."""
 
@@ -203,8 +204,9 @@ class Operations:
 
     # --- scanning --------------------------------------------------------------------
 
-    def _plan(self, args: ScanArgs) -> ScanPlan:
-        """Return the plan to scan (the request's, or the default), within the axes' limits."""
+    def _plan(self, args: ScanArgs, colour: bool = False) -> ScanPlan:
+        """Return the plan to scan (the request's, or the default), within the axes' limits,
+        in a mode this device can take it in (with ``colour`` if asked)."""
         plan = args.plan
         if plan is None:
             plan = self.hardware.default_plans.get(args.target)
@@ -222,13 +224,15 @@ class Operations:
             check_position(self.limits, axis, values[0])
             check_position(self.limits, axis, values[-1])
         check_section_gaps(self.limits, lifts)
+        if plan.continuous and (problem := continuous_problem(self.hardware, plan, colour)):
+            raise RequestError("unsupported", f"this device cannot scan continuously: {problem}")
         return plan
 
     def scan(self, request_id: int, args: ScanArgs) -> ScanReply:
         """Send every view of the plan the host does not hold: from the buffer or acquired."""
         target = args.target
         settings = self.extract_settings(args)
-        plan = self._plan(args)
+        plan = self._plan(args, args.colour)
         outside = [s for s in args.have if s >= len(plan.views)]
         if outside:
             raise RequestError(
@@ -279,11 +283,13 @@ class Operations:
     ) -> None:
         """Acquire the views ``todo`` (plan indices), numbering them as the full plan does."""
         index = views_in_section(plan)
-        pending = iter(todo)
+        # A continuous scan sends its views in the order the table brings them round:
+        # each segment's section and number in it say which view of the plan it is.
+        seqs = {(plan.views[s].section, index[s]): s for s in todo}
         held = len(plan.views) - len(todo)
 
         def on_segment(segment: Segment) -> None:
-            seq = next(pending)
+            seq = seqs[(segment.section, segment.view)]
             segment = quantise_segment(segment)
             self.link.buffer.put(seq, segment, self.link.abandoned)
             self.link.send_segment(request_id, seq, segment)
@@ -293,7 +299,7 @@ class Operations:
             whole = dataclasses.replace(progress, done=held + progress.done, total=len(plan.views))
             self.link.event(ProgressEvent(request_id, whole))
 
-        sub_plan = ScanPlan(tuple(plan.views[s] for s in todo))
+        sub_plan = plan.with_views(tuple(plan.views[s] for s in todo))
         self.control = ScanControl()
         try:
             acquire(
@@ -382,6 +388,18 @@ class Operations:
         """End the device program after this reply (the host started it)."""
         self.link.running = False
         return EmptyReply()
+
+
+def scan_modes(hardware: Hardware) -> tuple[str, ...]:
+    """Return the scan modes ``hardware`` can take a plan in (what the WELCOME offers).
+
+    Continuous mode is offered when the default object plan could be taken continuously
+    (the table turns by itself, the camera streams timed frames, the watchdog accepts
+    the laser pulses); a plan the host sends is checked again when it comes.
+    """
+    plan = hardware.default_plans.get("object")
+    sample = (plan or ScanPlan.regular(1, 1.0, 8)).with_mode("continuous")
+    return SCAN_MODES if continuous_problem(hardware, sample) is None else SCAN_MODES[:1]
 
 
 def _png(image: np.ndarray) -> bytes:

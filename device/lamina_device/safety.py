@@ -6,6 +6,12 @@ runs on its own thread and switches it off when it has been on too long or the h
 link has gone quiet, whatever the main loop is doing. :class:`LaserShutdown`
 switches it off on SIGTERM (systemd's stop, which skips atexit), on SIGINT and at
 interpreter exit.
+
+A continuous scan switches the laser on once per view, several times a second, and each
+switch-on starts the watchdog's on-time count afresh. So the watchdog also bounds the
+share of time the laser is on (:data:`MAX_LASER_DUTY` over a long window), which no
+train of re-armed pulses can pass, and a scan mode whose pulses would not be accepted
+(:meth:`LaserWatchdog.pulse_problem`) is refused before anything moves.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import logging
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from types import FrameType
 from typing import Protocol
@@ -22,6 +29,11 @@ from typing import Protocol
 from lamina_shared.scoped import Scoped
 
 log = logging.getLogger(__name__)
+
+MAX_LASER_DUTY = 0.5
+"""The largest share of time the laser may be on over :data:`DUTY_WINDOWS` on-time limits."""
+DUTY_WINDOWS = 10
+"""The duty window, in on-time limits: long enough that one full-length pulse passes."""
 
 
 class Switchable(Protocol):
@@ -73,6 +85,7 @@ class LaserWatchdog(Scoped):
         self._on_since: float | None = None
         self._last_link: float | None = None
         self._link_tripped = False
+        self._samples: deque[tuple[float, bool]] = deque()
 
     def start(self) -> None:
         """Start watching on a daemon thread (idempotent)."""
@@ -101,11 +114,30 @@ class LaserWatchdog(Scoped):
             self._last_link = self.clock()
             self._link_tripped = False
 
+    def pulse_problem(self, on_s: float, every_s: float) -> str | None:
+        """Return why pulses of ``on_s`` once every ``every_s`` are not acceptable, or None.
+
+        Each pulse must end well within the on-time limit, and the train must keep the
+        laser off most of the time: re-armed at each switch-on, the on-time limit alone
+        would not bound it.
+        """
+        if on_s >= 0.5 * self.max_on_s:
+            return (
+                f"the laser would stay on {on_s:.3f} s a view, more than half the "
+                f"{self.max_on_s:g} s on-time limit"
+            )
+        if every_s <= 0 or on_s / every_s > MAX_LASER_DUTY:
+            return (
+                f"the laser would be on {on_s:.3f} s every {every_s:.3f} s, more than "
+                f"{MAX_LASER_DUTY:.0%} of the time"
+            )
+        return None
+
     def check(self) -> str | None:
         """Check once; switch the laser off and return the reason if a limit was passed."""
         now = self.clock()
         with self._lock:
-            reason = self._on_time_reason(now) or self._link_reason(now)
+            reason = self._on_time_reason(now) or self._duty_reason(now) or self._link_reason(now)
         if reason is not None:
             self.laser.off()
             self.trips.append(reason)
@@ -125,6 +157,21 @@ class LaserWatchdog(Scoped):
             return None
         self._on_since = None
         return f"it was on for {on_s:.2f} s, longer than the {self.max_on_s:g} s limit"
+
+    def _duty_reason(self, now: float) -> str | None:
+        """Return why the laser was on too large a share of the last window, from the checks."""
+        window_s = DUTY_WINDOWS * self.max_on_s
+        samples = self._samples
+        samples.append((now, self.laser.is_on))
+        while len(samples) > 1 and samples[1][0] <= now - window_s:
+            samples.popleft()
+        if samples[0][0] > now - window_s:
+            return None  # not watched for a whole window yet
+        share = sum(on for _, on in samples) / len(samples)
+        if share <= MAX_LASER_DUTY:
+            return None
+        samples.clear()
+        return f"it was on {share:.0%} of the last {window_s:g} s, more than {MAX_LASER_DUTY:.0%}"
 
     def _link_reason(self, now: float) -> str | None:
         if self._last_link is None or self._link_tripped:

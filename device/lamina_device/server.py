@@ -33,7 +33,7 @@ from lamina_device import __version__
 from lamina_device.camera import CameraError, camera_has_colour
 from lamina_device.hardware import Hardware
 from lamina_device.motion import MotionError
-from lamina_device.operations import Operations
+from lamina_device.operations import Operations, scan_modes
 from lamina_shared.capture import FrameError
 from lamina_shared.endpoint import DeviceEndpoint, PortLost, RequestError, ServerSettings
 from lamina_shared.link import Channel
@@ -111,6 +111,7 @@ class DeviceServer(DeviceEndpoint):
             identity=DeviceIdentity(**hw.identity),
             extract=ExtractChanges(tuple(dataclasses.asdict(hw.extract).items())),
             colour=camera_has_colour(hw.camera),
+            modes=scan_modes(hw),
         )
 
     def _welcome_plans(self) -> dict[str, ScanPlan]:

@@ -17,29 +17,44 @@ is left out of both.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from lamina_device.camera import LASER_LATENCY_NS, FrameTiming
 from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
 from lamina_device.motion import (
+    SPIN_TICK_S,
     lift_intervals_s,
     lift_steps_per_mm,
+    spin_rates,
     turntable_intervals_s,
     turntable_runs,
 )
 from lamina_shared.types import ScanPlan
 
 __all__ = [
+    "CONTINUOUS_FRAMES",
     "FRAMES_PER_VIEW",
     "ScanTime",
+    "config_frame_timing",
     "estimate_scan_time",
     "frame_wait_s",
+    "frames_apart",
+    "laser_pulse",
     "lift_move_s",
+    "next_view",
+    "spin_up_s",
     "turntable_move_s",
+    "view_capture_s",
 ]
 
 FRAMES_PER_VIEW = 2
 """A view is a laser-off and a laser-on frame (the difference image, thesis 5.1)."""
+CONTINUOUS_FRAMES = 3
+"""A continuous view: laser off, on, off, three streamed frames in a row (the two off
+frames bracket the on frame, the table turning between them)."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +119,137 @@ class _ViewMoves(NamedTuple):
         return max(self.lift_s, self.table_first_s) + self.table_rest_s
 
 
+# --- continuous scans -------------------------------------------------------------------
+
+
+def config_frame_timing(config: DeviceConfig, exposure_us: float | None = None) -> FrameTiming:
+    """Return the camera's streaming timing as ``config`` describes it."""
+    camera = config.camera
+    exposure = camera.exposure_us if exposure_us is None else exposure_us
+    period_s = max(camera.frame_duration_us, exposure) * 1e-6
+    return FrameTiming(period_s, exposure * 1e-6, camera.readout_s, camera.height)
+
+
+def frames_apart(timing: FrameTiming) -> int:
+    """Return the frame periods between two captures when the laser switches in between.
+
+    The laser switches as soon as a frame has arrived (its last row read); the next
+    frame exposed wholly after the switch is the first to start after it, so with a
+    rolling shutter whose exposure and read-out span more than a period the next frame
+    or two are lost (two at 120 fps: 12 ms of exposure and read-out in 8.3 ms periods).
+    """
+    return max(1, math.ceil((timing.span_s + LASER_LATENCY_NS * 1e-9) / timing.period_s - 1e-9))
+
+
+def view_capture_s(timing: FrameTiming) -> tuple[float, float]:
+    """Return a continuous view's mean lead and duration (seconds from its start).
+
+    The first (laser-off) frame is the next to arrive, on average half a period after the
+    view starts; the laser-on frame and the second laser-off frame follow
+    :func:`frames_apart` periods apart.
+
+    Returns:
+        The time to the middle of the laser-on frame's exposure at its middle row (the
+        moment the view's angle should be the planned one), and to the last frame's arrival.
+    """
+    gap_s = frames_apart(timing) * timing.period_s
+    first_arrival_s = 0.5 * timing.period_s
+    lead_s = first_arrival_s - timing.span_s + gap_s + 0.5 * (timing.exposure_s + timing.readout_s)
+    return lead_s, first_arrival_s + 2.0 * gap_s
+
+
+def laser_pulse(timing: FrameTiming) -> float:
+    """Return how long the laser stays on for one continuous view (seconds).
+
+    From the first laser-off frame's arrival to the laser-on frame's arrival.
+    """
+    return frames_apart(timing) * timing.period_s
+
+
+def next_view(angles_deg: Sequence[float], from_deg: float) -> tuple[int, float]:
+    """Return the view a table turning counter-clockwise from ``from_deg`` reaches first.
+
+    Args:
+        angles_deg: the planned angles still to take.
+        from_deg: the earliest (unwrapped) angle a view can still be taken at.
+
+    Returns:
+        The index into ``angles_deg``, and the unwrapped angle the table reaches it at.
+    """
+    ahead = [(a - from_deg) % 360.0 for a in angles_deg]
+    k = min(range(len(ahead)), key=ahead.__getitem__)
+    return k, from_deg + ahead[k]
+
+
+def spin_up_s(config: TurntableConfig, speed_deg_s: float) -> tuple[float, float]:
+    """Return a continuous turn's ramp-up: its duration and the angle turned meanwhile."""
+    ramp, cruise = spin_rates(config, speed_deg_s)
+    steps_per_deg = cruise / speed_deg_s if speed_deg_s else 1.0
+    turned = sum(rate * SPIN_TICK_S for rate in [*ramp, cruise]) / steps_per_deg
+    return (len(ramp) + 1) * SPIN_TICK_S, turned
+
+
+def _continuous_time(
+    config: DeviceConfig, plan: ScanPlan, processing_s_per_view: float, exposure_us: float | None
+) -> ScanTime:
+    """Return the modelled time of a continuous plan, as the loop takes it.
+
+    The table ramps up once and turns on at ``continuous_speed_deg_s`` through every
+    section; each section waits for its lift move and the lift's settle, then takes its
+    views in the order the table reaches them (:func:`next_view`), each one started a lead
+    before its angle comes round. The mechanical minimum: the ramp, the lift moves and
+    settles, each section's turn from its first view to its last, and one view's frames.
+    """
+    table = config.turntable
+    speed = table.continuous_speed_deg_s
+    if speed <= 0:
+        raise ValueError("this configuration turns no continuous scan: continuous_speed_deg_s 0")
+    timing = config_frame_timing(config, exposure_us)
+    lead_s, view_s = view_capture_s(timing)
+    ramp_s, angle = spin_up_s(table, speed)
+    now_s = ramp_s
+    steps_per_mm = lift_steps_per_mm(config.lift)
+    lift_at: int | None = None
+    lift_total = settle_total = frames_total = turning = minimum = 0.0
+    finished_s = worker_free_s = 0.0
+    for section in plan.sections:
+        views = [v for v in plan.views if v.section == section]
+        lift_to = round(views[0].z_mm * steps_per_mm)
+        if lift_at is not None and lift_to != lift_at:
+            move_s = lift_move_s(config.lift, lift_at, lift_to) + config.lift.settle_s
+            lift_total += move_s - config.lift.settle_s
+            settle_total += config.lift.settle_s
+            now_s += move_s
+            minimum += move_s
+        lift_at = lift_to
+        pending = [v.angle_deg for v in views]
+        first_s = None
+        while pending:
+            reach = angle + speed * (now_s - ramp_s) + speed * lead_s
+            k, target = next_view(pending, reach)
+            start_s = ramp_s + (target - angle) / speed - lead_s
+            first_s = start_s if first_s is None else first_s
+            now_s = start_s + view_s
+            frames_total += view_s
+            pending.pop(k)
+            finished_s = now_s
+            worker_free_s = max(worker_free_s, now_s) + processing_s_per_view
+        assert first_s is not None
+        turning += now_s - first_s
+        minimum += now_s - first_s
+    modelled = max(finished_s, worker_free_s)
+    return ScanTime(
+        modelled_s=modelled,
+        mechanical_minimum_s=ramp_s + minimum,
+        turntable_s=ramp_s + turning,
+        lift_s=lift_total,
+        settle_s=settle_total,
+        frames_s=frames_total,
+        processing_s=modelled - finished_s,
+        views=len(plan.views),
+    )
+
+
 def lift_move_s(config: LiftConfig, from_steps: int, to_steps: int) -> float:
     """Return the duration of a lift move between two microstep positions."""
     return float(lift_intervals_s(config, abs(to_steps - from_steps)).sum())
@@ -157,13 +303,19 @@ def estimate_scan_time(
         processing_s_per_view: extraction and sending of one view (the worker thread).
         exposure_us: the exposure in use (default: the configured one at start).
         axes_together: the lift moves beside the turntable (the box's steppers do,
-            :func:`lamina_device.motion.move_axes`); False: one after the other.
+            :func:`lamina_device.motion.move_axes`); False: one after the other
+            (stop-and-go plans only).
 
     Returns:
         The modelled time, the mechanical minimum and their parts.
+
+    Raises:
+        ValueError: a continuous plan on a configuration without a continuous speed.
     """
     if not plan.views:
         return ScanTime(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+    if plan.continuous:
+        return _continuous_time(config, plan, processing_s_per_view, exposure_us)
     camera = config.camera
     exposure = camera.exposure_us if exposure_us is None else exposure_us
     frames_s = FRAMES_PER_VIEW * frame_wait_s(camera.frame_duration_us, exposure)

@@ -82,10 +82,10 @@ from lamina_shared.messages import Progress
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.presets import NOISE_PRESETS, RIG_PRESETS
 from lamina_shared.protocol import ProtocolError
-from lamina_shared.types import ScanPlan
+from lamina_shared.types import SCAN_MODES, ScanPlan
 
 EXIT_USAGE = 2
-PLAN_REFUSALS = frozenset({"limit", "bad-args"})
+PLAN_REFUSALS = frozenset({"limit", "bad-args", "unsupported"})
 """Refusal codes of a device that will refuse the same plan again (no resume can help)."""
 
 
@@ -129,6 +129,7 @@ SCAN_DEFAULTS: dict[str, Any] = {
     "noise": "thesis",
     "rig": "thesis",
     "colour": False,
+    "sway": "none",
 }
 """Defaults of scan options a resume must be able to tell from values given (so None)."""
 
@@ -174,6 +175,18 @@ def build_parser() -> argparse.ArgumentParser:
         type=_extract_option,
         metavar="KEY=VALUE[,KEY=VALUE]",
         help="change the device's stripe extraction for this scan, e.g. method=thinning,power=2",
+    )
+    scan.add_argument(
+        "--mode",
+        choices=SCAN_MODES,
+        help="how the object's views are taken: stop-and-go (default, the table stops at "
+        "each) or continuous (it turns through each section while the camera streams: a "
+        "leg in under two minutes, on a device that offers it)",
+    )
+    scan.add_argument(
+        "--sway",
+        help="move the simulated object as a patient would (sim only): none, patient, or "
+        "drift=MM_PER_MIN,breath=MM,hz=HZ",
     )
     scan.add_argument(
         "--colour",
@@ -471,6 +484,7 @@ def _add_library_option(parser: argparse.ArgumentParser) -> None:
 
 RESUMED_OPTIONS = (
     "object", "seed", "noise", "trim", "harmonics", "expect", "cylinder_mm", "rig", "colour",
+    "sway",
 )  # fmt: skip
 """What a resumed scan takes from its library record rather than the command line."""
 
@@ -565,16 +579,26 @@ def _check_args(
         raise UsageError("--object only applies to --device sim")
     if args.rig != "thesis" and args.device != SIM:
         raise UsageError("--rig only applies to --device sim")
+    if args.sway != "none" and args.device != SIM:
+        raise UsageError(
+            "--sway only applies to --device sim: a real subject's sway is the subject's own"
+        )
     _process_options(args)  # refuse bad method combinations before scanning
     try:
         expect = parse_expectation(args.expect) if args.expect else None
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     plan = _plan(args)
-    if record is not None and plan is not None and record.plans.get("object") != plan:
+    stored = record.plans.get("object") if record is not None else None
+    if stored is not None and plan is not None and stored.views != plan.views:
         raise UsageError(
-            f"scan {record.id} was planned differently; resume it without "
+            f"scan {record.id if record else '?'} was planned differently; resume it without "
             "--sections, --pitch and --views"
+        )
+    if stored is not None and args.mode is not None and stored.mode != args.mode:
+        raise UsageError(
+            f"scan {record.id if record else '?'} is a {stored.mode} scan; resume it without "
+            "--mode or with the same mode"
         )
     return plan, expect
 
@@ -667,6 +691,7 @@ def _request(args: argparse.Namespace, plan: ScanPlan | None) -> ScanRequest:
         getattr(args, "extract", None),
         bool(getattr(args, "colour", False)),
         args.side or SIDES[0],
+        getattr(args, "mode", None),
     )
 
 
@@ -687,7 +712,7 @@ def _scan(args: argparse.Namespace) -> int:
         own_out = record is not None and str(args.out.resolve()) == record.options.get("out")
         created = not args.out.exists()
         prepare_output_folder(args.out, allow_files=own_out)
-        target = DeviceTarget(args.device, args.object, args.seed, args.noise, args.rig)
+        target = DeviceTarget(args.device, args.object, args.seed, args.noise, args.rig, args.sway)
         job = ScanJob(target, library=library)  # one connection for the whole scan
         try:
             acquired = _acquire_scan(job, args, request)
@@ -765,7 +790,7 @@ def _say_estimate(job: ScanJob) -> None:
     plan, held = job.acquisition.plan, job.acquisition.held
     if plan is None:
         return
-    left = ScanPlan(tuple(v for k, v in enumerate(plan.views) if k not in held))
+    left = plan.with_views(tuple(v for k, v in enumerate(plan.views) if k not in held))
     if not left.views:
         return
     try:

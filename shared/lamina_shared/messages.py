@@ -29,7 +29,7 @@ from lamina_shared.ops import (
     is_int,
 )
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
-from lamina_shared.types import BoardSpec, ScanPlan
+from lamina_shared.types import SCAN_MODES, BoardSpec, ScanPlan
 
 MAX_LOST_SEQS = 64
 """Earlier plan indices one ACK names as lost (the device resends them at once)."""
@@ -348,6 +348,8 @@ class Welcome:
     """The device's configured extraction settings, every one by name (None: not reported)."""
     colour: bool = False
     """The device samples colour per point (absent on devices before the extension)."""
+    modes: tuple[str, ...] = SCAN_MODES[:1]
+    """The scan modes the device can run (``stop-and-go`` only from a device before them)."""
 
     def to_wire(self) -> dict[str, Any]:
         """Return the JSON body the device sends."""
@@ -368,6 +370,7 @@ class Welcome:
             "identity": self.identity.to_wire() if self.identity else {},
             "extract": self.extract.to_wire() if self.extract else None,
             "colour": self.colour,
+            "modes": list(self.modes),
         }
 
     @classmethod
@@ -410,6 +413,7 @@ class Welcome:
             _identity(data.get("identity"), problems),
             _extract(data.get("extract"), problems),
             data.get("colour") is True,
+            _modes(data.get("modes"), problems),
         )
         if problems.items:
             raise MessageError("WELCOME", problems.items)
@@ -471,6 +475,22 @@ def _operations(value: Any, problems: Problems) -> tuple[str, ...]:
         problems.add("welcome.operations: a list of names is required")
         return ()
     return tuple(items)
+
+
+def _modes(value: Any, problems: Problems) -> tuple[str, ...]:
+    """Return the scan modes a device offers that this host knows (stop-and-go when absent).
+
+    A mode this host does not know is left out, not refused: a newer device may offer more.
+    """
+    if value is None:
+        return SCAN_MODES[:1]
+    items = check_list(value, "welcome.modes", len(SCAN_MODES) * 8, problems)
+    if items is None:
+        return SCAN_MODES[:1]
+    if not all(isinstance(mode, str) for mode in items):
+        problems.add("welcome.modes: a list of names is required")
+        return SCAN_MODES[:1]
+    return tuple(mode for mode in SCAN_MODES if mode in items)
 
 
 def _row_scale(encoding: dict[str, Any], problems: Problems) -> int:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from lamina_shared.limits import DeviceLimits, plan_problems, show
-from lamina_shared.types import ScanPlan, ViewSpec
+from lamina_shared.types import SCAN_MODES, ScanPlan, ViewSpec
 
 TARGETS = ("cylinder", "object")
 AXES = ("lift", "turntable")
@@ -241,17 +241,23 @@ def _listed_plan(data: Any, limits: DeviceLimits, problems: Problems) -> ScanPla
 
 
 def check_plan(data: Any, limits: DeviceLimits, problems: Problems) -> ScanPlan | None:
-    """Return the plan of a wire form (``regular`` or listed ``views``) within ``limits``."""
+    """Return the plan of a wire form (``regular`` or listed ``views``) within ``limits``.
+
+    The optional ``mode`` is one of :data:`~lamina_shared.types.SCAN_MODES` (absent:
+    stop-and-go); whether this device can scan in it is the operation's to say.
+    """
     if not isinstance(data, dict):
         problems.add(f"plan: an object is required, found {show(data)}")
         return None
-    if "regular" in data:
-        if not check_keys(data, "plan", {"regular"}, set(), problems):
-            return None
-        return _regular_plan(data["regular"], limits, problems)
-    if not check_keys(data, "plan", {"views"}, set(), problems):
+    form = "regular" if "regular" in data else "views"
+    if not check_keys(data, "plan", {form}, {"mode"}, problems):
         return None
-    return _listed_plan(data["views"], limits, problems)
+    mode = check_choice(data.get("mode", SCAN_MODES[0]), "plan.mode", SCAN_MODES, problems)
+    if form == "regular":
+        plan = _regular_plan(data["regular"], limits, problems)
+    else:
+        plan = _listed_plan(data["views"], limits, problems)
+    return None if plan is None or mode is None else plan.with_mode(mode)
 
 
 def plan_fits(plan: ScanPlan, limits: DeviceLimits) -> list[str]:

@@ -23,6 +23,10 @@ TARGETS = ("grid", "cylinder", "object")
 CONFIDENCE_SCALE = 4
 """A point's confidence byte is its stripe peak over the noise sigma times this (0.25 steps)."""
 
+SCAN_MODES = ("stop-and-go", "continuous")
+"""How a plan's views are taken: the turntable stopping at each view (the default), or
+turning at constant speed through each section while the camera streams (issue 22)."""
+
 
 @dataclass(frozen=True)
 class ViewSpec:
@@ -39,12 +43,52 @@ class ViewSpec:
 
 @dataclass(frozen=True)
 class ScanPlan:
-    """The ordered views a scan visits; sections may hold different view counts."""
+    """The ordered views a scan visits; sections may hold different view counts.
+
+    ``mode`` (one of :data:`SCAN_MODES`) says how the device takes them: in
+    ``continuous`` mode the turntable does not stop, so each view's segment carries the
+    angle the table was really at (its step count at the exposure), near the planned one.
+    """
 
     views: tuple[ViewSpec, ...]
+    mode: str = SCAN_MODES[0]
+
+    def __post_init__(self) -> None:
+        if self.mode not in SCAN_MODES:
+            raise ValueError(f"scan mode {self.mode!r} is not one of {', '.join(SCAN_MODES)}")
+
+    @property
+    def continuous(self) -> bool:
+        """Return True when the turntable turns through each section without stopping."""
+        return self.mode == "continuous"
+
+    def with_mode(self, mode: str) -> ScanPlan:
+        """Return the same views taken in ``mode`` (ValueError for an unknown mode)."""
+        return ScanPlan(self.views, mode)
+
+    def with_views(self, views: tuple[ViewSpec, ...]) -> ScanPlan:
+        """Return ``views`` (a part of this plan, say) taken in this plan's mode."""
+        return ScanPlan(views, self.mode)
+
+    def labels(self, seq: int, section: int, z_mm: float, angle_deg: float) -> bool:
+        """Return True when a segment so labelled can be view ``seq`` of this plan.
+
+        Section and height must be the plan's; so must the angle of a stop-and-go view,
+        while a continuous view carries the angle the table was really at (in [0, 360)).
+        """
+        if not 0 <= seq < len(self.views):
+            return False
+        view = self.views[seq]
+        if (view.section, view.z_mm) != (section, z_mm):
+            return False
+        if self.continuous:
+            return math.isfinite(angle_deg) and 0.0 <= angle_deg < 360.0
+        return view.angle_deg == angle_deg
 
     @classmethod
-    def regular(cls, sections: int, pitch_mm: float, views: int) -> ScanPlan:
+    def regular(
+        cls, sections: int, pitch_mm: float, views: int, mode: str = SCAN_MODES[0]
+    ) -> ScanPlan:
         """Return ``sections`` sections ``pitch_mm`` apart with ``views`` evenly spaced angles."""
         if sections < 1 or views < 1:
             raise ValueError("a scan needs at least one section and one view per section")
@@ -61,7 +105,8 @@ class ScanPlan:
                 ViewSpec(s, round(s * pitch_mm, 9), round(v * step, 9))
                 for s in range(sections)
                 for v in range(views)
-            )
+            ),
+            mode,
         )
 
     @property
@@ -70,8 +115,15 @@ class ScanPlan:
         return list(dict.fromkeys(v.section for v in self.views))
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the explicit JSON form: every view listed (stored plans, fingerprints)."""
-        return {"views": [v.to_dict() for v in self.views]}
+        """Return the explicit JSON form: every view listed (stored plans, fingerprints).
+
+        ``mode`` is there only when it is not the default, so stop-and-go plans keep the
+        form (and the fingerprints) they had before modes existed.
+        """
+        return {"views": [v.to_dict() for v in self.views], **self._mode_form()}
+
+    def _mode_form(self) -> dict[str, Any]:
+        return {} if self.mode == SCAN_MODES[0] else {"mode": self.mode}
 
     def regular_form(self) -> dict[str, Any] | None:
         """Return ``{"sections", "pitch_mm", "views"}`` if :meth:`regular` of them is this plan."""
@@ -81,7 +133,7 @@ class ScanPlan:
         per_section = len(self.views) // sections
         pitch_mm = self.views[per_section].z_mm if sections > 1 else 1.0
         try:
-            candidate = ScanPlan.regular(sections, pitch_mm, per_section)
+            candidate = ScanPlan.regular(sections, pitch_mm, per_section, self.mode)
         except ValueError:
             return None
         if candidate != self:
@@ -95,7 +147,9 @@ class ScanPlan:
         other plan lists its views and must fit one message (``shared/PROTOCOL.md``).
         """
         regular = self.regular_form()
-        return {"regular": regular} if regular is not None else self.to_dict()
+        if regular is None:
+            return self.to_dict()
+        return {"regular": regular, **self._mode_form()}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ScanPlan:
@@ -103,12 +157,15 @@ class ScanPlan:
 
         Whatever the data claim, at most :data:`MAX_DECODED_VIEWS` views are built.
         """
+        mode = data.get("mode", SCAN_MODES[0])
+        if mode not in SCAN_MODES:
+            raise ValueError(f"scan mode {mode!r} is not one of {', '.join(SCAN_MODES)}")
         if "regular" in data:
             form = data["regular"]
             sections, views_per_section = int(form["sections"]), int(form["views"])
             if sections * views_per_section > MAX_DECODED_VIEWS:
                 raise ValueError(f"a plan of more than {MAX_DECODED_VIEWS} views")
-            return cls.regular(sections, float(form["pitch_mm"]), views_per_section)
+            return cls.regular(sections, float(form["pitch_mm"]), views_per_section, mode)
         if len(data["views"]) > MAX_DECODED_VIEWS:
             raise ValueError(f"a plan of more than {MAX_DECODED_VIEWS} views")
         views = []
@@ -119,7 +176,7 @@ class ScanPlan:
             views.append(view)
         if not views:
             raise ValueError("a scan plan needs at least one view")
-        return cls(tuple(views))
+        return cls(tuple(views), mode)
 
 
 @dataclass(frozen=True)

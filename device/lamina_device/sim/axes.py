@@ -21,7 +21,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from lamina_device.config import DeviceConfig, load_config
-from lamina_device.motion import ContinuousTurntable, MotionError, Turntable, lift_steps_per_mm
+from lamina_device.motion import (
+    SPIN_TICK_S,
+    ContinuousTurntable,
+    MotionError,
+    StepClock,
+    Turntable,
+    lift_steps_per_mm,
+    spin_rates,
+    turntable_steps_per_rev,
+)
 from lamina_device.timing import frame_wait_s, lift_move_s, turntable_move_s
 from lamina_shared.presets import make_preset
 
@@ -44,6 +53,14 @@ class SimClock:
     def advance(self, seconds: float) -> None:
         """Let ``seconds`` pass."""
         self.now_s += seconds
+
+    def now_ns(self) -> int:
+        """Return the virtual time in nanoseconds (what CLOCK_MONOTONIC is on the box)."""
+        return round(self.now_s * 1e9)
+
+    def sleep_until_ns(self, at_ns: int) -> None:
+        """Let the time pass until ``at_ns`` (nothing if it has passed)."""
+        self.advance(max(0.0, (at_ns - self.now_ns()) * 1e-9))
 
     def frame(self, exposure_us: float) -> None:
         """Let the wait for one fresh frame at ``exposure_us`` pass."""
@@ -125,7 +142,11 @@ class Mechanics:
 
 
 class SimTurntable(ContinuousTurntable):
-    """A simulated continuous turntable: instant moves, real positions from :class:`Mechanics`."""
+    """A simulated continuous turntable: instant moves, real positions from :class:`Mechanics`.
+
+    It turns continuously as the box's stepper does (:class:`~lamina_device.motion.SpinningTable`):
+    the same ramp, the step rates noted on a step clock against the virtual time.
+    """
 
     def __init__(self, mechanics: Mechanics, clock: SimClock | None = None) -> None:
         self.mechanics = mechanics
@@ -133,6 +154,88 @@ class SimTurntable(ContinuousTurntable):
         self._angle_deg = 0.0
         self._steps = 0  # where the box's stepper would be, for the move's duration
         self._engaged = False
+        self._spin: StepClock | None = None
+        self._last_spin: tuple[StepClock, int] | None = None  # a finished turn, until when
+
+    @property
+    def steps_per_deg(self) -> float:
+        """Return the box's microsteps per table degree."""
+        return turntable_steps_per_rev(self.clock.config.turntable) / 360.0
+
+    @property
+    def spin_speed_deg_s(self) -> float:
+        """Return the shipped configuration's continuous speed."""
+        return self.clock.config.turntable.continuous_speed_deg_s
+
+    def spin_problem(self) -> str | None:
+        """Return why the simulated table cannot turn continuously (its config says 0)."""
+        if self.spin_speed_deg_s <= 0:
+            return "the simulated box's configuration sets no continuous_speed_deg_s"
+        return None
+
+    def spin(self, speed_deg_s: float | None = None) -> None:
+        """Ramp up to ``speed_deg_s`` as the box's stepper would, on the virtual clock."""
+        if self._spin is not None:
+            return
+        if problem := self.spin_problem():
+            raise MotionError(problem)
+        ramp, cruise = spin_rates(self.clock.config.turntable, speed_deg_s or self.spin_speed_deg_s)
+        self._spin = StepClock(self.clock.now_ns(), self._steps)
+        self._engaged = True
+        self._ramp([*ramp, cruise])
+
+    def _ramp(self, rates: list[float]) -> None:
+        assert self._spin is not None
+        for rate in rates:
+            self._spin.set_rate(self.clock.now_ns(), rate)
+            self.clock.advance(SPIN_TICK_S)
+
+    def stop_spin(self) -> None:
+        """Ramp down and stop; the commanded angle becomes where the step count ended."""
+        spin = self._spin
+        if spin is None:
+            return
+        ramp, _ = spin_rates(self.clock.config.turntable, spin.rate_sps / self.steps_per_deg)
+        self._ramp(ramp[::-1])
+        spin.set_rate(self.clock.now_ns(), 0.0)
+        self._steps = round(spin.steps_at(self.clock.now_ns()))
+        self._angle_deg = (self._steps / self.steps_per_deg) % 360.0
+        self._last_spin = (spin, self.clock.now_ns())
+        self._spin = None
+
+    def angle_at(self, at_ns: int) -> float:
+        """Return the commanded (step count) angle at ``at_ns``, unwrapped."""
+        return self._steps_at(at_ns, self._steps) / self.steps_per_deg
+
+    def _steps_at(self, at_ns: int, position: int) -> float:
+        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
+
+        A finished turn's clock still answers for its own time (its last views are
+        extracted after the table has stopped); later, the position does.
+        """
+        if self._spin is not None:
+            return self._spin.steps_at(at_ns)
+        if self._last_spin is not None and at_ns <= self._last_spin[1]:
+            return self._last_spin[0].steps_at(at_ns)
+        return float(position)
+
+    def time_at(self, angle_deg: float) -> int:
+        """Return when the turning table reaches the unwrapped ``angle_deg`` (virtual ns)."""
+        if self._spin is None:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        return self._spin.time_at(angle_deg * self.steps_per_deg)
+
+    def true_angle_near(self, at_ns: int, reference_deg: float) -> float:
+        """Return the true angle at ``at_ns`` of a table turning past ``reference_deg``.
+
+        The mechanics map a commanded angle within one turn to the true one, which jumps
+        where the count wraps past 360; a frame is rendered about its own reference
+        angle, the error there plus the turn since scaled as the gear scales it, so the
+        object turns smoothly through every frame.
+        """
+        turned = self.angle_at(at_ns) - reference_deg
+        base = self.mechanics.true_angle_deg(reference_deg % 360.0)
+        return base + turned * (1.0 + self.mechanics.angle_scale_error)
 
     @property
     def angle_deg(self) -> float:
@@ -158,6 +261,8 @@ class SimTurntable(ContinuousTurntable):
         """
         if not math.isfinite(angle_deg):
             raise MotionError(f"turntable angle must be finite, not {angle_deg}")
+        if self._spin is not None:
+            raise MotionError("the turntable is turning continuously: stop it before a move")
         runs, first_s, rest_s = turntable_move_s(
             self.clock.config.turntable, self._steps, self._engaged, angle_deg
         )
@@ -167,7 +272,8 @@ class SimTurntable(ContinuousTurntable):
         return first_s, rest_s
 
     def close(self) -> None:
-        """Nothing to release."""
+        """Stop turning (nothing else to release)."""
+        self._spin = None
 
 
 class SimLift:

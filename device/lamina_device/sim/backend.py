@@ -78,8 +78,8 @@ def open_sim(
     if not motion.still:
         source += f" sway={sway}"
     scene = SimScene(rig, obj, noise_model, seed)
-    laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory())
     clock = SimClock()
+    laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory(), clock_ns=clock.now_ns)
     turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser, motion)
@@ -98,5 +98,7 @@ def open_sim(
         timing=clock.config,
         identity={"serial": "sim", "source": source},
         sleep=clock.advance,
+        clock_ns=clock.now_ns,
+        lift_settle_s=clock.config.lift.settle_s,
     )
     return watched(hardware)

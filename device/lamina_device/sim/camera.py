@@ -7,23 +7,36 @@ the host meet the same errors as on a real scanner.
 
 from __future__ import annotations
 
+import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from lamina_device.camera import CameraError, Stage, check_exposure
+from lamina_device.camera import (
+    LASER_LATENCY_NS,
+    CameraError,
+    FrameTiming,
+    Stage,
+    TimedFrame,
+    check_exposure,
+)
 from lamina_device.laser import Laser
 from lamina_device.sim.axes import SimLift, SimTurntable
-from lamina_device.sim.render import SimScene
+from lamina_device.sim.render import Exposure, SimScene
 from lamina_device.sim.sway import Sway
 
-__all__ = ["SIM_EXPOSURE_RANGE_US", "SIM_EXPOSURE_US", "SimCamera"]
+__all__ = ["SIM_EXPOSURE_RANGE_US", "SIM_EXPOSURE_US", "TIMESTAMP_JITTER_US", "SimCamera"]
 
 SIM_EXPOSURE_US = 4000
 """The simulated camera's nominal exposure: frames at it are the simulator's reference."""
 SIM_EXPOSURE_RANGE_US = (100, 20_000)
 """Exposures the simulated camera accepts (a Camera Module 3 in its 120 fps mode)."""
+TIMESTAMP_JITTER_US = 50.0
+"""Standard deviation of a streamed frame's reported timestamp about its true one: the
+CSI-2 receiver stamps the frame-start interrupt, tens of microseconds late and not always
+by the same amount."""
 
 
 @dataclass
@@ -87,6 +100,59 @@ class SimCamera:
             exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
             shift_mm=self.sway.offset_mm(self.turntable.clock.now_s),
         )
+
+    @property
+    def frame_timing(self) -> FrameTiming:
+        """Return the box's frame period and read-out (shipped configuration), this exposure."""
+        camera = self.turntable.clock.config.camera
+        period_s = max(camera.frame_duration_us, self.exposure_us) * 1e-6
+        return FrameTiming(period_s, self.exposure_us * 1e-6, camera.readout_s, self.size[1])
+
+    def capture_timed(self) -> TimedFrame:
+        """Return the next streamed frame exposed wholly after the laser's last switch.
+
+        The sensor streams from power-up (frame ``k`` starts at ``k`` periods on the
+        virtual clock); the call returns the first frame still to arrive whose first
+        row started after the laser's last switch, the clock then at its arrival (its
+        last row read). The frame is rendered with the target where it really is while
+        each row is exposed (:meth:`~lamina_device.sim.render.SimScene.render_exposure`);
+        its reported timestamp is off by the receiver's jitter.
+        """
+        clock = self.turntable.clock
+        timing = self.frame_timing
+        period, span = timing.period_s, timing.span_s
+        after_s = max((self.laser.changed_ns + LASER_LATENCY_NS) * 1e-9, clock.now_s - span)
+        index = math.ceil(after_s / period - 1e-9)
+        start_s = index * period
+        clock.advance(start_s + span - clock.now_s)
+        self.frames_taken += 1
+        reference = self.turntable.angle_at(round((start_s + timing.span_s / 2) * 1e9))
+
+        def pose(when_s: float) -> tuple[float, tuple[float, float]]:
+            at_ns = round(when_s * 1e9)
+            return self.turntable.true_angle_near(at_ns, reference), self.sway.offset_mm(when_s)
+
+        exposure = Exposure(start_s, timing.exposure_s, timing.row_s, pose)
+        image, _ = self.scene.render_exposure(
+            self.stage.target,
+            self.lift.true_z_mm,
+            self.laser.is_on,
+            exposure,
+            ("frame", index),
+            exposure_scale=self.exposure_us / SIM_EXPOSURE_US,
+        )
+        jitter_s = TIMESTAMP_JITTER_US * 1e-6 * self._jitter(index)
+        return TimedFrame(
+            image,
+            round((start_s + jitter_s) * 1e9),
+            round(timing.exposure_s * 1e9),
+            timing.row_s * 1e9,
+        )
+
+    def _jitter(self, index: int) -> float:
+        """Return frame ``index``'s timestamp error in standard deviations (repeatable)."""
+        digest = hashlib.blake2b(f"{self.scene.seed}:{index}".encode(), digest_size=8).digest()
+        return float(np.random.default_rng(int.from_bytes(digest, "little")).standard_normal())
 
     def close(self) -> None:
         """Nothing to release."""

@@ -32,8 +32,11 @@ from lamina_device.sim.texture import Textured
 from lamina_shared.presets import NOISE_PRESETS, make_preset
 
 __all__ = [
+    "BLUR_SAMPLES",
     "BT601_LUMA",
     "NOISE_PRESETS",
+    "ROLLING_BANDS",
+    "Exposure",
     "NoiseModel",
     "SimScene",
     "ambient_field",
@@ -46,6 +49,13 @@ __all__ = [
 BT601_LUMA = np.array([0.299, 0.587, 0.114])
 """Weights of R, G, B in the Y plane the Pi camera's YUV420 stream carries (BT.601)."""
 
+ROLLING_BANDS = 16
+"""Row bands of a moving frame, each exposed at its own time (the rolling shutter): 54 rows
+of the limb camera, 0.5 ms of its 8 ms read-out."""
+BLUR_SAMPLES = 4
+"""Poses averaged across each band's exposure for the stripe's motion blur."""
+_BLUR_REACH_MM = 3.0  # the sheet's reach plus how far a hit may move in z within a blur
+_BLUR_REACH_PX = 6  # columns a hit near the sheet may move sideways within a blur
 _VIEW_CACHE_SIZE = 4
 _SHEET_REACH_SIGMAS = 5.0  # beyond 5 sigma the sheet adds < 1e-5 of its peak
 _SLAB_SIGMAS = 0.5  # lit-test outlines are sliced every half sigma of sheet height
@@ -319,6 +329,51 @@ def _rz(angle_deg: float) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
+class _Surface:
+    """What some pixels' rays hit with the target at one pose, and the room light there."""
+
+    hit: np.ndarray
+    """(N,) True where the ray hits the target."""
+    p: np.ndarray
+    """(H, 3) world points of the hits."""
+    normal: np.ndarray
+    """(H, 3) world unit normals of the hits."""
+    ambient: np.ndarray
+    """(N,) the room light each pixel receives, DN."""
+    tint: np.ndarray | None
+    """(N, 3) reflectance over the plain albedo (textured targets), else None."""
+    axis: np.ndarray
+    """The turntable axis as the target sees it (shifted by a sway), world mm."""
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """When a rolling-shutter frame's rows are exposed, and where the target is meanwhile.
+
+    Row ``r`` is exposed from ``start_s + r * row_s`` for ``exposure_s`` (seconds on the
+    simulator's clock); ``pose(t)`` is the target's true turntable angle (degrees) and
+    sway shift (x, y mm) at time ``t``.
+    """
+
+    start_s: float
+    exposure_s: float
+    row_s: float
+    pose: Callable[[float], tuple[float, tuple[float, float]]]
+
+    def row_start_s(self, row: float) -> float:
+        """Return when ``row`` starts its exposure."""
+        return self.start_s + row * self.row_s
+
+    def row_middle_s(self, row: float) -> float:
+        """Return the middle of ``row``'s exposure."""
+        return self.row_start_s(row) + 0.5 * self.exposure_s
+
+    def middle_s(self, rows: int) -> float:
+        """Return the middle of the frame's exposure, a frame of ``rows`` rows."""
+        return self.row_middle_s(0.5 * (rows - 1))
+
+
+@dataclass(frozen=True, eq=False)
 class _View:
     """Noise-free expected images of one (target, angle, z) geometry."""
 
@@ -399,6 +454,12 @@ class SimScene:
         if target == "grid":
             return _expose(rng, self._grid_expected(), self.noise)
         view = self._view(target, float(angle_deg), float(z_mm), shift_mm)
+        return self._grey(view, rng, laser_on, exposure_scale)
+
+    def _grey(
+        self, view: _View, rng: np.random.Generator, laser_on: bool, exposure_scale: float
+    ) -> np.ndarray:
+        """Return the uint8 frame of a grey (thesis-like) model from a view's expected light."""
         expected = (
             view.ambient_dn if view.tint is None else view.ambient_dn * (view.tint @ BT601_LUMA)
         )
@@ -409,6 +470,44 @@ class SimScene:
         if exposure_scale != 1.0:
             expected = expected * exposure_scale
         return _expose(rng, expected, self.noise)
+
+    def render_exposure(
+        self,
+        target: str,
+        z_mm: float,
+        laser_on: bool,
+        exposure: Exposure,
+        noise_key: tuple[object, ...] = (),
+        exposure_scale: float = 1.0,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Return a frame of ``target`` moving during its rolling-shutter ``exposure``.
+
+        The continuous scan's frames: each band of :data:`ROLLING_BANDS` rows sees the
+        target where it is at that band's own exposure (the rolling shutter), and the laser
+        light is the mean of :data:`BLUR_SAMPLES` poses across each band's exposure (the
+        stripe's motion blur). The room light is taken at the middle of each band's
+        exposure without blur: a moving edge then stays sharp, which the laser-off frames
+        must cancel as they would a blurred one (a harsher test, not a kinder one). The
+        speckle keeps its full contrast, though a moving surface would average some of it.
+
+        Args:
+            target: ``cylinder`` or ``object``.
+            z_mm: the true section height (the lift stands still during a view).
+            laser_on: whether the laser is on for the whole exposure.
+            exposure: the frame's row timing and the target's pose over time.
+            noise_key: what makes this frame's noise its own.
+            exposure_scale: as in :meth:`render`.
+
+        Returns:
+            The uint8 (H, W) frame and, for colour models, its (H, W, 3) uint8 RGB.
+        """
+        view = self._moving_view(target, float(z_mm), exposure, laser_on)
+        angle, _ = exposure.pose(exposure.middle_s(self._shape[0]))
+        rng = self._rng(target, angle, z_mm, laser_on, ("moving", *noise_key))
+        if self.noise.laser_rgb is None:
+            return self._grey(view, rng, laser_on, exposure_scale), None
+        rgb = self._colour(view, rng, laser_on, exposure_scale)
+        return luma(rgb), np.rint(rgb).astype(np.uint8)
 
     def render_rgb(
         self,
@@ -451,25 +550,31 @@ class SimScene:
         shift_mm: tuple[float, float] = (0.0, 0.0),
     ) -> np.ndarray:
         """Return the noisy (H, W, 3) float R, G, B of a colour model, clipped to 0..255."""
-        n = self.noise
-        if n.laser_rgb is None:
+        if self.noise.laser_rgb is None:
             raise ValueError("this noise model renders one grey channel; use render()")
         rng = self._rng(target, angle_deg, z_mm, laser_on, noise_key)
-        laser: np.ndarray | None = None
-        tint: np.ndarray | None = None
         if target == "grid":
-            ambient = self._grid_expected()
-        else:
-            view = self._view(target, float(angle_deg), float(z_mm), shift_mm)
-            ambient, tint = view.ambient_dn, view.tint
-            if laser_on:
-                grain = n.speckle_grain_px
-                speckle = speckle_field(
-                    rng, self._shape, n.speckle_contrast, grain, n.speckle_lognormal
-                )
-                laser = view.laser_dn * speckle
-                if view.halo_dn is not None:
-                    laser = laser + view.halo_dn
+            grid = _View(self._grid_expected(), np.zeros(0))
+            return self._colour(grid, rng, False, exposure_scale)
+        view = self._view(target, float(angle_deg), float(z_mm), shift_mm)
+        return self._colour(view, rng, laser_on, exposure_scale)
+
+    def _colour(
+        self, view: _View, rng: np.random.Generator, laser_on: bool, exposure_scale: float
+    ) -> np.ndarray:
+        """Return the noisy (H, W, 3) float R, G, B of a view's expected light, 0..255."""
+        n = self.noise
+        assert n.laser_rgb is not None
+        ambient, tint = view.ambient_dn, view.tint
+        laser: np.ndarray | None = None
+        if laser_on:
+            grain = n.speckle_grain_px
+            speckle = speckle_field(
+                rng, self._shape, n.speckle_contrast, grain, n.speckle_lognormal
+            )
+            laser = view.laser_dn * speckle
+            if view.halo_dn is not None:
+                laser = laser + view.halo_dn
         out = np.empty((*self._shape, 3))
         for c in range(3):
             expected = ambient * n.ambient_rgb[c]
@@ -498,40 +603,97 @@ class SimScene:
         self, obj: SceneObject, angle_deg: float, z_mm: float, shift_mm: tuple[float, float]
     ) -> _View:
         """Ray cast every pixel and evaluate ambient and laser light, noise-free."""
+        seen = self._surface(obj, slice(None), angle_deg, z_mm, shift_mm)
+        laser = np.zeros_like(seen.ambient)
+        laser[np.flatnonzero(seen.hit)] = self._laser_term(
+            obj, seen.p, seen.normal, angle_deg, z_mm, seen.axis[:2]
+        )
+        laser_img = laser.reshape(self._shape)
+        tint = None if seen.tint is None else seen.tint.reshape(*self._shape, 3)
+        return _View(seen.ambient.reshape(self._shape), laser_img, self._halo(laser_img), tint)
+
+    def _halo(self, laser_img: np.ndarray) -> np.ndarray | None:
+        """Return the stripe's light scattered in the surface and the lens (None without)."""
+        n = self.noise
+        if n.halo_fraction <= 0.0:
+            return None
+        # A sum-normalised blur keeps its energy at halo_fraction of the stripe's, so its
+        # peak is a few % of the stripe's.
+        s = n.halo_sigma_px
+        k = 2 * math.ceil(3.0 * s) + 1
+        return n.halo_fraction * cv2.GaussianBlur(laser_img, (k, k), s)
+
+    def _surface(
+        self,
+        obj: SceneObject,
+        pixels: slice | np.ndarray,
+        angle_deg: float,
+        z_mm: float,
+        shift_mm: tuple[float, float],
+    ) -> _Surface:
+        """Ray cast ``pixels`` (flat indices) with the target at one pose; shade the room light."""
         rig, n = self.rig, self.noise
         # A target shifted off its place is the turntable's axis shifted, as it sees it.
         axis = np.array([rig.axis_xy_mm[0] + shift_mm[0], rig.axis_xy_mm[1] + shift_mm[1], 0.0])
         to_obj = _rz(-angle_deg)
         lift = np.array([0.0, 0.0, z_mm])  # world z = object z - z_mm
-        t, normal_obj = obj.raycast(to_obj @ (self._centre - axis) + lift, self._dirs @ to_obj.T)
+        dirs = self._dirs[pixels]
+        t, normal_obj = obj.raycast(to_obj @ (self._centre - axis) + lift, dirs @ to_obj.T)
         hit = np.isfinite(t)
-        p = self._centre + t[hit, None] * self._dirs[hit]
+        p = self._centre + t[hit, None] * dirs[hit]
         normal = normal_obj[hit] @ _rz(angle_deg).T
-        field = self._field.ravel()
+        field = self._field.ravel()[pixels]
         ambient = n.background_dn * field
         # Soft lamp from above-front-left plus fill light: enough shading to look like a solid.
         lamp = np.array([-0.4, -0.6, 0.7]) / np.linalg.norm([-0.4, -0.6, 0.7])
         shade = 0.35 + 0.65 * np.maximum(normal @ lamp, 0.0)
         ambient[hit] = n.albedo * n.ambient_dn * field[hit] * shade
-        laser = np.zeros_like(ambient)
-        laser[np.flatnonzero(hit)] = self._laser_term(obj, p, normal, angle_deg, z_mm, axis[:2])
-        laser_img = laser.reshape(self._shape)
         tint: np.ndarray | None = None
         if isinstance(obj, Textured):
-            surface = (
-                to_obj @ (self._centre - axis) + lift + t[hit, None] * (self._dirs[hit] @ to_obj.T)
-            )
-            flat = np.ones((len(field), 3))
-            flat[hit] = obj.texture.reflectance(surface) / n.albedo
-            tint = flat.reshape(*self._shape, 3)
-        halo = None
-        if n.halo_fraction > 0.0:
-            # Light scattered in the surface and the lens: a sum-normalised blur keeps its
-            # energy at halo_fraction of the stripe's, so its peak is a few % of the stripe's.
-            s = n.halo_sigma_px
-            k = 2 * math.ceil(3.0 * s) + 1
-            halo = n.halo_fraction * cv2.GaussianBlur(laser_img, (k, k), s)
-        return _View(ambient.reshape(self._shape), laser_img, halo, tint)
+            surface = to_obj @ (self._centre - axis) + lift + t[hit, None] * (dirs[hit] @ to_obj.T)
+            tint = np.ones((len(field), 3))
+            tint[hit] = obj.texture.reflectance(surface) / n.albedo
+        return _Surface(hit, p, normal, ambient, tint, axis)
+
+    def _moving_view(self, target: str, z_mm: float, exposure: Exposure, laser_on: bool) -> _View:
+        """Return the expected light of a frame whose target moves during its exposure."""
+        obj = self._target(target)
+        height, width = self._shape
+        ambient = np.empty(height * width)
+        tint = np.ones((height * width, 3)) if isinstance(obj, Textured) else None
+        laser = np.zeros(height * width)
+        reach_mm = _SHEET_REACH_SIGMAS * self.rig.laser_sigma_mm + _BLUR_REACH_MM
+        for rows in np.array_split(np.arange(height), min(ROLLING_BANDS, height)):
+            band = slice(int(rows[0]) * width, (int(rows[-1]) + 1) * width)
+            mid_row = 0.5 * float(rows[0] + rows[-1])
+            angle, shift = exposure.pose(exposure.row_middle_s(mid_row))
+            seen = self._surface(obj, band, angle, z_mm, shift)
+            ambient[band] = seen.ambient
+            if tint is not None and seen.tint is not None:
+                tint[band] = seen.tint
+            if not laser_on:
+                continue
+            # Only pixels near the sheet can be lit as the target turns a little more.
+            near = np.zeros(len(seen.hit), np.uint8)
+            near[np.flatnonzero(seen.hit)[np.abs(seen.p[:, 2]) < reach_mm]] = 1
+            if not near.any():
+                continue
+            kernel = np.ones((3, 2 * _BLUR_REACH_PX + 1), np.uint8)
+            grown = cv2.dilate(near.reshape(len(rows), width), kernel).ravel()
+            pixels = band.start + np.flatnonzero(grown)
+            total = np.zeros(len(pixels))
+            for k in range(BLUR_SAMPLES):
+                share = (k + 0.5) / BLUR_SAMPLES
+                when = exposure.row_start_s(mid_row) + share * exposure.exposure_s
+                angle_k, shift_k = exposure.pose(when)
+                lit = self._surface(obj, pixels, angle_k, z_mm, shift_k)
+                total[np.flatnonzero(lit.hit)] += self._laser_term(
+                    obj, lit.p, lit.normal, angle_k, z_mm, lit.axis[:2]
+                )
+            laser[pixels] = total / BLUR_SAMPLES
+        laser_img = laser.reshape(self._shape)
+        tint_img = None if tint is None else tint.reshape(height, width, 3)
+        return _View(ambient.reshape(self._shape), laser_img, self._halo(laser_img), tint_img)
 
     def _laser_term(
         self,

@@ -34,15 +34,19 @@ def open_device(
     transform: Transform | None = None,
     rig: str = "thesis",
     on_notice: Callable[[str], object] | None = None,
+    sway: str = "none",
 ) -> Iterator[DeviceClient]:
     """Connect to DEVICE (a port path, ``local``, ``socket://HOST:PORT``, another pyserial
     URL, ``sim`` or ``replay:DIR``) and handshake.
 
     ``rig`` picks the simulated rig's geometry (``thesis`` or ``limb``; sim only).
     ``on_notice`` hears about a slow start of a device program started here.
+    ``sway`` moves the simulated object as a patient would (sim only).
     """
     if spawns_device(device):
-        with _spawned_device(device, object_spec, seed, noise, transform, rig, on_notice) as client:
+        with _spawned_device(
+            device, object_spec, seed, noise, transform, rig, on_notice, sway
+        ) as client:
             yield client
         return
     if object_spec:
@@ -65,6 +69,7 @@ def _spawned_device(
     transform: Transform | None,
     rig: str = "thesis",
     on_notice: Callable[[str], object] | None = None,
+    sway: str = "none",
 ) -> Iterator[DeviceClient]:
     try:
         bridge = PtyBridge(transform)
@@ -74,7 +79,7 @@ def _spawned_device(
             f"({exc.strerror or exc}): mount /dev/pts, or connect a scanner by its serial port"
         ) from None
     process = start_device_program(
-        device_command(device, bridge.device_port, object_spec, seed, noise, rig)
+        device_command(device, bridge.device_port, object_spec, seed, noise, rig, sway)
     )
     client: DeviceClient | None = None
     try:

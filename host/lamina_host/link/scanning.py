@@ -119,13 +119,8 @@ def check_segment(
     if seq >= len(plan.views):
         problem = f"view {seq} of a {len(plan.views)}-view plan"
     else:
-        view = plan.views[seq]
-        if (segment.target, segment.section, segment.z_mm, segment.angle_deg) != (
-            target,
-            view.section,
-            view.z_mm,
-            view.angle_deg,
-        ):
+        labels = (segment.section, segment.z_mm, segment.angle_deg)
+        if segment.target != target or not plan.labels(seq, *labels):
             problem = f"view {seq} labelled differently from the plan"
         elif len(segment) and (
             int(segment.cols[-1]) >= image_size[0] or float(segment.rows.max()) >= image_size[1]

@@ -134,7 +134,13 @@ def device_environment() -> dict[str, str]:
 
 
 def device_command(
-    hardware: str, port: str, object_spec: str | None, seed: int, noise: str, rig: str = "thesis"
+    hardware: str,
+    port: str,
+    object_spec: str | None,
+    seed: int,
+    noise: str,
+    rig: str = "thesis",
+    sway: str = "none",
 ) -> list[str]:
     """Return the command line that starts a device program on ``port``."""
     command = [
@@ -155,6 +161,8 @@ def device_command(
         command += ["--object", object_spec]
     if rig != "thesis":
         command += ["--rig", rig]
+    if sway != "none":
+        command += ["--sway", sway]
     return command
 
 

@@ -664,12 +664,8 @@ class Library(Scoped):
         """
         self.check_identity(scan_id, identity)
         plan = self._guard(scan_id)[1].get(segment.target)
-        view = plan.views[seq] if plan is not None and 0 <= seq < len(plan.views) else None
-        if view is None or (view.section, view.z_mm, view.angle_deg) != (
-            segment.section,
-            segment.z_mm,
-            segment.angle_deg,
-        ):
+        labels = (segment.section, segment.z_mm, segment.angle_deg)
+        if plan is None or not plan.labels(seq, *labels):
             raise StoreError(
                 f"segment {seq} of {segment.target} is not a view scan {scan_id} planned: "
                 "it is not stored"

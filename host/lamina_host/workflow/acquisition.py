@@ -21,7 +21,7 @@ from lamina_host.reconstruct.calibration import GridCalibration, calibrate_grid
 from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, calibrate_axis
 from lamina_host.store.library import SIDES, Library, check_side
 from lamina_host.store.subjects import check_subject
-from lamina_host.workflow.checks import check_plan_limits, check_positive_mm
+from lamina_host.workflow.checks import check_mode, check_plan_limits, check_positive_mm
 from lamina_host.workflow.device_session import (
     DeviceSession,
     NoticeHandler,
@@ -33,7 +33,7 @@ from lamina_host.workflow.library_access import LibraryAccess
 from lamina_host.workflow.results import ScanData
 from lamina_shared.errors import InputError
 from lamina_shared.ops import ExtractChanges
-from lamina_shared.types import BoardSpec, ScanPlan, Segment
+from lamina_shared.types import SCAN_MODES, BoardSpec, ScanPlan, Segment
 
 TRIM_FRACTION = ProcessOptions().trim_fraction
 """The trim of the axis shown during calibration and of the live section plot."""
@@ -51,6 +51,8 @@ class ScanRequest:
         extract: per-scan extraction settings for the device; None leaves the device's own.
         colour: ask for each object point's colour (the device must say it can).
         side: the limb scanned, one of :data:`lamina_host.store.library.SIDES`.
+        mode: how the device takes the object's views (``lamina_shared.types.SCAN_MODES``;
+            None: as the plan says); stored with the plan, so a resume keeps it.
     """
 
     subject: str
@@ -60,10 +62,13 @@ class ScanRequest:
     extract: ExtractChanges | None = None
     colour: bool = False
     side: str = SIDES[0]
+    mode: str | None = None
 
     def __post_init__(self) -> None:
         check_subject(self.subject)
         check_side(self.side)
+        if self.mode is not None and self.mode not in SCAN_MODES:
+            raise InputError(f"scan mode {self.mode!r} is not one of {', '.join(SCAN_MODES)}")
         if self.cylinder_mm is not None:
             check_positive_mm("cylinder diameter", self.cylinder_mm, 1000.0)
 
@@ -221,6 +226,9 @@ class Acquisition:
             "cylinder": self.cylinder_plan or client.plan_for("cylinder", None),
             "object": client.plan_for("object", request.plan),
         }
+        if request.mode is not None:
+            plans["object"] = plans["object"].with_mode(request.mode)
+        check_mode(plans["object"], client.info)
         for target, wanted in plans.items():
             check_plan_limits(target, wanted, limits, axes)
         diameter = request.cylinder_mm
@@ -261,6 +269,7 @@ class Acquisition:
         record = library.scan(scan_id)
         for target, stored in record.plans.items():
             try:
+                check_mode(stored, client.info)
                 check_plan_limits(target, stored, limits, axes)
             except InputError as exc:
                 # Resuming again cannot help: say so rather than advise it once more.

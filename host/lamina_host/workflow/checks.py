@@ -20,9 +20,9 @@ import math
 
 from lamina_shared.errors import InputError
 from lamina_shared.limits import DeviceLimits
-from lamina_shared.messages import AxesInfo
+from lamina_shared.messages import AxesInfo, Welcome
 from lamina_shared.ops import plan_fits
-from lamina_shared.types import ScanPlan
+from lamina_shared.types import SCAN_MODES, ScanPlan
 
 SECTIONS_RANGE = (1, 500)
 VIEWS_RANGE = (3, 360)
@@ -112,6 +112,20 @@ def check_plan_axes(target: str, plan: ScanPlan, axes: AxesInfo) -> None:
         raise InputError(
             f"the {target} plan's sections are {min(gaps):g} mm apart, finer than the lift's "
             f"step of {step:g} mm: plan a pitch of at least {step:g} mm"
+        )
+
+
+def check_mode(plan: ScanPlan, info: Welcome | None) -> None:
+    """Refuse a plan in a scan mode the connected device does not offer (its WELCOME).
+
+    Raises:
+        InputError: naming the mode and what the device can do.
+    """
+    offered = info.modes if info is not None else SCAN_MODES[:1]
+    if plan.mode not in offered:
+        raise InputError(
+            f"this device cannot scan in {plan.mode} mode (it offers {', '.join(offered)}): "
+            f"scan in {offered[0]} mode"
         )
 
 

@@ -43,6 +43,8 @@ class DeviceTarget:
     seed: int = 0
     noise: str = "thesis"
     rig: str = "thesis"
+    sway: str = "none"
+    """How the simulated object moves while it is scanned (sim only; ``lamina scan --sway``)."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +159,13 @@ class DeviceSession:
         try:
             self._client = stack.enter_context(
                 open_device(
-                    t.device, t.object_spec, t.seed, t.noise, rig=t.rig, on_notice=on_notice
+                    t.device,
+                    t.object_spec,
+                    t.seed,
+                    t.noise,
+                    rig=t.rig,
+                    on_notice=on_notice,
+                    sway=t.sway,
                 )
             )
         except BaseException:
