@@ -47,3 +47,23 @@ def test_an_estimate_reply_is_checked_whole():
         ScanEstimate.from_wire({"views": -1, "modelled_s": "soon"})
     problems = " ".join(info.value.problems)
     assert "views" in problems and "modelled_s" in problems and "mechanical_minimum_s" in problems
+
+
+def test_a_continuous_plan_is_timed_in_its_mode_and_refused_by_a_device_without_it():
+    plan = ScanPlan.regular(sections=3, pitch_mm=10.0, views=8, mode="continuous")
+    with link() as ends:
+        assert ends.info.modes == ("stop-and-go", "continuous")
+        estimate = ends.client.estimate("object", plan)
+        exposure = ends.hardware.camera.exposure_us
+        clock = ends.hardware.turntable.clock
+        config = clock.config
+        # The same box set up without a continuous speed: stop-and-go only.
+        table = dataclasses.replace(config.turntable, continuous_speed_deg_s=0.0)
+        clock.config = dataclasses.replace(config, turntable=table)
+        with pytest.raises(RequestRefused, match="cannot scan continuously"):
+            ends.client.estimate("object", plan)
+    truth = estimate_scan_time(load_config(), plan, exposure_us=exposure)
+    still = estimate_scan_time(load_config(), plan.with_mode("stop-and-go"), exposure_us=exposure)
+    assert estimate is not None and estimate.views == 24
+    assert estimate.modelled_s == pytest.approx(truth.modelled_s, abs=1e-3)
+    assert estimate.modelled_s < still.modelled_s / 2

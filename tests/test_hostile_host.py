@@ -462,6 +462,7 @@ BAD_OPTIONS = [
     (["--subject", "Müller"], "subject code"),
     (["--device", "replay:/nonexistent"], "capture.json"),
     (["--device", "/dev/ttyNONE", "--object", OBJECT], "--object only applies"),
+    (["--device", "/dev/ttyNONE", "--sway", "patient"], "--sway only applies to --device sim"),
 ]
 
 

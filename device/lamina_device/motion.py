@@ -470,18 +470,6 @@ class SpinningTable(Protocol):
         """Return the table's angle at monotonic time ``at_ns`` from its step clock."""
         ...  # pragma: no cover - protocol
 
-    def _steps_at(self, at_ns: int, position: int) -> float:
-        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
-
-        A finished turn's clock still answers for its own time (its last views are
-        extracted after the table has stopped); later, the position does.
-        """
-        if self._spin is not None:
-            return self._spin.steps_at(at_ns)
-        if self._last_spin is not None and at_ns <= self._last_spin[1]:
-            return self._last_spin[0].steps_at(at_ns)
-        return float(position)
-
     def time_at(self, angle_deg: float) -> int:
         """Return when a turning table reaches the unwrapped ``angle_deg`` (monotonic ns)."""
         ...  # pragma: no cover - protocol
@@ -599,6 +587,18 @@ class StepperTurntable(ContinuousTurntable):
     def angle_at(self, at_ns: int) -> float:
         """Return the table's unwrapped angle at ``at_ns`` from its step clock."""
         return self._steps_at(at_ns, self._position) / self.steps_per_deg
+
+    def _steps_at(self, at_ns: int, position: int) -> float:
+        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
+
+        A finished turn's clock still answers for its own time (its last views are
+        extracted after the table has stopped); later, the position does.
+        """
+        if self._spin is not None:
+            return self._spin.steps_at(at_ns)
+        if self._last_spin is not None and at_ns <= self._last_spin[1]:
+            return self._last_spin[0].steps_at(at_ns)
+        return float(position)
 
     def time_at(self, angle_deg: float) -> int:
         """Return when the turning table reaches the unwrapped ``angle_deg``."""

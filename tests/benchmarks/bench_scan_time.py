@@ -1,22 +1,69 @@
-"""The patient's wait (issue 22): how long plans keep a limb still, from the device's config.
+"""The patient's wait (issue 22): how long plans keep a limb still, and what each mode costs.
 
-Each plan is modelled on the shipped configuration (``default_config.toml``: the box's
-steppers, settle times and camera) by :func:`lamina_device.timing.estimate_scan_time`,
-view by view with the axes' own profiles. The processing per view is measured here: the
-default extraction of a harsh laser-off/laser-on pair from the simulated limb rig at the
-box's 1536x864, with its segment's wire bytes (an x86 core; a Pi core is roughly 2-4x
-slower, still far below a view's mechanics). Rows: the default plan of the configuration,
-the simulator's default (thesis) plan and a 400 mm leg at 10 mm pitch with 8 views, as the
-loop runs (lift and table together; ``axes_in_turn_s``: one after the other, as the loop ran
-before); the mechanical minimum is the moves with both axes together, settle and frames only.
+**Time.** Each plan is modelled on the shipped configuration (``default_config.toml``: the
+box's steppers, settle times and camera) by :func:`lamina_device.timing.estimate_scan_time`
+in both modes: stop-and-go (view by view with the axes' own profiles; ``axes_in_turn_s``:
+the lift and table one after the other, as the loop ran before) and continuous (the table
+ramped up once and turning at ``continuous_speed_deg_s`` through every section, the lift
+moving between sections). The mechanical minimum is the moves, settles and frames only.
+The processing per view is measured here: the default extraction of a harsh
+laser-off/laser-on pair from the simulated limb rig at the box's 1536x864, with its
+segment's wire bytes (an x86 core; a Pi core is roughly 2-4x slower, still far below a
+view's mechanics). Rows: the default plan of the configuration, the simulator's default
+(thesis) plan and a 400 mm leg at 10 mm pitch with 8 views.
+
+**Accuracy.** The same limb phantoms (harsh preset, limb rig: ``bench_limb``'s quick set,
+``arm:scale=5`` 3 sections and ``stump:scale=5,z=-50`` 6 sections at 10 mm, 8 views) are
+scanned in both modes in this process (the simulated device's acquisition, then the host's
+default processing; the calibration board and cylinder are taken once, stop-and-go, as a
+scan takes them) and measured as ``bench_limb`` measures them: volume over the scanned
+range and the worst circumference error at 20 mm levels against the true shape. The
+continuous frames are rendered with the rolling shutter, the motion blur over each
+exposure, the table turning between a view's laser-off, laser-on and laser-off frames,
+and the frame timestamps' jitter (``lamina_device.sim.camera``).
+
+**Sway.** The arm is scanned again in both modes with the simulated patient's sway
+(``patient``: 1 mm a minute of drift and 0.5 mm breathing at 0.25 Hz; ``strong``: 3 mm a
+minute and 1.5 mm at 0.3 Hz): volume and circumference errors against the scan's time,
+and the report's motion warnings (sections whose overlapping views stand apart beyond
+their noise, ``reconstruct/precision.py``). Within a section the views are taken in about
+11 s stop-and-go and about 1 s continuously; the sway between sections moves a section
+whole, which changes no area. The 400 mm leg's modelled times in each mode say what the
+patient holds for the whole leg.
+
+``python tests/benchmarks/bench_scan_time.py --quick`` models the times and scans one
+phantom still (a smaller check that finishes under load).
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
+import tempfile
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-TITLE = "modelled scan time of stop-and-go plans on the default configuration (issue 22)"
+TITLE = (
+    "the patient's wait: modelled scan time of both modes on the default configuration, and "
+    "each mode's limb accuracy with and without sway (issue 22)"
+)
+MODES = ("stop-and-go", "continuous")
+NOISE, RIG, PITCH_MM, VIEWS = "harsh", "limb", 10.0, 8
+OBJECTS = (
+    ("arm", "arm:scale=5", 3),
+    ("stump", "stump:scale=5,z=-50", 6),
+)
+"""The phantoms compared (``bench_limb``'s quick set): name, object, sections."""
+SWAYS = (
+    ("patient", "patient"),
+    ("strong", "drift=3,breath=1.5,hz=0.3"),
+)
+"""The simulated sways: name, ``--sway`` spec."""
+MOTION_WARNING = "overlapping views stand"
+"""What the report's motion warning says (``store/outputs.py``)."""
 
 
 def _processing_s() -> float:
@@ -42,15 +89,14 @@ def _processing_s() -> float:
     return best
 
 
-def run() -> dict[str, Any]:
-    """Model each plan both ways; return the rows and the processing time used."""
+def time_rows(processing_s: float) -> list[dict[str, Any]]:
+    """Return one row per plan and mode: the modelled time and the mechanical minimum."""
     from lamina_device.config import load_config
     from lamina_device.sim.backend import DEFAULT_PLAN
     from lamina_device.timing import estimate_scan_time
     from lamina_shared.types import ScanPlan
 
     config = load_config()
-    processing_s = _processing_s()
     plans = {
         "default (config)": ScanPlan.regular(
             config.plan.sections, config.plan.pitch_mm, config.plan.views
@@ -61,28 +107,171 @@ def run() -> dict[str, Any]:
     rows = []
     for name, plan in plans.items():
         heights = [v.z_mm for v in plan.views]
-        estimate = estimate_scan_time(config, plan, processing_s)
-        in_turn = estimate_scan_time(config, plan, processing_s, axes_together=False)
-        rows.append(
-            {
+        for mode in MODES:
+            moded = plan.with_mode(mode)
+            estimate = estimate_scan_time(config, moded, processing_s)
+            row: dict[str, Any] = {
                 "plan": name,
-                "mode": "stop-and-go",
+                "mode": mode,
                 "height_mm": round(max(heights) - min(heights), 6),
                 "sections": len(plan.sections),
                 "views": len(plan.views),
                 "modelled_s": round(estimate.modelled_s, 3),
                 "mechanical_minimum_s": round(estimate.mechanical_minimum_s, 3),
                 "ratio": round(estimate.ratio, 4),
-                "axes_in_turn_s": round(in_turn.modelled_s, 3),
                 "turntable_s": round(estimate.turntable_s, 3),
                 "lift_s": round(estimate.lift_s, 3),
             }
-        )
-    return {"rows": rows, "processing_s_per_view": round(processing_s, 5)}
+            if mode == "stop-and-go":
+                in_turn = estimate_scan_time(config, moded, processing_s, axes_together=False)
+                row["axes_in_turn_s"] = round(in_turn.modelled_s, 3)
+            rows.append(row)
+    return rows
+
+
+@dataclass
+class _Calibration:
+    """The board image and cylinder segments of the limb rig (shared by every scan here)."""
+
+    grid: Any
+    cylinder: list[Any]
+
+
+def _unwatched(hardware: Any) -> Any:
+    """Stop the laser watchdog: a simulated frame may take longer to render under load than
+    the laser may stay on, which no real exposure does (as the random-shape campaign does)."""
+    if hardware.watchdog is not None:
+        hardware.watchdog.stop()
+        hardware.watchdog = None
+    return hardware
+
+
+def _calibration() -> _Calibration:
+    from lamina_device.acquisition import acquire, grab_grid
+    from lamina_device.sim import open_sim
+    from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
+
+    hardware = _unwatched(open_sim(None, 0, NOISE, RIG))
+    cylinder: list[Any] = []
+    try:
+        grid = grab_grid(hardware)
+        acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
+    finally:
+        hardware.close()
+    return _Calibration(grid, cylinder)
+
+
+def scan(
+    calibration: _Calibration, spec: str, sections: int, mode: str, sway: str
+) -> dict[str, Any]:
+    """Scan one phantom in one mode with one sway; return its errors, time and warnings."""
+    from bench_limb import measure
+
+    from lamina_device.acquisition import acquire
+    from lamina_device.sim import open_sim
+    from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, reconstruct
+    from lamina_host.reconstruct.precision import views_disagreement_mm
+    from lamina_host.store.outputs import build_report, write_outputs
+    from lamina_shared.types import ScanPlan
+
+    plan = ScanPlan.regular(sections, PITCH_MM, VIEWS, mode)
+    hardware = _unwatched(open_sim(spec, 0, NOISE, RIG, sway=sway))
+    clock = hardware.turntable.clock
+    segments: list[Any] = []
+    wall = time.perf_counter()
+    try:
+        hardware.lift.move_to(plan.views[0].z_mm)  # homing and the first move: not the wait
+        start_s = clock.now_s
+        acquire(hardware, "object", plan, segments.append)
+        # The wait: from the first move to the last view's frames (the lift then goes home).
+        scan_s = max(0.0, clock.now_s - start_s - _homing_s(hardware, plan))
+    finally:
+        hardware.close()
+    wall_s = time.perf_counter() - wall
+    assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
+    recon = reconstruct(
+        calibration.grid,
+        hardware.board,
+        calibration.cylinder,
+        hardware.cylinder_diameter_mm,
+        segments,
+        ProcessOptions(),
+    )
+    report = build_report(recon, {"kind": "sim"}, segments, None, {})
+    with tempfile.TemporaryDirectory() as tmp:
+        write_outputs(Path(tmp), recon, report)
+        figures = measure(spec, json.loads((Path(tmp) / "report.json").read_text()))
+    warnings = [w for w in report.warnings if MOTION_WARNING in w]
+    by_section, _, _ = assemble(segments, recon.grid, recon.axis, recon.options.trim_fraction)
+    apart = {k: round(views_disagreement_mm(v), 3) for k, v in sorted(by_section.items())}
+    return {
+        "spec": spec,
+        "mode": mode,
+        "sway": sway,
+        "sections": sections,
+        "scan_s": round(scan_s, 3),
+        "wall_s": round(wall_s, 1),
+        "volume_error_percent": figures["volume_error_percent"],
+        "volume_error_without_lift_percent": figures["volume_error_without_lift_percent"],
+        "max_abs_circumference_error_mm": figures["max_abs_circumference_error_mm"],
+        "motion_warnings": warnings,
+        "views_apart_mm": apart,
+    }
+
+
+def _homing_s(hardware: Any, plan: Any) -> float:
+    """Return the lift's move home after the last view (not the patient's wait)."""
+    from lamina_device.motion import lift_steps_per_mm
+    from lamina_device.timing import lift_move_s
+
+    config = hardware.turntable.clock.config.lift
+    top = round(plan.views[-1].z_mm * lift_steps_per_mm(config))
+    return lift_move_s(config, top, 0)
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    """Model every plan in both modes; scan the phantoms in both modes, still and swaying."""
+    processing_s = _processing_s()
+    results: dict[str, Any] = {
+        "rows": time_rows(processing_s),
+        "processing_s_per_view": round(processing_s, 5),
+    }
+    calibration = _calibration()
+    objects = OBJECTS[:1] if quick else OBJECTS
+    results["accuracy"] = [
+        scan(calibration, spec, sections, mode, "none") | {"name": name}
+        for name, spec, sections in objects
+        for mode in MODES
+    ]
+    if not quick:
+        name, spec, sections = OBJECTS[0]
+        results["sway"] = [
+            scan(calibration, spec, sections, mode, sway) | {"name": name, "sway_name": label}
+            for label, sway in SWAYS
+            for mode in MODES
+        ]
+    results["comparison"] = _comparison(results["accuracy"])
+    return results
+
+
+def _comparison(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Return, per phantom, continuous mode's errors over stop-and-go's (target <= 1.2)."""
+    out = []
+    by = {(r["name"], r["mode"]): r for r in rows}
+    for name in dict.fromkeys(r["name"] for r in rows):
+        still, moving = by.get((name, "stop-and-go")), by.get((name, "continuous"))
+        if still is None or moving is None:
+            continue
+        entry: dict[str, Any] = {"name": name}
+        for key in ("volume_error_percent", "max_abs_circumference_error_mm"):
+            base = abs(still[key])
+            entry[key + "_ratio"] = round(abs(moving[key]) / base, 3) if base else None
+        out.append(entry)
+    return out
 
 
 def report(results: dict[str, Any]) -> list[str]:
-    """Return the table: one line per plan and mode."""
+    """Return the tables: times per plan and mode; errors per phantom, mode and sway."""
     lines = [
         f"  processing per view (extraction + segment, this machine): "
         f"{results['processing_s_per_view'] * 1000:.1f} ms",
@@ -90,9 +279,44 @@ def report(results: dict[str, Any]) -> list[str]:
         f"{'axes in turn':>14}",
     ]
     for row in results["rows"]:
+        in_turn = f"{row['axes_in_turn_s']:>13.1f}s" if "axes_in_turn_s" in row else ""
         lines.append(
             f"  {row['plan']:<26}{row['mode']:<13}{row['views']:>6}"
             f"{row['modelled_s']:>10.1f}s{row['mechanical_minimum_s']:>9.1f}s{row['ratio']:>8.3f}"
-            f"{row['axes_in_turn_s']:>13.1f}s"
+            f"{in_turn}"
+        )
+    lines.append(
+        "  phantom   mode         sway      scan s   vol %   vol-lift %  max |dC| mm  "
+        "warned  views apart mm (per section, beyond noise)"
+    )
+    for row in results.get("accuracy", []) + results.get("sway", []):
+        lines.append(
+            f"  {row['name']:<9} {row['mode']:<12} {row.get('sway_name', 'none'):<8}"
+            f"{row['scan_s']:>7.1f}  {row['volume_error_percent']:+6.3f}  "
+            f"{row['volume_error_without_lift_percent']:+9.3f}  "
+            f"{row['max_abs_circumference_error_mm']:11.3f}  {len(row['motion_warnings']):>6}  "
+            + " ".join(f"{v:.2f}" for v in row["views_apart_mm"].values())
+        )
+    for entry in results.get("comparison", []):
+        lines.append(
+            f"  {entry['name']}: continuous over stop-and-go: volume error x"
+            f"{entry['volume_error_percent_ratio']}, worst circumference error x"
+            f"{entry['max_abs_circumference_error_mm_ratio']} (target <= 1.2)"
         )
     return lines
+
+
+def main() -> int:
+    """Run the bench on its own: ``--quick`` for the small set, ``--out`` to keep the JSON."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="the small set (runs under load)")
+    parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
+    args = parser.parse_args()
+    from run import show  # the bench runner beside this file
+
+    show("scan_time", sys.modules[__name__], run(args.quick), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

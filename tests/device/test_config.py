@@ -18,7 +18,10 @@ def default_data() -> dict:
 def test_packaged_default_loads_with_the_documented_values():
     config = load_config()
     assert config.laser.pin == 17 and config.laser.active_high
-    assert config.turntable.full_steps_per_rev * config.turntable.microsteps == 3200
+    # 8 microsteps (wiring.md): a continuous turn at 360 deg/s is 6400 steps/s, within lgpio's PWM.
+    assert config.turntable.full_steps_per_rev * config.turntable.microsteps == 1600
+    assert config.turntable.continuous_speed_deg_s == 360.0
+    assert config.camera.readout_us == 7957
     assert config.lift.limit_pin == 6 and config.lift.home_mm <= config.lift.min_mm
     assert (config.camera.width, config.camera.height) == (1536, 864)
     assert config.safety.laser_max_on_s == 2.0
@@ -127,3 +130,24 @@ def test_every_extraction_problem_is_listed():
         "[extract] min_width_px 9 and max_width_px 4 do not satisfy "
         "1 <= min_width_px <= max_width_px <= 255",
     ]
+
+
+def test_keys_added_later_may_be_left_out_and_keep_the_older_behaviour():
+    """A box's configuration from before continuous scans stays valid: stop-and-go only."""
+    data = default_data()
+    del data["turntable"]["continuous_speed_deg_s"]
+    del data["camera"]["readout_us"]
+    config = parse_config(data)
+    assert config.turntable.continuous_speed_deg_s == 0.0
+    assert config.camera.readout_s == config.camera.frame_duration_us * 1e-6
+
+
+def test_a_continuous_speed_beyond_the_pulse_timer_or_a_readout_beyond_the_frame_is_refused():
+    data = default_data()
+    data["turntable"]["continuous_speed_deg_s"] = 600.0  # 10,667 steps/s at 8 microsteps
+    data["camera"]["readout_us"] = 9000
+    with pytest.raises(ConfigError) as caught:
+        parse_config(data)
+    text = str(caught.value)
+    assert "continuous_speed_deg_s 600 asks for 10667 steps/s" in text
+    assert "readout_us 9000 must fit in frame_duration_us 8333" in text

@@ -6,9 +6,12 @@ import math
 
 import pytest
 
+from lamina_host.workflow.checks import check_mode
 from lamina_host.workflow.job import ScanRequest
 from lamina_shared.errors import InputError
-from lamina_shared.types import ScanPlan
+from lamina_shared.messages import Welcome
+from lamina_shared.protocol import PROTOCOL_VERSION
+from lamina_shared.types import SCAN_MODES, ScanPlan
 
 
 def test_a_valid_request_keeps_what_was_asked() -> None:
@@ -29,3 +32,14 @@ def test_a_subject_that_is_no_code_is_refused(subject: str) -> None:
 def test_an_impossible_cylinder_is_refused(diameter_mm: float) -> None:
     with pytest.raises(InputError, match="cylinder diameter"):
         ScanRequest("P001", None, diameter_mm)
+
+
+def test_a_scan_mode_the_device_does_not_offer_is_refused_before_the_scan_exists() -> None:
+    continuous = ScanPlan.regular(3, 10.0, 8, "continuous")
+    older = Welcome(PROTOCOL_VERSION)  # a device from before scan modes
+    with pytest.raises(InputError, match="cannot scan in continuous mode .* stop-and-go"):
+        check_mode(continuous, older)
+    check_mode(continuous, Welcome(PROTOCOL_VERSION, modes=SCAN_MODES))
+    check_mode(continuous.with_mode("stop-and-go"), older)
+    with pytest.raises(InputError, match="scan mode 'sideways'"):
+        ScanRequest("P001", mode="sideways")

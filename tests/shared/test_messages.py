@@ -27,7 +27,7 @@ from lamina_shared.messages import (
 )
 from lamina_shared.ops import ExtractChanges, Problems
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
-from lamina_shared.types import BoardSpec, ScanPlan
+from lamina_shared.types import SCAN_MODES, BoardSpec, ScanPlan
 
 LIMITS = DeviceLimits()
 
@@ -52,6 +52,7 @@ def _welcome() -> Welcome:
         identity=DeviceIdentity("sim", "sim object=x"),
         extract=ExtractChanges((("threshold", None), ("power", 1.0), ("min_chain_px", 8))),
         colour=True,
+        modes=SCAN_MODES,
     )
 
 
@@ -68,6 +69,7 @@ def test_an_older_welcome_reads_with_defaults_and_another_version_for_its_versio
     body["segment_encoding"] = {"row_scale": ROW_SCALE}
     older = Welcome.from_wire(body)
     assert (older.colour, older.extract, older.identity, older.board) == (False, None, None, None)
+    assert older.modes == ("stop-and-go",)  # a device from before scan modes stops at each view
     assert older.limits == DeviceLimits() and older.software == "?"
     other = Welcome.from_wire({"protocol": 3, "software": "lamina-device 0", "image_size": "x"})
     assert other == Welcome(3, "lamina-device 0")
@@ -237,4 +239,14 @@ def test_axes_round_trip_and_bad_ones_are_refused_with_every_problem():
     assert len(problems.items) == 6
     body = {**_json(_welcome().to_wire()), "axes": [1]}
     with pytest.raises(MessageError, match=r"welcome\.axes: an object is required"):
+        Welcome.from_wire(body)
+
+
+def test_scan_modes_a_welcome_offers_are_read_leaving_out_names_this_host_does_not_know():
+    body = _json(_welcome().to_wire())
+    assert body["modes"] == ["stop-and-go", "continuous"]
+    body["modes"] = ["continuous", "helical", "stop-and-go"]  # a newer device's extra mode
+    assert Welcome.from_wire(body).modes == SCAN_MODES
+    body["modes"] = "continuous"
+    with pytest.raises(MessageError, match="welcome.modes"):
         Welcome.from_wire(body)

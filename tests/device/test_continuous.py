@@ -1,0 +1,395 @@
+"""Continuous scans (issue 22): the step clock, the turning stepper, the streaming loop, its time.
+
+The stepper turns on pulses the pin factory times (gpiozero's MockPWMPin records the rates
+it was given); the simulator takes the same loop on its virtual clock, its frames rendered
+with the rolling shutter and the motion of each exposure, on a small camera so that each
+test takes seconds.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from gpiozero.pins.mock import MockFactory, MockPWMPin
+
+from lamina_device.acquisition import (
+    ScanAborted,
+    ScanControl,
+    acquire,
+    capture_moving,
+    continuous_problem,
+)
+from lamina_device.config import load_config
+from lamina_device.motion import (
+    SPIN_TICK_S,
+    MotionError,
+    StepClock,
+    StepperTurntable,
+    spin_rates,
+)
+from lamina_device.operations import scan_modes
+from lamina_device.safety import DUTY_WINDOWS, LaserWatchdog
+from lamina_device.sim import Rig, open_sim
+from lamina_device.sim.render import Exposure
+from lamina_device.timing import (
+    config_frame_timing,
+    estimate_scan_time,
+    laser_pulse,
+    next_view,
+    view_capture_s,
+)
+from lamina_shared.types import SCAN_MODES, ScanPlan
+
+
+def tiny_limb_rig() -> Rig:
+    """Return the limb rig's camera binned 16x (96 x 54 px): the same geometry, fast frames."""
+    rig = Rig.limb()
+    return replace(rig, image_size=(96, 54), focal_px=rig.focal_px / 16.0)
+
+
+def tiny_sim(object_spec: str = "cylinder:d=60", **options):
+    """Return the simulated limb rig on the tiny camera, its watchdog as the box's."""
+    return open_sim(object_spec, 0, "none", "limb", tiny_limb_rig(), **options)
+
+
+# --- the step clock and the turning stepper ------------------------------------------------
+
+
+def test_the_step_clock_counts_each_rate_over_its_share_of_the_time():
+    clock = StepClock(start_ns=1_000_000_000, steps=100)
+    clock.set_rate(2_000_000_000, 400.0)  # at rest for the first second
+    clock.set_rate(2_500_000_000, 800.0)
+    assert clock.steps_at(0) == 100.0  # before the clock started: where it stood
+    assert clock.steps_at(1_500_000_000) == 100.0
+    assert clock.steps_at(2_250_000_000) == pytest.approx(200.0)
+    assert clock.steps_at(3_000_000_000) == pytest.approx(300.0 + 400.0)
+    assert clock.time_at(700.0 + 80.0) == 3_100_000_000
+    clock.set_rate(3_000_000_000, 0.0)
+    with pytest.raises(MotionError, match="not turning"):
+        clock.time_at(800.0)
+
+
+def test_a_continuous_turn_ramps_on_whole_microsecond_periods_at_the_tables_acceleration():
+    table = load_config().turntable
+    ramp, cruise = spin_rates(table, table.continuous_speed_deg_s)
+    per_deg = 200 * table.microsteps * table.gear_ratio / 360.0
+    for rate in [*ramp, cruise]:
+        assert 1e6 / rate == pytest.approx(round(1e6 / rate), abs=1e-6)
+    assert cruise == pytest.approx(360.0 * per_deg, rel=2e-3)  # 6400 steps/s, 156 us
+    # Each tick gains the table's acceleration; near the top whole microseconds round two
+    # ticks' rates to one period now and then, so a tick may gain nothing and the next two.
+    gains = np.diff(ramp) / per_deg
+    nominal = table.accel_deg_s2 * SPIN_TICK_S
+    assert gains.mean() == pytest.approx(nominal, rel=0.02)
+    assert gains.min() >= 0.0 and gains.max() <= 2.5 * nominal
+    assert ramp[0] == pytest.approx(table.start_speed_deg_s * per_deg, rel=0.01)
+
+
+class TickingClock:
+    """A nanosecond clock that moves 1 ms on each reading (the step clock's time line)."""
+
+    def __init__(self) -> None:
+        self.now_ns = 0
+
+    def __call__(self) -> int:
+        self.now_ns += 1_000_000
+        return self.now_ns
+
+
+def test_the_stepper_table_turns_on_timed_pulses_and_keeps_its_count(pi_kit):
+    factory = MockFactory(pin_class=MockPWMPin)
+    cfg = pi_kit.config.turntable  # 400 steps a turn, a ramp of two ticks
+    clock = TickingClock()
+    table = StepperTurntable(cfg, factory, clock_ns=clock)
+    step, enable = factory.pin(cfg.step_pin), factory.pin(cfg.enable_pin)  # EN: active low
+    try:
+        table.move_to(90.0)  # a stop-and-go move first: the turn starts from there
+        assert table.spin_problem() is None
+        table.spin()
+        _, cruise = spin_rates(cfg, cfg.continuous_speed_deg_s)
+        assert step.frequency == cruise and step.state == 0.5  # 50 % duty: one step a period
+        assert table.driver.enabled and bool(enable.state) == cfg.enable_active_high
+        started = clock.now_ns
+        first = table.angle_at(started)
+        assert table.angle_at(started + 500_000_000) == pytest.approx(
+            first + 0.5 * cruise * 360.0 / 400.0
+        )
+        assert table.time_at(first + 90.0) == pytest.approx(
+            started + 90.0 / (cruise * 360.0 / 400.0) * 1e9, abs=2
+        )
+        with pytest.raises(MotionError, match="turning continuously"):
+            table.move_to(0.0)
+        table.stop_spin()
+        assert step.frequency is None and not step.state  # no pulse after the stop
+        count = table._last_spin[0].steps_at(clock.now_ns)  # type: ignore[index]
+        assert table.position_steps == round(count) and table.position_steps > 100
+        # A frame exposed while it turned still reads its angle from that turn's clock.
+        assert table.angle_at(started) == first
+        table.move_to(0.0)
+        assert table.angle_deg == 0.0
+    finally:
+        table.close()
+
+
+def test_a_table_that_cannot_time_its_pulses_refuses_to_turn(pi_kit):
+    factory = MockFactory()  # plain mock pins: no PWM, as a factory without it
+    cfg = pi_kit.config.turntable
+    table = StepperTurntable(cfg, factory)
+    try:
+        assert "lgpio" in (table.spin_problem() or "")
+        with pytest.raises(MotionError, match="lgpio"):
+            table.spin()
+    finally:
+        table.close()
+    still = StepperTurntable(replace(cfg, continuous_speed_deg_s=0.0), MockFactory())
+    try:
+        assert "continuous_speed_deg_s is 0" in (still.spin_problem() or "")
+    finally:
+        still.close()
+
+
+# --- the loop on the simulator, against the model ---------------------------------------
+
+
+def timed_scan(mode: str, plan: ScanPlan, **options):
+    """Scan ``plan`` in ``mode`` on the tiny simulator; return segments, seconds, hardware."""
+    hardware = tiny_sim(**options)
+    clock = hardware.turntable.clock
+    camera = hardware.camera
+    last = [0.0]
+    for name in ("capture", "capture_timed"):
+        original = getattr(camera, name)
+
+        def timed(original=original):
+            frame = original()
+            last[0] = clock.now_s
+            return frame
+
+        setattr(camera, name, timed)
+    segments = []
+    try:
+        hardware.lift.move_to(plan.views[0].z_mm)  # the estimate starts at the first section
+        start_s = clock.now_s
+        acquire(hardware, "object", plan.with_mode(mode), segments.append)
+        laser = hardware.laser.mock_pin_history() or []
+        spinning = hardware.turntable._spin is not None
+    finally:
+        hardware.close()
+    return segments, last[0] - start_s, laser, spinning
+
+
+PLAN = ScanPlan.regular(2, 10.0, 8)
+
+
+@pytest.fixture(scope="module")
+def scans():
+    """Return the same plan scanned in each mode on the tiny simulator (once per module)."""
+    return {mode: timed_scan(mode, PLAN) for mode in SCAN_MODES}
+
+
+@pytest.mark.parametrize("mode", SCAN_MODES)
+def test_the_estimate_agrees_with_the_simulators_clock_in_either_mode(scans, mode):
+    segments, took_s, _, _ = scans[mode]
+    estimate = estimate_scan_time(load_config(), PLAN.with_mode(mode))
+    assert took_s == pytest.approx(estimate.modelled_s, rel=0.05)
+    assert len(segments) == len(PLAN.views)
+
+
+def test_a_continuous_scan_takes_every_view_once_at_its_measured_angle(scans):
+    config = load_config()
+    segments, took_s, laser, spinning = scans["continuous"]
+    assert sorted((s.section, s.view) for s in segments) == [
+        (k, v) for k in range(2) for v in range(8)
+    ]
+    speed = config.turntable.continuous_speed_deg_s
+    period_s = config.camera.frame_duration_us * 1e-6
+    for segment in segments:
+        planned = 45.0 * segment.view
+        off = (segment.angle_deg - planned + 180.0) % 360.0 - 180.0
+        # The view starts a lead before its angle; the frames' phase leaves a period's turn.
+        assert abs(off) <= speed * period_s
+        assert 0.0 <= segment.angle_deg < 360.0
+    # The laser: on once per view and off after each (the pin's own history); the table stopped.
+    assert laser == [False, True] * 16 + [False]
+    assert not spinning
+    # Far below stop-and-go: a ramp-up, a lift move and two turns against 16 stops.
+    assert took_s < scans["stop-and-go"][1] / 3
+
+
+def test_an_abort_stops_the_table_and_the_laser_and_keeps_what_was_taken():
+    hardware = tiny_sim()
+    control = ScanControl()
+    segments = []
+
+    def take(segment):
+        segments.append(segment)
+        if len(segments) == 3:
+            control.abort()
+
+    try:
+        with pytest.raises(ScanAborted):
+            plan = ScanPlan.regular(2, 10.0, 8, "continuous")
+            acquire(hardware, "object", plan, take, control=control)
+        assert 3 <= len(segments) < 16
+        assert hardware.turntable._spin is None and not hardware.laser.is_on
+        assert hardware.lift.z_mm == 0.0  # home
+    finally:
+        hardware.close()
+
+
+def test_a_view_is_off_on_off_frames_each_exposed_wholly_after_the_laser_switched():
+    hardware = tiny_sim()
+    try:
+        hardware.place("object")
+        hardware.lift.move_to(10.0)
+        hardware.turntable.spin()
+        frames = []
+        original = hardware.camera.capture_timed
+
+        def record():
+            frame = original()
+            frames.append((frame, hardware.laser.is_on, hardware.laser.changed_ns))
+            return frame
+
+        hardware.camera.capture_timed = record
+        lit, off = capture_moving(hardware, hardware.camera)
+        timing = hardware.camera.frame_timing
+        (before, b_on, _), (on, o_on, switched_on), (after, a_on, switched_off) = frames
+        assert (b_on, o_on, a_on) == (False, True, False)
+        jitter_ns = 5 * 50_000  # the reported timestamps' jitter, five sigmas
+        assert on.start_ns >= switched_on - jitter_ns and after.start_ns >= switched_off - jitter_ns
+        gap_ns = round(laser_pulse(timing) * 1e9)
+        assert on.start_ns - before.start_ns == pytest.approx(gap_ns, abs=2 * jitter_ns)
+        np.testing.assert_array_equal(off, np.maximum(before.image, after.image))
+        assert lit is on
+        hardware.turntable.stop_spin()
+    finally:
+        hardware.close()
+
+
+# --- the renderer: the rolling shutter and the blur -------------------------------------
+
+
+def test_a_still_exposure_renders_the_still_view_and_a_turning_one_each_band_at_its_time():
+    hardware = tiny_sim("arm:scale=5")
+    scene = hardware.camera.scene
+    try:
+        still = Exposure(0.0, 0.004, 1e-4, lambda t: (30.0, (0.0, 0.0)))
+        moving = scene._moving_view("object", 40.0, still, True)
+        view = scene._view("object", 30.0, 40.0, (0.0, 0.0))
+        np.testing.assert_allclose(moving.ambient_dn, view.ambient_dn)
+        np.testing.assert_allclose(moving.laser_dn, view.laser_dn, atol=1e-9)
+        assert view.laser_dn.max() > 10.0
+        # Turning 100 degrees a second, each band sees the arm where it is at its own time.
+        turning = Exposure(0.0, 0.0, 2e-3, lambda t: (30.0 + 100.0 * t, (0.0, 0.0)))
+        frame = scene._moving_view("object", 40.0, turning, False)
+        bands = np.array_split(np.arange(54), 16)
+        for band in (bands[0], bands[8], bands[-1]):
+            middle = 0.5 * (band[0] + band[-1])
+            at = scene._view("object", 30.0 + 100.0 * turning.row_middle_s(middle), 40.0, (0, 0))
+            np.testing.assert_allclose(frame.ambient_dn[band], at.ambient_dn[band])
+        first = scene._view("object", 30.0, 40.0, (0.0, 0.0)).ambient_dn
+        assert not np.allclose(frame.ambient_dn, first)  # the later bands saw it turned on
+    finally:
+        hardware.close()
+
+
+# --- what the device offers and refuses ---------------------------------------------------
+
+
+def test_the_simulator_offers_continuous_scans_and_refuses_them_with_colour():
+    hardware = tiny_sim()
+    try:
+        assert scan_modes(hardware) == SCAN_MODES
+        plan = ScanPlan.regular(2, 10.0, 8, "continuous")
+        assert continuous_problem(hardware, plan) is None
+        assert "colour needs a stop-and-go" in (continuous_problem(hardware, plan, True) or "")
+        with pytest.raises(Exception, match="cannot scan continuously"):
+            acquire(hardware, "object", plan, lambda s: None, colour=True)
+    finally:
+        hardware.close()
+
+
+def test_pulses_the_watchdog_would_not_bound_refuse_the_mode():
+    hardware = tiny_sim()
+    try:
+        assert hardware.watchdog is not None
+        hardware.watchdog.max_on_s = 0.02  # shorter than a view's pulse of two periods
+        plan = ScanPlan.regular(1, 10.0, 8, "continuous")
+        assert "on-time limit" in (continuous_problem(hardware, plan) or "")
+        assert scan_modes(hardware) == SCAN_MODES[:1]
+        hardware.watchdog.max_on_s = 2.0
+        dense = ScanPlan.regular(1, 10.0, 60, "continuous")  # a pulse every 17 ms
+        assert "of the time" in (continuous_problem(hardware, dense) or "")
+    finally:
+        hardware.close()
+
+
+def test_the_watchdog_bounds_the_share_of_time_of_a_re_armed_laser(laser):
+    now = [0.0]
+    dog = LaserWatchdog(laser, max_on_s=1.0, clock=lambda: now[0])
+    assert dog.pulse_problem(0.017, 0.125) is None
+    for step in range(int(DUTY_WINDOWS / 0.05) + 2):
+        # Switched off and on again between checks: each switch-on re-arms the on-time count.
+        laser.off()
+        laser.on()
+        now[0] = step * 0.05
+        reason = dog.check()
+        if reason is not None:
+            break
+    assert reason is not None and "of the last 10 s" in reason
+    assert not laser.is_on
+
+
+def test_the_model_takes_views_in_the_order_the_table_brings_them():
+    assert next_view([0.0, 90.0, 180.0, 270.0], 100.0) == (2, 180.0)
+    assert next_view([0.0, 90.0], 350.0 + 360.0) == (0, 720.0)
+    config = load_config()
+    camera = replace(config.camera, frame_duration_us=8333, exposure_us=4000, readout_us=7957)
+    lead_s, view_s = view_capture_s(config_frame_timing(replace(config, camera=camera)))
+    # Off frame half a period on average, the on frame two periods later (a 12 ms exposure
+    # and read-out spans more than one), the second off frame two more.
+    assert view_s == pytest.approx(0.5 * 8.333e-3 + 4 * 8.333e-3, rel=1e-3)
+    assert 0.0 < lead_s < view_s
+
+
+@pytest.fixture
+def laser():
+    from lamina_device.laser import Laser
+
+    device = Laser(17, pin_factory=MockFactory())
+    yield device
+    device.close()
+
+
+def test_a_paused_continuous_scan_stops_the_table_until_resumed():
+    hardware = tiny_sim()
+    control = ScanControl()
+    table = hardware.turntable
+    stops = []
+    stop = table.stop_spin
+
+    def counted_stop():
+        stops.append(control.paused)
+        stop()
+        if control.paused:  # stopped for the pause: let it go on a little later
+            threading.Timer(0.05, control.resume).start()
+
+    table.stop_spin = counted_stop
+    segments: list[object] = []
+
+    def take(segment):
+        segments.append(segment)
+        if len(segments) == 2:
+            control.pause()
+
+    try:
+        plan = ScanPlan.regular(1, 10.0, 8, "continuous")
+        acquire(hardware, "object", plan, take, control=control)
+        assert len(segments) == 8 and table._spin is None
+        assert stops == [True, False]  # stopped for the pause, then at the end
+    finally:
+        hardware.close()
