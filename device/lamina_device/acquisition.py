@@ -15,9 +15,9 @@ A continuous plan (``ScanPlan.mode``, issue 22) is taken without stopping the ta
 ramps up once and turns at constant speed through every section while the camera
 streams; the lift moves between sections with the table still turning. Each view is
 three frames in a row, laser off, on, off: the table turns a few degrees from one to the
-next, so the laser-off reference is the brighter of the two off frames at each pixel,
-which a moving edge or shading cannot make darker than the on frame's own room light
-(what motion leaves in the difference is never positive, never a stripe). Each view's
+next, so the laser-off reference is made of both off frames (:func:`laser_off_reference`:
+their mean where they agree, the brighter where something moved), which leaves nothing
+of the motion in the difference that could read as a stripe. Each view's
 angle is the table's step count when the laser-on frame exposed the stripe's middle row
 (the sensor's timestamp on the step clock), not the planned angle, which the view is
 only started to come near.
@@ -381,8 +381,8 @@ def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame,
     """Capture laser-off, laser-on and laser-off frames in a row; the laser ends off.
 
     Returns:
-        The laser-on frame with its timing, and the laser-off reference: at each pixel the
-        brighter of the two off frames around it.
+        The laser-on frame with its timing, and its laser-off reference
+        (:func:`laser_off_reference` of the two off frames around it).
     """
     laser = hardware.laser
     laser.off()
@@ -393,7 +393,38 @@ def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame,
     finally:
         laser.off()
     after = camera.capture_timed()
-    return lit, np.maximum(before.image, after.image)
+    return lit, laser_off_reference(before.image, after.image)
+
+
+MOVED_SIGMAS = 3.0
+"""How far apart (in the two frames' noise) the off frames must be for a pixel to have moved."""
+
+
+def laser_off_reference(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Return the room light of a laser-on frame taken between two laser-off frames.
+
+    Where the two off frames agree within their noise, their mean: the room light at the
+    moment between them (to second order as the table turns: shading changes smoothly),
+    with less noise than either. Where they differ more, something moved across that
+    pixel (an edge, a silhouette, a textured mark): the brighter of the two, which the on
+    frame's own room light, passing from one to the other, cannot exceed, so what motion
+    leaves in the difference is never positive and never reads as a stripe. A single off
+    frame or the mean alone would leave positive steps at every moving edge.
+
+    Args:
+        before: the laser-off frame before the laser-on frame (uint8 or uint16).
+        after: the laser-off frame after it.
+
+    Returns:
+        A frame like ``before``.
+    """
+    b, a = before.astype(np.int32), after.astype(np.int32)
+    difference = b - a
+    sample = difference[::7, ::7]
+    sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+    moved = np.abs(difference) > max(MOVED_SIGMAS * sigma, 2.0)
+    mean = (b + a + 1) >> 1
+    return np.where(moved, np.maximum(b, a), mean).astype(before.dtype)
 
 
 def _stripe_angle(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> float:

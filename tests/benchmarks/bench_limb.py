@@ -110,11 +110,11 @@ def surface_distance(obj: Any, points: np.ndarray) -> dict[str, float]:
     }
 
 
-def measure(spec: str, report: dict[str, Any]) -> dict[str, Any]:
-    """Compare one scan's clinical measurements with the true shape."""
+def measure(spec: str, report: dict[str, Any], spacing_mm: float = SPACING_MM) -> dict[str, Any]:
+    """Compare one scan's clinical measurements (levels ``spacing_mm`` apart) with the truth."""
     obj = parse_object(spec)
     mechanics = Mechanics.preset(NOISE)
-    m = measure_limb(sections_from_report(report), SPACING_MM)
+    m = measure_limb(sections_from_report(report), spacing_mm)
     lo, hi = m.coverage_mm
     true_lo, true_hi = mechanics.true_z_mm(lo), mechanics.true_z_mm(hi)
     truth = true_volume_mm3(obj, true_lo, true_hi)
@@ -131,7 +131,7 @@ def measure(spec: str, report: dict[str, Any]) -> dict[str, Any]:
                 "source": level.source,
             }
         )
-    linear = measure_limb(sections_from_report(report), SPACING_MM, interpolation="linear")
+    linear = measure_limb(sections_from_report(report), spacing_mm, interpolation="linear")
     mesh_mm3 = report.get("mesh", {}).get("topology", {}).get("volume_mm3")
     lift = (hi - lo) / (true_hi - true_lo) - 1.0
     return {

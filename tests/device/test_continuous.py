@@ -21,6 +21,7 @@ from lamina_device.acquisition import (
     acquire,
     capture_moving,
     continuous_problem,
+    laser_off_reference,
 )
 from lamina_device.config import load_config
 from lamina_device.motion import (
@@ -158,17 +159,6 @@ def timed_scan(mode: str, plan: ScanPlan, **options):
     """Scan ``plan`` in ``mode`` on the tiny simulator; return segments, seconds, hardware."""
     hardware = tiny_sim(**options)
     clock = hardware.turntable.clock
-    camera = hardware.camera
-    last = [0.0]
-    for name in ("capture", "capture_timed"):
-        original = getattr(camera, name)
-
-        def timed(original=original):
-            frame = original()
-            last[0] = clock.now_s
-            return frame
-
-        setattr(camera, name, timed)
     segments = []
     try:
         hardware.lift.move_to(plan.views[0].z_mm)  # the estimate starts at the first section
@@ -178,7 +168,7 @@ def timed_scan(mode: str, plan: ScanPlan, **options):
         spinning = hardware.turntable._spin is not None
     finally:
         hardware.close()
-    return segments, last[0] - start_s, laser, spinning
+    return segments, hardware.camera.last_frame_s - start_s, laser, spinning
 
 
 PLAN = ScanPlan.regular(2, 10.0, 8)
@@ -263,11 +253,32 @@ def test_a_view_is_off_on_off_frames_each_exposed_wholly_after_the_laser_switche
         assert on.start_ns >= switched_on - jitter_ns and after.start_ns >= switched_off - jitter_ns
         gap_ns = round(laser_pulse(timing) * 1e9)
         assert on.start_ns - before.start_ns == pytest.approx(gap_ns, abs=2 * jitter_ns)
-        np.testing.assert_array_equal(off, np.maximum(before.image, after.image))
+        np.testing.assert_array_equal(off, laser_off_reference(before.image, after.image))
         assert lit is on
         hardware.turntable.stop_spin()
     finally:
         hardware.close()
+
+
+def test_the_laser_off_reference_averages_still_pixels_and_takes_the_brighter_where_moved():
+    rng = np.random.default_rng(4)
+    before = np.clip(80 + rng.normal(0, 2.0, (60, 80)), 0, 255).astype(np.uint8)
+    after = np.clip(80 + rng.normal(0, 2.0, (60, 80)), 0, 255).astype(np.uint8)
+    before[:, 20:30], after[:, 25:35] = 200, 200  # a bright edge moved 5 columns
+    reference = laser_off_reference(before, after)
+    still = (slice(None), slice(40, 80))
+    mean = (before[still].astype(int) + after[still] + 1) // 2
+    # Half the noise of either, but for the noise's own rare 3-sigma differences.
+    assert np.mean(reference[still] == mean) > 0.99
+    moved = (slice(None), slice(20, 35))
+    np.testing.assert_array_equal(reference[moved], np.maximum(before[moved], after[moved]))
+    # The on frame's room light lies between the two: the difference holds no positive step.
+    between = before.copy()
+    between[:, 20:35] = 80
+    between[:, 22:32] = 200
+    assert (between.astype(int) - reference)[:, 18:37].max() <= 8  # noise only
+    wide = laser_off_reference(before.astype(np.uint16) * 256, after.astype(np.uint16) * 256)
+    assert wide.dtype == np.uint16
 
 
 # --- the renderer: the rolling shutter and the blur -------------------------------------
@@ -277,14 +288,14 @@ def test_a_still_exposure_renders_the_still_view_and_a_turning_one_each_band_at_
     hardware = tiny_sim("arm:scale=5")
     scene = hardware.camera.scene
     try:
-        still = Exposure(0.0, 0.004, 1e-4, lambda t: (30.0, (0.0, 0.0)))
+        still = Exposure(0.0, 0.004, 1e-4, lambda t, around: (30.0, (0.0, 0.0)))
         moving = scene._moving_view("object", 40.0, still, True)
         view = scene._view("object", 30.0, 40.0, (0.0, 0.0))
         np.testing.assert_allclose(moving.ambient_dn, view.ambient_dn)
         np.testing.assert_allclose(moving.laser_dn, view.laser_dn, atol=1e-9)
         assert view.laser_dn.max() > 10.0
         # Turning 100 degrees a second, each band sees the arm where it is at its own time.
-        turning = Exposure(0.0, 0.0, 2e-3, lambda t: (30.0 + 100.0 * t, (0.0, 0.0)))
+        turning = Exposure(0.0, 0.0, 2e-3, lambda t, around: (30.0 + 100.0 * t, (0.0, 0.0)))
         frame = scene._moving_view("object", 40.0, turning, False)
         bands = np.array_split(np.arange(54), 16)
         for band in (bands[0], bands[8], bands[-1]):

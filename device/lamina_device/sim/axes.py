@@ -228,10 +228,12 @@ class SimTurntable(ContinuousTurntable):
     def true_angle_near(self, at_ns: int, reference_deg: float) -> float:
         """Return the true angle at ``at_ns`` of a table turning past ``reference_deg``.
 
-        The mechanics map a commanded angle within one turn to the true one, which jumps
-        where the count wraps past 360; a frame is rendered about its own reference
-        angle, the error there plus the turn since scaled as the gear scales it, so the
-        object turns smoothly through every frame.
+        The mechanics map a commanded angle within one turn (the count modulo 360, as a
+        view's angle is reported and corrected by the host) to the true one, so the error
+        model jumps where the count passes a whole turn. A band of a frame's rows is
+        rendered about its own reference angle, the error there plus the turn since
+        scaled as the gear scales it: the object turns smoothly through each band's blur,
+        and each band sits on the side of the jump its own count says.
         """
         turned = self.angle_at(at_ns) - reference_deg
         base = self.mechanics.true_angle_deg(reference_deg % 360.0)

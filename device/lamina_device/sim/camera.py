@@ -51,6 +51,8 @@ class SimCamera:
     sway: Sway = field(default_factory=Sway)
     """How the object moves while it is scanned (a patient's drift and breathing)."""
     frames_taken: int = field(default=0, init=False)
+    last_frame_s: float = field(default=0.0, init=False)
+    """When the last frame arrived on the virtual clock (the end of a scan's wait)."""
     exposure_us: int = field(default=SIM_EXPOSURE_US, init=False)
     exposure_range_us: tuple[int, int] = field(default=SIM_EXPOSURE_RANGE_US, init=False)
 
@@ -68,6 +70,7 @@ class SimCamera:
         """Render one frame of the current scene."""
         self.frames_taken += 1
         self.turntable.clock.frame(self.exposure_us)
+        self.last_frame_s = self.turntable.clock.now_s
         return self._render(self.scene.render)
 
     @property
@@ -88,6 +91,7 @@ class SimCamera:
             )
         self.frames_taken += 1
         self.turntable.clock.frame(self.exposure_us)
+        self.last_frame_s = self.turntable.clock.now_s
         return self._render(self.scene.render), self._render(self.scene.render_rgb)
 
     def _render(self, render: Callable[..., np.ndarray]) -> np.ndarray:
@@ -126,11 +130,12 @@ class SimCamera:
         start_s = index * period
         clock.advance(start_s + span - clock.now_s)
         self.frames_taken += 1
-        reference = self.turntable.angle_at(round((start_s + timing.span_s / 2) * 1e9))
+        self.last_frame_s = clock.now_s
 
-        def pose(when_s: float) -> tuple[float, tuple[float, float]]:
-            at_ns = round(when_s * 1e9)
-            return self.turntable.true_angle_near(at_ns, reference), self.sway.offset_mm(when_s)
+        def pose(when_s: float, around_s: float) -> tuple[float, tuple[float, float]]:
+            reference = self.turntable.angle_at(round(around_s * 1e9))
+            true = self.turntable.true_angle_near(round(when_s * 1e9), reference)
+            return true, self.sway.offset_mm(when_s)
 
         exposure = Exposure(start_s, timing.exposure_s, timing.row_s, pose)
         image, _ = self.scene.render_exposure(

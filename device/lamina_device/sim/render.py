@@ -351,14 +351,15 @@ class Exposure:
     """When a rolling-shutter frame's rows are exposed, and where the target is meanwhile.
 
     Row ``r`` is exposed from ``start_s + r * row_s`` for ``exposure_s`` (seconds on the
-    simulator's clock); ``pose(t)`` is the target's true turntable angle (degrees) and
-    sway shift (x, y mm) at time ``t``.
+    simulator's clock); ``pose(t, around)`` is the target's true turntable angle (degrees)
+    and sway shift (x, y mm) at time ``t``, for a band of rows exposed around ``around``
+    (a mechanical error model may depend on where in its turn the table is then).
     """
 
     start_s: float
     exposure_s: float
     row_s: float
-    pose: Callable[[float], tuple[float, tuple[float, float]]]
+    pose: Callable[[float, float], tuple[float, tuple[float, float]]]
 
     def row_start_s(self, row: float) -> float:
         """Return when ``row`` starts its exposure."""
@@ -502,7 +503,8 @@ class SimScene:
             The uint8 (H, W) frame and, for colour models, its (H, W, 3) uint8 RGB.
         """
         view = self._moving_view(target, float(z_mm), exposure, laser_on)
-        angle, _ = exposure.pose(exposure.middle_s(self._shape[0]))
+        middle = exposure.middle_s(self._shape[0])
+        angle, _ = exposure.pose(middle, middle)
         rng = self._rng(target, angle, z_mm, laser_on, ("moving", *noise_key))
         if self.noise.laser_rgb is None:
             return self._grey(view, rng, laser_on, exposure_scale), None
@@ -666,7 +668,8 @@ class SimScene:
         for rows in np.array_split(np.arange(height), min(ROLLING_BANDS, height)):
             band = slice(int(rows[0]) * width, (int(rows[-1]) + 1) * width)
             mid_row = 0.5 * float(rows[0] + rows[-1])
-            angle, shift = exposure.pose(exposure.row_middle_s(mid_row))
+            around = exposure.row_middle_s(mid_row)
+            angle, shift = exposure.pose(around, around)
             seen = self._surface(obj, band, angle, z_mm, shift)
             ambient[band] = seen.ambient
             if tint is not None and seen.tint is not None:
@@ -685,7 +688,7 @@ class SimScene:
             for k in range(BLUR_SAMPLES):
                 share = (k + 0.5) / BLUR_SAMPLES
                 when = exposure.row_start_s(mid_row) + share * exposure.exposure_s
-                angle_k, shift_k = exposure.pose(when)
+                angle_k, shift_k = exposure.pose(when, around)
                 lit = self._surface(obj, pixels, angle_k, z_mm, shift_k)
                 total[np.flatnonzero(lit.hit)] += self._laser_term(
                     obj, lit.p, lit.normal, angle_k, z_mm, lit.axis[:2]
