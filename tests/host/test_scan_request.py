@@ -37,7 +37,7 @@ def test_an_impossible_cylinder_is_refused(diameter_mm: float) -> None:
 def test_a_scan_mode_the_device_does_not_offer_is_refused_before_the_scan_exists() -> None:
     continuous = ScanPlan.regular(3, 10.0, 8, "continuous")
     older = Welcome(PROTOCOL_VERSION)  # a device from before scan modes
-    with pytest.raises(InputError, match="cannot scan in continuous mode .* stop-and-go"):
+    with pytest.raises(InputError, match=r"cannot scan in continuous mode .* stop-and-go"):
         check_mode(continuous, older)
     check_mode(continuous, Welcome(PROTOCOL_VERSION, modes=SCAN_MODES))
     check_mode(continuous.with_mode("stop-and-go"), older)

@@ -248,5 +248,5 @@ def test_scan_modes_a_welcome_offers_are_read_leaving_out_names_this_host_does_n
     body["modes"] = ["continuous", "helical", "stop-and-go"]  # a newer device's extra mode
     assert Welcome.from_wire(body).modes == SCAN_MODES
     body["modes"] = "continuous"
-    with pytest.raises(MessageError, match="welcome.modes"):
+    with pytest.raises(MessageError, match=r"welcome\.modes"):
         Welcome.from_wire(body)
