@@ -441,6 +441,55 @@ class StepClock:
         return since_ns + round((steps - since) / rate * 1e9)
 
 
+class TurnLog:
+    """A table's continuous turns: the step clock of the one under way, and of the last.
+
+    A finished turn's clock still answers for its own time (the last views of a scan are
+    extracted after the table has stopped); after it, the table's position does.
+    """
+
+    def __init__(self) -> None:
+        self.current: StepClock | None = None
+        self.last: StepClock | None = None
+        self._last_end_ns = 0
+
+    @property
+    def turning(self) -> bool:
+        """Return True while a turn is under way."""
+        return self.current is not None
+
+    def start(self, at_ns: int, steps: int) -> StepClock:
+        """Start a turn from ``steps``; return its (still resting) step clock."""
+        self.current = StepClock(at_ns, steps)
+        return self.current
+
+    def finish(self, at_ns: int) -> int:
+        """End the turn under way at ``at_ns``; return the whole steps it ended on."""
+        clock = self.current
+        assert clock is not None
+        clock.set_rate(at_ns, 0.0)
+        self.current, self.last, self._last_end_ns = None, clock, at_ns
+        return round(clock.steps_at(at_ns))
+
+    def steps_at(self, at_ns: int, position: int) -> float:
+        """Return the step count at ``at_ns``: on the clock of the turn then, else ``position``."""
+        if self.current is not None:
+            return self.current.steps_at(at_ns)
+        if self.last is not None and at_ns <= self._last_end_ns:
+            return self.last.steps_at(at_ns)
+        return float(position)
+
+    def time_at(self, steps: float) -> int:
+        """Return when the turn under way reaches ``steps``.
+
+        Raises:
+            MotionError: no turn is under way.
+        """
+        if self.current is None:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        return self.current.time_at(steps)
+
+
 @runtime_checkable
 class SpinningTable(Protocol):
     """A turntable that can also turn at constant speed while frames stream (continuous scans).
@@ -451,6 +500,11 @@ class SpinningTable(Protocol):
 
     def spin_problem(self) -> str | None:
         """Return why this table cannot turn continuously, or None when it can."""
+        ...  # pragma: no cover - protocol
+
+    @property
+    def turning(self) -> bool:
+        """Return True while a continuous turn is under way."""
         ...  # pragma: no cover - protocol
 
     @property
@@ -503,8 +557,7 @@ class StepperTurntable(ContinuousTurntable):
         # Unknown at power-up: the first move takes the backlash up before it arrives.
         self._engaged = False
         self._clock_ns = clock_ns
-        self._spin: StepClock | None = None
-        self._last_spin: tuple[StepClock, int] | None = None  # a finished turn, until when
+        self.turns = TurnLog()
 
     @property
     def steps_per_deg(self) -> float:
@@ -548,63 +601,52 @@ class StepperTurntable(ContinuousTurntable):
         Raises:
             MotionError: the table cannot turn continuously (:meth:`spin_problem`).
         """
-        if self._spin is not None:
+        if self.turns.turning:
             return
         if problem := self.spin_problem():
             raise MotionError(problem)
         ramp, cruise = spin_rates(self.config, speed_deg_s or self.spin_speed_deg_s)
         if self.driver._prepare(+1):
             time.sleep(_ENABLE_SETTLE_S)
-        self._spin = StepClock(self._clock_ns(), self._position)
+        self.turns.start(self._clock_ns(), self._position)
         self._engaged = True
         self._ramp([*ramp, cruise])
 
+    @property
+    def turning(self) -> bool:
+        """Return True while a continuous turn is under way."""
+        return self.turns.turning
+
     def _ramp(self, rates: Sequence[float]) -> None:
         """Give the driver each rate in turn, one tick apart, noting each on the step clock."""
-        assert self._spin is not None
+        clock = self.turns.current
+        assert clock is not None
         next_s = time.monotonic()
         for rate in rates:
             self.driver.pulse_at(rate)
-            self._spin.set_rate(self._clock_ns(), rate)
+            clock.set_rate(self._clock_ns(), rate)
             next_s += SPIN_TICK_S
             _wait_until(next_s, time.monotonic)
 
     def stop_spin(self) -> None:
         """Ramp down and stop; the position becomes the step clock's count."""
-        spin = self._spin
-        if spin is None:
+        clock = self.turns.current
+        if clock is None:
             return
         try:
-            ramp, _ = spin_rates(self.config, spin.rate_sps / (self.steps_per_rev / 360.0))
+            ramp, _ = spin_rates(self.config, clock.rate_sps / self.steps_per_deg)
             self._ramp(ramp[::-1])
         finally:
             self.driver.pulse_at(0.0)
-            spin.set_rate(self._clock_ns(), 0.0)
-            self._position = round(spin.steps_at(self._clock_ns()))
-            self._last_spin = (spin, self._clock_ns())
-            self._spin = None
+            self._position = self.turns.finish(self._clock_ns())
 
     def angle_at(self, at_ns: int) -> float:
         """Return the table's unwrapped angle at ``at_ns`` from its step clock."""
-        return self._steps_at(at_ns, self._position) / self.steps_per_deg
-
-    def _steps_at(self, at_ns: int, position: int) -> float:
-        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
-
-        A finished turn's clock still answers for its own time (its last views are
-        extracted after the table has stopped); later, the position does.
-        """
-        if self._spin is not None:
-            return self._spin.steps_at(at_ns)
-        if self._last_spin is not None and at_ns <= self._last_spin[1]:
-            return self._last_spin[0].steps_at(at_ns)
-        return float(position)
+        return self.turns.steps_at(at_ns, self._position) / self.steps_per_deg
 
     def time_at(self, angle_deg: float) -> int:
         """Return when the turning table reaches the unwrapped ``angle_deg``."""
-        if self._spin is None:
-            raise MotionError("the turntable is not turning: start a continuous turn first")
-        return self._spin.time_at(angle_deg * self.steps_per_deg)
+        return self.turns.time_at(angle_deg * self.steps_per_deg)
 
     def _move(self, steps: int) -> None:
         if steps:
@@ -614,7 +656,7 @@ class StepperTurntable(ContinuousTurntable):
         """Return the signed runs of microsteps a move to ``angle_deg`` makes from here."""
         if not math.isfinite(angle_deg):
             raise MotionError(f"turntable angle must be finite, not {angle_deg}")
-        if self._spin is not None:
+        if self.turns.turning:
             raise MotionError("the turntable is turning continuously: stop it before a move")
         return turntable_runs(self.config, self._position, self._engaged, angle_deg)
 
@@ -634,9 +676,9 @@ class StepperTurntable(ContinuousTurntable):
 
     def close(self) -> None:
         """Stop any turn, disable the driver and release the pins."""
-        if self._spin is not None:
+        if self.turns.turning:
             self.driver.pulse_at(0.0)  # no ramp: the box is closing (a fault, a shutdown)
-            self._spin = None
+            self._position = self.turns.finish(self._clock_ns())
         self.driver.close()
 
 

@@ -46,7 +46,6 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -139,41 +138,7 @@ def time_rows(processing_s: float) -> list[dict[str, Any]]:
     return rows
 
 
-@dataclass
-class _Calibration:
-    """The board image and cylinder segments of the limb rig (shared by every scan here)."""
-
-    grid: Any
-    cylinder: list[Any]
-
-
-def _unwatched(hardware: Any) -> Any:
-    """Stop the laser watchdog: a simulated frame may take longer to render under load than
-    the laser may stay on, which no real exposure does (as the random-shape campaign does)."""
-    if hardware.watchdog is not None:
-        hardware.watchdog.stop()
-        hardware.watchdog = None
-    return hardware
-
-
-def _calibration() -> _Calibration:
-    from lamina_device.acquisition import acquire, grab_grid
-    from lamina_device.sim import open_sim
-    from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
-
-    hardware = _unwatched(open_sim(None, 0, NOISE, RIG))
-    cylinder: list[Any] = []
-    try:
-        grid = grab_grid(hardware)
-        acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
-    finally:
-        hardware.close()
-    return _Calibration(grid, cylinder)
-
-
-def scan(
-    calibration: _Calibration, spec: str, sections: int, mode: str, sway: str
-) -> dict[str, Any]:
+def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> dict[str, Any]:
     """Scan one phantom in one mode with one sway; return its errors, time and warnings."""
     from bench_limb import measure
 
@@ -184,6 +149,7 @@ def scan(
     from lamina_host.reconstruct.precision import views_disagreement_mm
     from lamina_host.store.outputs import build_report, write_outputs
     from lamina_shared.types import ScanPlan
+    from tests.helpers.campaign import _unwatched
 
     plan = ScanPlan.regular(sections, PITCH_MM, VIEWS, mode)
     hardware = _unwatched(open_sim(spec, 0, NOISE, RIG, sway=sway))
@@ -202,7 +168,7 @@ def scan(
     wall_s = time.perf_counter() - wall
     assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
     recon = reconstruct(
-        calibration.grid,
+        calibration.grid_image,
         hardware.board,
         calibration.cylinder,
         hardware.cylinder_diameter_mm,
@@ -236,12 +202,14 @@ def scan(
 
 def run(quick: bool = False) -> dict[str, Any]:
     """Model every plan in both modes; scan the phantoms in both modes, still and swaying."""
+    from tests.helpers.campaign import CampaignPlan, _calibration
+
     processing_s = _processing_s()
     results: dict[str, Any] = {
         "rows": time_rows(processing_s),
         "processing_s_per_view": round(processing_s, 5),
     }
-    calibration = _calibration()
+    calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
     objects = QUICK_OBJECTS if quick else OBJECTS
     results["accuracy"] = [
         scan(calibration, spec, sections, mode, "none") | {"name": name}

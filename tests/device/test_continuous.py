@@ -125,7 +125,8 @@ def test_the_stepper_table_turns_on_timed_pulses_and_keeps_its_count(pi_kit):
             table.move_to(0.0)
         table.stop_spin()
         assert step.frequency is None and not step.state  # no pulse after the stop
-        count = table._last_spin[0].steps_at(clock.now_ns)  # type: ignore[index]
+        assert table.turns.last is not None
+        count = table.turns.last.steps_at(clock.now_ns)
         assert table.position_steps == round(count) and table.position_steps > 100
         # A frame exposed while it turned still reads its angle from that turn's clock.
         assert table.angle_at(started) == first
@@ -165,7 +166,7 @@ def timed_scan(mode: str, plan: ScanPlan, **options):
         start_s = clock.now_s
         acquire(hardware, "object", plan.with_mode(mode), segments.append)
         laser = hardware.laser.mock_pin_history() or []
-        spinning = hardware.turntable._spin is not None
+        spinning = hardware.turntable.turning
     finally:
         hardware.close()
     return segments, hardware.camera.last_frame_s - start_s, laser, spinning
@@ -224,7 +225,7 @@ def test_an_abort_stops_the_table_and_the_laser_and_keeps_what_was_taken():
             plan = ScanPlan.regular(2, 10.0, 8, "continuous")
             acquire(hardware, "object", plan, take, control=control)
         assert 3 <= len(segments) < 16
-        assert hardware.turntable._spin is None and not hardware.laser.is_on
+        assert not hardware.turntable.turning and not hardware.laser.is_on
         assert hardware.lift.z_mm == 0.0  # home
     finally:
         hardware.close()
@@ -400,7 +401,7 @@ def test_a_paused_continuous_scan_stops_the_table_until_resumed():
     try:
         plan = ScanPlan.regular(1, 10.0, 4, "continuous")
         acquire(hardware, "object", plan, take, control=control)
-        assert len(segments) == 4 and table._spin is None
+        assert len(segments) == 4 and not table.turning
         assert stops == [True, False]  # stopped for the pause, then at the end
     finally:
         hardware.close()

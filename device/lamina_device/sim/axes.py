@@ -25,7 +25,7 @@ from lamina_device.motion import (
     SPIN_TICK_S,
     ContinuousTurntable,
     MotionError,
-    StepClock,
+    TurnLog,
     Turntable,
     lift_steps_per_mm,
     spin_rates,
@@ -154,8 +154,7 @@ class SimTurntable(ContinuousTurntable):
         self._angle_deg = 0.0
         self._steps = 0  # where the box's stepper would be, for the move's duration
         self._engaged = False
-        self._spin: StepClock | None = None
-        self._last_spin: tuple[StepClock, int] | None = None  # a finished turn, until when
+        self.turns = TurnLog()
 
     @property
     def steps_per_deg(self) -> float:
@@ -175,55 +174,44 @@ class SimTurntable(ContinuousTurntable):
 
     def spin(self, speed_deg_s: float | None = None) -> None:
         """Ramp up to ``speed_deg_s`` as the box's stepper would, on the virtual clock."""
-        if self._spin is not None:
+        if self.turns.turning:
             return
         if problem := self.spin_problem():
             raise MotionError(problem)
         ramp, cruise = spin_rates(self.clock.config.turntable, speed_deg_s or self.spin_speed_deg_s)
-        self._spin = StepClock(self.clock.now_ns(), self._steps)
+        self.turns.start(self.clock.now_ns(), self._steps)
         self._engaged = True
         self._ramp([*ramp, cruise])
 
+    @property
+    def turning(self) -> bool:
+        """Return True while a continuous turn is under way."""
+        return self.turns.turning
+
     def _ramp(self, rates: list[float]) -> None:
-        assert self._spin is not None
+        clock = self.turns.current
+        assert clock is not None
         for rate in rates:
-            self._spin.set_rate(self.clock.now_ns(), rate)
+            clock.set_rate(self.clock.now_ns(), rate)
             self.clock.advance(SPIN_TICK_S)
 
     def stop_spin(self) -> None:
         """Ramp down and stop; the commanded angle becomes where the step count ended."""
-        spin = self._spin
-        if spin is None:
+        clock = self.turns.current
+        if clock is None:
             return
-        ramp, _ = spin_rates(self.clock.config.turntable, spin.rate_sps / self.steps_per_deg)
+        ramp, _ = spin_rates(self.clock.config.turntable, clock.rate_sps / self.steps_per_deg)
         self._ramp(ramp[::-1])
-        spin.set_rate(self.clock.now_ns(), 0.0)
-        self._steps = round(spin.steps_at(self.clock.now_ns()))
+        self._steps = self.turns.finish(self.clock.now_ns())
         self._angle_deg = (self._steps / self.steps_per_deg) % 360.0
-        self._last_spin = (spin, self.clock.now_ns())
-        self._spin = None
 
     def angle_at(self, at_ns: int) -> float:
         """Return the commanded (step count) angle at ``at_ns``, unwrapped."""
-        return self._steps_at(at_ns, self._steps) / self.steps_per_deg
-
-    def _steps_at(self, at_ns: int, position: int) -> float:
-        """Return the step count at ``at_ns``: on the step clock of the turn then, if any.
-
-        A finished turn's clock still answers for its own time (its last views are
-        extracted after the table has stopped); later, the position does.
-        """
-        if self._spin is not None:
-            return self._spin.steps_at(at_ns)
-        if self._last_spin is not None and at_ns <= self._last_spin[1]:
-            return self._last_spin[0].steps_at(at_ns)
-        return float(position)
+        return self.turns.steps_at(at_ns, self._steps) / self.steps_per_deg
 
     def time_at(self, angle_deg: float) -> int:
         """Return when the turning table reaches the unwrapped ``angle_deg`` (virtual ns)."""
-        if self._spin is None:
-            raise MotionError("the turntable is not turning: start a continuous turn first")
-        return self._spin.time_at(angle_deg * self.steps_per_deg)
+        return self.turns.time_at(angle_deg * self.steps_per_deg)
 
     def true_angle_near(self, at_ns: int, reference_deg: float) -> float:
         """Return the true angle at ``at_ns`` of a table turning past ``reference_deg``.
@@ -263,7 +251,7 @@ class SimTurntable(ContinuousTurntable):
         """
         if not math.isfinite(angle_deg):
             raise MotionError(f"turntable angle must be finite, not {angle_deg}")
-        if self._spin is not None:
+        if self.turns.turning:
             raise MotionError("the turntable is turning continuously: stop it before a move")
         runs, first_s, rest_s = turntable_move_s(
             self.clock.config.turntable, self._steps, self._engaged, angle_deg
@@ -275,7 +263,8 @@ class SimTurntable(ContinuousTurntable):
 
     def close(self) -> None:
         """Stop turning (nothing else to release)."""
-        self._spin = None
+        if self.turns.turning:
+            self._steps = self.turns.finish(self.clock.now_ns())
 
 
 class SimLift:
