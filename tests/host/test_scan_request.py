@@ -41,5 +41,7 @@ def test_a_scan_mode_the_device_does_not_offer_is_refused_before_the_scan_exists
         check_mode(continuous, older)
     check_mode(continuous, Welcome(PROTOCOL_VERSION, modes=SCAN_MODES))
     check_mode(continuous.with_mode("stop-and-go"), older)
+    with pytest.raises(InputError, match="colour needs a stop-and-go scan"):
+        check_mode(continuous, Welcome(PROTOCOL_VERSION, modes=SCAN_MODES), colour=True)
     with pytest.raises(InputError, match="scan mode 'sideways'"):
         ScanRequest("P001", mode="sideways")

@@ -228,7 +228,7 @@ class Acquisition:
         }
         if request.mode is not None:
             plans["object"] = plans["object"].with_mode(request.mode)
-        check_mode(plans["object"], client.info)
+        check_mode(plans["object"], client.info, request.colour)
         for target, wanted in plans.items():
             check_plan_limits(target, wanted, limits, axes)
         diameter = request.cylinder_mm

@@ -115,8 +115,9 @@ def check_plan_axes(target: str, plan: ScanPlan, axes: AxesInfo) -> None:
         )
 
 
-def check_mode(plan: ScanPlan, info: Welcome | None) -> None:
-    """Refuse a plan in a scan mode the connected device does not offer (its WELCOME).
+def check_mode(plan: ScanPlan, info: Welcome | None, colour: bool = False) -> None:
+    """Refuse a plan in a scan mode the connected device does not offer (its WELCOME),
+    or a continuous scan with colour (its laser-off frames are taken away from the stripe).
 
     Raises:
         InputError: naming the mode and what the device can do.
@@ -127,6 +128,8 @@ def check_mode(plan: ScanPlan, info: Welcome | None) -> None:
             f"this device cannot scan in {plan.mode} mode (it offers {', '.join(offered)}): "
             f"scan in {offered[0]} mode"
         )
+    if colour and plan.continuous:
+        raise InputError("colour needs a stop-and-go scan: scan without colour or stop-and-go")
 
 
 def check_plan_limits(
