@@ -26,7 +26,7 @@ from lamina_host import __version__
 from lamina_host.clinical.measures import AXES, COMPARISONS, Thresholds, parse_landmark
 from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
 from lamina_host.link.errors import DeviceError, RequestRefused
-from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
+from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION, THESIS_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
 from lamina_host.reconstruct.mesh import meshlab
 from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
@@ -124,7 +124,7 @@ def _stop_signals_interrupt() -> Iterator[None]:
 
 SCAN_DEFAULTS: dict[str, Any] = {
     "subject": "anonymous",
-    "trim": DEFAULT_TRIM_FRACTION,
+    "trim": None,  # the pipeline's own (_pipeline_trim)
     "seed": 0,
     "noise": "thesis",
     "rig": "thesis",
@@ -194,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--trim",
         type=float,
-        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:.2f})",
+        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:g}; "
+        f"{THESIS_TRIM_FRACTION:g} with --pipeline thesis)",
     )
     scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
@@ -528,6 +529,13 @@ def _apply_defaults(args: argparse.Namespace) -> None:
     for name, default in SCAN_DEFAULTS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)
+    if args.trim is None:
+        args.trim = _pipeline_trim(args)
+
+
+def _pipeline_trim(args: argparse.Namespace) -> float:
+    """Return the trim fraction of the pipeline asked for (the thesis' or Lamina's)."""
+    return THESIS_TRIM_FRACTION if args.pipeline == "thesis" else DEFAULT_TRIM_FRACTION
 
 
 def _plan(args: argparse.Namespace) -> ScanPlan | None:
@@ -804,7 +812,7 @@ def process(args: argparse.Namespace) -> int:
         if getattr(args, name) is None:
             setattr(args, name, record.options.get(name))
     if args.trim is None:
-        args.trim = SCAN_DEFAULTS["trim"]
+        args.trim = _pipeline_trim(args)
     options = _process_options(args)  # the trim and harmonics recorded are checked too
     try:
         expect = parse_expectation(args.expect) if args.expect else None
