@@ -205,9 +205,12 @@ def check_device_name(device: str) -> None:
     """
     if spawns_device(device) or is_endpoint(device) or "://" in device:
         return
-    hint = did_you_mean(device, DEVICE_WORDS)
-    if hint and not os.path.exists(device):
-        raise UsageError(f"--device {device} is neither a serial port here nor a device name{hint}")
+    near = difflib.get_close_matches(device, DEVICE_WORDS, n=1, cutoff=0.6)
+    if near and not os.path.exists(device):
+        raise UsageError(
+            f"--device {device} is neither a serial port here nor a device Lamina knows; "
+            f"did you mean --device {near[0]}?"
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
