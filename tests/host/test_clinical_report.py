@@ -498,7 +498,7 @@ def test_sides_steer_the_comparison_and_the_history(library_path: Path, tmp_path
         report(library_path, "3", "--compare", "2", "--compare-as", "visits", "-o", str(visit_pdf))
         == 0
     )
-    assert "Change since scan 2 (2026-01-10)" in pdf_text(visit_pdf.read_bytes())
+    assert "Change from scan 2 (2026-01-10, an earlier visit)" in pdf_text(visit_pdf.read_bytes())
     with Library(library_path) as library:
         data = build_report_data(library, 3, MeasureRequest(landmark=Landmark("bottom")))
     visits = {v.scan_id: v for v in data.visits}

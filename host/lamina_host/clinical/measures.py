@@ -140,7 +140,7 @@ WHOLE_LIMB = "whole limb"
 _FLAG_WORDS = {
     "excess_ml": ("excess", "mL"),
     "excess_percent": ("excess", "%"),
-    "change_percent": ("change from baseline", "%"),
+    "change_percent": ("change", "%"),
     "rvc_percent": ("RVC", "%"),
     "girth_mm": ("girth difference", "mm"),
 }

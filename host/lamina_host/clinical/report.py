@@ -92,6 +92,12 @@ class ScanInfo:
         side = f"{self.side}, " if self.side != "none" else ""
         return f"{side}{when_text(self.created)} (scan {self.scan_id})"
 
+    def label_of(self, subject: str) -> str:
+        """Return the legend, with the subject code when it is not ``subject``'s."""
+        if self.subject == subject and subject != ANONYMOUS:
+            return self.label
+        return f"{self.label[:-1]}, {printable(self.subject)})"
+
 
 @dataclass(frozen=True)
 class RvcScans:
@@ -314,7 +320,7 @@ def _with_context(c: Comparison, scan: ScanInfo, reference: ScanInfo) -> Compari
     elif c.kind == "limbs":
         context = f"over scan {reference.scan_id}"
     else:
-        context = f"since scan {reference.scan_id} ({date_text(reference.created)})"
+        context = f"from scan {reference.scan_id} ({date_text(reference.created)})"
     return replace(c, alerts=tuple(replace(f, context=context) for f in c.alerts))
 
 
@@ -399,7 +405,7 @@ def headline(data: ReportData) -> list[Line]:
     ref, c = data.reference, data.comparison
     if ref is not None and c is not None:
         subject = f"subject {printable(ref.subject)}, " if data.other_subject else ""
-        kind = "the other limb" if c.kind == "limbs" else "an earlier visit"
+        kind = "the other limb" if c.kind == "limbs" else f"{_when(ref, scan)} visit"
         lines.append(
             Line(
                 f"Compared with: {subject}{ref.limb}, scan {ref.scan_id}, "
@@ -423,7 +429,8 @@ def headline(data: ReportData) -> list[Line]:
     )
     if ref is not None and c is not None:
         what = f"Excess over the {ref.limb}" if c.kind == "limbs" else (
-            f"Change since scan {ref.scan_id} ({date_text(ref.created)})")  # fmt: skip
+            f"Change from scan {ref.scan_id} ({date_text(ref.created)}, {_when(ref, scan)} "
+            "visit)")  # fmt: skip
         lines.append(
             Line(
                 f"{what}: {c.difference_ml:+.1f} mL ({c.difference_percent:+.1f} %) over "
@@ -435,6 +442,12 @@ def headline(data: ReportData) -> list[Line]:
     flags = headline_flags(data)
     return lines + ([Line(f"FLAG: {text}", "flag") for text in flags] or
                     [Line("No threshold reached.", "ok")])  # fmt: skip
+
+
+def _when(reference: ScanInfo, scan: ScanInfo) -> str:
+    """Return whether the compared scan is of an ``earlier`` or a ``later`` visit."""
+    earlier = (reference.created, reference.scan_id) < (scan.created, scan.scan_id)
+    return "an earlier" if earlier else "a later"
 
 
 def _trend_lines(data: ReportData) -> list[Line]:

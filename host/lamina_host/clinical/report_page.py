@@ -31,6 +31,7 @@ from lamina_host.clinical.report import (
     ReportData,
     TableRow,
     csv_text,
+    date_text,
     foot,
     headline,
     landmark_words,
@@ -113,8 +114,12 @@ def _compose(fig: Any, data: ReportData) -> None:
     rows = table_rows(data)
     table_h = min(0.26, 0.016 * (len(rows) + 2)) if rows else 0.03
     free = y - 0.005 - bottom - table_h
-    pictures_h, outlines_h = 0.40 * free, 0.24 * free
-    trend_h = free - pictures_h - outlines_h
+    dated = {date_text(v.created) for v in data.trend.visits if _stamp(v.created) is not None}
+    trend_h = 0.30 * free if len(dated) > 1 else 0.03  # one line says there is no trend yet
+    # The outline panels are square: no taller than they are wide (and their titles).
+    panel_w = (RIGHT - LEFT) / max(len(_outline_levels(data)), 5)
+    outlines_h = min(0.42 * (free - trend_h), panel_w * PAGE_IN[0] / PAGE_IN[1] + 0.045)
+    pictures_h = free - trend_h - outlines_h
     top = y + 0.004
     _draw_limb(fig, (LEFT - 0.02, top - pictures_h, 0.34, pictures_h), data)
     profile = fig.add_axes((0.43, top - pictures_h + 0.035, 0.53, pictures_h - 0.055))
@@ -257,7 +262,8 @@ def _draw_profile(ax: Any, data: ReportData) -> None:
         ref_colour = COLOURS.get(data.reference.side, REFERENCE_COLOUR)
         if ref_colour == colour:
             ref_colour = REFERENCE_COLOUR
-        _plot_profile(ax, data.reference_measurement, "--", ref_colour, data.reference.label, scale)
+        label = data.reference.label_of(data.scan.subject)
+        _plot_profile(ax, data.reference_measurement, "--", ref_colour, label, scale)
     low, high = ax.get_ylim()
     least = MIN_PROFILE_RANGE_MM / scale
     if high - low < least:  # scanner noise must not look like swelling
@@ -361,17 +367,12 @@ def _draw_table(ax: Any, data: ReportData, rows: Sequence[TableRow]) -> None:
 def _draw_outlines(fig: Any, rect: tuple[float, float, float, float], data: ReportData) -> None:
     """Draw both limbs' outlines at the levels (centred, same scale), one panel per level."""
     m, ref, scale = data.measurement, data.reference_measurement, LENGTH_UNITS[data.unit]
-    levels = [lv.offset_mm for lv in m.levels]
-    if ref is not None:
-        lo, hi = ref.offset_range_mm
-        levels = [d for d in levels if lo - 1e-6 <= d <= hi + 1e-6] or levels
-    step = max(1, math.ceil(len(levels) / MAX_OUTLINES))
-    shown = levels[::step]
+    shown = _outline_levels(data)
     x0, y0, w, h = rect
     fig.text(
         x0, y0 + h - 0.022,
         f"Outlines at the levels (centred; {data.scan.label} solid"
-        + (f", {data.reference.label} dashed)" if data.reference else ")"),
+        + (f", {data.reference.label_of(data.scan.subject)} dashed)" if data.reference else ")"),
         fontsize=8,
     )  # fmt: skip
     if not shown:
@@ -406,6 +407,16 @@ def _draw_outlines(fig: Any, rect: tuple[float, float, float, float], data: Repo
         ax.set_title(f"{data.length(d)} {data.unit}", fontsize=7, pad=2)
 
 
+def _outline_levels(data: ReportData) -> list[float]:
+    """Return the levels whose outlines are drawn: those both limbs have, every n-th if many."""
+    levels = [lv.offset_mm for lv in data.measurement.levels]
+    ref = data.reference_measurement
+    if ref is not None:
+        lo, hi = ref.offset_range_mm
+        levels = [d for d in levels if lo - 1e-6 <= d <= hi + 1e-6] or levels
+    return levels[:: max(1, math.ceil(len(levels) / MAX_OUTLINES))]
+
+
 def _centred(points: np.ndarray) -> np.ndarray:
     return points - points.mean(axis=0)
 
@@ -420,23 +431,27 @@ def _stamp(created: str) -> datetime | None:
 
 
 def _draw_trend(fig: Any, rect: tuple[float, float, float, float], data: ReportData) -> None:
-    """Draw the trend over the dated visits: volume per side, and the % figures with thresholds."""
+    """Draw the trend over the dated visits: volume per side, and the % figures with thresholds.
+
+    With fewer than two visit dates there is no trend yet: one line says so.
+    """
     x0, y0, _, h = rect
+    visits = [v for v in data.trend.visits if _stamp(v.created) is not None]
+    if len({date_text(v.created) for v in visits}) < 2:
+        words = "no visit of this subject yet (test scans are not visits)"
+        if visits:
+            words = (
+                f"one visit so far ({date_text(visits[0].created)}): the trend over the "
+                "visits starts with the next"
+            )
+        fig.text(x0, y0 + h / 2, f"Trend: {words}.", fontsize=8, va="center")
+        return
     volume_ax = fig.add_axes((x0 + 0.03, y0 + 0.03, 0.40, h - 0.055), label="volume")
     percent_ax = fig.add_axes((x0 + 0.53, y0 + 0.03, 0.37, h - 0.055), label="percent")
-    visits = [v for v in data.trend.visits if _stamp(v.created) is not None]
     span = data.trend.span_mm
     over = f" over {data.span_text(span)}" if span else ""
     volume_ax.set_title(f"Volume at each visit (mL){over}", fontsize=7.5)
     percent_ax.set_title(f"Change, excess and RVC of the {data.scan.limb} (%)", fontsize=7.5)
-    if len({v.created[:10] for v in visits}) < 2:
-        for ax in (volume_ax, percent_ax):
-            ax.text(0.5, 0.5, "one visit so far: the trend starts with the next",
-                    ha="center", va="center", transform=ax.transAxes, fontsize=7)  # fmt: skip
-            ax.set_xticks([])
-            ax.set_yticks([])
-        if not visits:
-            return
     for side, colour in COLOURS.items():
         own = [v for v in visits if v.side == side]
         if own:
