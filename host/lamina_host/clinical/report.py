@@ -22,6 +22,7 @@ from lamina_host.clinical.measures import (
     AXES,
     COMPARISONS,
     DEFAULT_SPACING_MM,
+    PAIR_WINDOW_H,
     WHOLE_LIMB,
     ClinicalError,
     Comparison,
@@ -406,6 +407,9 @@ def headline(data: ReportData) -> list[Line]:
     if ref is not None and c is not None:
         subject = f"subject {printable(ref.subject)}, " if data.other_subject else ""
         kind = "the other limb" if c.kind == "limbs" else f"{_when(ref, scan)} visit"
+        apart = _days_apart(ref, scan)
+        if c.kind == "limbs" and apart is not None and abs(apart) * 24.0 > PAIR_WINDOW_H:
+            kind += f", scanned {abs(apart):.0f} days {'later' if apart > 0 else 'earlier'}"
         lines.append(
             Line(
                 f"Compared with: {subject}{ref.limb}, scan {ref.scan_id}, "
@@ -442,6 +446,18 @@ def headline(data: ReportData) -> list[Line]:
     flags = headline_flags(data)
     return lines + ([Line(f"FLAG: {text}", "flag") for text in flags] or
                     [Line("No threshold reached.", "ok")])  # fmt: skip
+
+
+def _days_apart(reference: ScanInfo, scan: ScanInfo) -> float | None:
+    """Return how many days after ``scan`` the reference was scanned (None if unreadable)."""
+    times = []
+    for info in (reference, scan):
+        try:
+            stamp = datetime.fromisoformat(info.created)
+        except ValueError:
+            return None
+        times.append(stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC))
+    return (times[0] - times[1]).total_seconds() / 86400.0
 
 
 def _when(reference: ScanInfo, scan: ScanInfo) -> str:

@@ -228,8 +228,9 @@ def _draw_limb(fig: Any, rect: tuple[float, float, float, float], data: ReportDa
     span = np.abs(rings).max() / scale
     ax.set_xlim(-span, span)
     ax.set_ylim(-span, span)
-    ax.set_zlim(lo / scale, hi / scale)
-    ax.set_box_aspect((2 * span, 2 * span, max((hi - lo) / scale, 1e-3)))
+    height = max(hi - lo, 1.0) / scale  # a scan of one section is drawn as a thin slice
+    ax.set_zlim(lo / scale, lo / scale + height)
+    ax.set_box_aspect((2 * span, 2 * span, height))
     ax.set_proj_type("ortho")
     ax.view_init(elev=12, azim=-60)
     ax.set_axis_off()
@@ -500,14 +501,19 @@ def _draw_percent(ax: Any, data: ReportData, own: Sequence[Visit]) -> None:
 
 
 def _date_axis(ax: Any, stamps: Sequence[datetime]) -> None:
-    """Label a time axis with the visits' dates (local time), or by months when they are many."""
+    """Label a time axis with the visits' dates (local time), or by months when they are many.
+
+    Both trend plots span every visit (with a margin), whichever of them a plot shows.
+    """
     from matplotlib import dates
 
     days = sorted({s.replace(hour=12, minute=0, second=0, microsecond=0) for s in stamps})
-    if 0 < len(days) <= 6:
+    if not days:
+        return
+    margin = max((days[-1] - days[0]) * 0.06, timedelta(days=2))
+    ax.set_xlim(days[0] - margin, days[-1] + margin)
+    if len(days) <= 6:
         ax.set_xticks(days, [d.strftime("%Y-%m-%d") for d in days])
-        if len(days) == 1:
-            ax.set_xlim(days[0] - timedelta(days=30), days[0] + timedelta(days=30))
         return
     locator = dates.AutoDateLocator(minticks=2, maxticks=6)
     ax.xaxis.set_major_locator(locator)
