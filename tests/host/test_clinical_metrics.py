@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lamina_device.sim import Mechanics, parse_object
 from lamina_host.clinical.measures import (
@@ -24,6 +26,7 @@ from lamina_host.clinical.measures import (
     LimbMeasurement,
     LimbSection,
     Thresholds,
+    compare,
     measure_limb,
     relative_volume_change,
     rvc_percent,
@@ -218,3 +221,78 @@ def test_a_real_simulated_forearm_scan_gives_the_phantoms_volume_and_excess() ->
     assert change.whole.rvc_percent == pytest.approx(100 * ((1.06 / 1.03) ** 2 - 1), abs=0.01)
     assert change.whole.excess_percent == pytest.approx(100 * (1.06**2 - 1), abs=0.01)
     assert next(f.label for f in change.alerts if f.quantity == "rvc_percent") == "lymphoedema"
+
+
+def random_limb(seed: int, swell: float = 1.0) -> list[LimbSection]:
+    """A random limb: oval sections of a random taper and bulge, random length and pitch,
+    off the axis; ``swell`` scales every outline about the axis (volume x swell^2)."""
+    rng = np.random.default_rng(seed)
+    length, pitch = rng.uniform(30.0, 250.0), rng.uniform(6.0, 15.0)
+    r0, r1, bulge = rng.uniform(15.0, 60.0), rng.uniform(15.0, 60.0), rng.uniform(0.0, 15.0)
+    ratio, centre = rng.uniform(0.6, 1.0), rng.uniform(-20.0, 20.0, 2)
+    t = np.linspace(0.0, 2 * np.pi, 360, endpoint=False)
+    sections = []
+    for z in np.arange(0.0, length + 1e-9, pitch):
+        r = r0 + (r1 - r0) * z / length + bulge * np.sin(np.pi * z / length)
+        pts = centre + np.column_stack([r * np.cos(t), ratio * r * np.sin(t)])
+        sections.append(LimbSection(float(z), efd_fit(swell * pts, 6)))
+    return sections
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(
+    seeds=st.lists(st.integers(0, 10**6), min_size=2, max_size=2, unique=True),
+    swell=st.floats(0.9, 1.2),
+    spacing=st.sampled_from([10.0, 20.0, 40.0, 80.0]),
+    landmark=st.sampled_from(["distal", "bottom", "top"]),
+)
+def test_random_limbs_keep_the_metrics_consistent(seeds, swell, spacing, landmark) -> None:
+    """On random limbs, spacings and landmarks: the excess is the same at any spacing and is
+    the difference of the common range's volumes; an affected limb swollen by s about the
+    axis, the other unchanged, has an RVC of s^2 - 1 exactly; the same four limbs at both
+    visits give 0; every flag's value really reaches its threshold."""
+    mark = Landmark(landmark)
+    a1_sections, u_sections = random_limb(seeds[0]), random_limb(seeds[1])
+    a1, u = measure_limb(a1_sections, spacing, mark), measure_limb(u_sections, spacing, mark)
+    try:
+        c = compare(a1, u)
+    except ClinicalError as exc:
+        assert "share" in str(exc)  # limbs too short or too far apart from their landmarks
+        return
+    again = compare(measure_limb(a1_sections, 7.0, mark), measure_limb(u_sections, 7.0, mark))
+    assert again.span_mm == pytest.approx(c.span_mm, abs=1e-6)
+    assert again.difference_ml == pytest.approx(c.difference_ml, rel=1e-6, abs=1e-6)
+    lo, hi = c.span_mm
+    assert c.volume_mm3 == pytest.approx(a1.volume_between_mm3(lo, hi), rel=1e-9)
+    a2 = measure_limb(random_limb(seeds[0], swell), spacing, mark)
+    change = relative_volume_change(a1, u, a2, u)
+    assert change.whole.rvc_percent == pytest.approx(100 * (swell**2 - 1), abs=1e-6)
+    assert change.whole.change_percent == pytest.approx(100 * (swell**2 - 1), abs=1e-6)
+    for s in change.segments:
+        assert s.rvc_percent == pytest.approx(100 * (swell**2 - 1), abs=1e-6)
+    assert relative_volume_change(a1, u, a1, u).whole.rvc_percent == pytest.approx(0, abs=1e-9)
+    for f in (*c.alerts, *change.alerts):
+        size = f.value if f.quantity in ("rvc_percent",) else abs(f.value)
+        assert size >= f.threshold
+
+
+def test_a_trend_takes_empty_and_degenerate_input() -> None:
+    """No scan, one scan, a one-section scan, scans at the same moment, an unreadable date:
+    a trend, never an exception; figures it cannot have are NaN and a note says why."""
+    assert trend([]).visits == () and trend([]).span_mm is None
+    one = measure_limb(random_limb(3), 40.0)
+    (alone,) = trend([(1, "2026-01-01T10:00:00+00:00", one)], sides={1: "left"}).visits
+    assert alone.change_percent == 0.0 and alone.excess_over is None
+    assert math.isnan(alone.rvc_percent) and "no right scan within 24 h" in alone.flags[-1]
+    slice_ = measure_limb([random_limb(3)[0]], 40.0)  # one section: no length at all
+    t = trend([(1, "2026-01-01T10:00:00", one), (2, "2026-02-01T10:00:00", slice_)])
+    assert t.span_mm is None and "scan 2 covers only" in t.notes[0]
+    assert math.isnan(t.visits[1].change_percent) and t.visits[0].change_percent == 0.0
+    same = trend(
+        [(1, "2026-01-01T10:00:00", one), (2, "2026-01-01T10:00:00", one), (3, "not a date", one)],
+        sides={1: "left", 2: "right", 3: "left"},
+    )
+    assert [v.scan_id for v in same.visits] == [1, 2, 3]
+    assert same.visits[0].excess_percent == pytest.approx(0.0, abs=1e-9)
+    assert same.visits[0].rvc_percent == pytest.approx(0.0, abs=1e-9)
+    assert same.visits[2].excess_over is None  # an unreadable date pairs with nothing
