@@ -16,6 +16,15 @@ All distances along the limb are measured along its axis: the turntable axis (z)
 default, or a straight centre line fitted through the section centroids for a limb that
 does not stand upright. Then a circumference is that of the horizontal section projected
 onto the plane normal to the centre line (exact for a limb that is straight along it).
+
+Comparisons and the clinic's metrics (issue #23): two scans are compared over the whole
+stretch of limb both measured from their landmarks (:func:`compare`: the excess over the
+other limb or the change from another visit, per level and per segment too); the relative
+volume change RVC = (A2 x U1) / (U2 x A1) - 1 of an affected limb A against the other U
+between visits 1 and 2 (:func:`rvc_percent`, :func:`relative_volume_change`, whole and by
+segment); and a subject's :func:`trend`, per side and in time order, over the stretch every
+visit measured. Every value that reaches a threshold (:class:`Thresholds`, the clinics'
+conventions by default) is a :class:`Flag` that says which threshold it reached.
 """
 
 from __future__ import annotations

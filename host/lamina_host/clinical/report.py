@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
@@ -310,8 +309,13 @@ def _rvc(
         change = relative_volume_change(a1, u1, measured[scan_id], u2, thresholds, trend_of.span_mm)
     except ClinicalError:
         return None, None  # the trend has said why (its notes)
-    context = f"{visit.side} since scan {scans.affected_before}"
-    return replace(change, alerts=tuple(replace(f, context=context) for f in change.alerts)), scans
+    since = f"{visit.side} since scan {scans.affected_before}"
+    over = f"{visit.side} over {_other(visit.side)} (scan {scans.other})"
+    alerts = tuple(
+        replace(f, context=over if f.quantity.startswith("excess") else since)
+        for f in change.alerts
+    )
+    return replace(change, alerts=alerts), scans
 
 
 def _with_context(c: Comparison, scan: ScanInfo, reference: ScanInfo) -> Comparison:
@@ -688,13 +692,14 @@ def csv_text(data: ReportData) -> str:
     writer = csv.DictWriter(out, fieldnames=csv_fields(unit), lineterminator="\n", restval="")
     writer.writeheader()
     ref = data.reference
-    who = {
+    scan_fields = {
         "scan": data.scan.scan_id,
         "subject": data.scan.subject,
         "side": data.scan.side,
         "date": data.scan.created,
         "test": "yes" if data.scan.test else "no",
     }
+    who = dict(scan_fields)
     if ref is not None:
         who |= {"compared_scan": ref.scan_id, "compared_subject": ref.subject,
                 "compared_side": ref.side, "compared_date": ref.created}  # fmt: skip
@@ -746,10 +751,12 @@ def csv_text(data: ReportData) -> str:
         )  # fmt: skip
     if data.change is not None and data.rvc_scans is not None:
         w = data.change.whole
+        other = data.trend.visit(data.rvc_scans.other)
         writer.writerow(
-            who | {
-                "row": "rvc", "compared_scan": data.rvc_scans.other, "compared_side":
-                data.reference.side if data.reference else "", f"range_from_{unit}":
+            scan_fields | {
+                "row": "rvc", "compared_scan": data.rvc_scans.other, "compared_subject":
+                data.scan.subject, "compared_side": other.side if other else "",
+                "compared_date": other.created if other else "", f"range_from_{unit}":
                 length(w.offset_lo_mm), f"range_to_{unit}": length(w.offset_hi_mm),
                 "volume_ml": _num(w.affected_mm3 / 1e3), "compared_volume_ml":
                 _num(w.other_mm3 / 1e3), "change_ml": _num(w.change_ml), "change_percent":
@@ -784,15 +791,3 @@ def _write_visits(writer: csv.DictWriter[str], data: ReportData, length: Any) ->
                 "flags": "; ".join(v.flags),
             }
         )  # fmt: skip
-
-
-def all_flags(data: ReportData) -> Sequence[str]:
-    """Return every flag of the report, once each: comparison, RVC, then the scan's trend row."""
-    texts: list[str] = []
-    for source in (
-        data.comparison.alerts if data.comparison else (),
-        data.change.alerts if data.change else (),
-        data.visit.alerts if data.visit else (),
-    ):
-        texts += [f.text for f in source if f.text not in texts]
-    return texts

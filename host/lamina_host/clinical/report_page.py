@@ -99,6 +99,7 @@ def compose(data: ReportData) -> Any:
 
 
 def _compose(fig: Any, data: ReportData) -> None:
+    """Fill the page: each block the height its content needs, the plots sharing the rest."""
     fig.text(LEFT, 0.972, "Lamina limb measurement report", fontsize=13, weight="bold")
     fig.text(RIGHT, 0.972, f"Lamina {__version__}", fontsize=6.5, color="grey", ha="right")
     y = _write_lines(fig, _wrapped(headline(data)), 0.952)
