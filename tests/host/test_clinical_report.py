@@ -8,10 +8,13 @@ issue #24 found in the report has a test here that reproduces it.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import re
 import sqlite3
 import zlib
+from contextlib import redirect_stdout
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -30,13 +33,14 @@ from lamina_host.clinical.measures import (
 )
 from lamina_host.clinical.report import (
     MeasureRequest,
+    ReportData,
     build_report_data,
     csv_text,
     foot,
     headline,
     when_text,
 )
-from lamina_host.clinical.report_page import compose
+from lamina_host.clinical.report_page import compose, render
 from lamina_host.reconstruct.efd import efd_fit
 from lamina_host.store.library import Library
 from lamina_shared.types import ScanPlan
@@ -79,11 +83,9 @@ def cone_volume_ml(r0: float, r1: float, length: float = 300.0) -> float:
     return frustum_volume_mm3(2 * np.pi * r0, 2 * np.pi * r1, length) / 1000.0
 
 
-@pytest.fixture()
-def library_path(tmp_path: Path) -> Path:
+def make_library(path: Path) -> Path:
     """P-007's arms at two visits (right 1 and 5, left 2 and 3), an unprocessed scan of P-008,
     a 10 mm test cylinder scanned under P-007 (scan 6, marked as a test) and P-009's left arm."""
-    path = tmp_path / "library.sqlite"
     with Library(path) as library:
         add_scan(library, "P-007", cone_report(*CONES[1], 300.0, 10.0), "2026-01-10T09:00:00+00:00",
                  "right")  # fmt: skip
@@ -100,6 +102,55 @@ def library_path(tmp_path: Path) -> Path:
         add_scan(library, "P-009", cone_report(*CONES[7], 300.0, 10.0), "2026-04-05T10:00:00+00:00",
                  "left")  # fmt: skip
     return path
+
+
+@pytest.fixture(scope="module")
+def library_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The library of :func:`make_library`, shared by the tests that only read it."""
+    return make_library(tmp_path_factory.mktemp("clinic") / "library.sqlite")
+
+
+@dataclass
+class Page:
+    """The left arm's report against the right (scan 3 against 5), made once and looked at."""
+
+    data: ReportData
+    pdf: bytes
+    text: str
+    rows: list[dict[str, str]]
+    printed: str
+    texts: list[tuple[float, str]]
+    legend: list[str]
+    outline_lines: list[int]
+    limb_colours: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def page(library_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Page:
+    """``lamina report 3 --compare 5 -o report.pdf --csv table.csv``, and the page's figure."""
+    folder = tmp_path_factory.mktemp("page")
+    out, table = folder / "report.pdf", folder / "table.csv"
+    printed = io.StringIO()
+    with redirect_stdout(printed):
+        assert report(library_path, "3", "--compare", "5", "-o", str(out), "--csv", str(table)) == 0
+    with Library(library_path) as library:
+        data = build_report_data(library, 3, MeasureRequest(), 5)
+    fig = compose(data)
+    try:
+        texts = [(t.get_position()[1], t.get_text()) for t in fig.texts]
+        (profile,) = [ax for ax in fig.axes if ax.get_label() == "profile"]
+        (limb,) = [ax for ax in fig.axes if ax.get_label() == "limb"]
+        (surface,) = limb.collections
+        page = Page(
+            data, out.read_bytes(), pdf_text(out.read_bytes()),
+            list(csv.DictReader(table.open())), printed.getvalue(), texts,
+            [t.get_text() for t in profile.get_legend().get_texts()],
+            [len(ax.lines) for ax in fig.axes if ax.get_label() == "outline"],
+            np.asarray(surface.get_facecolor())[:, :3],
+        )  # fmt: skip
+    finally:
+        plt.close(fig)
+    return page
 
 
 def report(library_path: Path, *argv: str) -> int:
@@ -137,13 +188,10 @@ def measured(library_path: Path, scan_id: int, spacing_mm: float = 40.0):
         return measure_limb(sections_from_report(library.result(scan_id) or {}), spacing_mm)
 
 
-def test_pdf_report_has_one_page_and_the_table_values(library_path: Path, tmp_path: Path, capsys):
+def test_pdf_report_has_one_page_and_the_table_values(library_path: Path, page: Page) -> None:
     """The PDF: one page, subject code, the girths (cm), volumes, the comparison and flags."""
-    out, table = tmp_path / "report.pdf", tmp_path / "table.csv"
-    assert report(library_path, "3", "--compare", "5", "-o", str(out), "--csv", str(table)) == 0
-    data = out.read_bytes()
-    assert data.startswith(b"%PDF") and pdf_pages(data) == 1
-    text = pdf_text(data)
+    assert page.pdf.startswith(b"%PDF") and pdf_pages(page.pdf) == 1
+    text = page.text
     assert "Subject P-007" in text
     m, ref = measured(library_path, 3), measured(library_path, 5)
     c = compare(m, ref)
@@ -157,8 +205,8 @@ def test_pdf_report_has_one_page_and_the_table_values(library_path: Path, tmp_pa
     assert f"Volume: {m.volume_mm3 / 1000:.1f} mL" in text
     # 3.3 mm more radius: 20.7 mm more girth at the distal end (>= 20 mm), and > 200 mL.
     assert "reaches the 200 mL threshold" in text and "FLAG: whole limb, left over right" in text
-    assert "girth" in capsys.readouterr().out
-    rows = [r for r in csv.DictReader(table.open()) if r["row"] == "level"]
+    assert "flag: girth differs by 2.0 cm or more at every level compared" in page.printed
+    rows = [r for r in page.rows if r["row"] == "level"]
     assert [float(r["from_landmark_cm"]) * 10 for r in rows] == [lv.offset_mm for lv in m.levels]
     for row, level, diff in zip(rows, m.levels, c.levels, strict=True):
         assert float(row["girth_cm"]) * 10 == pytest.approx(level.circumference_mm, abs=1e-3)
@@ -168,14 +216,14 @@ def test_pdf_report_has_one_page_and_the_table_values(library_path: Path, tmp_pa
         assert float(row["segment_volume_ml"]) == pytest.approx(seg.volume_mm3 / 1000, abs=1e-3)
 
 
-def test_the_page_has_no_blank_band(library_path: Path, tmp_path: Path) -> None:
+def test_the_page_has_no_blank_band(library_path: Path, page: Page) -> None:
     """Issue #24: "a large blank area mid-page". Between the title and the foot no band of
     the page is empty for more than 5 % of its height, with a comparison and without (the
     PNG is one A4 page of dark print on white)."""
-    for argv in (["3", "--compare", "5"], ["1", "--spacing-mm", "10"]):
-        out = tmp_path / f"page-{'-'.join(argv)}.png"
-        assert report(library_path, *argv, "-o", str(out)) == 0
-        image = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    with Library(library_path) as library:
+        alone = build_report_data(library, 1, MeasureRequest(10.0))
+    for name, data in (("compared", page.data), ("alone, 31 levels", alone)):
+        image = cv2.imdecode(np.frombuffer(render(data, "png"), np.uint8), cv2.IMREAD_GRAYSCALE)
         assert image is not None and image.min() < 50 and np.median(image) > 200
         assert image.shape[0] / image.shape[1] == pytest.approx(11.69 / 8.27, rel=0.01)
         ink = (image < 200).any(axis=1)
@@ -184,19 +232,17 @@ def test_the_page_has_no_blank_band(library_path: Path, tmp_path: Path) -> None:
         for has_ink in ink[rows[0] : rows[-1]]:
             blank = 0 if has_ink else blank + 1
             longest = max(longest, blank)
-        assert longest < 0.05 * len(ink), (argv, longest / len(ink))
+        assert longest < 0.05 * len(ink), (name, longest / len(ink))
 
 
 def test_the_first_lines_say_who_when_what_and_the_technical_lines_are_at_the_foot(
-    library_path: Path,
+    page: Page,
 ) -> None:
     """Issue #24: technical lines first ("plane map ml, RMS 0.011 mm; axis joint"), the date
     without its zone and not the compared scan's. Now: subject, side, date and time with
     the zone, the compared scan's side and date, volume, excess, change, RVC, flags; the
     calibration and axis in the foot, the lowest text on the page."""
-    with Library(library_path) as library:
-        data = build_report_data(library, 3, MeasureRequest(), 5)
-    lines = [line.text for line in headline(data)]
+    lines = [line.text for line in headline(page.data)]
     assert lines[0].startswith("Subject P-007   Left limb   scan 3   2026-04-02 10:00 ")
     assert re.search(r"2026-04-02 10:00 [A-Z+\-0-9]+$", lines[0])  # time with zone
     assert lines[1].startswith("Compared with: right limb, scan 5, 2026-04-02 10:20 ")
@@ -205,82 +251,64 @@ def test_the_first_lines_say_who_when_what_and_the_technical_lines_are_at_the_fo
     assert lines[4].startswith("Change since the left limb's first visit (scan 2, 2026-01-10)")
     assert lines[5].startswith("RVC since 2026-01-10: ")
     assert all("calibration" not in line.lower() and "plane map" not in line for line in lines)
-    assert any("chessboard residual 0.012 mm" in line for line in foot(data))
-    fig = compose(data)
-    try:
-        texts = [(t.get_position()[1], t.get_text()) for t in fig.texts]
-    finally:
-        plt.close(fig)
-    calibration_y = min(y for y, text in texts if "chessboard residual" in text)
-    subject_y = max(y for y, text in texts if text.startswith("Subject P-007"))
+    assert any("chessboard residual 0.012 mm" in line for line in foot(page.data))
+    calibration_y = min(y for y, text in page.texts if "chessboard residual" in text)
+    subject_y = max(y for y, text in page.texts if text.startswith("Subject P-007"))
     assert subject_y > 0.9 and calibration_y < 0.1
-    assert calibration_y < min(y for y, text in texts if "FLAG" in text or "Volume:" in text)
+    assert calibration_y < min(y for y, text in page.texts if "FLAG" in text or "Volume:" in text)
 
 
-def test_legends_and_outlines_name_both_limbs_by_side_and_date(library_path: Path) -> None:
+def test_legends_and_outlines_name_both_limbs_by_side_and_date(page: Page) -> None:
     """Issue #24: legends "scan 5 / scan 4" and outlines of one limb only. Now the profile's
     legend names each limb's side and date, and every outline panel draws both limbs."""
-    with Library(library_path) as library:
-        data = build_report_data(library, 3, MeasureRequest(), 5)
-    fig = compose(data)
-    try:
-        axes = {ax.get_label(): ax for ax in fig.axes if ax.get_label() != "outline"}
-        legend = [t.get_text() for t in axes["profile"].get_legend().get_texts()]
-        outlines = [ax for ax in fig.axes if ax.get_label() == "outline"]
-    finally:
-        plt.close(fig)
-    assert legend == [
+    assert page.legend == [
         f"left, {when_text('2026-04-02T10:00:00+00:00')} (scan 3)",
         f"right, {when_text('2026-04-02T10:20:00+00:00')} (scan 5)",
     ]
-    assert len(outlines) == len(data.measurement.levels) and all(
-        len(ax.lines) == 2 for ax in outlines
-    )
+    assert page.outline_lines == [2] * len(page.data.measurement.levels)
 
 
-def test_the_limb_picture_is_coloured_by_the_girth_difference(library_path: Path) -> None:
+def test_the_limb_picture_is_coloured_by_the_girth_difference(
+    library_path: Path, page: Page
+) -> None:
     """The rendered limb: its faces take the colour of the girth difference to the compared
-    scan (here the left limb's excess grows from +20.7 to +21.0 mm: all red-ish, warmer at
-    the top), and one skin colour without a comparison."""
+    scan (the left limb is 20.7 mm larger in girth all along: red, not blue), and one skin
+    colour without a comparison."""
+    compared = page.limb_colours
+    assert len(compared) > 500
+    hue = compared / compared.max(axis=1, keepdims=True)
+    assert (hue[:, 0] > hue[:, 2] + 0.3).all()  # red over blue: this limb is the larger
     with Library(library_path) as library:
-        compared = build_report_data(library, 2, MeasureRequest(), 1)
-        alone = build_report_data(library, 2, MeasureRequest())
-    colours = {}
-    for name, data in (("compared", compared), ("alone", alone)):
-        fig = compose(data)
-        try:
-            (limb,) = [ax for ax in fig.axes if ax.get_label() == "limb"]
-            (surface,) = limb.collections
-            colours[name] = np.asarray(surface.get_facecolor())[:, :3]
-        finally:
-            plt.close(fig)
-    assert len(colours["compared"]) > 500
-    hue = colours["compared"] / colours["compared"].max(axis=1, keepdims=True)
-    assert (hue[:, 0] >= hue[:, 2]).all()  # red over blue: this limb is the larger
-    plain = colours["alone"] / colours["alone"].max(axis=1, keepdims=True)
+        alone = build_report_data(library, 3, MeasureRequest())
+    fig = compose(alone)
+    try:
+        (limb,) = [ax for ax in fig.axes if ax.get_label() == "limb"]
+        plain = np.asarray(limb.collections[0].get_facecolor())[:, :3]
+    finally:
+        plt.close(fig)
+    plain = plain / plain.max(axis=1, keepdims=True)
     assert np.allclose(plain, plain[0], atol=1e-6)  # one colour, shaded
 
 
 def test_two_subject_codes_are_refused_unless_asked(library_path: Path, tmp_path: Path, capsys):
     """Issue #24: "change from scan 4 (left): +0.0 mL" comparing P-0077 with P-0042, naming
     neither. Now refused in one line naming both codes; asked for, both are printed."""
-    out = tmp_path / "r.pdf"
+    out = tmp_path / "r.csv"
     argv = ["3", "--compare", "7", "--compare-as", "visits", "-o", str(out)]
     assert report(library_path, *argv) == 2
     err = capsys.readouterr().err
     assert "two subjects (P-007 and P-009)" in err and "--compare-other-subject" in err
     assert err.count("\n") == 1 and not out.exists()
-    assert (
-        report(library_path, *argv, "--compare-other-subject", "--csv", str(tmp_path / "t.csv"))
-        == 0
-    )
-    text = pdf_text(out.read_bytes())
-    assert "Compared with: subject P-009, left limb, scan 7" in text
-    assert "Two subject codes compared, as asked: P-007 and P-009" in text
-    rows = list(csv.DictReader((tmp_path / "t.csv").open()))
+    assert report(library_path, *argv, "--compare-other-subject") == 0
+    rows = list(csv.DictReader(out.open()))
     assert {(r["subject"], r["compared_subject"]) for r in rows if r["row"] == "level"} == {
         ("P-007", "P-009")
     }
+    with Library(library_path) as library:
+        data = build_report_data(library, 3, MeasureRequest(), 7, "visits", other_subject=True)
+    lines = [line.text for line in headline(data)]
+    assert lines[1].startswith("Compared with: subject P-009, left limb, scan 7")
+    assert lines[2] == "Two subject codes compared, as asked: P-007 and P-009"
 
 
 def test_the_headline_excess_is_over_the_common_range_at_any_spacing(
@@ -302,12 +330,12 @@ def test_the_headline_excess_is_over_the_common_range_at_any_spacing(
     assert found == pytest.approx([truth] * 3, abs=2e-3)
 
 
-def test_the_table_titles_say_what_and_in_which_unit(library_path: Path, tmp_path: Path) -> None:
+def test_the_table_titles_say_what_and_in_which_unit(
+    library_path: Path, tmp_path: Path, page: Page
+) -> None:
     """Issue #24: columns "other mm" and "difference mm", no % per level, volumes in mm3.
     Now titled by side and unit (cm by default, mm if asked), with % per level, in mL."""
-    out = tmp_path / "t.pdf"
-    assert report(library_path, "3", "--compare", "5", "-o", str(out)) == 0
-    text = pdf_text(out.read_bytes())
+    text = page.text
     for title in ("From distal end", "(cm)", "Left girth", "Right girth", "(%)", "Segment RVC",
                   "level (mL)"):  # fmt: skip
         assert title in text, title
@@ -323,12 +351,11 @@ def test_the_table_titles_say_what_and_in_which_unit(library_path: Path, tmp_pat
         assert girth == pytest.approx(2 * np.pi * CONES[3][0], rel=1e-4)
 
 
-def test_csv_has_scan_subject_side_date_levels_totals_and_the_trend(library_path: Path) -> None:
+def test_csv_has_scan_subject_side_date_levels_totals_and_the_trend(page: Page) -> None:
     """Issue #24: the CSV without scan, subject, side, date or totals. Now every row names
     them; the totals, the comparison, the RVC and each visit of the trend have their rows."""
-    with Library(library_path) as library:
-        data = build_report_data(library, 3, MeasureRequest(), 5)
-    rows = list(csv.DictReader(csv_text(data).splitlines()))
+    data, rows = page.data, page.rows
+    assert rows == list(csv.DictReader(csv_text(data).splitlines()))
     kinds = [r["row"] for r in rows]
     assert (
         kinds
@@ -374,13 +401,12 @@ def test_rvc_excess_and_change_in_the_csv_match_the_cones(library_path: Path) ->
     assert float(visit["rvc_percent"]) == pytest.approx(float(rvc["rvc_percent"]), abs=1e-6)
 
 
-def test_a_test_scan_is_kept_but_out_of_the_trend_and_comparisons(
-    library_path: Path, tmp_path: Path, capsys
-) -> None:
+def test_a_test_scan_is_kept_but_out_of_the_trend_and_comparisons(tmp_path: Path, capsys) -> None:
     """Issue #24: "a 0.6 mL test cylinder under the same code plotted among the visits".
     Marked as a test (lamina scans --set-test), it stays in the library but out of the
     trend, and a comparison with it is refused; unmarked, it is a visit again (and, being
     10 mm long, cuts the trend's range, which the trend says)."""
+    library_path = make_library(tmp_path / "library.sqlite")  # this test changes it
     with Library(library_path) as library:
         data = build_report_data(library, 3, MeasureRequest())
         assert [v.scan_id for v in data.visits] == [1, 2, 3, 5]
@@ -493,12 +519,21 @@ def test_sides_steer_the_comparison_and_the_history(library_path: Path, tmp_path
     assert "Left limb" in lines[0] and lines[1].startswith("Compared with: right limb, scan 1")
     assert report(library_path, "3", "--compare", "2", "-o", str(tmp_path / "same.pdf")) == 2
     assert "both left limbs" in capsys.readouterr().err
-    visit_pdf = tmp_path / "visit.pdf"
+    visit_csv = tmp_path / "visit.csv"
     assert (
-        report(library_path, "3", "--compare", "2", "--compare-as", "visits", "-o", str(visit_pdf))
+        report(library_path, "3", "--compare", "2", "--compare-as", "visits", "-o", str(visit_csv))
         == 0
     )
-    assert "Change from scan 2 (2026-01-10, an earlier visit)" in pdf_text(visit_pdf.read_bytes())
+    (compared,) = [r for r in csv.DictReader(visit_csv.open()) if r["row"] == "compared"]
+    assert float(compared["change_ml"]) == pytest.approx(
+        cone_volume_ml(*CONES[3]) - cone_volume_ml(*CONES[2]), rel=1e-4
+    )
+    with Library(library_path) as library:
+        lines = [
+            line.text
+            for line in headline(build_report_data(library, 3, MeasureRequest(), 2, "visits"))
+        ]
+    assert lines[3].startswith("Change from scan 2 (2026-01-10, an earlier visit)")
     with Library(library_path) as library:
         data = build_report_data(library, 3, MeasureRequest(landmark=Landmark("bottom")))
     visits = {v.scan_id: v for v in data.visits}
