@@ -422,6 +422,9 @@ def test_a_test_scan_is_kept_but_out_of_the_trend_and_comparisons(tmp_path: Path
     assert report(library_path, "3", "--compare", "6", "--compare-as", "visits",
                   "-o", str(tmp_path / "r.pdf")) == 2  # fmt: skip
     assert "scan 6 is marked as a test scan" in capsys.readouterr().err
+    assert report(library_path, "6", "--compare", "3", "--compare-as", "visits",
+                  "-o", str(tmp_path / "r.pdf")) == 2  # fmt: skip
+    assert "scan 6 is marked as a test scan" in capsys.readouterr().err
     assert main(["scans", "--library", str(library_path), "--unset-test", "6"]) == 0
     assert re.search(r"\n\s+6  P-007 .* yes\s*\n", capsys.readouterr().out)
     with Library(library_path) as library:

@@ -268,17 +268,18 @@ def check_sides(kind: str, scan: tuple[int, str], reference: tuple[int, str]) ->
 
 
 def check_reference(scan: ScanInfo, reference: ScanInfo, other_subject: bool = False) -> None:
-    """Refuse (one line) a comparison with a test scan, or across subject codes unless asked.
+    """Refuse (one line) a comparison of a test scan, or across subject codes unless asked.
 
     Two ``anonymous`` scans count as two subjects: the code is shared by many people.
     """
     if reference.scan_id == scan.scan_id:
         raise ClinicalError("compare the scan with another scan, not with itself")
-    if reference.test:
-        raise ClinicalError(
-            f"scan {reference.scan_id} is marked as a test scan: compare with a visit, or "
-            f"unmark it first (lamina scans --unset-test {reference.scan_id})"
-        )
+    for info in (scan, reference):
+        if info.test:
+            raise ClinicalError(
+                f"scan {info.scan_id} is marked as a test scan: compare visits, or unmark it "
+                f"first (lamina scans --unset-test {info.scan_id})"
+            )
     same = reference.subject == scan.subject and scan.subject != ANONYMOUS
     if not same and not other_subject:
         whose = (
