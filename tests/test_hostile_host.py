@@ -676,7 +676,11 @@ def test_resume_replaces_planted_links_and_never_writes_through_them(processed, 
         file.unlink()
         file.symlink_to(victim)
         victims[victim] = file
-    status, _, err = run(capsys, "scan", "--device", "sim", "--library", str(path), "--resume", "1")
+    resume = ["scan", "--device", "sim", "--library", str(path), "--resume", "1"]
+    status, said, err = run(capsys, *resume)  # complete: nothing is written (issue #24)
+    assert status == 0 and "is complete" in said, err
+    assert all(file.is_symlink() for file in victims.values())
+    status, _, err = run(capsys, *resume, "--reprocess")
     assert status == 0, err
     for victim, file in victims.items():
         assert victim.read_bytes() == b"precious"
