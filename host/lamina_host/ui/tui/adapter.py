@@ -123,13 +123,13 @@ def parse_plan(sections: str, pitch_mm: str, views: str) -> ScanPlan:
     Raises:
         UserError: a field is not a number or out of range (the command line's ranges).
     """
-    try:
-        n_sections = int(sections)
-        n_views = int(views)
-    except ValueError:
-        raise UserError(
-            f"sections ({sections!r}) and views ({views!r}) must be whole numbers"
-        ) from None
+    counts = []
+    for name, text in (("sections", sections), ("views", views)):
+        try:
+            counts.append(int(text))
+        except ValueError:  # the field that is wrong, alone (issue #24)
+            raise UserError(f"{name} {text!r} must be a whole number, e.g. 8") from None
+    n_sections, n_views = counts
     try:
         pitch = float(pitch_mm)
     except ValueError:
