@@ -6,8 +6,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lamina_host.reconstruct.axis import taubin_circle
 from lamina_host.reconstruct.calibration import CalibrationError
-from lamina_host.reconstruct.outliers import label_clusters
+from lamina_host.reconstruct.outliers import (
+    EXTENT_BIN_DEG,
+    MAX_EXTENT_POINTS,
+    angular_extent_deg,
+    label_clusters,
+)
 from lamina_host.reconstruct.outline_frame import OutlineFrame, outline_frame, unwrap_angles
 
 TWO_PI = 2.0 * np.pi
@@ -455,3 +461,91 @@ def split_outlines(
         pieces = [pts[mine & (owner == k)] for k in range(len(segs))]
         outlines.append([p for p in pieces if len(p)])
     return outlines
+
+
+ARC_COVERAGE = 0.75
+"""A cluster covering less of its own outline than this (about its fitted circle's
+centre) is an arc, which :func:`join_arcs` may join to another."""
+
+ARC_RADIUS_RATIO = 2.0
+"""Two arcs are one outline only if each arc's own circle is within this factor of the
+radius of the circle fitted to both: arcs of one body bend as the body does, while two
+fingers' arcs bend much tighter than a circle round both."""
+
+ARC_OVERLAP_BINS = 1
+"""Two arcs of one outline lie in different directions from their joint centre: they may
+share at most this many ``EXTENT_BIN_DEG`` bins (concentric arcs, a ring's inner and
+outer side, share many)."""
+
+
+def join_arcs(outlines: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
+    """Join the clusters that are arcs of one outline, split apart by unseen stretches.
+
+    A body no view saw all round (a limb's side in shadow, a stretch the stripe grazed)
+    falls apart into arcs further apart than the outline gap, and each would be fitted
+    as an outline of its own, open, where one outline was seen in pieces. Two arcs
+    (:data:`ARC_COVERAGE`) join when they bend like one circle (:data:`ARC_RADIUS_RATIO`)
+    and lie on different sides of it (:data:`ARC_OVERLAP_BINS`); pairs join closest ends
+    first, until no pair qualifies.
+
+    Args:
+        outlines: each outline's pieces (per-view runs, in stripe order).
+
+    Returns:
+        The outlines, joined ones as one, most points first.
+    """
+    groups = [list(o) for o in outlines]
+    while len(groups) > 1:
+        arcs = [_arc_circle(np.concatenate(g)) for g in groups]
+        best: tuple[float, int, int] | None = None
+        for i in range(len(groups)):
+            for j in range(i + 1, len(groups)):
+                gap = _one_outline_gap(groups[i], groups[j], arcs[i], arcs[j])
+                if gap is not None and (best is None or gap < best[0]):
+                    best = (gap, i, j)
+        if best is None:
+            break
+        _, i, j = best
+        groups[i] = groups[i] + groups[j]
+        del groups[j]
+    return sorted(groups, key=lambda g: -sum(len(p) for p in g))
+
+
+def _arc_circle(points: np.ndarray) -> float | None:
+    """Return the radius of an arc's own fitted circle, or None when it is no arc."""
+    if len(points) < 10:
+        return None
+    try:
+        _, _, r = taubin_circle(points[:: max(1, len(points) // MAX_EXTENT_POINTS)])
+    except CalibrationError:
+        return None
+    if angular_extent_deg(points) >= ARC_COVERAGE * 360.0 or not np.isfinite(r):
+        return None
+    return r
+
+
+def _one_outline_gap(
+    a: list[np.ndarray], b: list[np.ndarray], r_a: float | None, r_b: float | None
+) -> float | None:
+    """Return the distance between two arcs' nearest points if they are one outline's."""
+    if r_a is None or r_b is None:
+        return None
+    pa, pb = np.concatenate(a), np.concatenate(b)
+    both = np.concatenate([pa, pb])
+    try:
+        cx, cy, r = taubin_circle(both[:: max(1, len(both) // MAX_EXTENT_POINTS)])
+    except CalibrationError:
+        return None
+    if not all(1.0 / ARC_RADIUS_RATIO <= own / r <= ARC_RADIUS_RATIO for own in (r_a, r_b)):
+        return None
+    n_bins = int(360.0 / EXTENT_BIN_DEG)
+
+    def bins(p: np.ndarray) -> set[int]:
+        ang = np.arctan2(p[:, 1] - cy, p[:, 0] - cx)
+        return set(np.minimum(((ang + np.pi) / (2 * np.pi) * n_bins).astype(int), n_bins - 1))
+
+    if len(bins(pa) & bins(pb)) > ARC_OVERLAP_BINS:
+        return None
+    from scipy.spatial import cKDTree  # deferred: only sections of several arcs need it
+
+    return float(cKDTree(pa).query(pb)[0].min())

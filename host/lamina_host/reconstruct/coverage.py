@@ -18,7 +18,7 @@ import numpy as np
 from lamina_host.reconstruct.axis import taubin_circle
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.outliers import MAX_EXTENT_POINTS, group_range
-from lamina_host.reconstruct.outline_frame import OutlineFrame
+from lamina_host.reconstruct.outline_frame import OutlineFrame, unwrap_angles
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bins about the outline's centre; a bin with a measured point is covered."""
@@ -271,3 +271,55 @@ def bridge_gaps(points: np.ndarray, frame: OutlineFrame) -> np.ndarray:
     merged_t = np.concatenate([ang, bridged[:, 0]])
     merged = np.concatenate([pts, frame.to_xy(bridged[:, 0], bridged[:, 1])])
     return merged[np.argsort(merged_t, kind="stable")]
+
+
+def match_sides(points: np.ndarray, fill: np.ndarray, frame: OutlineFrame) -> np.ndarray:
+    """Return ``fill`` (curve samples inside an outline's unseen gaps) moved to meet its sides.
+
+    A neighbouring section's outline has this one's shape across the gap but not its
+    size: a limb narrows between sections. Each gap's run of fill samples is shifted
+    outwards by a ramp from the difference at the gap's one side to that at the other,
+    each side's offset from a parabola fitted to the measured points within
+    ``BRIDGE_SIDE_DEG`` of it (as :func:`bridge_gaps`), so the filled outline keeps the
+    neighbour's shape and joins its own measured stretches without a step.
+
+    Args:
+        points: (N, 2) measured points of the outline.
+        fill: (M, 2) curve samples inside its gaps.
+        frame: the outline's frame (``Coverage.frame``).
+
+    Returns:
+        (M, 2) the fill samples, shifted along the frame's offset.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    fill = np.asarray(fill, dtype=float).reshape(-1, 2)
+    if len(pts) < 4 or len(fill) < 2:
+        return fill
+    ang, rad = frame.to_local(pts)
+    f_ang, f_rad = frame.to_local(fill)
+    order = np.argsort(f_ang, kind="stable")
+    f_ang, f_rad = f_ang[order], f_rad[order]
+    # Runs of fill: a step wider than the fill's own spacing is measured outline between.
+    spacing = np.median(np.diff(f_ang)) if len(f_ang) > 2 else np.pi
+    cut = np.flatnonzero(np.diff(f_ang) > 4.0 * max(spacing, 1e-9)) + 1
+    runs = np.split(np.arange(len(f_ang)), cut)
+    if len(runs) > 1 and (f_ang[0] + 2.0 * np.pi - f_ang[-1]) <= 4.0 * max(spacing, 1e-9):
+        runs = [np.concatenate([runs[-1], runs[0]]), *runs[1:-1]]  # one run across +-pi
+    side = np.deg2rad(BRIDGE_SIDE_DEG)
+    shifted = f_rad.copy()
+    for run in runs:
+        t = unwrap_angles(f_ang[run])
+        start, end = t[0], t[-1]
+        rel = np.mod(ang - start + np.pi, 2.0 * np.pi) - np.pi  # <= 0 before the run
+        before = (rel < 0.0) & (rel >= -side)
+        rel_end = np.mod(ang - end + np.pi, 2.0 * np.pi) - np.pi  # >= 0 after it
+        after = (rel_end > 0.0) & (rel_end <= side)
+        if not before.any() or not after.any():
+            continue
+        d0 = _side(rel[before], rad[before])[0] - f_rad[run[0]]
+        d1 = _side(rel_end[after], rad[after])[0] - f_rad[run[-1]]
+        u = (t - start) / (end - start) if end > start else np.zeros(len(t))
+        shifted[run] = f_rad[run] + d0 + (d1 - d0) * u
+    out = np.empty_like(fill)
+    out[order] = frame.to_xy(f_ang, shifted)
+    return out

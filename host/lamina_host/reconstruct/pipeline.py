@@ -24,6 +24,7 @@ from lamina_host.reconstruct.assembly import (
     Blend,
     average_overlap_colours,
     blend_overlaps,
+    join_arcs,
     split_outlines,
     to_object_frame,
     trim,
@@ -42,6 +43,7 @@ from lamina_host.reconstruct.coverage import (
     MEASURED_TOLERANCE_MM,
     Coverage,
     bridge_gaps,
+    match_sides,
     measure_coverage,
 )
 from lamina_host.reconstruct.efd import (
@@ -647,6 +649,7 @@ def outline_groups(
     if options.reject_outliers:
         gap = options.split_gap_mm or DEFAULT_SPLIT_GAP_MM
         outlines, rejected = clean_section(parts, gap, rules)
+        outlines = join_arcs(outlines)
         if options.split_gap_mm is None and outlines:
             outlines = [[piece for outline in outlines for piece in outline]]
         return outlines, rejected
@@ -752,16 +755,22 @@ def fill_gap(section: Section, neighbours: list[Section], options: ProcessOption
     """Close a large unseen gap with the neighbouring sections' contour (z-interpolated).
 
     The neighbours' EFDs are interpolated to this height (``EfdStack``, thesis ref. [86]);
-    its samples inside the gap join the measured points and the outline is refitted.
+    its samples inside the gap, moved to meet the gap's measured sides
+    (``coverage.match_sides``), join the measured points and the outline is refitted.
     ``raw`` keeps the measured points only; the contour samples in the gap are flagged.
     """
     assert section.coverage is not None
     stack_ = EfdStack.from_sections([s.z_mm for s in neighbours], [s.efd for s in neighbours])
     predicted = stack_.section(section.z_mm).evaluate(GAP_FILL_SAMPLES)
-    fill = predicted[section.coverage.unseen(predicted)]
+    coverage = section.coverage
+    # Only what falls in the gaps: the neighbour's size differs, and where this outline
+    # was measured its own points say where it is.
+    fill = predicted[~coverage.covered[coverage.bins_of(predicted)]]
+    fill = match_sides(section.raw, fill, coverage.frame)
     merged = np.concatenate([section.raw, fill])
     merged = merged[np.argsort(section.coverage.frame.to_local(merged)[0], kind="stable")]
-    efd = fit_outline(merged, options)
+    # The order the outline's own points chose (the filled curve adds no detail to judge).
+    efd = fit_outline(merged, replace(options, harmonics=options.harmonics or section.harmonics))
     contour = contour_samples(efd, options)
     estimated = section.coverage.unseen(contour)
     return replace(
