@@ -11,6 +11,7 @@ the file system's); anything else is a bug and is logged.
 
 from __future__ import annotations
 
+import re
 import sqlite3
 from contextlib import suppress
 from dataclasses import replace
@@ -21,8 +22,10 @@ from lamina_host.link.errors import DeviceError
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.pipeline import ProcessOptions
 from lamina_host.store.files import disk_full
+from lamina_host.store.library import SIDES
 from lamina_host.store.subjects import check_subject as check_subject_code
 from lamina_host.workflow import check_plan
+from lamina_host.workflow.checks import PlanPreset, check_preset_fits
 from lamina_host.workflow.job import (
     EXPORT_NAMES,
     TRIM_FRACTION,
@@ -43,9 +46,11 @@ from lamina_host.workflow.results import (
     section_rows,
     volume_mm3,
 )
+from lamina_shared.device_specs import SIM
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.link import LinkClosed
-from lamina_shared.messages import Progress
+from lamina_shared.messages import Progress, Welcome
+from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.types import ScanPlan, Segment
 
 # pymeshlab (the optional extra) must be first imported on the main thread: when its first
@@ -95,8 +100,40 @@ USER_ERRORS: tuple[type[Exception], ...] = (LaminaError, sqlite3.Error, OSError)
 and the library's and the file system's (not bugs of Lamina)."""
 
 
+SCREEN_WORDS: tuple[tuple[re.Pattern[str], str], ...] = tuple(
+    (re.compile(pattern), words)
+    for pattern, words in (
+        (r"or use --device sim", "or pick sim in the port list"),
+        (r"pass --cylinder-mm", "give its diameter in the device's configuration"),
+        (r"the simulator without --noise harsh", "the simulator's thesis camera"),
+        (
+            r"finish it with lamina scan --resume (\d+)( --device \S+)?",
+            r"finish it: connect, open scan \1 in the Library (F7) and press p on the Scan screen",
+        ),
+        (
+            r"process it again with lamina process (\d+) \[options\] "
+            r"\(or p on the terminal UI's Library screen\)",
+            r"process it again: p on the Library screen (F7)",
+        ),
+    )
+)
+"""Advice the workflow words for the command line, and what the screens say instead: a
+screen never tells its user to type a command-line option."""
+
+
+def screen_words(message: str) -> str:
+    """Return ``message`` with command-line advice put in the words of the screens."""
+    for pattern, words in SCREEN_WORDS:
+        message = pattern.sub(words, message)
+    return message
+
+
 def user_message(exc: BaseException) -> str:
     """Return the one line the UI shows for an error a worker caught."""
+    return screen_words(_message(exc))
+
+
+def _message(exc: BaseException) -> str:
     if isinstance(exc, LinkClosed):
         return f"the link to the device broke ({exc}); check the cable, then reconnect (c)"
     if isinstance(exc, OSError) and not isinstance(exc, DeviceError):
@@ -123,25 +160,36 @@ def parse_plan(sections: str, pitch_mm: str, views: str) -> ScanPlan:
     Raises:
         UserError: a field is not a number or out of range (the command line's ranges).
     """
-    try:
-        n_sections = int(sections)
-        n_views = int(views)
-    except ValueError:
-        raise UserError(
-            f"sections ({sections!r}) and views ({views!r}) must be whole numbers"
-        ) from None
+    n_sections = _whole(sections, "Sections", "e.g. 10")
     try:
         pitch = float(pitch_mm)
     except ValueError:
-        raise UserError(f"pitch {pitch_mm!r} must be a number of mm, e.g. 2") from None
+        raise UserError(_typed("Pitch mm", pitch_mm, "a number of mm, e.g. 2")) from None
+    n_views = _whole(views, "Views", "e.g. 8")
     return check_plan(n_sections, pitch, n_views)
+
+
+def _typed(field: str, text: str, wanted: str) -> str:
+    """Return the line refusing what was typed into ``field`` (named as the screen does)."""
+    shown = repr(text.strip()) if text.strip() else "empty"
+    return f"{field} is {shown}: enter {wanted}"
+
+
+def _whole(text: str, field: str, example: str) -> int:
+    """Return the whole number typed into ``field``, or refuse naming that field alone."""
+    try:
+        return int(text)
+    except ValueError:
+        raise UserError(_typed(field, text, f"a whole number, {example}")) from None
 
 
 def check_subject(subject_id: str) -> str:
     """Return the typed subject code (spaces around it dropped) or raise :class:`UserError`."""
     text = subject_id.strip()
     if not text:
-        raise UserError("enter a subject id before scanning (letters, digits, - and _)")
+        raise UserError(
+            "Subject is empty: enter a subject id before scanning (letters, digits, - and _)"
+        )
     return check_subject_code(text)
 
 
@@ -153,18 +201,50 @@ def scan_object(
     on_progress: ProgressHandler | None = None,
     on_notice: NoticeHandler | None = None,
     colour: bool = False,
+    side: str = SIDES[0],
+    preset: PlanPreset | None = None,
 ) -> list[Segment]:
-    """Start scanning the subject along ``plan`` (with each point's colour if asked).
+    """Start scanning the subject's ``side`` along ``plan`` (with each point's colour if asked).
 
     The UI calibrates before it scans (the live plot needs the axis); the received views
-    stay in the job's acquisition for a resume after an abort or a drop.
+    stay in the job's acquisition for a resume after an abort or a drop. A ``preset`` is
+    refused before anything is recorded when its kind of object is wider than the view.
     """
-    request = ScanRequest(check_subject(subject_id), plan, colour=colour)
+    request = ScanRequest(check_subject(subject_id), plan, colour=colour, side=side)
     if job.acquisition.axis is None:
         raise UserError("scan the calibration cylinder first (Calibrate screen, F4)")
+    if preset is not None:
+        check_preset_fits(preset, job.acquisition.field_radius_mm())
     job.device.set_colour(colour)  # before the scan's identity is recorded
     job.acquisition.create(request)
     return job.acquisition.fetch_object(on_segment, on_progress, on_notice)
+
+
+def is_simulated(job: ScanJob) -> bool:
+    """Return True when the job's device is the simulator (its rig is a choice)."""
+    return job.device.name == SIM
+
+
+def choose_rig(job: ScanJob, rig: str) -> Welcome | None:
+    """Use the simulated rig ``rig`` from now on; a connected simulator starts again with it.
+
+    The calibration belongs to the rig it was made on, so it is forgotten.
+
+    Returns:
+        The restarted simulator's information (None when not connected).
+
+    Raises:
+        UserError: not the simulator (a scanner is its own rig), or an unknown rig.
+    """
+    if rig not in RIG_PRESETS:
+        raise UserError(f"Rig {rig!r} is not one of {', '.join(RIG_PRESETS)}")
+    if not is_simulated(job):
+        raise UserError("Rig: a scanner is its own rig; only the simulator offers a choice")
+    job.device.target = replace(job.device.target, rig=rig)
+    acquisition = job.acquisition
+    acquisition.grid, acquisition.grid_accepted, acquisition.axis = None, False, None
+    acquisition.calibrated_by = None
+    return job.connect() if job.device.connected else None
 
 
 def process(
