@@ -14,10 +14,13 @@ from __future__ import annotations
 import re
 import sqlite3
 from contextlib import suppress
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import serial.tools.list_ports
 
+from lamina_host.clinical.measures import COMPARISONS
+from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
 from lamina_host.link.errors import DeviceError
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.pipeline import ProcessOptions
@@ -26,6 +29,7 @@ from lamina_host.store.library import SIDES
 from lamina_host.store.subjects import check_subject as check_subject_code
 from lamina_host.workflow import check_plan
 from lamina_host.workflow.checks import PlanPreset, check_preset_fits
+from lamina_host.workflow.exports import export_scan
 from lamina_host.workflow.job import (
     EXPORT_NAMES,
     TRIM_FRACTION,
@@ -267,3 +271,94 @@ def process(
     if problem := options.problem(FIELD_NAMES, FIELD_HINTS):
         raise UserError(problem)
     return job.processing.process_scan(options)
+
+
+@dataclass(frozen=True)
+class CompareChoice:
+    """A scan the open one may be compared with, as the Results screen offers it.
+
+    Attributes:
+        scan_id: the library scan compared with.
+        kind: ``limbs`` (the other limb: the excess) or ``visits`` (an earlier visit of the
+            same side: the change).
+        label: the choice in words (side, scan and date).
+    """
+
+    scan_id: int
+    kind: str
+    label: str
+
+
+def compare_choices(job: ScanJob) -> list[CompareChoice]:
+    """Return what the open scan may be compared with: the other limb's latest scan first,
+    then the same subject's other visits of its side, newest first (processed scans only).
+
+    None when no scan is open; an unreadable library gives none either (the screen still
+    measures the scan itself).
+    """
+    scan_id = job.scan_id
+    if scan_id is None:
+        return []
+    library = job.store.library()
+    record = library.scan(scan_id)
+    others = [
+        s
+        for s in library.scans()
+        if s.subject == record.subject and s.id != scan_id and s.has_result
+    ]
+    choices = []
+    opposite = {"left": "right", "right": "left"}.get(record.side)
+    limbs = [s for s in others if s.side == opposite]
+    if limbs:
+        latest = max(limbs, key=lambda s: (s.created, s.id))
+        choices.append(
+            CompareChoice(
+                latest.id,
+                COMPARISONS[0],
+                f"other limb ({latest.side}): scan {latest.id}, {latest.created[:10]}",
+            )
+        )
+    for visit in sorted(others, key=lambda s: (s.created, s.id), reverse=True):
+        if visit.side == record.side:
+            choices.append(
+                CompareChoice(
+                    visit.id, COMPARISONS[1], f"visit: scan {visit.id}, {visit.created[:10]}"
+                )
+            )
+    return choices
+
+
+REPORT_NAMES = ("report.pdf", "measures.csv", "scan.dcm")
+"""What an export from the Results screen adds to :data:`EXPORT_NAMES`: the clinical report,
+its table and the DICOM object."""
+
+
+def export_all(
+    job: ScanJob,
+    folder: Path,
+    request: MeasureRequest | None = None,
+    compare_with: CompareChoice | None = None,
+) -> list[Path]:
+    """Export the open, processed scan into a new (or empty) folder: mesh, JSON report, the
+    clinical report (PDF) and its table (CSV) with the comparison chosen, and the DICOM file.
+
+    The measurement is made first, so a comparison that cannot be made is refused before
+    anything is written.
+
+    Raises:
+        InputError: nothing processed, the folder is not new or empty, or the comparison
+            cannot be made (the one line says why).
+    """
+    scan_id = job.scan_id
+    if job.processing.results is None or scan_id is None:
+        raise UserError("process the scan first (p on the Results screen)")
+    library = job.store.library()
+    reference, kind = (None, COMPARISONS[0]) if compare_with is None else (
+        compare_with.scan_id, compare_with.kind
+    )  # fmt: skip
+    data = build_report_data(library, scan_id, request or MeasureRequest(), reference, kind)
+    paths = job.processing.export(folder)
+    pdf, table, dicom = (folder / name for name in REPORT_NAMES)
+    paths += [write_report(pdf, data), write_report(table, data)]
+    paths.append(export_scan(library, scan_id, dicom))
+    return paths

@@ -12,10 +12,11 @@ from rich.text import Text
 from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
 from textual.containers import Container
+from textual.content import Content
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
-from textual.widgets import Footer, Input, Markdown, Static
+from textual.widgets import Checkbox, Footer, Input, Markdown, Static
 from textual.worker import get_current_worker
 
 from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
@@ -99,6 +100,15 @@ class FrameView(Widget):
         size = self.content_size
         grid = cell_grid(self.image, max(size.width, 1), max(size.height, 1), self.stripe_uv)
         return grid_text(grid)
+
+
+class TickBox(Checkbox):
+    """A checkbox that shows a tick only when ticked (Textual's shows a dim X either way)."""
+
+    @property
+    def _button(self) -> Content:
+        self.BUTTON_INNER = "X" if self.value else " "
+        return super()._button
 
 
 HELP_TEXT = """\
