@@ -129,7 +129,7 @@ def test_browser_connects_scans_and_shows_results(ui_url: str) -> None:
             screen.press("g")
             screen.wait_for("corners")
             screen.press("a", "y")
-            screen.wait_for("correction within 5% of 1: good")
+            screen.wait_for("PASS: correction within 5% of 1")
             screen.press("F5")
             screen.wait_for("Subject")
             page.keyboard.type("WEB1")

@@ -9,9 +9,10 @@ from typing import ClassVar, TypeVar
 
 import numpy as np
 from rich.text import Text
+from textual import events
 from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
-from textual.containers import Container
+from textual.containers import Container, VerticalScroll
 from textual.content import Content
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
@@ -58,8 +59,25 @@ class JobApp(App[None]):
         self.job = job
 
 
+NAV_TITLE = " Lamina "
+
+
+def nav_spans() -> list[tuple[int, int, str]]:
+    """Return (first column, end column, mode) of each screen's name in the top bar."""
+    spans, x = [], len(NAV_TITLE)
+    for mode, key, title in SCREENS:
+        width = len(f" {key.upper()} {title} ")
+        spans.append((x, x + width, mode))
+        x += width
+    return spans
+
+
 class NavBar(Static):
-    """One line naming every screen and its key, the current one highlighted."""
+    """One line naming every screen and its key, the current one highlighted.
+
+    A click (or a tap in the browser) on a screen's name shows that screen: a tablet has
+    no F-keys.
+    """
 
     def __init__(self, current: str) -> None:
         super().__init__(id="nav")
@@ -67,11 +85,18 @@ class NavBar(Static):
 
     def render(self) -> RenderResult:
         """Draw the screen list."""
-        text = Text(" Lamina ", style="bold")
+        text = Text(NAV_TITLE, style="bold")
         for mode, key, title in SCREENS:
             style = "reverse bold" if mode == self.current else ""
             text.append(f" {key.upper()} {title} ", style=style)
         return text
+
+    def on_click(self, event: events.Click) -> None:
+        """Show the screen whose name was clicked."""
+        for first, end, mode in nav_spans():
+            if first <= event.x < end:
+                self.app.switch_mode(mode)
+                return
 
 
 class StatusLine(Static):
@@ -114,25 +139,47 @@ class TickBox(Checkbox):
 HELP_TEXT = """\
 # Lamina: keys and workflow
 
-Everything works from the keyboard. **F2-F7** switch screens, **Tab** moves between
-fields and buttons, **Enter** presses a button, **Escape** leaves a field,
-**Ctrl+P** opens the command palette, **Ctrl+Q** quits.
+Everything works from the keyboard, and by mouse or touch: **click or tap** a screen's
+name in the top bar, a key in the footer, a button or a field. **F2-F7** switch screens,
+**Tab** moves between fields and buttons, **Enter** presses a button, **Escape** leaves a
+field, **Ctrl+P** opens the command palette, **Ctrl+Q** quits. This help scrolls:
+**arrows**, **Page Up/Down**, the mouse wheel or a swipe.
 
-1. **Connect (F2)**: choose a port (or `sim`, `replay:DIR`) and press **c**.
-2. **Live (F3)**: **g** grabs a frame, **l** switches the laser, arrows jog the
-   turntable and the lift, **h** homes; the last scanned stripe is drawn in red.
-3. **Calibrate (F4)**: **g** captures the chessboard (corners, residuals in mm);
-   **a** accepts, **x** rejects; **y** scans the calibration cylinder (axis and
-   correction factor; more than 5% from 1 is flagged).
-4. **Scan (F5)**: enter the subject id and plan, **s** starts; **p** pauses or
-   resumes, **b** aborts (views already received are kept); **r** reconnects a
-   dropped link.
-5. **Results (F6)**: **p** processes again with the chosen harmonics and mesh
-   method; **e** exports PLY, OBJ, STL and the report into the folder given.
-6. **Library (F7)**: past scans; **o** opens one, **e** exports, **d** deletes
-   (asks first).
+1. **Connect (F2)**: pick a port in the list (or `sim`, the simulated scanner) and press
+   **c** (or type a device and press Enter); **d** disconnects, **l** lists the ports again.
+2. **Live (F3)**: **g** grabs a frame, **l** switches the laser, the arrows turn the
+   turntable and move the lift, **h** homes, **+** and **-** change the exposure; the
+   last scanned stripe is drawn in red.
+3. **Calibrate (F4)**: place the chessboard flat on the laser plane and press **g**: the
+   picture shows what the camera sees, the corners found in red, and whether the residual
+   passes its limit; **a** accepts, **x** rejects. Then place the calibration cylinder
+   upright on the turntable and press **y**: the axis and the correction factor (more than
+   5% from 1 fails).
+4. **Scan (F5)**: type the **Subject** code (never a name), choose the **Side** (left,
+   right, or none for what is not a limb) and the **Plan**: a preset named for what it
+   scans (arm, leg, hand, cast), cut to the lift's travel, or your own numbers
+   (sections, pitch, views). The **Rig** is the simulator's (thesis or limb; choosing one
+   starts it again, so calibrate again) or the scanner's own. **s** starts: the first view
+   is checked against the camera's view before any other is taken; the time left counts
+   down. **p** pauses or resumes, **b** aborts (views received are kept), **r** reconnects
+   a dropped link.
+5. **Results (F6)**: **p** processes again with the harmonics and mesh method chosen; **m**
+   opens the clinical view; **Compare** picks the other limb's latest scan or an earlier
+   visit of the same side; **e** exports into the new folder typed: the mesh (PLY, OBJ,
+   STL), report.json, the clinical report report.pdf, its table measures.csv and the
+   DICOM file scan.dcm.
+6. **Clinical view (m on Results)**: circumferences every **Spacing mm** from the
+   **Landmark** (distal, bottom, top or a height in mm); **k** puts the landmark at the
+   row picked on Results; with a comparison, each level's difference and the excess or
+   change in mL and %; **Escape** closes it. The exported report measures the same way.
+7. **Library (F7)**: past scans with their side; **/** filters by subject code; **o** opens
+   one, **p** processes it again, **e** exports it, **d** deletes it (asks first), **u**
+   reads the list again.
 
-Press **Escape** to close this help.
+In a browser (`lamina serve-ui`), everything above works by tap: the top bar's names
+switch screens, the footer's keys run, and a tap in a field brings up the keyboard.
+
+Press **Escape** (or tap *Close help*) to close this help.
 """
 
 
@@ -141,13 +188,22 @@ class HelpScreen(ModalScreen[None]):
 
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("escape,f1,q", "dismiss", "Close help"),
+        Binding("down", "scroll('down')", "Scroll", key_display="↑↓"),
+        Binding("up", "scroll('up')", "Scroll up", show=False),
+        Binding("pagedown,space", "scroll('page_down')", "Page down", show=False),
+        Binding("pageup", "scroll('page_up')", "Page up", show=False),
     ]
 
     def compose(self) -> ComposeResult:
-        """Lay out the help text."""
-        with Container(id="help"):
+        """Lay out the help text in a scrolling box."""
+        with VerticalScroll(id="help"):
             yield Markdown(HELP_TEXT)
-        yield Footer()
+        yield Footer(compact=True, show_command_palette=False)
+
+    def action_scroll(self, how: str) -> None:
+        """Scroll the help: ``up``, ``down``, ``page_up`` or ``page_down``."""
+        box = self.query_one("#help", VerticalScroll)
+        getattr(box, f"scroll_{how}")()
 
 
 class LaminaScreen(Screen[None]):
@@ -161,7 +217,8 @@ class LaminaScreen(Screen[None]):
         with Container(classes="body"):
             yield from self.body()
         yield StatusLine(id="status")
-        yield Footer()
+        # Compact, without the palette's key (Ctrl+P, in the help): every key fits at 80.
+        yield Footer(compact=True, show_command_palette=False)
 
     def body(self) -> ComposeResult:
         """Yield this screen's own widgets."""

@@ -33,7 +33,7 @@ from lamina_host.ui.tui.widgets import LaminaScreen
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
 
-COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
+COLUMNS = ("sec", "z mm", "pts", "cov %", "closed", "perim mm", "area mm2", "round", "harm")
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
 the circumference the views saw; closed says how: measured all round, bridged (small gaps
 closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
