@@ -66,8 +66,10 @@ class LaminaApp(JobApp):
         library: Path | None = None,
         object_spec: str | None = None,
         noise: str = "thesis",
+        rig: str = "thesis",
     ) -> None:
-        super().__init__(ScanJob(DeviceTarget(device, object_spec, noise=noise), library))
+        target = DeviceTarget(device, object_spec, noise=noise, rig=rig)
+        super().__init__(ScanJob(target, library))
 
     def action_help(self) -> None:
         """Show the keys and the workflow."""
