@@ -149,17 +149,9 @@ def test_no_chessboard_in_view_stops_before_anything_is_acquired(capture, tmp_pa
     shutil.copytree(capture, broken)
     cv2.imwrite(str(broken / "calib/grid.png"), np.full((480, 640), 30, np.uint8))
     library = tmp_path / "library.sqlite"
-    message = one_line_error(
-        lamina(
-            "scan",
-            "--device",
-            f"replay:{broken}",
-            "-o",
-            str(tmp_path / "out"),
-            "--library",
-            str(library),
-        )  # fmt: skip
-    )
+    out = tmp_path / "out"
+    args = ["--device", f"replay:{broken}", "-o", str(out), "--library", str(library)]
+    message = one_line_error(lamina("scan", *args))
     assert "no chessboard" in message
     assert not (tmp_path / "out" / "segments.npz").exists()
     assert not (tmp_path / "out" / "cylinder-segments.npz").exists()

@@ -81,7 +81,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         area_mm2 = math.pi * RADIUS_MM**2
         assert all(abs(r.area_mm2 - area_mm2) / area_mm2 < 0.02 for r in results.rows)
         summary = text_of(app, "#summary")
-        assert f"volume {results.volume_mm3 / 1000:.1f} mL ({results.volume_mm3:.0f} mm3)" in summary
+        volume = results.volume_mm3
+        assert f"volume {volume / 1000:.1f} mL ({volume:.0f} mm3)" in summary
         assert [s.area_mm2 for s in results.report.sections if isinstance(s, OutlineEntry)] == [
             r.area_mm2 for r in results.rows
         ]

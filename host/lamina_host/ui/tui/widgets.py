@@ -224,6 +224,12 @@ class LaminaScreen(Screen[None]):
         """Yield this screen's own widgets."""
         yield from ()
 
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        """Offer "leave field" (Escape) only while a text field has the keys."""
+        if action == "leave_field":
+            return isinstance(self.focused, Input)
+        return True
+
     @property
     def lamina(self) -> JobApp:
         """Return the app this screen belongs to (every Lamina screen runs in a JobApp)."""

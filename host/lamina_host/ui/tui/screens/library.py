@@ -36,7 +36,7 @@ class LibraryScreen(LaminaScreen):
         Binding("d", "delete", "Delete"),
         Binding("u", "reload", "Update"),
         Binding("slash", "filter", "Filter"),
-        Binding("escape", "leave_field", "Leave field", show=False),
+        Binding("escape", "leave_field", "Leave field"),
     ]
 
     def __init__(self) -> None:

@@ -122,7 +122,7 @@ class ResultsScreen(LaminaScreen):
         Binding("p", "process", "Process"),
         Binding("m", "clinical", "Measure"),
         Binding("e", "export", "Export"),
-        Binding("escape", "leave_field", "Leave field", show=False),
+        Binding("escape", "leave_field", "Leave field"),
     ]
 
     def __init__(self) -> None:

@@ -86,7 +86,7 @@ class ScanScreen(LaminaScreen):
         Binding("p", "pause", "Pause/resume"),
         Binding("b", "abort", "Abort"),
         Binding("r", "reconnect", "Reconnect"),
-        Binding("escape", "leave_field", "Leave field", show=False),
+        Binding("escape", "leave_field", "Leave field"),
     ]
 
     def __init__(self) -> None:
