@@ -1,8 +1,10 @@
-"""The terminal UI in a real browser (issue 14): ``lamina serve-ui`` and headless chromium.
+"""The terminal UI in a real browser (issues 14, 24): ``lamina serve-ui`` and headless chromium.
 
 Debian's chromium runs headless under playwright (no browser is downloaded). The page is
 textual-serve's xterm.js terminal, drawn on a canvas; the test reads what xterm.js holds
-on its screen (its buffer, the text the canvas shows) and types keys as a user would.
+on its screen (its buffer, the text the canvas shows) and taps what a tablet user taps
+(touch emulation: a tablet has no F-keys), typing only into fields. Every request the
+page makes is recorded: none may leave the box.
 """
 
 from __future__ import annotations
@@ -17,9 +19,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 from drive import wait_for_text
+
+from lamina_host.store.library import Library
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(
@@ -45,6 +50,11 @@ SCREEN_JS = """() => {
         lines.push(line ? line.translateToString(true) : "");
     }
     return lines.join("\\n");
+}"""
+CELLS_JS = """() => {
+    const term = window.__laminaTerminal;
+    const box = term.element.querySelector(".xterm-screen").getBoundingClientRect();
+    return [box.left, box.top, box.width / term.cols, box.height / term.rows];
 }"""
 RADIUS_MM = 19.05 / 2
 """The simulated device's default object: the thesis's calibration cylinder."""
@@ -99,6 +109,19 @@ class Screen:
         for key in keys:
             self.page.keyboard.press(key)
 
+    def tap(self, text: str, row: str | None = None, below: int = -1) -> int:
+        """Tap the first ``text`` on the screen (the last one on the line holding ``row``, if
+        given) on a line below ``below``; return the line tapped."""
+        left, top, width, height = self.page.evaluate(CELLS_JS)
+        for y, line in enumerate(self.text().splitlines()):
+            if y <= below or text not in line or (row is not None and row not in line):
+                continue
+            x = line.rindex(text) if row is not None else line.index(text)
+            centre_x = left + (x + len(text) / 2) * width
+            self.page.touchscreen.tap(centre_x, top + (y + 0.5) * height)
+            return y
+        raise AssertionError(f"{text!r} is not on the screen:\n{self.text()}")
+
 
 def expose_terminal(route: Any) -> None:
     """Serve textual-serve's script with its terminal reachable as window.__laminaTerminal."""
@@ -110,37 +133,54 @@ def expose_terminal(route: Any) -> None:
     route.fulfill(response=response, body=script)
 
 
-def test_browser_connects_scans_and_shows_results(ui_url: str) -> None:
-    """Open the page, see Connect, connect to sim, calibrate, scan, process: the table."""
+def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
+    ui_url: str, tmp_path: Path
+) -> None:
+    """By taps alone: connect to sim, calibrate, scan (subject typed, side tapped), process,
+    export; the table's figures are the cylinder's, and every request stays on 127.0.0.1."""
     sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
+    out = tmp_path / "export"
+    requests: list[str] = []
     with sync_api.sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            context = browser.new_context(
+                viewport={"width": 1180, "height": 820}, has_touch=True, is_mobile=True
+            )
+            page = context.new_page()
+            page.on("request", lambda request: requests.append(request.url))
             page.route("**/static/js/textual.js", expose_terminal)
             page.goto(ui_url)
             screen = Screen(page)
             assert "Connect" in screen.wait_for("F2 Connect")
-            page.locator(".xterm-helper-textarea").focus()
-            screen.press("c")
+            screen.tap("Connect", row="Device")  # the button beside the device field
             screen.wait_for("connected to sim: lamina-device")
-            screen.press("F4")
-            screen.wait_for("Chessboard")
-            screen.press("g")
-            screen.wait_for("corners")
-            screen.press("a", "y")
+            screen.tap("F4 Calibrate")
+            screen.wait_for("1. Chessboard")
+            screen.tap("Capture")
+            screen.wait_for("143 corners")
+            screen.tap("Accept")
+            screen.wait_for("accepted")
+            screen.tap("Scan cylinder")
             screen.wait_for("PASS: correction within 5% of 1")
-            screen.press("F5")
+            screen.tap("F5 Scan")
             screen.wait_for("Subject")
+            screen.tap("e.g. P-0042")  # the field: a tablet's keyboard comes up
             page.keyboard.type("WEB1")
-            screen.press("Escape")
-            time.sleep(0.5)  # Escape then "s" must not read as Alt+S
-            screen.press("s")
+            side = screen.tap("none: not a limb")
+            screen.wait_for("right")
+            screen.tap("left", below=side)
+            screen.wait_for("Side left")
+            screen.tap("Start", row="Rig")
             screen.wait_for("scan complete", timeout_s=180)
-            screen.press("F6")
+            screen.tap("F6 Results")
             screen.wait_for("perim mm")
-            screen.press("p")
+            screen.tap("Process", row="Mesh")
             table = screen.wait_for("measured", timeout_s=180)
+            screen.tap("a new folder")
+            page.keyboard.type(str(out))
+            screen.tap("Export", row="Export to")
+            screen.wait_for("exported to", timeout_s=120)
         finally:
             browser.close()
     rows = [line.split() for line in table.splitlines() if "measured" in line]
@@ -149,3 +189,8 @@ def test_browser_connects_scans_and_shows_results(ui_url: str) -> None:
         perimeter_mm, area_mm2 = float(row[5]), float(row[6])
         assert perimeter_mm == pytest.approx(2 * math.pi * RADIUS_MM, abs=0.2)
         assert area_mm2 == pytest.approx(math.pi * RADIUS_MM**2, abs=2.0)
+    assert (out / "report.pdf").read_bytes().startswith(b"%PDF")
+    with Library(tmp_path / "library.sqlite") as library:  # the ui_url fixture's library
+        (scan,) = library.scans()
+    assert (scan.subject, scan.side, scan.has_result) == ("WEB1", "left", True)
+    assert requests and all(urlsplit(url).hostname == "127.0.0.1" for url in requests), requests
