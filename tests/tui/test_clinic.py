@@ -27,6 +27,7 @@ from lamina_host.store.library import Library
 from lamina_host.ui.tui.adapter import (
     DeviceTarget,
     ScanJob,
+    choose_rig,
     parse_plan,
     process,
     scan_object,
@@ -299,3 +300,46 @@ async def _progress_lines(pilot: Pilot, screen: ScanScreen) -> list[str]:
             shown.append(text)
         await pilot.pause(0.05)
     return shown
+
+
+def test_choosing_a_rig_forgets_the_calibration_and_is_the_simulators_alone(
+    tmp_path: Path,
+) -> None:
+    """The Rig field: the simulator's next connection uses it, the calibration made on the
+    other rig is forgotten; a scanner (not the simulator) is its own rig."""
+    job = ScanJob(DeviceTarget("sim"), tmp_path / "library.sqlite")
+    job.acquisition.axis = object()  # type: ignore[assignment]  # as if calibrated
+    job.acquisition.grid_accepted = True
+    assert choose_rig(job, "limb") is None  # not connected: nothing restarts
+    assert job.device.target.rig == "limb"
+    assert job.acquisition.axis is None and not job.acquisition.grid_accepted
+    with pytest.raises(InputError, match="Rig 'huge' is not one of thesis, limb"):
+        choose_rig(job, "huge")
+    port = ScanJob(DeviceTarget("/dev/ttyACM0"), tmp_path / "library.sqlite")
+    with pytest.raises(InputError, match="a scanner is its own rig"):
+        choose_rig(port, "limb")
+
+
+async def test_questions_are_answered_by_touch(scanned_library: Path, tmp_path: Path) -> None:
+    """A tablet has no y, n, Enter or Escape: the Library's questions have buttons."""
+    library = tmp_path / "library.sqlite"
+    shutil.copyfile(scanned_library, library)
+    app = LaminaApp("sim", library)
+    async with app.run_test(size=SIZE) as pilot:
+        await pilot.press("f7")
+        table = app.screen.query_one("#scans", DataTable)
+        await wait_for(pilot, lambda: table.row_count == 1, "the scan list")
+        await pilot.press("d")
+        await wait_for(pilot, lambda: bool(app.screen.query("#no")), "the question")
+        await pilot.click("#no")
+        await wait_for(pilot, lambda: "kept" in app.status[0], "the answer")
+        await pilot.press("e")
+        await wait_for(pilot, lambda: bool(app.screen.query("#answer")), "the question")
+        app.screen.query_one("#answer", Input).value = str(tmp_path / "out")
+        await pilot.click("#ok")
+        await wait_for(pilot, lambda: "exported scan 1" in app.status[0], "the export")
+        assert (tmp_path / "out" / "mesh.stl").is_file()
+        await pilot.press("d")
+        await wait_for(pilot, lambda: bool(app.screen.query("#yes")), "the question")
+        await pilot.click("#yes")
+        await wait_for(pilot, lambda: "deleted" in app.status[0], "the deletion")

@@ -86,8 +86,8 @@ def test_time_left_uses_this_runs_rate() -> None:
 @pytest.mark.parametrize(
     ("fields", "message"),
     [
-        (("x", "2", "8"), "sections ('x') and views ('8') must be whole numbers"),
-        (("2", "two", "8"), "pitch 'two' must be a number of mm"),
+        (("x", "2", "8"), "Sections is 'x': enter a whole number"),
+        (("2", "two", "8"), "Pitch mm is 'two': enter a number of mm"),
         (("2", "nan", "8"), "pitch nan mm must be above 0"),
         (("501", "2", "8"), "sections 501 must be between 1 and 500"),
     ],

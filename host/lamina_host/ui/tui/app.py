@@ -71,10 +71,15 @@ class LaminaApp(JobApp):
         target = DeviceTarget(device, object_spec, noise=noise, rig=rig)
         super().__init__(ScanJob(target, library))
 
+    def on_mount(self) -> None:
+        """Install the help once: laid out on first use, it then opens at once, even during a
+        scan (its text is long)."""
+        self.install_screen(HelpScreen(), "help")
+
     def action_help(self) -> None:
         """Show the keys and the workflow."""
         if not isinstance(self.screen, HelpScreen):
-            self.push_screen(HelpScreen())
+            self.push_screen("help")
 
     def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
         """Offer every screen and the help in the command palette."""

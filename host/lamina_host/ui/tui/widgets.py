@@ -12,12 +12,12 @@ from rich.text import Text
 from textual import events
 from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
-from textual.containers import Container, VerticalScroll
+from textual.containers import Container, Horizontal, VerticalScroll
 from textual.content import Content
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
-from textual.widgets import Checkbox, Footer, Input, Markdown, Static
+from textual.widgets import Button, Checkbox, Footer, Input, Markdown, Static
 from textual.worker import get_current_worker
 
 from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
@@ -310,6 +310,7 @@ class LaminaScreen(Screen[None]):
 class ConfirmScreen(ModalScreen[bool]):
     """Ask a yes/no question; y confirms, n or Escape cancels."""
 
+    AUTO_FOCUS = "#no"  # Enter on a question about deleting must not say yes
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("y", "answer(True)", "Yes"),
         Binding("n,escape", "answer(False)", "No"),
@@ -320,10 +321,17 @@ class ConfirmScreen(ModalScreen[bool]):
         self.question = question
 
     def compose(self) -> ComposeResult:
-        """The question and the two keys."""
+        """The question, the two keys and their buttons (a tablet has no keys to press)."""
         with Container(classes="dialog"):
             yield Static(self.question)
             yield Static("y: yes    n: no", classes="dim")
+            with Horizontal(classes="buttons"):
+                yield Button("Yes", id="yes", variant="error", compact=True)
+                yield Button("No", id="no", compact=True)
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        """Answer with the button pressed."""
+        self.dismiss(event.button.id == "yes")
 
     def action_answer(self, yes: bool) -> None:
         """Close with the answer."""
@@ -341,14 +349,22 @@ class AskScreen(ModalScreen[str | None]):
         self.placeholder = placeholder
 
     def compose(self) -> ComposeResult:
-        """The question and the field."""
+        """The question, the field and the buttons (a tablet has no Enter or Escape key)."""
         with Container(classes="dialog"):
             yield Static(self.question)
             yield Input(placeholder=self.placeholder, id="answer", compact=True)
+            with Horizontal(classes="buttons"):
+                yield Button("OK", id="ok", variant="primary", compact=True)
+                yield Button("Cancel", id="cancel", compact=True)
 
     def on_input_submitted(self, event: Input.Submitted) -> None:
         """Answer with the text typed."""
         self.dismiss(event.value.strip() or None)
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        """Answer with the text typed (OK) or nothing (Cancel)."""
+        text = self.query_one("#answer", Input).value.strip()
+        self.dismiss(text or None if event.button.id == "ok" else None)
 
     def action_cancel(self) -> None:
         """Close without an answer."""

@@ -198,7 +198,7 @@ class LibraryScreen(LaminaScreen):
             self.say(f"scan {scan_id} kept")
             return
         self.in_thread(
-            "library", lambda: self.job.delete_scan(scan_id), lambda _: self.deleted(scan_id)
+            "library-delete", lambda: self.job.delete_scan(scan_id), lambda _: self.deleted(scan_id)
         )
 
     def deleted(self, scan_id: int) -> None:
