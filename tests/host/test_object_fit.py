@@ -73,7 +73,7 @@ def test_presets_fit_the_lift_and_the_view() -> None:
     assert free.sections == int(arm.length_mm // arm.pitch_mm) + 1 and not free.note
     box = preset_plan(arm, AxesInfo(lift_min_mm=0.0, lift_max_mm=150.0))
     assert box.sections == 16 and (box.sections - 1) * box.pitch_mm <= 150.0
-    assert "the lift travels 150 mm" in box.note
+    assert box.note == "cut to the lift's 150 mm travel (an arm: 400 mm)"
     for preset in PLAN_PRESETS.values():
         # The thesis rig sees about 44 mm across; the limb rig about 210 mm.
         with pytest.raises(ObjectTooLarge, match=f"up to {preset.width_mm:g} mm across"):

@@ -205,7 +205,7 @@ async def test_presets_fit_the_rig_and_a_refused_start_leaves_no_starting(tmp_pa
         assert info is not None
         expected = preset_plan(PLAN_PRESETS["arm"], info.axes)
         assert screen._typed() == (str(expected.sections), "10", "8")
-        assert "the lift travels 200 mm" in app.status[0]
+        assert "arm plan: cut to the lift's 200 mm travel" in app.status[0]
         await pilot.press("s")  # not calibrated: refused in the scan's thread
         await wait_for(pilot, lambda: not screen.scanning and app.status[1], "the refusal")
         assert "calibration cylinder first" in app.status[0]

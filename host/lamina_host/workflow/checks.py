@@ -257,10 +257,7 @@ def preset_plan(preset: PlanPreset, axes: AxesInfo | None = None) -> PresetPlan:
     if axes is not None and axes.lift_max_mm is not None:
         travel = axes.lift_max_mm - (axes.lift_min_mm or 0.0)
     if travel is not None and travel < length:
-        note = (
-            f"the lift travels {travel:g} mm: the {preset.name} plan covers the lowest "
-            f"{travel:g} mm of the {length:g} mm {preset.what} scan would cover"
-        )
+        note = f"cut to the lift's {travel:g} mm travel ({preset.what}: {length:g} mm)"
         length = travel
     sections = min(int(length // preset.pitch_mm) + 1, SECTIONS_RANGE[1])
     return PresetPlan(sections, preset.pitch_mm, preset.views, note)

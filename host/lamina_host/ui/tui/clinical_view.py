@@ -80,7 +80,7 @@ class ClinicalView(ModalScreen[None]):
     #clinical-box > .row { margin: 0; }
     #clinical-main { height: 1fr; }
     #levels { width: 3fr; max-width: 62; height: 1fr; }
-    #clinical-profile { width: 2fr; min-width: 24; height: 1fr; }
+    #clinical-profile { width: 2fr; min-width: 24; height: 1fr; margin-left: 1; }
     #clinical-plots { height: 1fr; }
     #clinical-outlines, #clinical-visits { width: 1fr; height: 1fr; }
     #clinical-summary { height: auto; max-height: 5; }

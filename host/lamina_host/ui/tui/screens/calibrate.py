@@ -31,7 +31,7 @@ GRID_RMS_LIMIT_SQUARE = 0.01
 
 BOARD_STEP = "Place the chessboard flat on the laser plane, every square in view; press g."
 CYLINDER_STEP = (
-    "Take the board away, stand the {d} calibration cylinder upright on the turntable; press y."
+    "Take the board away, stand the {d}calibration cylinder upright on the turntable; press y."
 )
 
 

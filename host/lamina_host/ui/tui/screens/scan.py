@@ -27,7 +27,13 @@ from lamina_host.ui.tui.adapter import (
     user_message,
 )
 from lamina_host.ui.tui.widgets import LaminaScreen, TickBox
-from lamina_host.workflow.checks import PLAN_PRESETS, PlanPreset, preset_plan
+from lamina_host.workflow.checks import (
+    PLAN_PRESETS,
+    ObjectTooLarge,
+    PlanPreset,
+    check_preset_fits,
+    preset_plan,
+)
 from lamina_shared.durations import duration_text
 from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.replies import ScanEstimate
@@ -200,6 +206,11 @@ class ScanScreen(LaminaScreen):
             self.query_one(f"#{key}", Input).value = value
         info = self.job.device.info
         note = preset_plan(preset, info.axes if info else None).note
+        try:  # said now, not only at Start: the rig may be the wrong one for it
+            check_preset_fits(preset, self.job.acquisition.field_radius_mm())
+        except ObjectTooLarge as exc:
+            self.say(str(exc), error=True)
+            return
         self.say(f"{preset.name} plan: {note}" if note else f"{preset.name} plan chosen")
 
     @on(Select.Changed, "#rig")
