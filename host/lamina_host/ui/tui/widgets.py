@@ -3,7 +3,7 @@ view and the worker helper."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import ClassVar, TypeVar
 
@@ -17,7 +17,7 @@ from textual.content import Content
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
-from textual.widgets import Button, Checkbox, Footer, Input, Markdown, Static
+from textual.widgets import Button, Checkbox, Footer, Input, Markdown, Select, Static
 from textual.worker import get_current_worker
 
 from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
@@ -125,6 +125,17 @@ class FrameView(Widget):
         size = self.content_size
         grid = cell_grid(self.image, max(size.width, 1), max(size.height, 1), self.stripe_uv)
         return grid_text(grid)
+
+
+def name_choice(names: Sequence[str], widget_id: str) -> Select[str]:
+    """Return a compact field choosing one of ``names`` (the first at start)."""
+    return Select(
+        [(name, name) for name in names],
+        value=names[0],
+        allow_blank=False,
+        id=widget_id,
+        compact=True,
+    )
 
 
 class TickBox(Checkbox):

@@ -29,7 +29,7 @@ from lamina_host.ui.tui.adapter import (
     radius_profile,
 )
 from lamina_host.ui.tui.clinical_view import ClinicalView
-from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_host.ui.tui.widgets import LaminaScreen, name_choice
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
 
@@ -135,16 +135,10 @@ class ResultsScreen(LaminaScreen):
     def body(self) -> ComposeResult:
         """Options row, table and profile, summary, export row."""
         with Horizontal(classes="row"):
-            yield Label("Harmonics ", classes="field-label")
+            yield Label("Harmonics", classes="field-label")
             yield Input(placeholder="auto", id="harmonics", compact=True)
-            yield Label(" Mesh ", classes="field-label")
-            yield Select(
-                [(m, m) for m in MESH_METHODS],
-                value=MESH_METHODS[0],
-                allow_blank=False,
-                id="mesh-method",
-                compact=True,
-            )
+            yield Label("Mesh", classes="field-label")
+            yield name_choice(MESH_METHODS, "mesh-method")
             yield Button("Process", id="process", variant="primary", compact=True)
         with Horizontal(id="results-main"):
             yield DataTable(id="sections", cursor_type="row", zebra_stripes=True)

@@ -26,7 +26,7 @@ from lamina_host.ui.tui.adapter import (
     scan_object,
     user_message,
 )
-from lamina_host.ui.tui.widgets import LaminaScreen, TickBox
+from lamina_host.ui.tui.widgets import LaminaScreen, TickBox, name_choice
 from lamina_host.workflow.checks import (
     PLAN_PRESETS,
     ObjectTooLarge,
@@ -130,13 +130,7 @@ class ScanScreen(LaminaScreen):
             yield Input("8", id="views", type="integer", compact=True, classes="short")
         with Horizontal(classes="row"):
             yield Label("Rig", classes="field-label")
-            yield Select(
-                [(name, name) for name in RIG_PRESETS],
-                value=RIG_PRESETS[0],
-                allow_blank=False,
-                id="rig",
-                compact=True,
-            )
+            yield name_choice(RIG_PRESETS, "rig")
             yield Button("Start", id="start", variant="primary", compact=True)
             yield Button("Abort", id="abort", variant="error", compact=True, disabled=True)
         with Horizontal(classes="row"):
