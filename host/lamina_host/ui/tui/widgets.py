@@ -8,6 +8,7 @@ from functools import partial
 from typing import ClassVar, TypeVar
 
 import numpy as np
+from rich.markdown import Markdown as RichMarkdown
 from rich.text import Text
 from textual import events
 from textual.app import App, ComposeResult, RenderResult
@@ -17,7 +18,7 @@ from textual.content import Content
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
-from textual.widgets import Button, Checkbox, Footer, Input, Markdown, Select, Static
+from textual.widgets import Button, Checkbox, Footer, Input, Select, Static
 from textual.worker import get_current_worker
 
 from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
@@ -208,7 +209,9 @@ class HelpScreen(ModalScreen[None]):
     def compose(self) -> ComposeResult:
         """Lay out the help text in a scrolling box."""
         with VerticalScroll(id="help"):
-            yield Markdown(HELP_TEXT)
+            # One widget: Textual's Markdown makes one per paragraph and list item, and
+            # laying those out each time the help opens slowed keys during a scan.
+            yield Static(RichMarkdown(HELP_TEXT), id="help-text")
         yield Footer(compact=True, show_command_palette=False)
 
     def action_scroll(self, how: str) -> None:
