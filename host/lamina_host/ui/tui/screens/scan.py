@@ -109,6 +109,8 @@ class ScanScreen(LaminaScreen):
         self._progress: Progress | None = None
         self._left: tuple[float, float] | None = None
         """(seconds left, when that was known): counted down between views."""
+        self._rig_choices = [(name, name) for name in RIG_PRESETS]
+        """The Rig field's choices now (the simulator's rigs, or the scanner's own)."""
 
     def body(self) -> ComposeResult:
         """Form, progress and the live plot of the current section."""
@@ -386,7 +388,6 @@ class ScanScreen(LaminaScreen):
         self.paused = False
         self.query_one("#start", Button).disabled = scanning
         self.query_one("#abort", Button).disabled = not scanning
-        self.query_one("#rig", Select).disabled = scanning or not is_simulated(self.job)
         self.refresh_from_job()
 
     @on(Button.Pressed, "#abort")
@@ -463,15 +464,22 @@ class ScanScreen(LaminaScreen):
         self.show_estimate()  # the device may have changed: only before any scan
 
     def _show_rig(self) -> None:
-        """Offer the simulator's rigs, or name the scanner's own (no choice)."""
+        """Offer the simulator's rigs, or name the scanner's own (no choice).
+
+        Called whenever the screen shows (the help closing too, during a scan): the
+        choices are only built again when the device changed.
+        """
         select = self.query_one("#rig", Select)
         if is_simulated(self.job):
-            if select.disabled:
-                select.set_options([(name, name) for name in RIG_PRESETS])
-                select.disabled = False
-            select.value = self.job.device.target.rig
-            return
-        info = self.job.device.info
-        label = info.hardware if info and info.hardware != "?" else "the scanner's own"
-        select.set_options([(label, DEVICE_RIG)])
-        select.value, select.disabled = DEVICE_RIG, True
+            choices = [(name, name) for name in RIG_PRESETS]
+            rig = self.job.device.target.rig
+        else:
+            info = self.job.device.info
+            label = info.hardware if info and info.hardware != "?" else "the scanner's own"
+            choices, rig = [(label, DEVICE_RIG)], DEVICE_RIG
+        if choices != self._rig_choices:
+            self._rig_choices = choices
+            select.set_options(choices)
+        if select.value != rig:
+            select.value = rig
+        select.disabled = self.scanning or rig == DEVICE_RIG
