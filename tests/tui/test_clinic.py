@@ -190,55 +190,22 @@ async def test_an_unticked_colour_box_shows_no_mark(tmp_path: Path) -> None:
         assert "X" in str(box.render())
 
 
-async def test_presets_fit_the_rig_and_a_refused_start_leaves_no_starting(tmp_path: Path) -> None:
-    """A preset fills the plan (cut to the lift); one too wide for the rig is refused before
-    any view; before, the progress line said "starting ..." after a refused start."""
-    app = LaminaApp("sim", tmp_path / "library.sqlite")
-    async with app.run_test(size=SIZE) as pilot:
-        await connect(pilot)
-        await fill_scan_form(pilot, "P-0077", *PLAN)
-        screen = app.screen
-        assert isinstance(screen, ScanScreen)
-        screen.query_one("#preset", Select).value = "arm"
-        await pilot.pause(0.2)
-        info = app.job.device.info
-        assert info is not None
-        expected = preset_plan(PLAN_PRESETS["arm"], info.axes)
-        assert screen._typed() == (str(expected.sections), "10", "8")
-        assert "arm plan: cut to the lift's 200 mm travel" in app.status[0]
-        await pilot.press("s")  # not calibrated: refused in the scan's thread
-        await wait_for(pilot, lambda: not screen.scanning and app.status[1], "the refusal")
-        assert "calibration cylinder first" in app.status[0]
-        assert "starting" not in str(screen.query_one("#progress-text", Static).render())
-        app.status = ("", False)
-        await calibrate(pilot)
-        await pilot.press("f5", "escape", "s")
-        await wait_for(pilot, lambda: not screen.scanning and app.status[1], "the refusal")
-        assert "an arm is up to 130 mm across" in app.status[0]
-        assert "starting" not in str(screen.query_one("#progress-text", Static).render())
-        with Library(tmp_path / "library.sqlite") as library:
-            assert library.scans() == []  # nothing recorded, nothing acquired
-        screen.query_one("#sections", Input).value = "2"  # typed numbers: no preset now
-        await pilot.pause(0.2)
-        assert screen.query_one("#preset", Select).value == CUSTOM
-
-
 async def test_a_clinic_scans_the_left_arm_compares_and_exports_the_report(
     right_arm_library: Path, tmp_path: Path
 ) -> None:
     """The whole limb scan from the UI at 80 x 24: subject, side, plan, scan, process,
     compare with the other limb (known truth: the left arm is the right one scaled by 1.1),
-    export the PDF report, its CSV table and the DICOM file."""
+    export the PDF report, its CSV table and the DICOM file. First the refusals before a
+    scan (:func:`_refused_starts`)."""
     library = tmp_path / "library.sqlite"
     shutil.copyfile(right_arm_library, library)
     out = tmp_path / "P-0077-left"
     app = LaminaApp("sim", library, f"arm:scale={SCALE}")
     async with app.run_test(size=SIZE) as pilot:
         await connect(pilot)
-        await calibrate(pilot)
+        screen = await _refused_starts(pilot, library)
         await fill_scan_form(pilot, "P-0077", *PLAN)
-        screen = app.screen
-        assert isinstance(screen, ScanScreen)
+        assert screen.query_one("#preset", Select).value == CUSTOM  # typed numbers now
         screen.query_one("#side", Select).value = "left"
         await wait_for(
             pilot, lambda: "take about" in str(screen.query_one("#progress-text").render()),
@@ -289,6 +256,37 @@ async def test_a_clinic_scans_the_left_arm_compares_and_exports_the_report(
     dicom = pydicom.dcmread(out / "scan.dcm")
     assert dicom.PatientID == "P-0077"
     assert {p.name for p in out.iterdir()} >= {"mesh.stl", "report.json", "report.pdf"}
+
+
+async def _refused_starts(pilot: Pilot, library: Path) -> ScanScreen:
+    """A preset fills the plan (cut to the lift); not calibrated, or the preset's object too
+    wide for the rig, Start is refused before anything is recorded, and (before: it stayed
+    at "starting ...") the progress line says nothing is under way. Ends calibrated."""
+    app = pilot.app
+    assert isinstance(app, LaminaApp)
+    await pilot.press("f5", "escape")
+    screen = app.screen
+    assert isinstance(screen, ScanScreen)
+    screen.query_one("#subject", Input).value = "P-0077"
+    screen.query_one("#preset", Select).value = "arm"
+    await pilot.pause(0.2)
+    info = app.job.device.info
+    assert info is not None
+    expected = preset_plan(PLAN_PRESETS["arm"], info.axes)
+    assert screen._typed() == (str(expected.sections), "10", "8")
+    assert "arm plan: cut to the lift's 200 mm travel" in app.status[0]
+    for refusal in ("calibration cylinder first", "an arm is up to 130 mm across"):
+        await pilot.press("s")
+        await wait_for(pilot, lambda: not screen.scanning and app.status[1], "the refusal")
+        assert refusal in app.status[0]
+        assert "starting" not in str(screen.query_one("#progress-text", Static).render())
+        app.status = ("", False)
+        if refusal.startswith("calibration"):
+            await calibrate(pilot)
+            await pilot.press("f5", "escape")
+    with Library(library) as opened:
+        assert len(opened.scans()) == 1  # the right arm's alone: nothing recorded
+    return screen
 
 
 async def _progress_lines(pilot: Pilot, screen: ScanScreen) -> list[str]:
