@@ -9,7 +9,7 @@ page makes is recorded: none may leave the box.
 
 from __future__ import annotations
 
-import math
+import csv
 import re
 import shutil
 import socket
@@ -22,7 +22,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
-from drive import wait_for_text
+from drive import CLINIC_PLAN, LEFT_ARM_SCALE, wait_for_text
 
 from lamina_host.store.library import Library
 
@@ -51,13 +51,14 @@ SCREEN_JS = """() => {
     }
     return lines.join("\\n");
 }"""
+TAP_SETTLE_S = 0.6
+"""A mobile browser sends a tap's mouse events late (it waits to see if a second tap makes
+a double tap): keys typed at once would reach the app before the field has the focus."""
 CELLS_JS = """() => {
     const term = window.__laminaTerminal;
     const box = term.element.querySelector(".xterm-screen").getBoundingClientRect();
     return [box.left, box.top, box.width / term.cols, box.height / term.rows];
 }"""
-RADIUS_MM = 19.05 / 2
-"""The simulated device's default object: the thesis's calibration cylinder."""
 
 
 def free_port() -> int:
@@ -68,11 +69,14 @@ def free_port() -> int:
 
 
 @pytest.fixture
-def ui_url(tmp_path: Path) -> Iterator[str]:
-    """Run ``lamina serve-ui`` on a free loopback port with a fresh library: its URL."""
+def ui_url(tmp_path: Path, right_arm_library: Path) -> Iterator[str]:
+    """Run ``lamina serve-ui`` on a free loopback port: its URL. The library holds P-0077's
+    right arm; the simulator holds the left one (the right scaled by LEFT_ARM_SCALE)."""
+    shutil.copyfile(right_arm_library, tmp_path / "library.sqlite")
     port = free_port()
     command = [sys.executable, "-m", "lamina_host", "serve-ui", "--port", str(port)]
     command += ["--device", "sim", "--library", str(tmp_path / "library.sqlite")]
+    command += ["--object", f"arm:scale={LEFT_ARM_SCALE}"]
     with open(tmp_path / "serve-ui.log", "w") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
     try:
@@ -109,15 +113,23 @@ class Screen:
         for key in keys:
             self.page.keyboard.press(key)
 
-    def tap(self, text: str, row: str | None = None, below: int = -1) -> int:
+    def type_into(self, label: str, value: str, row: str | None = None) -> None:
+        """Tap the field after ``label`` and replace its text with ``value``."""
+        self.tap(label, row=row, after=True)
+        time.sleep(TAP_SETTLE_S)
+        self.press("End", *["Backspace"] * 12)
+        self.page.keyboard.type(value)
+
+    def tap(self, text: str, row: str | None = None, below: int = -1, after: bool = False) -> int:
         """Tap the first ``text`` on the screen (the last one on the line holding ``row``, if
-        given) on a line below ``below``; return the line tapped."""
+        given) on a line below ``below`` (``after``: just right of it, in the field a label
+        names); return the line tapped."""
         left, top, width, height = self.page.evaluate(CELLS_JS)
         for y, line in enumerate(self.text().splitlines()):
             if y <= below or text not in line or (row is not None and row not in line):
                 continue
             x = line.rindex(text) if row is not None else line.index(text)
-            centre_x = left + (x + len(text) / 2) * width
+            centre_x = left + (x + (len(text) + 2.5 if after else len(text) / 2)) * width
             self.page.touchscreen.tap(centre_x, top + (y + 0.5) * height)
             return y
         raise AssertionError(f"{text!r} is not on the screen:\n{self.text()}")
@@ -136,8 +148,9 @@ def expose_terminal(route: Any) -> None:
 def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
     ui_url: str, tmp_path: Path
 ) -> None:
-    """By taps alone: connect to sim, calibrate, scan (subject typed, side tapped), process,
-    export; the table's figures are the cylinder's, and every request stays on 127.0.0.1."""
+    """By taps alone (typing only into fields): connect, calibrate, scan P-0077's left arm
+    (side tapped), process, compare with the right arm, measure at 5 mm, export the PDF,
+    CSV and DICOM; the figures are right and every request stays on 127.0.0.1."""
     sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
     out = tmp_path / "export"
     requests: list[str] = []
@@ -166,7 +179,10 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.tap("F5 Scan")
             screen.wait_for("Subject")
             screen.tap("e.g. P-0042")  # the field: a tablet's keyboard comes up
-            page.keyboard.type("WEB1")
+            time.sleep(TAP_SETTLE_S)
+            page.keyboard.type("P-0077")
+            for field, value in zip(("Sections", "Pitch mm", "Views"), CLINIC_PLAN, strict=True):
+                screen.type_into(field, value, row="Sections")
             side = screen.tap("none: not a limb")
             screen.wait_for("right")
             screen.tap("left", below=side)
@@ -177,20 +193,40 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.wait_for("perim mm")
             screen.tap("Process", row="Mesh")
             table = screen.wait_for("measured", timeout_s=180)
+            time.sleep(TAP_SETTLE_S)  # the choices are read from the library meanwhile
+            compare = screen.tap("no comparison")
+            screen.wait_for("other limb (right)", timeout_s=10)
+            screen.tap("other limb (right)", below=compare)
+            screen.wait_for("Compare other limb")
+            screen.wait_for("m Measure")
+            screen.tap("Measure")  # the footer's m
+            screen.wait_for("Spacing mm")
+            screen.type_into("Spacing mm", "5", row="Spacing mm")
+            screen.press("Enter")
+            clinical = screen.wait_for("excess over other limb")
+            screen.tap("Close")  # the footer's Escape
+            screen.wait_for("Export to")
             screen.tap("a new folder")
+            time.sleep(TAP_SETTLE_S)
             page.keyboard.type(str(out))
             screen.tap("Export", row="Export to")
             screen.wait_for("exported to", timeout_s=120)
         finally:
             browser.close()
     rows = [line.split() for line in table.splitlines() if "measured" in line]
-    assert [row[0] for row in rows] == ["0", "1"]  # the default plan: two sections
-    for row in rows:
-        perimeter_mm, area_mm2 = float(row[5]), float(row[6])
-        assert perimeter_mm == pytest.approx(2 * math.pi * RADIUS_MM, abs=0.2)
-        assert area_mm2 == pytest.approx(math.pi * RADIUS_MM**2, abs=2.0)
+    assert [row[0] for row in rows] == ["0", "1", "2"]  # the three sections typed
+    assert "3 sections" not in clinical and "mL (+" in clinical  # larger than the right arm
+    with (out / "measures.csv").open() as measures:
+        levels = list(csv.DictReader(measures))
+    assert [float(level["offset_mm"]) for level in levels] == [0.0, 5.0, 10.0]
+    for level in levels:
+        ratio = float(level["circumference_mm"]) / float(level["reference_circumference_mm"])
+        assert ratio == pytest.approx(LEFT_ARM_SCALE, rel=0.08), level
     assert (out / "report.pdf").read_bytes().startswith(b"%PDF")
+    assert (out / "scan.dcm").is_file()
     with Library(tmp_path / "library.sqlite") as library:  # the ui_url fixture's library
-        (scan,) = library.scans()
-    assert (scan.subject, scan.side, scan.has_result) == ("WEB1", "left", True)
+        scans = library.scans()
+    assert [(s.subject, s.side, s.has_result) for s in scans] == [
+        ("P-0077", "right", True), ("P-0077", "left", True),
+    ]  # fmt: skip
     assert requests and all(urlsplit(url).hostname == "127.0.0.1" for url in requests), requests

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pydicom
 import pytest
+from drive import CLINIC_PLAN as PLAN
+from drive import LEFT_ARM_SCALE as SCALE
 from drive import calibrate, connect, fill_scan_form, open_first_scan, wait_for
 from textual.pilot import Pilot
 from textual.screen import Screen
@@ -29,8 +31,6 @@ from lamina_host.ui.tui.adapter import (
     ScanJob,
     choose_rig,
     parse_plan,
-    process,
-    scan_object,
     user_message,
 )
 from lamina_host.ui.tui.app import LaminaApp
@@ -41,27 +41,6 @@ from lamina_host.workflow.checks import PLAN_PRESETS, preset_plan
 from lamina_shared.errors import InputError
 
 SIZE = (80, 24)
-PLAN = ("3", "5", "8")
-"""Three sections 5 mm apart: levels at 0, 5 and 10 mm at a 5 mm spacing."""
-SCALE = 1.1
-"""The left arm is the right one scaled by this: its volume is larger by about SCALE^2."""
-
-
-@pytest.fixture(scope="session")
-def right_arm_library(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Return a library holding one processed scan of P-0077's right arm (the arm phantom)."""
-    path = tmp_path_factory.mktemp("clinic") / "library.sqlite"
-    job = ScanJob(DeviceTarget("sim", "arm"), path)
-    try:
-        job.connect()
-        job.acquisition.calibrate_grid()
-        job.acquisition.accept_grid(True)
-        job.acquisition.calibrate_axis()
-        scan_object(job, "P-0077", parse_plan(*PLAN), side="right")
-        process(job)
-    finally:
-        job.close()
-    return path
 
 
 def visible(screen: Screen, widget: Widget) -> bool:

@@ -294,6 +294,11 @@ class ResultsScreen(LaminaScreen):
         self.query_one("#summary", Static).update(summary)
         self.in_thread("compare", lambda: compare_choices(self.job), self._offer)
 
+    @on(Select.Changed, "#compare")
+    def _compared(self) -> None:
+        """Give the keys back to the table: the footer shows the screen's keys again."""
+        self.query_one("#sections", DataTable).focus()
+
     def _offer(self, choices: list[CompareChoice]) -> None:
         """Offer the scans the open one may be compared with (keeping the choice made)."""
         kept = self.chosen_comparison()
