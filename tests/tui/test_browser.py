@@ -114,11 +114,29 @@ class Screen:
             self.page.keyboard.press(key)
 
     def type_into(self, label: str, value: str, row: str | None = None) -> None:
-        """Tap the field after ``label`` and replace its text with ``value``."""
-        self.tap(label, row=row, after=True)
-        time.sleep(TAP_SETTLE_S)
-        self.press("End", *["Backspace"] * 12)
-        self.page.keyboard.type(value)
+        """Tap the field after ``label`` and replace its text with ``value``; tap again if
+        the field does not show it (a loaded machine may deliver the tap after the keys)."""
+        for _ in range(3):
+            self.tap(label, row=row, after=True)
+            time.sleep(TAP_SETTLE_S)
+            self.press("End", *["Backspace"] * 12)
+            self.page.keyboard.type(value)
+            try:
+                self.wait_for(f"{label} {value} ", timeout_s=5.0)
+                return
+            except AssertionError:
+                continue
+        raise AssertionError(f"{label} never showed {value!r}:\n{self.text()}")
+
+    def tap_until(self, text: str, shown: str, row: str | None = None) -> str:
+        """Tap ``text`` until ``shown`` appears (a tap on a redrawing line may be lost)."""
+        for _ in range(3):
+            self.tap(text, row=row)
+            try:
+                return self.wait_for(shown, timeout_s=8.0)
+            except AssertionError:
+                continue
+        raise AssertionError(f"tapping {text!r} never showed {shown!r}:\n{self.text()}")
 
     def tap(self, text: str, row: str | None = None, below: int = -1, after: bool = False) -> int:
         """Tap the first ``text`` on the screen (the last one on the line holding ``row``, if
@@ -199,13 +217,11 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.tap("other limb (right)", below=compare)
             screen.wait_for("Compare other limb")
             screen.wait_for("m Measure")
-            screen.tap("Measure")  # the footer's m
-            screen.wait_for("Spacing mm")
+            screen.tap_until("Measure", "Spacing mm")  # the footer's m
             screen.type_into("Spacing mm", "5", row="Spacing mm")
             screen.press("Enter")
             clinical = screen.wait_for("excess over other limb")
-            screen.tap("Close")  # the footer's Escape
-            screen.wait_for("Export to")
+            screen.tap_until("Close", "Export to")  # the footer's Escape
             screen.tap("a new folder")
             time.sleep(TAP_SETTLE_S)
             page.keyboard.type(str(out))
