@@ -8,6 +8,7 @@ from functools import partial
 from typing import ClassVar, TypeVar
 
 import numpy as np
+from rich.console import Console
 from rich.markdown import Markdown as RichMarkdown
 from rich.text import Text
 from textual import events
@@ -15,6 +16,7 @@ from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
 from textual.containers import Container, Horizontal, VerticalScroll
 from textual.content import Content
+from textual.geometry import Size
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
@@ -195,6 +197,33 @@ Press **Escape** (or tap *Close help*) to close this help.
 """
 
 
+class HelpText(Static):
+    """The help's text, laid out once per width: Rich lays out Markdown in tens of ms, which
+    delayed the keys pressed while a scan ran."""
+
+    def __init__(self) -> None:
+        super().__init__(id="help-text")
+        self._laid_out: dict[int, Text] = {}
+
+    def laid_out(self, width: int) -> Text:
+        """Return the help laid out ``width`` cells wide (from the cache after the first time)."""
+        width = max(width, 20)
+        if width not in self._laid_out:
+            console = Console(width=width, color_system="truecolor", force_terminal=True)
+            with console.capture() as captured:
+                console.print(RichMarkdown(HELP_TEXT))
+            self._laid_out[width] = Text.from_ansi(captured.get().rstrip("\n"))
+        return self._laid_out[width]
+
+    def get_content_height(self, container: Size, viewport: Size, width: int) -> int:
+        """Return the laid-out help's line count at ``width``."""
+        return self.laid_out(width).plain.count("\n") + 1
+
+    def render(self) -> RenderResult:
+        """Return the help laid out for this width."""
+        return self.laid_out(self.content_size.width)
+
+
 class HelpScreen(ModalScreen[None]):
     """The key bindings and the workflow, over the current screen."""
 
@@ -211,7 +240,7 @@ class HelpScreen(ModalScreen[None]):
         with VerticalScroll(id="help"):
             # One widget: Textual's Markdown makes one per paragraph and list item, and
             # laying those out each time the help opens slowed keys during a scan.
-            yield Static(RichMarkdown(HELP_TEXT), id="help-text")
+            yield HelpText()
         yield Footer(compact=True, show_command_palette=False)
 
     def action_scroll(self, how: str) -> None:

@@ -31,6 +31,7 @@ from lamina_host.workflow.checks import (
     PLAN_PRESETS,
     ObjectTooLarge,
     PlanPreset,
+    PresetPlan,
     check_preset_fits,
     preset_plan,
 )
@@ -178,17 +179,23 @@ class ScanScreen(LaminaScreen):
         self.show_estimate(replace_progress=True)
 
     def _typed(self) -> tuple[str, str, str]:
-        return tuple(  # type: ignore[return-value]
+        """Return the Sections, Pitch mm and Views fields as typed."""
+        sections, pitch, views = (
             self.query_one(f"#{k}", Input).value.strip() for k in ("sections", "pitch", "views")
         )
+        return sections, pitch, views
 
     def _preset(self) -> PlanPreset | None:
         """Return the chosen preset (None: the typed numbers)."""
         return PLAN_PRESETS.get(str(self.query_one("#preset", Select).value))
 
-    def _preset_numbers(self, preset: PlanPreset) -> tuple[str, str, str]:
+    def _preset_plan(self, preset: PlanPreset) -> PresetPlan:
+        """Return the preset's plan on the connected device (its lift's travel)."""
         info = self.job.device.info
-        plan = preset_plan(preset, info.axes if info else None)
+        return preset_plan(preset, info.axes if info else None)
+
+    def _preset_numbers(self, preset: PlanPreset) -> tuple[str, str, str]:
+        plan = self._preset_plan(preset)
         return str(plan.sections), f"{plan.pitch_mm:g}", str(plan.views)
 
     @on(Select.Changed, "#preset")
@@ -200,8 +207,7 @@ class ScanScreen(LaminaScreen):
         numbers = self._preset_numbers(preset)
         for key, value in zip(("sections", "pitch", "views"), numbers, strict=True):
             self.query_one(f"#{key}", Input).value = value
-        info = self.job.device.info
-        note = preset_plan(preset, info.axes if info else None).note
+        note = self._preset_plan(preset).note
         try:  # said now, not only at Start: the rig may be the wrong one for it
             check_preset_fits(preset, self.job.acquisition.field_radius_mm())
         except ObjectTooLarge as exc:
