@@ -385,16 +385,20 @@ def _add_ui_options(parser: argparse.ArgumentParser) -> None:
         choices=NOISE_PRESETS,
         help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
     )
+    parser.add_argument(
+        "--rig", choices=RIG_PRESETS, help="simulated rig at start (sim only; the Scan screen "
+        "changes it)",
+    )  # fmt: skip
     _add_library_option(parser)
 
 
 def _check_ui_options(args: argparse.Namespace) -> list[str]:
     """Refuse sim-only options for another device; return them as ``lamina tui`` options."""
     check_device_name(args.device)
-    if (args.object or args.noise) and args.device != SIM:
-        raise UsageError("--object and --noise only apply to --device sim")
+    if (args.object or args.noise or args.rig) and args.device != SIM:
+        raise UsageError("--object, --noise and --rig only apply to --device sim")
     options = ["--device", args.device]
-    for flag, value in (("--object", args.object), ("--noise", args.noise)):
+    for flag, value in (("--object", args.object), ("--noise", args.noise), ("--rig", args.rig)):
         options += [flag, value] if value else []
     return options + (["--library", str(args.library.resolve())] if args.library else [])
 
@@ -1023,7 +1027,8 @@ def tui(args: argparse.Namespace) -> int:
     _check_ui_options(args)
     from lamina_host.ui.tui.app import LaminaApp  # deferred: Textual is only needed here
 
-    LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
+    noise, rig = args.noise or "thesis", args.rig or "thesis"
+    LaminaApp(args.device, args.library, args.object, noise=noise, rig=rig).run()
     return 0
 
 

@@ -14,6 +14,11 @@ from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.widgets import HelpScreen
 
 TIMEOUT_S = 60.0
+CLINIC_PLAN = ("3", "5", "8")
+"""The clinic tests' plan: three sections 5 mm apart (levels 0, 5, 10 mm at 5 mm spacing)."""
+LEFT_ARM_SCALE = 1.1
+"""The left arm the clinic tests scan is the right one (``right_arm_library``) scaled by
+this: its circumferences are larger by about this, its volume by about its square."""
 
 
 def wait_for_text(read: Callable[[], str], text: str, timeout_s: float = TIMEOUT_S) -> str:
