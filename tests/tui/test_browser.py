@@ -9,7 +9,6 @@ page makes is recorded: none may leave the box.
 
 from __future__ import annotations
 
-import csv
 import re
 import shutil
 import socket
@@ -22,7 +21,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
-from drive import CLINIC_PLAN, LEFT_ARM_SCALE, wait_for_text
+from drive import CLINIC_PLAN, LEFT_ARM_SCALE, csv_levels, wait_for_text
 
 from lamina_host.store.library import Library
 
@@ -232,12 +231,10 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
     rows = [line.split() for line in table.splitlines() if "measured" in line]
     assert [row[0] for row in rows] == ["0", "1", "2"]  # the three sections typed
     assert "3 sections" not in clinical and "mL (+" in clinical  # larger than the right arm
-    with (out / "measures.csv").open() as measures:
-        levels = list(csv.DictReader(measures))
-    assert [float(level["offset_mm"]) for level in levels] == [0.0, 5.0, 10.0]
+    levels = csv_levels(out / "measures.csv")
+    assert [offset for offset, _, _ in levels] == pytest.approx([0.0, 5.0, 10.0])
     for level in levels:
-        ratio = float(level["circumference_mm"]) / float(level["reference_circumference_mm"])
-        assert ratio == pytest.approx(LEFT_ARM_SCALE, rel=0.08), level
+        assert level[1] / level[2] == pytest.approx(LEFT_ARM_SCALE, rel=0.08), level
     assert (out / "report.pdf").read_bytes().startswith(b"%PDF")
     assert (out / "scan.dcm").is_file()
     with Library(tmp_path / "library.sqlite") as library:  # the ui_url fixture's library

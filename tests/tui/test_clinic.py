@@ -8,7 +8,6 @@ test here that failed before its fix.
 
 from __future__ import annotations
 
-import csv
 import math
 import shutil
 from pathlib import Path
@@ -17,7 +16,7 @@ import pydicom
 import pytest
 from drive import CLINIC_PLAN as PLAN
 from drive import LEFT_ARM_SCALE as SCALE
-from drive import calibrate, connect, fill_scan_form, open_first_scan, wait_for
+from drive import calibrate, connect, csv_levels, fill_scan_form, open_first_scan, wait_for
 from textual.pilot import Pilot
 from textual.screen import Screen
 from textual.widget import Widget
@@ -226,12 +225,10 @@ async def test_a_clinic_scans_the_left_arm_compares_and_exports_the_report(
         scans = {s.id: s for s in opened.scans()}
     assert (scans[2].subject, scans[2].side, scans[2].has_result) == ("P-0077", "left", True)
     assert (out / "report.pdf").read_bytes().startswith(b"%PDF")
-    with (out / "measures.csv").open() as table:
-        rows = list(csv.DictReader(table))
-    assert [float(r["offset_mm"]) for r in rows] == [0.0, 5.0, 10.0]  # the view's spacing
-    for row in rows:  # each level against the right arm: larger, as the scale says
-        ratio = float(row["circumference_mm"]) / float(row["reference_circumference_mm"])
-        assert math.isclose(ratio, SCALE, rel_tol=0.08), row
+    levels = csv_levels(out / "measures.csv")
+    assert [offset for offset, _, _ in levels] == pytest.approx([0.0, 5.0, 10.0])  # the view's
+    for level in levels:  # each level against the right arm: larger, as the scale says
+        assert math.isclose(level[1] / level[2], SCALE, rel_tol=0.08), level
     dicom = pydicom.dcmread(out / "scan.dcm")
     assert dicom.PatientID == "P-0077"
     assert {p.name for p in out.iterdir()} >= {"mesh.stl", "report.json", "report.pdf"}
