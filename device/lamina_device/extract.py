@@ -440,15 +440,14 @@ class _Bright:
         return cls(height, image.shape[1], words, all_words[words].view(np.uint8))
 
     def above(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the pixels above ``level`` in row-major order: column, row and level."""
+        """Return the pixels above ``level`` in row-major order: column, row and word index."""
         chosen = np.flatnonzero(self.pixels > math.floor(level))
         word = chosen >> 3
         word_row, word_col = np.divmod(self.words, self.width // 8)
-        # 16-bit columns (no frame is wider: DeviceLimits.max_image_side_px) sort by radix.
-        col = word_col.astype(np.uint16)[word]
-        col <<= 3
-        col |= (chosen & 7).astype(np.uint16)
-        return col, word_row[word], self.pixels[chosen]
+        word_col <<= 3
+        col = word_col[word]
+        col |= chosen & 7
+        return col, word_row[word], chosen
 
     def column_major(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """Return the pixels above ``level`` column by column, rows ascending.
@@ -456,14 +455,15 @@ class _Bright:
         Returns:
             Each pixel's column-major index ``col * height + row`` and its level (int64).
         """
-        col, row, value = self.above(level)
+        col, row, chosen = self.above(level)
         # The pixels come row by row, so a stable sort by column alone leaves each
-        # column's rows ascending, and 16-bit keys sort twice as fast as whole indices.
-        order = np.argsort(col, kind="stable")
-        index = col[order].astype(np.int64)
+        # column's rows ascending, and 16-bit keys (no frame is wider:
+        # DeviceLimits.max_image_side_px) sort by radix, twice as fast as whole indices.
+        order = np.argsort(col.astype(np.uint16), kind="stable")
+        index = col[order]
         index *= self.height
         index += row[order]
-        return index, value[order].astype(np.int64)
+        return index, self.pixels[chosen[order]].astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -706,41 +706,52 @@ def _single_run_centres(
     """Return :func:`_centres` (eq. 5.1, ``p`` = 1) when every column holds one run, else None.
 
     The usual frame's fast path: with one run per column (its gaps no wider than
-    ``bridge_px``) nothing needs ordering column by column, so each column's first and
-    last bright row and peak come from unordered reductions, and the run, its bridged
+    ``bridge_px``) nothing needs ordering column by column, so each column's first
+    bright row and its count come from unordered reductions, and the run, its bridged
     gaps and ``margin_px`` pixels either side are weighed from one window per column.
     The results equal the general path's (runs, choice, :func:`_margin_centres`).
     """
-    col, row, value = bright.above(threshold)
+    col, row, _ = bright.above(threshold)
     if col.size == 0:
         return _empty_points()
     height, width = diff.shape
     count = np.bincount(col, minlength=bright.width)
-    top = np.full(bright.width, height, np.int64)
-    np.minimum.at(top, col, row)
-    bottom = np.full(bright.width, -1, np.int64)
-    np.maximum.at(bottom, col, row)
-    peak = np.zeros(bright.width, np.uint8)
-    np.maximum.at(peak, col, value)
     cols = np.flatnonzero(count)
-    top, bottom = top[cols], bottom[cols]
-    length = bottom - top + 1
-    if int((length - count[cols]).max()) > bridge_px:
-        return None  # some column holds two runs: they must be told apart
-    # (rows, N): the window of every column, padded to the longest with zero weight.
-    rows = (top - margin_px) + np.arange(int(length.max()) + 2 * margin_px)[:, None]
-    outside = rows > bottom + margin_px
-    if int(rows[0].min()) < 0 or int(rows[-1].max()) >= height:  # past the frame's edge
-        outside |= (rows < 0) | (rows >= height)
-        flat = np.clip(rows, 0, height - 1)
+    count = count[cols]
+    # Of n distinct whole rows, only consecutive ones have the variance (n**2 - 1) / 12;
+    # their first is then their mean less (n - 1) / 2. Sums of squares stay exact.
+    total = np.bincount(col, row, bright.width)[cols]
+    spread = np.bincount(col, row * row, bright.width)[cols] * count - total * total
+    length = count
+    if np.array_equal(spread, count * count * (count * count - 1) / 12):
+        top = (total / count - (count - 1) / 2).astype(np.int64)
     else:
-        flat = rows.copy()
-    flat *= width
+        top = np.full(bright.width, height, np.int64)
+        np.minimum.at(top, col, row)
+        bottom = np.full(bright.width, -1, np.int64)
+        np.maximum.at(bottom, col, row)
+        top = top[cols]
+        length = bottom[cols] - top + 1
+        if int((length - count).max()) > bridge_px:
+            return None  # some column holds two runs: they must be told apart
+    # (rows, N): the window of every column from ``start``, padded to the longest with
+    # zero weight; whole numbers below 2**24, so float32 sums are exact.
+    span = int(length.max()) + 2 * margin_px
+    start = top - margin_px
+    offsets = np.arange(span)[:, None]
+    flat = start * width
     flat += cols
+    flat = flat + offsets * width
+    outside = offsets >= length + 2 * margin_px
+    if int(start.min()) < 0 or int(start.max()) + span > height:  # past the frame's edge
+        rows = start + offsets
+        outside |= (rows < 0) | (rows >= height)
+        flat = np.clip(rows, 0, height - 1) * width + cols
     levels = diff.reshape(-1)[flat]
     levels[outside] = 0
-    centre = (rows * levels).sum(axis=0) / levels.sum(axis=0, dtype=np.int64)
-    peak = peak[cols]
+    weights = levels.astype(np.float32)
+    centre = start + (np.arange(span, dtype=np.float32) @ weights) / weights.sum(axis=0)
+    peak = levels.max(axis=0)
     flags = (peak >= _FULL_SCALE).view(np.uint8) * np.uint8(FLAG_SATURATED)
     return StripePoints(
         cols.astype(np.uint16), centre.astype(np.float32), peak,

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lamina_device.extract import ExtractSettings, extract
 
@@ -73,9 +76,7 @@ def test_margin_serves_every_weighing_and_leaves_thinning_alone():
     truth = 60.0 + 0.013 * np.arange(300)
     on, off = stripe(truth, sigma_px=1.5)
     for weighing in ({"power": 2.0}, {"subtract_threshold": True}):
-        plain, margin = (
-            extract(on, off, ExtractSettings(margin_px=k, **weighing)) for k in (0, 3)
-        )
+        plain, margin = (extract(on, off, ExtractSettings(margin_px=k, **weighing)) for k in (0, 3))
         assert rms(margin, truth) <= rms(plain, truth) + 1e-9
     if_subtracted = {"subtract_threshold": True}  # margin pixels lie below: they weigh 0
     a, b = (extract(on, off, ExtractSettings(margin_px=k, **if_subtracted)) for k in (0, 3))
@@ -102,3 +103,48 @@ def test_a_stripe_split_by_dark_speckle_is_one_run():
     split = extract(on, off, ExtractSettings(bridge_px=0))
     assert np.all(np.abs(bridged.rows - 40.0) < 0.25)
     assert np.all(np.abs(split.rows - 40.0) > 0.4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(0, 4),
+    st.integers(0, 3),
+    st.sampled_from([(40, 24), (64, 9), (17, 50)]),
+)
+def test_the_one_run_fast_path_equals_the_general_path(seed, margin_px, bridge_px, shape):
+    from lamina_device import extract as module
+
+    width, height = shape
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-2.0, height + 2.0) + np.cumsum(rng.normal(0.0, 0.7, width))
+    on, off = stripe(centre, sigma_px=rng.uniform(0.8, 3.0), height=height, noise=2.0, seed=seed)
+    dark = rng.random(on.shape) < 0.08  # speckle: pixels inside the stripe go dark
+    on[dark] = off[dark]
+    diff = cv2.subtract(on, off)
+    threshold = float(rng.integers(20, 90))
+    bright = module._Bright.find(diff, int(threshold))
+    fast = module._single_run_centres(bright, threshold, diff, margin_px, bridge_px)
+    runs = module._find_runs(
+        bright, threshold, 1.0, False, (diff, bridge_px) if bridge_px else None
+    )
+    if runs is None:
+        assert fast is None or fast.cols.size == 0
+        return
+    if runs.several:
+        assert fast is None  # only frames of one run per column take the fast path
+        return
+    if fast is None:  # the fast path takes only spans missing at most bridge_px rows in all
+        pixels = np.diff(np.append(runs.start, runs.point_index.size))
+        assert int((runs.length - pixels).max()) > bridge_px
+        return
+    chosen, _ = module._choose_runs(runs, "peak")
+    rows = (
+        module._margin_centres(runs, chosen, diff, margin_px, (threshold, 1.0, False))
+        if margin_px
+        else runs.centre
+    )
+    np.testing.assert_array_equal(fast.cols, runs.col)
+    np.testing.assert_allclose(fast.rows, rows, rtol=0, atol=2e-4)
+    np.testing.assert_array_equal(fast.peak, runs.peak)
+    np.testing.assert_array_equal(fast.width, np.minimum(runs.length, 255))
