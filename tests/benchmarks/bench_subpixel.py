@@ -164,6 +164,7 @@ def case_table() -> dict[str, Any]:
                 scores = [cases.score(f, method(f.on, f.off)) for f in noisy]
                 row[name] = {
                     "bias_px": bias,
+                    "noisy_bias_px": float(np.nanmean([s.bias_px for s in scores])),
                     "rms_px": float(np.nanmean([s.rms_px for s in scores])),
                     "beyond_1px": float(np.mean([s.beyond_1px for s in scores])),
                     "found": float(np.mean([s.found for s in scores])),
@@ -221,7 +222,14 @@ def report(results: dict[str, Any]) -> list[str]:
         "    x one subtraction     " + "".join(f"{times[n]['x_subtraction']:>14.1f}" for n in names)
     )
     lines.append(
-        "  (\"quad. fit (host)\" is the default: the device's COG, then the host's adaptive"
-        " quadratic fit along chains; its time includes the device's part)"
+        f"  (\"{cases.DEFAULT_AND_FIT}\" is the product's default: the device's default centre,"
+        " then the host's adaptive quadratic fit along chains; its time includes the device's)"
     )
+    for preset, table in results["cases"].items():
+        noisy = ", ".join(
+            f"{case} {row[cases.DEFAULT_AND_FIT]['noisy_bias_px']:.3f}"
+            for case, row in table.items()
+            if case.startswith(("arcs", "brightness"))
+        )
+        lines.append(f"  {cases.DEFAULT_AND_FIT}, bias on noisy renders ({preset}): {noisy}")
     return lines
