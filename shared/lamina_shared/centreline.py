@@ -72,6 +72,7 @@ _OUTLIER_SIGMAS = 3.5  # residuals beyond this many sigmas leave the second fit
 _MIN_RESIDUAL_PX = 0.15  # never call a point an outlier for less than this
 _MEAN_ABS_SIGMAS = math.sqrt(math.pi / 2)  # a Gaussian's sigma over its mean |deviation|
 _ROW_UNITS = 65536  # rows are summed in these fractions of a pixel
+_PILOT_ALONE_POINTS = 4096  # more points than this: the pilot's fit first, alone
 _GROUP_POINTS = 32768  # points fitted together: their sums stay in the processor's cache
 
 
@@ -179,6 +180,11 @@ class _Sums:
         # Wrap-around in int64 is harmless: window sums are differences, exact mod 2**64.
         self.u = [np.concatenate(([0], np.cumsum(p))) for p in powers]
         self.y = [np.concatenate(([0], np.cumsum(p))) for p in weighted]
+        # The y sums again, the first and last held over the widest reach either side, so
+        # every point's full window is one slice less another.
+        pad = max(HALF_WIDTHS_PX) + 1
+        self.pad = pad
+        self.padded_y = [_held(p, pad) for p in self.y]
         index = layout.index
         # Runs of consecutive used points: a run starts where a point does not follow on.
         follows = layout.step.copy()
@@ -195,24 +201,36 @@ class _Sums:
         return [p[hi] - p[lo] for p in prefix]
 
 
-def _central(raw: list[np.ndarray], xi: np.ndarray) -> list[np.ndarray]:
-    """Return ``sum w (x - xi)**k`` from ``sum w x**k`` (k = 0..len-1), exactly in integers."""
-    out = []
-    for k in range(len(raw)):
-        total = raw[k].copy()
-        for m in range(k):
-            total += math.comb(k, m) * (-xi) ** (k - m) * raw[m]
-        out.append(total)
+def _held(values: np.ndarray, pad: int) -> np.ndarray:
+    """Return ``values`` with its first and last held over ``pad`` more places either side."""
+    out = np.empty(values.size + 2 * pad, values.dtype)
+    out[:pad] = values[0]
+    out[pad:-pad] = values
+    out[-pad:] = values[-1]
     return out
 
 
-def _solve(
-    s: list[np.ndarray], t: list[np.ndarray], h: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return value, slope and second derivative of the weighted quadratic from its moments.
+def _central(raw: list[np.ndarray], xi: np.ndarray) -> list[np.ndarray]:
+    """Return ``sum w (x - xi)**k`` from ``sum w x**k`` (k = 0..len-1), exactly in integers.
 
-    ``s[k] = sum (x - xi)**k`` and ``t[k] = sum y (x - xi)**k``, x in units of ``h``; where
-    a window holds too few points for a parabola a line, then a mean, is fitted.
+    The binomial expansion in passes of ``m_k += -xi m_(k-1)``, highest k first: pass j
+    leaves ``m_k = sum_i C(j, i) (-xi)**i raw_(k-i)`` for every ``k >= j``.
+    """
+    out = [m.copy() for m in raw]
+    step = np.empty_like(xi)
+    for j in range(1, len(out)):
+        for k in range(len(out) - 1, j - 1, -1):
+            np.multiply(xi, out[k - 1], out=step)
+            out[k] -= step
+    return out
+
+
+def _solve(s: list[np.ndarray], t: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the coefficients ``a + b x + c x**2`` of the least-squares quadratic.
+
+    ``s[k] = sum (x - xi)**k`` and ``t[k] = sum y (x - xi)**k``, x in units of the
+    window's reach; where a window holds too few points for a parabola a line, then a
+    mean, is fitted. By cofactors: for a few points, cheaper than a batched solver.
     """
     m00, m01, m02, m12, m22 = s[0], s[1], s[2], s[3], s[4]
     m11 = m02
@@ -223,7 +241,7 @@ def _solve(
     c12 = m01 * m02 - m00 * m12
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
-    # Degenerate windows (one or two columns) by the moments' own scale, whatever ``h``.
+    # Degenerate windows (one or two columns) by the moments' own scale.
     good = det > 1e-6 * m00 * m11 * m22
     safe = np.where(good, det, 1.0)
     a = (c00 * t[0] + c01 * t[1] + c02 * t[2]) / safe
@@ -238,24 +256,49 @@ def _solve(
         a = np.where(good, a, np.where(line, line_a, mean))
         b = np.where(good, b, np.where(line, line_b, 0.0))
         c = np.where(good, c, 0.0)
-    return a, b / h, 2.0 * c / (h * h)
+    return a, b, c
 
 
-def _window_fit(
-    layout: _Layout, sums: _Sums, half_width: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return the local quadratic's value (rows), slope and bend at every point.
+def _window_fits(
+    layout: _Layout, sums: _Sums, half_widths: Sequence[int]
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Return, per half-width, the local quadratic's value (rows), slope and bend.
 
-    Windows reach ``half_width`` points either side within the chain. Where a window is
-    full (:attr:`_Sums.reach`) the fit is a fixed filter of three window sums, so every
-    point is first fitted so; elsewhere the whole weighted fit is solved.
+    Windows reach ``h`` points either side within the chain. Where a window is full
+    (:attr:`_Sums.reach`) the fit is a fixed filter of three window sums, so every point
+    is first fitted so; the others, near chain ends, skipped columns and left-out
+    points, are then solved in full, every width's together.
     """
-    h = half_width
-    lo = layout.index - h
-    np.maximum(lo, layout.first, out=lo)
-    hi = layout.index + (h + 1)
-    np.minimum(hi, layout.last + 1, out=hi)
-    t0, t1, t2 = _Sums.window(sums.y, lo, hi)
+    if not half_widths:
+        return []
+    fits = []
+    edges, reaches = [], []
+    for h in half_widths:
+        fits.append(_full_window_fit(layout, sums, h))
+        edge = np.flatnonzero(sums.reach < h)
+        edges.append(edge)
+        reaches.append(np.full(edge.size, h))
+    edge, h = np.concatenate(edges), np.concatenate(reaches)
+    if edge.size:
+        solved = _solve_windows(layout, sums, edge, h)
+        at = np.cumsum([0, *(e.size for e in edges)])
+        for k, (value, slope, bend) in enumerate(fits):
+            part = slice(at[k], at[k + 1])
+            value[edges[k]], slope[edges[k]], bend[edges[k]] = (a[part] for a in solved)
+    return fits
+
+
+def _full_window_fit(
+    layout: _Layout, sums: _Sums, h: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return every point's fit as if its window of ``h`` either side were full."""
+    n = layout.x.size
+    if h < sums.pad:  # every window unclipped: slices of the held running sums
+        low, high = sums.pad - h, sums.pad + h + 1
+        t0, t1, t2 = (p[high : high + n] - p[low : low + n] for p in sums.padded_y)
+    else:
+        index = layout.index
+        t0, t1, t2 = _Sums.window(sums.y, np.maximum(index - h, 0), np.minimum(index + h + 1, n))
     xi = layout.x
     t1 -= xi * t0  # about each point: sum y (x - xi), then sum y (x - xi)**2
     t2 -= xi * (t1 + (t1 + xi * t0))
@@ -268,17 +311,23 @@ def _window_fit(
     slope = t1 * (1.0 / (s2 * _ROW_UNITS * h * h))
     bend = t2 * (2.0 * s0 / (det * h**4))
     bend -= t0 * (2.0 * s2 / (det * h * h))
-    edge = np.flatnonzero(sums.reach < h)
-    if edge.size:
-        lo, hi, xi = lo[edge], hi[edge], xi[edge]
-        s = _central(_Sums.window(sums.u, lo, hi), xi)
-        t = _central(_Sums.window(sums.y, lo, hi), xi)
-        scaled_s = [s[k] / float(h) ** k for k in range(5)]
-        scaled_t = [t[k] / (_ROW_UNITS * float(h) ** k) for k in range(3)]
-        a, b, c = _solve(scaled_s, scaled_t, float(h))
-        value[edge] = a + layout.base_row[edge]
-        slope[edge], bend[edge] = b, c
     return value, slope, bend
+
+
+def _solve_windows(
+    layout: _Layout, sums: _Sums, edge: np.ndarray, h: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the fit (value, slope, bend) of points ``edge``, each with its own reach ``h``."""
+    lo = np.maximum(edge - h, layout.first[edge])
+    hi = np.minimum(edge + h, layout.last[edge]) + 1
+    xi = layout.x[edge]
+    s = _central(_Sums.window(sums.u, lo, hi), xi)
+    t = [m / _ROW_UNITS for m in _central(_Sums.window(sums.y, lo, hi), xi)]
+    scale = h.astype(np.float64)
+    power = [np.ones_like(scale), scale, scale * scale]
+    power += [power[2] * scale, power[2] * power[2]]
+    a, b, c = _solve([s[k] / power[k] for k in range(5)], [t[k] / power[k] for k in range(3)])
+    return a + layout.base_row[edge], b / scale, 2.0 * c / power[2]
 
 
 def _outliers_left_out(
@@ -369,9 +418,18 @@ def _refine_group(
     starts = np.union1d(chain_starts(cols, rows, width, max_row_jump_px), offsets[:-1])
     layout = _Layout.of(cols, rows, starts)
     stripe = np.repeat(np.arange(len(stripes)), sizes)
+    # The pilot's fit finds the points far off; every width is then fitted without
+    # them. A few stripes seldom hold one: every width is fitted with the pilot at once,
+    # and again only if one turns up. Many stripes nearly always hold a few.
     pilot = levels[min(_PILOT, len(levels) - 1)]
-    first, _, _ = _window_fit(layout, _Sums(layout, np.ones(cols.size, bool)), pilot)
-    sums = _Sums(layout, _outliers_left_out(layout, stripe, len(stripes), first))
+    every = _Sums(layout, np.ones(cols.size, bool))
+    first = levels if cols.size <= _PILOT_ALONE_POINTS else (pilot,)
+    by_width = dict(zip(first, _window_fits(layout, every, first), strict=True))
+    used = _outliers_left_out(layout, stripe, len(stripes), by_width[pilot][0])
+    if not used.all() or len(first) < len(levels):
+        sums = every if used.all() else _Sums(layout, used)
+        again = [h for h in levels if h not in by_width or sums is not every]
+        by_width.update(zip(again, _window_fits(layout, sums, again), strict=True))
     best = np.zeros(0)
     slope = bend = None
     # Narrowest first: a wider fit replaces a narrower one where it and every wider fit
@@ -379,7 +437,7 @@ def _refine_group(
     # pull is measured by the trusted width's fit (straighter stripes hardly pull).
     fits = np.ones(cols.size, bool)
     for level in levels:
-        value, level_slope, level_bend = _window_fit(layout, sums, level)
+        value, level_slope, level_bend = by_width[level]
         passes = circle_bias_factor(level) * np.abs(level_bend) ** 3 <= MAX_FIT_BIAS_PX
         fits = passes if level < _TRUSTED_HALF_WIDTH else fits & passes
         best = value if level == levels[0] else np.where(fits, value, best)

@@ -58,7 +58,7 @@ def test_window_sums_give_the_least_squares_fit(seed):
     used = rng.random(cols.size) > 0.1
     sums = centreline._Sums(layout, used)
     for h in HALF_WIDTHS_PX:
-        fast = np.stack(centreline._window_fit(layout, sums, h), axis=1)
+        fast = np.stack(centreline._window_fits(layout, sums, [h])[0], axis=1)
         slow = _least_squares(cols, rows, used, layout.first, layout.last, h)
         known = np.isfinite(slow[:, 0])
         # Rows are summed in 1/65536 px: the two agree to that.
@@ -156,7 +156,7 @@ def test_many_stripes_at_once_equal_each_alone():
         stripes.append((cols, rows, rng.integers(2, 9, cols.size)))
     together = refine_many(stripes)
     for stripe, fitted in zip(stripes, together, strict=True):
-        np.testing.assert_allclose(fitted, refine_rows(*stripe), atol=1e-9)
+        np.testing.assert_allclose(fitted, refine_rows(*stripe), atol=1e-4)  # rows summed in 2**-16 px
 
 
 def test_a_segment_is_fitted_in_its_own_point_order():
