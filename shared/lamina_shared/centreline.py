@@ -273,14 +273,14 @@ def _window_fits(
         return []
     fits = []
     edges, reaches = [], []
-    for h in half_widths:
-        fits.append(_full_window_fit(layout, sums, h))
-        edge = np.flatnonzero(sums.reach < h)
+    for width in half_widths:
+        fits.append(_full_window_fit(layout, sums, width))
+        edge = np.flatnonzero(sums.reach < width)
         edges.append(edge)
-        reaches.append(np.full(edge.size, h))
-    edge, h = np.concatenate(edges), np.concatenate(reaches)
+        reaches.append(np.full(edge.size, width))
+    edge = np.concatenate(edges)
     if edge.size:
-        solved = _solve_windows(layout, sums, edge, h)
+        solved = _solve_windows(layout, sums, edge, np.concatenate(reaches))
         at = np.cumsum([0, *(e.size for e in edges)])
         for k, (value, slope, bend) in enumerate(fits):
             part = slice(at[k], at[k + 1])

@@ -155,8 +155,8 @@ def test_many_stripes_at_once_equal_each_alone():
         rows = 300.0 + 40.0 * np.sin(cols / 150.0 + k) + rng.normal(0.0, 0.4, cols.size)
         stripes.append((cols, rows, rng.integers(2, 9, cols.size)))
     together = refine_many(stripes)
-    for stripe, fitted in zip(stripes, together, strict=True):
-        np.testing.assert_allclose(fitted, refine_rows(*stripe), atol=1e-4)  # rows summed in 2**-16 px
+    for stripe, fitted in zip(stripes, together, strict=True):  # rows are summed in 2**-16 px
+        np.testing.assert_allclose(fitted, refine_rows(*stripe), atol=1e-4)
 
 
 def test_a_segment_is_fitted_in_its_own_point_order():
