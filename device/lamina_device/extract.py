@@ -27,7 +27,14 @@ belongs to a chain of at least ``min_chain_px`` neighbouring columns whose runs 
 within ``max_row_jump_px`` rows: a stripe is a curve, noise is not. Each point carries
 its peak over that noise as a confidence byte for the host. The thesis's method alone
 is :meth:`ExtractSettings.thesis`. Optionally the centres are smoothed along each
-chain by a local line fit (fewer speckle errors, a small bias on tight curves).
+chain by a local line fit (fewer speckle errors, a small bias on tight curves); the
+host fits them along the chains instead, unbiased (``lamina_shared.centreline``).
+
+The centre at the sub-pixel limit (issue 21). By default the centre also weighs 3
+pixels beyond either end of the run (``margin_px``: which pixels Otsu's cut keeps
+changes with the stripe's sub-pixel phase, a ripple no fit along the stripe removes),
+and runs of one column at most 2 rows apart are one run (``bridge_px``: speckle
+darkens spots inside a wide stripe), the pixels between weighed in.
 
 Selectable as well: background removal by morphological opening (thesis 5.2.1), a fixed
 threshold, weights above the threshold, and the thesis's first method, Otsu
@@ -37,8 +44,9 @@ that its bias can be measured.
 Speed: the whole frame is touched three times, by cheap vectorised passes: one
 saturating subtraction, one comparison and one test of 8 pixels per machine word (plus
 a sum). Otsu's counts, the runs and their sums then come from the few words that hold
-a bright pixel, ordered column by column with a single sort; the noise comes from a
-subsample and the gate and chains work on the points alone.
+a bright pixel, ordered column by column with a single sort, or, in the usual frame
+of one run per column, from column sums and one window per column with no ordering;
+the noise comes from a subsample and the gate and chains work on the points alone.
 """
 
 from __future__ import annotations
@@ -54,7 +62,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_shared.centreline import chain_starts
+from lamina_shared.centreline import DEFAULT_ROW_JUMP_PX, chain_starts
 from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
@@ -127,7 +135,7 @@ class ExtractSettings:
     noise_gate: bool = True
     false_points_per_frame: float = 1e-4
     min_chain_px: int = 8
-    max_row_jump_px: float = 4.0
+    max_row_jump_px: float = DEFAULT_ROW_JUMP_PX
     min_width_px: int = 1
     max_width_px: int = 64
     smooth_sigma_px: float = 0.0
