@@ -72,6 +72,7 @@ from lamina_host.reconstruct.mesh import (
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
+from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, Segment
 
@@ -143,6 +144,9 @@ class ProcessOptions:
             is left open (not meshed). None lets EFD close every gap (thesis).
         max_efd_points: longer outlines are thinned to this many points before the EFD
             fit (``thin_outline``); None fits every point (thesis).
+        refine_stripes: fit every segment's stripe centres along its chains before they
+            become world points (``lamina_shared.centreline``: less speckle, no pull on
+            curves); False takes the device's centres as sent (thesis).
     """
 
     trim_fraction: float = DEFAULT_TRIM_FRACTION
@@ -164,6 +168,7 @@ class ProcessOptions:
     working_radius_mm: float | None = None
     max_bridge_deg: float | None = 30.0
     max_efd_points: int | None = 4096
+    refine_stripes: bool = True
 
     @classmethod
     def thesis(cls) -> ProcessOptions:
@@ -183,6 +188,7 @@ class ProcessOptions:
             max_bridge_deg=None,
             max_efd_points=None,
             contour_spacing_mm=None,
+            refine_stripes=False,
         )
 
     def check(self) -> None:
@@ -1326,6 +1332,10 @@ def reconstruct(
     options = options or ProcessOptions()
     options.check()
     timer = Timer()
+    if options.refine_stripes:
+        with timer.stage("refine_stripes"):
+            refined = refined_segments([*cylinder, *segments])
+            cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
     with timer.stage("calibrate_grid"):
         distortion = options.distortion if options.calibration == "ml" else "off"
         grid = calibrate_grid(grid_image, board, options.calibration, distortion)
