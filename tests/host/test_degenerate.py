@@ -472,11 +472,22 @@ def test_processing_takes_any_degraded_views(
 def test_an_object_larger_than_the_view_is_named_so(
     calibrated: tuple[ScanInputs, GridCalibration, AxisCalibration],
 ) -> None:
-    """Every point outside the working volume: one line says the object does not fit."""
+    """Points beyond the working volume are kept where two views agree, and a line says the
+    object is wider than the view; where no view confirms them, one line refuses."""
     inputs, grid, axis = calibrated
     rules = OutlierRules(working_radius_mm=2.0)  # the ellipsoid is 6.5-10 mm round the axis
+    sections, warnings, _, _ = process_segments(
+        grid, axis, inputs.segments, ProcessOptions(), Timer(), rules
+    )
+    assert sections and all(s.closed for s in sections)
+    [line] = [w for w in warnings if "wider than this rig's view" in w]
+    assert "further than 2.0 mm from the turntable axis" in line
+    # One view per section: nothing confirms anything beyond the disc.
+    first = {}
+    for s in inputs.segments:
+        first.setdefault(s.section, s)
     with pytest.raises(CalibrationError) as refused:
-        process_segments(grid, axis, inputs.segments, ProcessOptions(), Timer(), rules)
+        process_segments(grid, axis, list(first.values()), ProcessOptions(), Timer(), rules)
     message = str(refused.value)
     assert "further than 2.0 mm from the turntable axis" in message
     assert "larger than this rig's field of view" in message and "\n" not in message

@@ -45,6 +45,7 @@ from lamina_host.reconstruct.precision import (
 )
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.files import json_text, replace_file
+from lamina_shared.centreline import refined_segments
 from lamina_shared.types import Segment
 
 SEGMENT_FIELDS = ("cols", "rows", "peak", "width", "confidence", "colour")
@@ -387,6 +388,8 @@ def _single_outline_views(
     one centroid would pair different outlines.
     """
     objects = [s for s in segments if s.target == "object"]
+    if result.options.refine_stripes:  # the points the reconstruction used
+        objects = refined_segments(objects)
     by_section, _, _ = assemble(objects, result.grid, result.axis, result.options.trim_fraction)
     several = {s.index for s in result.sections if s.part > 0}
     return {k: None if k in several else v for k, v in by_section.items()}
