@@ -71,6 +71,7 @@ from lamina_host.reconstruct.mesh import (
     screened_poisson,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
+from lamina_host.reconstruct.precision import section_precision_mm, views_disagreement_mm
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
@@ -299,6 +300,10 @@ class Section:
     """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
     colours: np.ndarray | None = None
     """(M, 3) uint8 sRGB of ``colour_points``, averaged over the views that saw them."""
+    precision_mm: float | None = None
+    """The per-point precision from where the views overlap (``precision``); None: no overlap."""
+    views_apart_mm: float = 0.0
+    """How far apart the overlapping views stand beyond their noise (``precision``)."""
 
     @property
     def harmonics(self) -> int:
@@ -639,7 +644,11 @@ def fit_section(
         else OutlineStatus.OPEN
     )
     estimated = coverage.unseen(contour)
-    return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
+    return Section(
+        index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
+        precision_mm=section_precision_mm(parts, blend.frame),
+        views_apart_mm=views_disagreement_mm(parts, blend.frame),
+    )  # fmt: skip
 
 
 def outline_groups(
