@@ -12,10 +12,15 @@ points of the chain (Savitzky and Golay's smoother, here with the window cut at 
 chain's ends and at left-out points), not a line: a line fit pulls a curved stripe
 toward its centre of curvature, a quadratic has no such bias to first order. Every
 point weighs the same whatever its brightness, so a brightness step along the stripe
-(a crease, a change of colour) does not move the line. Points far off a first fit (a
-speckle dropout, a reflection's run) are left out of the second one and replaced by it.
-The window adapts: each point takes the widest of :data:`HALF_WIDTHS_PX` whose parabola
-would bias a circle of the measured curvature by less than :data:`MAX_FIT_BIAS_PX`.
+(a crease, a change of colour) does not move the line. Points far off both a wide
+first fit and the narrowest one (a speckle dropout, a reflection's run) are left out of
+the second fit and replaced by it; a stripe's end that steepens faster than a parabola
+follows (a surface turning away to its silhouette) stays near the narrow fit and is
+kept. The window adapts: each point takes the widest of :data:`HALF_WIDTHS_PX` whose
+parabola would bias a circle of the measured curvature by less than
+:data:`MAX_FIT_BIAS_PX`, and whose value stays inside every narrower window's
+confidence interval (Katkovnik's intersection of confidence intervals), so relief finer
+than a window, a fold of skin, keeps the window that follows it.
 
 One thing no fit along the stripe removes: each column's centre of gravity is itself
 pulled toward the centre of curvature where the stripe is both curved and steep (the
@@ -71,6 +76,12 @@ _TRUSTED_HALF_WIDTH = 13  # fits this wide and wider measure the stripe's bend r
 _OUTLIER_SIGMAS = 3.5  # residuals beyond this many sigmas leave the second fit
 _MIN_RESIDUAL_PX = 0.15  # never call a point an outlier for less than this
 _MEAN_ABS_SIGMAS = math.sqrt(math.pi / 2)  # a Gaussian's sigma over its mean |deviation|
+_MEDIAN_ABS_SIGMAS = 1.4826  # a Gaussian's sigma over its median |deviation|
+_MIN_ROW_SIGMA_PX = 0.08  # the least row noise assumed: a cleaner stripe (a noise-free
+# render) would otherwise keep every few-column wobble of its centre of gravity as relief
+_ICI_SIGMAS = 2.5  # the half-width of each fit's confidence interval, in its sigmas
+# (a stripe's speckle is correlated along it, so a stricter test of the fits' differences
+# stops the window on noise: measured 0.82-0.97x Horus-style instead of 0.70-0.80x)
 _ROW_UNITS = 65536  # rows are summed in these fractions of a pixel
 _PILOT_ALONE_POINTS = 4096  # more points than this: the pilot's fit first, alone
 _GROUP_POINTS = 32768  # points fitted together: their sums stay in the processor's cache
@@ -331,14 +342,24 @@ def _solve_windows(
 
 
 def _outliers_left_out(
-    layout: _Layout, stripe: np.ndarray, stripes: int, fitted: np.ndarray
+    layout: _Layout, stripe: np.ndarray, stripes: int, fits: Sequence[np.ndarray]
 ) -> np.ndarray:
-    """Return which points a second fit uses: those near the first fit, by each stripe's scatter."""
-    residual = np.abs(layout.rows - fitted)
-    count = np.bincount(stripe, minlength=stripes)
-    mean = np.bincount(stripe, residual, stripes) / np.maximum(count, 1)
-    limit = np.maximum(_OUTLIER_SIGMAS * _MEAN_ABS_SIGMAS * mean, _MIN_RESIDUAL_PX)
-    return residual <= limit[stripe]
+    """Return which points a second fit uses: all but those off every first fit.
+
+    A point is off a fit when its residual exceeds :data:`_OUTLIER_SIGMAS` of that fit's
+    scatter along its stripe. The pilot's wide window alone would also call off the
+    genuine points where the stripe bends faster than a parabola follows (its steep
+    ends at a grazing surface), and the second fit would then extrapolate across them;
+    the narrowest window follows such a bend, while a lone point far off stays off it.
+    """
+    off = np.ones(layout.rows.size, bool)
+    count = np.maximum(np.bincount(stripe, minlength=stripes), 1)
+    for fitted in fits:
+        residual = np.abs(layout.rows - fitted)
+        mean = np.bincount(stripe, residual, stripes) / count
+        limit = np.maximum(_OUTLIER_SIGMAS * _MEAN_ABS_SIGMAS * mean, _MIN_RESIDUAL_PX)
+        off &= residual > limit[stripe]
+    return ~off
 
 
 def curve_pull(bend: np.ndarray, slope: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -423,29 +444,74 @@ def _refine_group(
     # and again only if one turns up. Many stripes nearly always hold a few.
     pilot = levels[min(_PILOT, len(levels) - 1)]
     every = _Sums(layout, np.ones(cols.size, bool))
-    first = levels if cols.size <= _PILOT_ALONE_POINTS else (pilot,)
+    first = levels if cols.size <= _PILOT_ALONE_POINTS else tuple({levels[0], pilot})
     by_width = dict(zip(first, _window_fits(layout, every, first), strict=True))
-    used = _outliers_left_out(layout, stripe, len(stripes), by_width[pilot][0])
+    used = _outliers_left_out(
+        layout, stripe, len(stripes), [by_width[pilot][0], by_width[levels[0]][0]]
+    )
     if not used.all() or len(first) < len(levels):
         sums = every if used.all() else _Sums(layout, used)
         again = [h for h in levels if h not in by_width or sums is not every]
         by_width.update(zip(again, _window_fits(layout, sums, again), strict=True))
     best = np.zeros(0)
     slope = bend = None
+    sigma = _stripe_sigma(layout, stripe, len(stripes), by_width[levels[0]][0], levels[0])
     # Narrowest first: a wider fit replaces a narrower one where it and every wider fit
-    # before it bend little. The narrowest fits' curvature is too noisy to veto; the
-    # pull is measured by the trusted width's fit (straighter stripes hardly pull).
+    # before it bend little, and where it still agrees with every narrower one within
+    # their noise (detail finer than the window, a skin fold, is not a circle's bend).
+    # The narrowest fits' curvature is too noisy to veto; the pull is measured by the
+    # trusted width's fit (straighter stripes hardly pull).
     fits = np.ones(cols.size, bool)
+    agree = np.ones(cols.size, bool)
+    lower, upper = np.full(cols.size, -np.inf), np.full(cols.size, np.inf)
     for level in levels:
         value, level_slope, level_bend = by_width[level]
+        # Intersection of confidence intervals (Katkovnik's rule): a wider fit is taken
+        # only while every narrower one's interval still meets its own.
+        reach = _ICI_SIGMAS * sigma * np.sqrt(_value_variance(layout, level))
+        lower, upper = np.maximum(lower, value - reach), np.minimum(upper, value + reach)
+        agree &= lower <= upper
         passes = circle_bias_factor(level) * np.abs(level_bend) ** 3 <= MAX_FIT_BIAS_PX
-        fits = passes if level < _TRUSTED_HALF_WIDTH else fits & passes
+        fits = (passes if level < _TRUSTED_HALF_WIDTH else fits & passes) & agree
         best = value if level == levels[0] else np.where(fits, value, best)
         if level == _TRUSTED_HALF_WIDTH or (slope is None and level == levels[-1]):
             slope, bend = level_slope, level_bend
     if correct_pull and slope is not None and bend is not None:
         best -= curve_pull(bend, slope, _local_mean(layout, width.astype(np.float64)))
     return np.split(best, offsets[1:-1])
+
+
+def _value_variance(layout: _Layout, h: int) -> np.ndarray:
+    """Return each point's fitted value's variance, in units of one row's, for reach ``h``.
+
+    A full window's quadratic weighs its centre by ``s4 / (s0 s4 - s2**2)``, about
+    ``2.25 / n`` for ``n`` points; a window cut at a chain end is given the same per
+    point (it is somewhat noisier, so its interval is narrower than it should be: it
+    widens the window less readily, never more).
+    """
+    lo = np.maximum(layout.index - h, layout.first)
+    hi = np.minimum(layout.index + h, layout.last) + 1
+    s2, s4 = _interior_moments(h)
+    full = 2 * h + 1
+    centre = s4 / (full * s4 - s2 * s2)
+    return centre * full / np.maximum(hi - lo, 1)
+
+
+def _stripe_sigma(
+    layout: _Layout, stripe: np.ndarray, stripes: int, fitted: np.ndarray, h: int
+) -> np.ndarray:
+    """Return each point's stripe's row noise (one point's sigma) from a narrow fit's residuals."""
+    residual = np.abs(layout.rows - fitted)
+    order = np.lexsort((residual, stripe))  # by stripe, each stripe's residuals ascending
+    count = np.bincount(stripe, minlength=stripes)
+    start = np.concatenate(([0], np.cumsum(count)[:-1]))
+    middle = residual[order][np.minimum(start + count // 2, max(residual.size - 1, 0))]
+    median = np.where(count > 0, middle, 0.0)
+    # A residual keeps 1 - (the centre's weight) of the point's variance.
+    s2, s4 = _interior_moments(h)
+    keep = 1.0 - s4 / ((2 * h + 1) * s4 - s2 * s2)
+    sigma = np.maximum(median * _MEDIAN_ABS_SIGMAS / math.sqrt(keep), _MIN_ROW_SIGMA_PX)
+    return sigma[stripe]
 
 
 def _local_mean(layout: _Layout, values: np.ndarray) -> np.ndarray:

@@ -71,6 +71,7 @@ from lamina_host.reconstruct.mesh import (
     screened_poisson,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
+from lamina_host.reconstruct.precision import section_precision_mm, views_disagreement_mm
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
@@ -299,6 +300,10 @@ class Section:
     """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
     colours: np.ndarray | None = None
     """(M, 3) uint8 sRGB of ``colour_points``, averaged over the views that saw them."""
+    precision_mm: float | None = None
+    """The per-point precision from where the views overlap (``precision``); None: no overlap."""
+    views_apart_mm: float = 0.0
+    """How far apart the overlapping views stand beyond their noise (``precision``)."""
 
     @property
     def harmonics(self) -> int:
@@ -620,7 +625,9 @@ def fit_section(
     """
     blend = blend_overlaps(parts)
     raw = blend.points
-    coverage = measure_coverage(raw, blend.frame, parts)
+    # A polar blend turns about the points' mean, which an arc seen from one side pulls
+    # towards itself: its coverage and bridges turn about the outline's own centre.
+    coverage = measure_coverage(raw, None if blend.frame.polar else blend.frame, parts)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
     # A gap of a mostly measured outline is bridged from its own sides (an EFD closing it
@@ -639,7 +646,11 @@ def fit_section(
         else OutlineStatus.OPEN
     )
     estimated = coverage.unseen(contour)
-    return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
+    return Section(
+        index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
+        precision_mm=section_precision_mm(parts, blend.frame),
+        views_apart_mm=views_disagreement_mm(parts, blend.frame),
+    )  # fmt: skip
 
 
 def outline_groups(
