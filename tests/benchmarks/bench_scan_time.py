@@ -33,16 +33,21 @@ their noise, ``reconstruct/precision.py``). Within a section the views are taken
 whole, which changes no area. The 400 mm leg's modelled times in each mode say what the
 patient holds for the whole leg.
 
-``python tests/benchmarks/bench_scan_time.py --quick`` models the times and scans the arm's
-first three sections still (a smaller check that finishes under load). The full run takes
-about an hour on two loaded cores: a continuous frame renders each band of rows at its own
-pose, three frames a view.
+**Quick by default.** A continuous frame renders each band of rows at its own pose, three
+frames a view, about 9 s a view on two loaded cores, so ``make bench`` (and
+``python tests/benchmarks/bench_scan_time.py``) runs the quick set: every plan's modelled
+times, the arm's first three sections still in both modes, and its first two with the
+strong sway in both modes (about 8 minutes on two loaded cores). The full study above
+(both phantoms, both sways, three sections each) takes about 45 minutes:
+``python tests/benchmarks/bench_scan_time.py --full``, or ``LAMINA_SCAN_TIME_FULL=1 make
+bench``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -63,14 +68,18 @@ OBJECTS = (
 )
 """The phantoms compared (``bench_limb``'s set): name, object, sections."""
 QUICK_OBJECTS = (("arm", "arm:scale=5", 3),)
-"""``--quick``: the arm's first three sections (``bench_limb``'s quick arm)."""
-SWAY_SECTIONS = 3
-"""Sections of the arm scanned with each sway: the first three of the leg plan."""
+"""The quick set: the arm's first three sections (``bench_limb``'s quick arm)."""
+SWAY_SECTIONS, QUICK_SWAY_SECTIONS = 3, 2
+"""Sections of the arm scanned with each sway: the first three (quick: two) of the plan."""
 SWAYS = (
     ("patient", "patient"),
     ("strong", "drift=3,breath=1.5,hz=0.3"),
 )
 """The simulated sways: name, ``--sway`` spec."""
+QUICK_SWAYS = SWAYS[1:]
+"""The quick set's sway: the strong one, where the warning is expected."""
+FULL = os.environ.get("LAMINA_SCAN_TIME_FULL", "") not in ("", "0")
+"""``LAMINA_SCAN_TIME_FULL=1``: ``make bench`` runs the full study, not the quick set."""
 MOTION_WARNING = "overlapping views stand"
 """What the report's motion warning says (``store/outputs.py``)."""
 
@@ -166,6 +175,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     finally:
         hardware.close()
     wall_s = time.perf_counter() - wall
+    print(f"  ({spec} {mode} sway={sway}: {len(plan.views)} views in {wall_s:.0f} s)", flush=True)
     assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
     recon = reconstruct(
         calibration.grid_image,
@@ -200,8 +210,13 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     }
 
 
-def run(quick: bool = False) -> dict[str, Any]:
-    """Model every plan in both modes; scan the phantoms in both modes, still and swaying."""
+def run(full: bool = FULL) -> dict[str, Any]:
+    """Model every plan in both modes; scan the phantoms in both modes, still and swaying.
+
+    Args:
+        full: the full study (both phantoms, both sways, about 45 minutes); otherwise the
+            quick set (the arm's first sections, the strong sway, about 8 minutes).
+    """
     from tests.helpers.campaign import CampaignPlan, _calibration
 
     processing_s = _processing_s()
@@ -210,19 +225,19 @@ def run(quick: bool = False) -> dict[str, Any]:
         "processing_s_per_view": round(processing_s, 5),
     }
     calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
-    objects = QUICK_OBJECTS if quick else OBJECTS
+    results["set"] = "full" if full else "quick"
     results["accuracy"] = [
         scan(calibration, spec, sections, mode, "none") | {"name": name}
-        for name, spec, sections in objects
+        for name, spec, sections in (OBJECTS if full else QUICK_OBJECTS)
         for mode in MODES
     ]
-    if not quick:
-        name, spec, _ = OBJECTS[0]
-        results["sway"] = [
-            scan(calibration, spec, SWAY_SECTIONS, mode, sway) | {"name": name, "sway_name": label}
-            for label, sway in SWAYS
-            for mode in MODES
-        ]
+    name, spec, _ = OBJECTS[0]
+    sway_sections = SWAY_SECTIONS if full else QUICK_SWAY_SECTIONS
+    results["sway"] = [
+        scan(calibration, spec, sway_sections, mode, sway) | {"name": name, "sway_name": label}
+        for label, sway in (SWAYS if full else QUICK_SWAYS)
+        for mode in MODES
+    ]
     results["comparison"] = _comparison(results["accuracy"])
     return results
 
@@ -315,14 +330,18 @@ def report(results: dict[str, Any]) -> list[str]:
 
 
 def main() -> int:
-    """Run the bench on its own: ``--quick`` for the small set, ``--out`` to keep the JSON."""
+    """Run the bench on its own: ``--full`` for the whole study, ``--out`` to keep the JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="the small set (runs under load)")
+    parser.add_argument(
+        "--full", action="store_true", default=FULL, help="the whole study (about 45 minutes)"
+    )
     parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
     args = parser.parse_args()
+    # Run as a script: the shared test builders (tests.helpers) are found from the root.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
     from run import show  # the bench runner beside this file
 
-    show("scan_time", sys.modules[__name__], run(args.quick), args.out)
+    show("scan_time", sys.modules[__name__], run(args.full), args.out)
     return 0
 
 
