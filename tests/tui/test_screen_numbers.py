@@ -12,13 +12,16 @@ from pathlib import Path
 
 import numpy as np
 from drive import calibrate, connect, fill_scan_form, open_library, wait_for
-from textual.widgets import DataTable, Input, Static
+from textual.widgets import DataTable, Input, Select, Static
 
 from lamina_host.reconstruct.pipeline import assemble
 from lamina_host.store.outputs import OutlineEntry
+from lamina_host.ui.tui.adapter import parse_plan
 from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.screens.scan import ScanScreen
 from lamina_host.workflow.job import TRIM_FRACTION
+from lamina_shared.durations import duration_text
+from lamina_shared.types import SCAN_MODES
 
 RADIUS_MM = 19.05 / 2
 """The simulated device's default object: the thesis's calibration cylinder."""
@@ -50,6 +53,20 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         await wait_for(
             pilot, lambda: "16 views take about" in text_of(app, "#progress-text"), "estimate"
         )
+        # Each mode's own estimate, as the device models it: continuous is far shorter.
+        plan = parse_plan("2", "2", "8")
+        said = {}
+        for mode in reversed(SCAN_MODES):  # continuous, then back to the default
+            app.screen.query_one("#mode", Select).value = mode
+            estimate = job.device.estimate("object", plan.with_mode(mode))
+            assert estimate is not None and estimate.views == 16
+            said[mode] = text = f"16 views take about {duration_text(estimate.modelled_s)};"
+            await wait_for(
+                pilot,
+                lambda text=text: text in text_of(app, "#progress-text"),
+                f"{mode} estimate",
+            )
+        assert said["continuous"] != said["stop-and-go"], said
         await pilot.press("s")
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
         screen = app.screen

@@ -173,10 +173,12 @@ field, **Ctrl+P** opens the command palette, **Ctrl+Q** quits. This help scrolls
    right, or none for what is not a limb) and the **Plan**: a preset named for what it
    scans (arm, leg, hand, cast), cut to the lift's travel, or your own numbers
    (sections, pitch, views). The **Rig** is the simulator's (thesis or limb; choosing one
-   starts it again, so calibrate again) or the scanner's own. **s** starts: the first view
-   is checked against the camera's view before any other is taken; the time left counts
-   down. **p** pauses or resumes, **b** aborts (views received are kept), **r** reconnects
-   a dropped link.
+   starts it again, so calibrate again) or the scanner's own. The **Mode** is stop-and-go
+   or continuous (the table never stops: the subject holds still for a fraction of the
+   time); before the start the line under the plan says how long the scan takes. **s**
+   starts: the first view is checked against the camera's view before any other is taken;
+   the time left counts down. **p** pauses or resumes, **b** aborts (views received are
+   kept), **r** reconnects a dropped link.
 5. **Results (F6)**: **p** processes again with the harmonics and mesh method chosen; **m**
    opens the clinical view; **Compare** picks the other limb's latest scan or an earlier
    visit of the same side; **e** exports into the new folder typed: the mesh (PLY, OBJ,

@@ -38,7 +38,7 @@ from lamina_host.workflow.checks import (
 from lamina_shared.durations import duration_text
 from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.replies import ScanEstimate
-from lamina_shared.types import ScanPlan, Segment
+from lamina_shared.types import SCAN_MODES, ScanPlan, Segment
 
 
 def progress_text(p: Progress, left_s: float | None = None) -> str:
@@ -59,6 +59,9 @@ CUSTOM = "custom"
 """The Plan field's value when the numbers are typed rather than a preset's."""
 PLAN_CHOICES = (*((name, name) for name in PLAN_PRESETS), ("my numbers", CUSTOM))
 """The Plan field's choices: the presets named for what they scan, then typed numbers."""
+MODE_CHOICES = tuple((mode, mode) for mode in SCAN_MODES)
+"""The Mode field's choices: stop-and-go (the default), continuous (the table never stops:
+a limb held still for about a fifth of the time; a device that cannot is refused at Start)."""
 DEVICE_RIG = "device"
 """The Rig field's value for a scanner (not the simulator): its own rig, no choice."""
 TICK_S = 1.0
@@ -134,6 +137,10 @@ class ScanScreen(LaminaScreen):
         with Horizontal(classes="row"):
             yield Label("Rig", classes="field-label")
             yield name_choice(RIG_PRESETS, "rig")
+            yield Label("Mode", classes="field-label")
+            yield Select(
+                MODE_CHOICES, value=SCAN_MODES[0], allow_blank=False, id="mode", compact=True
+            )
             yield Button("Start", id="start", variant="primary", compact=True)
             yield Button("Abort", id="abort", variant="error", compact=True, disabled=True)
         with Horizontal(classes="row"):
@@ -177,6 +184,10 @@ class ScanScreen(LaminaScreen):
         if preset is not None and self._typed() != self._preset_numbers(preset):
             self.query_one("#preset", Select).value = CUSTOM  # the numbers are the user's now
         self.show_estimate(replace_progress=True)
+
+    @on(Select.Changed, "#mode")
+    def _mode_changed(self) -> None:
+        self.show_estimate(replace_progress=True)  # the other mode takes another time
 
     def _typed(self) -> tuple[str, str, str]:
         """Return the Sections, Pitch mm and Views fields as typed."""
@@ -270,7 +281,8 @@ class ScanScreen(LaminaScreen):
             )
 
     def _plan_numbers(self) -> ScanPlan:
-        return parse_plan(*self._typed())
+        mode = str(self.query_one("#mode", Select).value)
+        return parse_plan(*self._typed()).with_mode(mode)
 
     def _plan(self) -> tuple[str, ScanPlan]:
         subject = check_subject(self.query_one("#subject", Input).value)
@@ -297,7 +309,8 @@ class ScanScreen(LaminaScreen):
         self.query_one("#progress-text", Static).update("starting ...")
         side = str(self.query_one("#side", Select).value)
         self.say(
-            f"scanning {subject} ({side}): {len(plan.sections)} sections, {len(plan.views)} views"
+            f"scanning {subject} ({side}): {len(plan.sections)} sections, {len(plan.views)} views, "
+            f"{plan.mode}"
         )
         colour = self.query_one("#colour", TickBox).value
         preset = self._preset()
@@ -394,6 +407,7 @@ class ScanScreen(LaminaScreen):
         self.paused = False
         self.query_one("#start", Button).disabled = scanning
         self.query_one("#abort", Button).disabled = not scanning
+        self.query_one("#mode", Select).disabled = scanning
         self.refresh_from_job()
 
     @on(Button.Pressed, "#abort")
