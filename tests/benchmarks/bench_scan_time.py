@@ -30,8 +30,11 @@ minute and 1.5 mm at 0.3 Hz): volume and circumference errors against the scan's
 and the report's motion warnings (sections whose overlapping views stand apart beyond
 their noise, ``reconstruct/precision.py``). Within a section the views are taken in about
 11 s stop-and-go and about 1 s continuously; the sway between sections moves a section
-whole, which changes no area. The 400 mm leg's modelled times in each mode say what the
-patient holds for the whole leg.
+whole, which changes no area. Within a continuous turn the limb moves the same way under
+every view, and each view sees the side facing the camera, so a movement along the
+camera's line of sight grows or shrinks the whole section while its views still nearly
+agree: the bench shows it as a circumference error far above the views' disagreement.
+The 400 mm leg's modelled times in each mode say what the patient holds for the whole leg.
 
 **Quick by default.** A continuous frame renders each band of rows at its own pose, three
 frames a view, about 9 s a view on two loaded cores, so ``make bench`` (and
