@@ -37,11 +37,13 @@ agree: the bench shows it as a circumference error far above the views' disagree
 The 400 mm leg's modelled times in each mode say what the patient holds for the whole leg.
 
 **Quick by default.** A continuous frame renders each band of rows at its own pose, three
-frames a view, about 9 s a view on two loaded cores, so ``make bench`` (and
+frames a view, about 6 s of processor time a view, so ``make bench`` (and
 ``python tests/benchmarks/bench_scan_time.py``) runs the quick set: every plan's modelled
 times, the arm's first three sections still in both modes, and its first two with the
-strong sway in both modes (about 8 minutes on two loaded cores). The full study above
-(both phantoms, both sways, three sections each) takes about 45 minutes:
+strong sway in both modes (5.5 minutes of processor time; 12 minutes of wall time on two
+cores shared with three other jobs). The full study above (both phantoms, both sways,
+three sections each; about half an hour of processor time by the same rates, an hour
+or more of wall time on loaded cores; not yet run to its end) is
 ``python tests/benchmarks/bench_scan_time.py --full``, or ``LAMINA_SCAN_TIME_FULL=1 make
 bench``.
 """
@@ -217,8 +219,8 @@ def run(full: bool = FULL) -> dict[str, Any]:
     """Model every plan in both modes; scan the phantoms in both modes, still and swaying.
 
     Args:
-        full: the full study (both phantoms, both sways, about 45 minutes); otherwise the
-            quick set (the arm's first sections, the strong sway, about 8 minutes).
+        full: the full study (both phantoms, both sways, about 30 processor minutes); otherwise the
+            quick set (the arm's first sections, the strong sway, 5.5 processor minutes).
     """
     from tests.helpers.campaign import CampaignPlan, _calibration
 
@@ -336,7 +338,7 @@ def main() -> int:
     """Run the bench on its own: ``--full`` for the whole study, ``--out`` to keep the JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--full", action="store_true", default=FULL, help="the whole study (about 45 minutes)"
+        "--full", action="store_true", default=FULL, help="the whole study (30 processor minutes)"
     )
     parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
     args = parser.parse_args()
