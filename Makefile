@@ -29,8 +29,10 @@ demo: install
 		-o $(OUT)/demo/oval-cap
 
 # The slowest tests are listed at the end, so the 15-minute budget can be kept in view.
+# Two worker processes (one per core); a test file stays in one worker, so a module's
+# scan fixture runs once.
 test: install
-	$(BIN)/python -m pytest -q --durations=25
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=25
 
 lint: install
 	$(BIN)/ruff check .

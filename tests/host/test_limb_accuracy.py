@@ -23,6 +23,8 @@ from lamina_host.reconstruct.axis import RADIUS_SPREAD_WARNING
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_limb.py"
 SPEC, SECTIONS = "stump:scale=5,z=-50", 6
+# The scan (a subprocess rendering 1536x864 frames) takes 1.5-2.5 minutes on two cores.
+pytestmark = pytest.mark.timeout(600)
 
 
 def bench_limb() -> ModuleType:

@@ -47,10 +47,12 @@ async def test_whole_workflow(tmp_path: Path) -> None:
             await asyncio.sleep(0.05)
         await wait_for(pilot, lambda: "scan complete" in app.status[0], "the scan")
         # The median must meet the 100 ms requirement; single presses may wait for a
-        # busy shared machine, but none may look like a freeze.
+        # busy shared machine (the suite runs in two processes on two cores: 1.1 s seen
+        # once at load 10), but none may look like a freeze (processing or a view's
+        # acquisition on the UI's loop holds it for several seconds).
         assert latencies, "the scan ended before a key could be pressed during it"
         assert statistics.median(latencies) < 0.1, f"key latency during the scan: {latencies}"
-        assert max(latencies) < 0.5, f"key latency during the scan: {latencies}"
+        assert max(latencies) < 2.0, f"key latency during the scan: {latencies}"
         assert len(app.job.acquisition.data.segments) == 16
 
         await pilot.press("f6")
