@@ -56,11 +56,13 @@ def open_sim(
     rig_name: str = "thesis",
     rig: Rig | None = None,
     sway: str = "none",
+    lift_error_percent: float | None = None,
 ) -> Hardware:
     """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it.
 
     ``rig``, when given, replaces the preset (tests scan small, low-resolution variants).
     ``sway`` moves the object during the scan (:func:`lamina_device.sim.sway.parse_sway`).
+    ``lift_error_percent`` replaces the preset's lift scale error (``--lift-error``).
     """
     spec = object_spec or DEFAULT_OBJECT
     try:
@@ -70,6 +72,8 @@ def open_sim(
     try:
         noise_model = NoiseModel.preset(noise)
         mechanics = Mechanics.preset(noise)
+        if lift_error_percent is not None:
+            mechanics = mechanics.with_lift_error(lift_error_percent)
         rig = rig if rig is not None else Rig.preset(rig_name)
         motion = parse_sway(sway, seed)
     except ValueError as exc:

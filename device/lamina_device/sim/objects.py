@@ -28,6 +28,7 @@ __all__ = [
     "section_curves",
     "section_edges",
     "sphere",
+    "tilt_matrix",
 ]
 
 OUTLINE_VERTICES = 4096
@@ -65,17 +66,47 @@ def _yaw_matrix(yaw_deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def tilt_matrix(tilt_deg: float, toward_deg: float) -> np.ndarray:
+    """Return the 3x3 rotation that leans +z by ``tilt_deg`` towards azimuth ``toward_deg``.
+
+    The rotation is about the horizontal axis at right angles to the azimuth, so a point
+    on +z moves towards ``(cos toward, sin toward)`` and nothing turns about z.
+    """
+    t, d = math.radians(tilt_deg), math.radians(toward_deg)
+    k = np.array([-math.sin(d), math.cos(d), 0.0])  # z x (cos d, sin d, 0)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(t) * cross + (1.0 - math.cos(t)) * (cross @ cross)
+
+
 @dataclass(frozen=True)
 class Placement:
-    """Where a mesh object stands: scaled about its origin, yawed, then shifted."""
+    """Where a mesh object stands: scaled about its origin, yawed, tilted, then shifted.
+
+    ``yaw_deg`` turns the object about its own vertical axis; ``tilt_deg`` then leans that
+    axis towards azimuth ``tilt_dir_deg`` about the origin (a limb put back on the
+    turntable not quite upright); ``shift_mm`` moves it last.
+    """
 
     scale: float = 1.0
     yaw_deg: float = 0.0
     shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tilt_deg: float = 0.0
+    tilt_dir_deg: float = 0.0
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Return the 3x3 rotation of the placement (yaw, then tilt)."""
+        return tilt_matrix(self.tilt_deg, self.tilt_dir_deg) @ _yaw_matrix(self.yaw_deg)
 
     def apply(self, tris: np.ndarray) -> np.ndarray:
-        """Return triangles (F, 3, 3) given in the object's own frame, placed."""
-        return (tris * self.scale) @ _yaw_matrix(self.yaw_deg).T + np.asarray(self.shift_mm)
+        """Return triangles (F, 3, 3) (or points (..., 3)) given in the object's own frame,
+        placed."""
+        return (np.asarray(tris) * self.scale) @ self.rotation.T + np.asarray(self.shift_mm)
+
+    def own_frame(self, points_mm: np.ndarray) -> np.ndarray:
+        """Return placed points (..., 3) in the object's own frame (the inverse of apply)."""
+        moved = np.asarray(points_mm, dtype=float) - np.asarray(self.shift_mm)
+        return moved @ self.rotation / self.scale
 
 
 AS_BUILT = Placement()

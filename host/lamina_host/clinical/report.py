@@ -48,7 +48,7 @@ MIN_PROFILE_RANGE_MM = 20.0
 CSV_FIELDS = (
     "offset_mm", "z_mm", "circumference_mm", "area_mm2", "segment_volume_ml",
     "segment_frustum_ml", "source", "note", "reference_circumference_mm", "difference_mm",
-    "flagged",
+    "flagged", "axis", "axis_tilt_deg",
 )  # fmt: skip
 
 
