@@ -349,7 +349,7 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
         with pytest.raises(StoreError, match="source"):
             library.check_identity(1, {**same, "source": "sim object=sphere:d=25"})
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 4  # schema 3: colour, 4: side
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 5  # 4: side, 5: lift reference
 
 
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):

@@ -22,7 +22,7 @@ from lamina_device.laser import Laser
 from lamina_device.motion import Lift, StepperLift, StepperTurntable, Turntable
 from lamina_device.safety import LaserWatchdog
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import BoardSpec, ScanPlan
+from lamina_shared.types import BoardSpec, LiftReference, ScanPlan
 
 
 class HardwareError(LaminaError, ValueError):
@@ -55,6 +55,9 @@ class Hardware:
     """The configuration whose axes and camera time a scan here (the ``estimate`` op):
     the box's own; the shipped one for the simulator and a replay (None: unknown)."""
     """How the settle waits: real time on the box, the virtual clock in the simulator."""
+    lift_reference: LiftReference | None = None
+    """The calibration cylinder's marks that calibrate the lift (WELCOME ``lift_reference``);
+    the default cylinder plan then holds a section at each (None: the lift is trusted)."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""

@@ -111,6 +111,7 @@ class DeviceServer(DeviceEndpoint):
             identity=DeviceIdentity(**hw.identity),
             extract=ExtractChanges(tuple(dataclasses.asdict(hw.extract).items())),
             colour=camera_has_colour(hw.camera),
+            lift_reference=hw.lift_reference,
         )
 
     def _welcome_plans(self) -> dict[str, ScanPlan]:

@@ -29,7 +29,7 @@ from lamina_shared.ops import (
     is_int,
 )
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
-from lamina_shared.types import BoardSpec, ScanPlan
+from lamina_shared.types import BoardSpec, LiftReference, ScanPlan
 
 MAX_LOST_SEQS = 64
 """Earlier plan indices one ACK names as lost (the device resends them at once)."""
@@ -348,6 +348,8 @@ class Welcome:
     """The device's configured extraction settings, every one by name (None: not reported)."""
     colour: bool = False
     """The device samples colour per point (absent on devices before the extension)."""
+    lift_reference: LiftReference | None = None
+    """The marks on its calibration cylinder that calibrate the lift (None: it has none)."""
 
     def to_wire(self) -> dict[str, Any]:
         """Return the JSON body the device sends."""
@@ -368,6 +370,7 @@ class Welcome:
             "identity": self.identity.to_wire() if self.identity else {},
             "extract": self.extract.to_wire() if self.extract else None,
             "colour": self.colour,
+            "lift_reference": self.lift_reference.to_dict() if self.lift_reference else None,
         }
 
     @classmethod
@@ -410,6 +413,7 @@ class Welcome:
             _identity(data.get("identity"), problems),
             _extract(data.get("extract"), problems),
             data.get("colour") is True,
+            _lift_reference(data.get("lift_reference"), problems),
         )
         if problems.items:
             raise MessageError("WELCOME", problems.items)
@@ -435,6 +439,16 @@ def _board(value: Any, problems: Problems) -> BoardSpec | None:
         return BoardSpec.from_dict(value)
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
         problems.add(f"welcome.board: unusable ({show(str(exc))})")
+        return None
+
+
+def _lift_reference(value: Any, problems: Problems) -> LiftReference | None:
+    if value is None:
+        return None
+    try:
+        return LiftReference.from_dict(value)
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        problems.add(f"welcome.lift_reference: unusable ({show(str(exc))})")
         return None
 
 

@@ -25,7 +25,14 @@ from lamina_device.motion import ContinuousTurntable, MotionError, Turntable, li
 from lamina_device.timing import frame_wait_s, lift_move_s, turntable_move_s
 from lamina_shared.presets import make_preset
 
-__all__ = ["MAX_LIFT_ERROR_PERCENT", "SIM_LIFT_TRAVEL_MM", "Mechanics", "SimClock", "SimLift", "SimTurntable"]
+__all__ = [
+    "MAX_LIFT_ERROR_PERCENT",
+    "SIM_LIFT_TRAVEL_MM",
+    "Mechanics",
+    "SimClock",
+    "SimLift",
+    "SimTurntable",
+]
 
 SIM_LIFT_TRAVEL_MM = 200.0
 """The simulated lift's travel above its home (z = 0)."""

@@ -87,6 +87,8 @@ def open_sim(
     turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser, motion)
+    reference = rig.lift_reference()
+    cylinder_plan = reference.plan(DEFAULT_CYLINDER_PLAN) if reference else DEFAULT_CYLINDER_PLAN
     hardware = Hardware(
         "sim",
         camera,
@@ -96,11 +98,12 @@ def open_sim(
         stage,
         rig.board,
         rig.cylinder_diameter_mm,
-        {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
+        {"object": DEFAULT_PLAN, "cylinder": cylinder_plan},
         f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
         settle_s=clock.settle_s,
         timing=clock.config,
         identity={"serial": "sim", "source": source},
         sleep=clock.advance,
+        lift_reference=reference,
     )
     return watched(hardware)

@@ -122,6 +122,7 @@ def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reco
         inputs.cylinder_mm,
         inputs.segments,
         chosen,
+        inputs.lift_reference,
     )
 
 

@@ -1,0 +1,119 @@
+"""The lift calibrated, not trusted (issue #23): volumes with a lift 0.5 % short and long.
+
+The simulated lift runs ``--lift-error`` % off its commanded travel; the host measures its
+scale on the calibration cylinder's two grooves (``LiftReference``: a section on the lower
+flank of each groove, 140 mm apart on the limb rig's cylinder, 4 views each) and multiplies
+every section height by it. Each limb phantom of ``bench_repeat`` is scanned upright on the
+limb rig, harsh preset, with the lift 0.5 % short and 0.5 % long (8 views, sections 10 mm
+apart), and its volume between the first and last section is set against
+the truth between the true heights of those sections:
+
+- ``lift %``: the simulated lift error and the one measured;
+- ``vol %``: the volume error with the lift calibrated, and (``trusted``) as it would be with
+  the commanded heights (the volume divided by the measured scale).
+
+Target (issue #23): volumes within 0.1 % of the truth. ``python
+tests/benchmarks/bench_lift.py [--keep DIR]`` runs it alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from bench_limb import true_volume_mm3
+from bench_repeat import PHANTOMS, acquire_scan, cached, process
+
+from lamina_device.sim import Mechanics, parse_object
+from lamina_host.clinical.measures import measure_limb, sections_from_reconstruction
+
+NOISE = "harsh"
+PITCH_MM = 10.0
+SECTIONS = {"arm": 8, "stump": 11, "leg": 8}
+"""Sections 10 mm apart from z = 0: the arm to 70 mm, the stump 5 mm below its apex."""
+LIFT_ERRORS_PERCENT = (-0.5, 0.5)
+TARGET_PERCENT = 0.1
+TITLE = (
+    f"lift calibration on the cylinder's grooves, limb rig, {NOISE} preset: volume error with "
+    f"the lift {LIFT_ERRORS_PERCENT[0]:+g} % and {LIFT_ERRORS_PERCENT[1]:+g} % off (target: "
+    f"within {TARGET_PERCENT} %)"
+)
+
+
+def scan_row(phantom: Any, error: float, keep: Path | None) -> dict[str, Any]:
+    """Scan one phantom upright with the lift ``error`` % off; measure it against the truth."""
+    seed, sections = 77, SECTIONS[phantom.name]
+    key = f"lift-{phantom.name}-{error:+g}-{sections}x{PITCH_MM:g}"
+    raw = cached(keep, key, lambda: acquire_scan(phantom.spec, sections, seed, error, PITCH_MM))
+    recon, scale = process(raw)
+    m = measure_limb(sections_from_reconstruction(recon))
+    mechanics = Mechanics.preset(NOISE).with_lift_error(error)
+    lo, hi = m.coverage_mm
+    true_lo, true_hi = (mechanics.true_z_mm(z / scale) for z in (lo, hi))
+    truth = true_volume_mm3(parse_object(phantom.spec), true_lo, true_hi) / 1000.0
+    volume = m.volume_mm3 / 1000.0
+    lift = recon.lift.to_dict() if recon.lift is not None else {}
+    return {
+        "lift_error_percent": error,
+        "measured_percent": lift.get("error_percent"),
+        "applied": lift.get("applied", False),
+        "lift_warnings": lift.get("warnings", []),
+        "volume_ml": volume,
+        "true_volume_ml": truth,
+        "volume_error_percent": 100.0 * (volume / truth - 1.0),
+        "trusted_error_percent": 100.0 * (volume / scale / truth - 1.0),
+        "acquire_s": raw.acquire_s,
+    }
+
+
+def run(keep: Path | None = None) -> dict[str, Any]:
+    """Scan every phantom with each lift error; return the figures."""
+    results: dict[str, Any] = {"noise": NOISE, "lift_errors_percent": list(LIFT_ERRORS_PERCENT)}
+    for phantom in PHANTOMS:
+        rows = []
+        for error in LIFT_ERRORS_PERCENT:
+            try:
+                rows.append(scan_row(phantom, error, keep))
+            except Exception as exc:  # a failure is a figure: named in the table
+                rows.append({"lift_error_percent": error, "error": f"{type(exc).__name__}: {exc}"})
+        results[phantom.name] = {"spec": phantom.spec, "rows": rows}
+    return results
+
+
+def report(results: dict[str, Any]) -> list[str]:
+    """Return the table: per phantom and lift error, the lift measured and the volume error."""
+    lines = ["  phantom  lift %  measured %  volume mL  true mL   vol %   trusted vol %"]
+    for name in (k for k in results if isinstance(results[k], dict) and "rows" in results[k]):
+        for row in results[name]["rows"]:
+            if "error" in row:
+                lines.append(
+                    f"  {name:<8} {row['lift_error_percent']:+5.2f}  failed: {row['error']}"
+                )
+                continue
+            measured = row["measured_percent"]
+            shown = f"{measured:+10.4f}" if measured is not None else f"{'-':>10}"
+            lines.append(
+                f"  {name:<8} {row['lift_error_percent']:+6.2f}  {shown}  "
+                f"{row['volume_ml']:9.2f} {row['true_volume_ml']:8.2f}  "
+                f"{row['volume_error_percent']:+6.3f}  {row['trusted_error_percent']:+13.3f}"
+                + ("" if row["applied"] else f"  NOT APPLIED: {row['lift_warnings'][:1]}")
+            )
+    return lines
+
+
+def main() -> int:
+    """Run the bench on its own (``--keep DIR`` keeps and reuses the raw scans)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--keep", type=Path, help="keep the raw scans here (and reuse them)")
+    parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
+    args = parser.parse_args()
+    from run import show  # the bench runner beside this file
+
+    show("lift", sys.modules[__name__], run(args.keep), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,413 @@
+"""Repeatability at limb scale (issue #23): the same limb, taken off and put back.
+
+A lymphoedema clinic decides whether a limb changed between visits, so the figure it needs
+is how well a scan repeats when the limb is put back on the scanner. Each phantom is
+scanned ``LAMINA_REPEAT_N`` times (default 10) on the simulated limb rig with the harsh
+preset, each time as a patient would be put back: moved up to 10 mm off the turntable axis
+(uniform over the disc), turned by any angle about its own axis, leant by up to 3 degrees
+(uniform) towards any azimuth about the first section's height, with a new noise seed and a
+new calibration (board, cylinder and lift reference acquired again, as at each visit).
+
+Each scan is the product's path without the link (as the random-shape campaign): the
+simulated device (``open_sim``, :func:`lamina_device.acquisition.acquire`) acquires, the
+host reconstructs (:func:`lamina_host.reconstruct.pipeline.reconstruct`) and measures
+(:func:`lamina_host.clinical.measures.measure_limb`: levels every ``SPACING_MM`` from the
+distal end, PCHIP along z, the default ``auto`` limb axis). The plan is a real limb plan
+made shorter: 8 views per section, sections 20 mm apart over 80-100 mm of the limb.
+
+Figures per phantom, as Bland-Altman 95 % limits of agreement (mean difference +- 1.96 SD):
+
+- ``volume``: the volume between the first and the last level (the taped length), in mL
+  and %, each repeat against the first scan, and each scan against the truth (the placed
+  phantom's true volume between the true heights of those two levels);
+- ``circumference`` at each level (distance from the landmark), mm, against the first
+  scan and against the truth (the perimeter of the phantom's own cross-section at right
+  angles to its axis, where the true axis crosses the level's true height);
+- the axis each scan was measured along and the fitted tilt against the true tilt, and
+  the volume's limits on the turntable axis (what measuring a leant limb upright costs).
+
+Targets (issue #23): volume within +-0.2 %, circumferences within +-0.5 mm.
+``python tests/benchmarks/bench_repeat.py [--reps N] [--only NAME] [--keep DIR]``;
+``--keep`` stores each scan's raw data and reuses it (reprocessing takes seconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import pickle
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from bench_limb import true_circumference_mm, true_volume_mm3
+
+from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.sim import Mechanics, open_sim, parse_object
+from lamina_device.sim.objects import Placement, TriangleMesh
+from lamina_host.clinical.measures import (
+    LimbMeasurement,
+    measure_limb,
+    sections_from_reconstruction,
+)
+from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_shared.types import LiftReference, ScanPlan, Segment
+
+if __package__ in (None, ""):  # run on its own: find the shared test builders
+    sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
+
+from tests.helpers.campaign import _unwatched
+
+NOISE, RIG, VIEWS, PITCH_MM, SPACING_MM = "harsh", "limb", 8, 20.0, 20.0
+SHIFT_MM, TILT_DEG = 10.0, 3.0
+REPS_ENV = "LAMINA_REPEAT_N"
+DEFAULT_REPS = 10
+TARGET_VOLUME_PERCENT, TARGET_CIRCUMFERENCE_MM = 0.2, 0.5
+TITLE = (
+    f"repeatability at limb scale, {NOISE} preset, {VIEWS} views, {PITCH_MM:g} mm pitch: "
+    f"limits of agreement over scans put back up to {SHIFT_MM:g} mm off the axis, turned, "
+    f"leant up to {TILT_DEG:g} deg (targets: volume +-{TARGET_VOLUME_PERCENT} %, "
+    f"circumference +-{TARGET_CIRCUMFERENCE_MM} mm)"
+)
+
+
+@dataclass(frozen=True)
+class Phantom:
+    """A limb phantom and its plan: ``spec`` takes the placement keys of each repeat."""
+
+    name: str
+    spec: str
+    sections: int
+    what: str
+
+
+PHANTOMS = (
+    Phantom("arm", "arm:scale=5,relief=0.3,wave=8", 5, "forearm with 0.3 mm skin relief"),
+    Phantom("stump", "stump:scale=5", 6, "residual limb, up to 5 mm below its rounded end"),
+    Phantom("leg", "random:seed=101,scale=limb", 6, "random limb-scale body, 0.66 mm relief"),
+)
+
+
+@dataclass(frozen=True)
+class Reposition:
+    """How one repeat puts the limb back: shift, turn, lean and the noise seed."""
+
+    x_mm: float
+    y_mm: float
+    yaw_deg: float
+    tilt_deg: float
+    tilt_dir_deg: float
+    seed: int
+
+    @classmethod
+    def draw(cls, phantom_index: int, rep: int) -> Reposition:
+        """Return repeat ``rep``'s placement (the same for the same indices)."""
+        rng = np.random.default_rng([23, phantom_index, rep])
+        radius = SHIFT_MM * math.sqrt(rng.uniform())
+        angle = rng.uniform(0.0, 2.0 * math.pi)
+        return cls(
+            radius * math.cos(angle),
+            radius * math.sin(angle),
+            float(rng.uniform(0.0, 360.0)),
+            float(rng.uniform(0.0, TILT_DEG)),
+            float(rng.uniform(0.0, 360.0)),
+            1000 * phantom_index + rep,
+        )
+
+    def keys(self) -> str:
+        """Return the placement as ``--object`` keys."""
+        return (
+            f"x={self.x_mm:.4f},y={self.y_mm:.4f},yaw={self.yaw_deg:.4f},"
+            f"tilt={self.tilt_deg:.4f},tilt_dir={self.tilt_dir_deg:.4f}"
+        )
+
+    @property
+    def placement(self) -> Placement:
+        """Return the move from the phantom's own frame to where this repeat puts it."""
+        return Placement(1.0, self.yaw_deg, (self.x_mm, self.y_mm, 0.0), self.tilt_deg,
+                         self.tilt_dir_deg)  # fmt: skip
+
+
+@dataclass
+class Raw:
+    """One scan's raw data: the board, the cylinder's and the object's segments."""
+
+    grid_image: np.ndarray
+    board: Any
+    cylinder_mm: float
+    cylinder: list[Segment]
+    segments: list[Segment]
+    acquire_s: float
+    lift_reference: LiftReference | None = None
+
+
+def acquire_scan(
+    spec: str,
+    sections: int,
+    seed: int,
+    lift_error: float | None = None,
+    pitch_mm: float = PITCH_MM,
+) -> Raw:
+    """Acquire one scan on the simulated limb rig (a fresh calibration included)."""
+    start = time.perf_counter()
+    hardware = _unwatched(open_sim(spec, seed, NOISE, RIG, lift_error_percent=lift_error))
+    cylinder: list[Segment] = []
+    segments: list[Segment] = []
+    try:
+        grid = grab_grid(hardware)
+        acquire(hardware, "cylinder", hardware.default_plans["cylinder"], cylinder.append)
+        plan = ScanPlan.regular(sections, pitch_mm, VIEWS)
+        acquire(hardware, "object", plan, segments.append)
+    finally:
+        hardware.close()
+    assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
+    return Raw(grid, hardware.board, hardware.cylinder_diameter_mm, cylinder, segments,
+               time.perf_counter() - start, hardware.lift_reference)  # fmt: skip
+
+
+def cached(keep: Path | None, key: str, make: Callable[[], Raw]) -> Raw:
+    """Return ``make()``, stored under ``keep/key.pickle`` and reused when there."""
+    if keep is None:
+        return make()
+    path = keep / f"{key}.pickle"
+    if path.is_file():
+        with path.open("rb") as f:
+            return Raw(**pickle.load(f))  # stored as fields: the module may run as __main__
+    raw = make()
+    keep.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
+        pickle.dump(dict(raw.__dict__), f)
+    return raw
+
+
+def process(raw: Raw) -> tuple[Reconstruction, float]:
+    """Reconstruct a scan with the default processing; return it and its lift scale."""
+    recon = reconstruct(
+        raw.grid_image, raw.board, raw.cylinder, raw.cylinder_mm, raw.segments,
+        ProcessOptions(), raw.lift_reference,
+    )  # fmt: skip
+    return recon, recon.lift_scale
+
+
+def truth(
+    own: Any, rep: Reposition, m: LimbMeasurement, lift_scale: float, mechanics: Mechanics
+) -> dict[str, Any]:
+    """Return the true volume between the first and last level and each level's true
+    circumference, for the scan measured as ``m`` of the phantom put back as ``rep``."""
+    placement = rep.placement
+    obj = TriangleMesh(placement.apply(own.vertices), own.faces, own.name)
+
+    def true_z(z_host_mm: float) -> float:
+        return mechanics.true_z_mm(z_host_mm / lift_scale)
+
+    first, last = m.levels[0], m.levels[-1]
+    z_lo, z_hi = sorted((true_z(first.z_mm), true_z(last.z_mm)))
+    rotation = placement.rotation
+    circumferences = []
+    for level in m.levels:
+        # Where the phantom's own axis crosses the level's true height, in its own frame.
+        own_height = (true_z(level.z_mm) - placement.shift_mm[2]) / rotation[2, 2]
+        circumferences.append(true_circumference_mm(own, own_height))
+    return {
+        "volume_ml": true_volume_mm3(obj, z_lo, z_hi) / 1000.0,
+        "circumference_mm": circumferences,
+    }
+
+
+def scan_record(
+    phantom: Phantom, index: int, rep: int, keep: Path | None, mechanics: Mechanics
+) -> dict[str, Any]:
+    """Scan (or reuse) one repeat, measure it and set it against the truth."""
+    reposition = Reposition.draw(index, rep)
+    spec = f"{phantom.spec},{reposition.keys()}"
+    key = f"{phantom.name}-{rep}-{reposition.seed}-{phantom.sections}x{PITCH_MM:g}x{VIEWS}"
+    start = time.perf_counter()
+    raw = cached(keep, key, lambda: acquire_scan(spec, phantom.sections, reposition.seed))
+    recon, lift_scale = process(raw)
+    sections = sections_from_reconstruction(recon)
+    m = measure_limb(sections, SPACING_MM)
+    upright = measure_limb(sections, SPACING_MM, axis="turntable")
+    own = parse_object(phantom.spec)
+    true = truth(own, reposition, m, lift_scale, mechanics)
+    true_upright = truth(own, reposition, upright, lift_scale, mechanics)
+    return {
+        "spec": spec,
+        "seed": reposition.seed,
+        "tilt_deg": reposition.tilt_deg,
+        "shift_mm": math.hypot(reposition.x_mm, reposition.y_mm),
+        "axis": m.axis.method,
+        "axis_choice": m.axis.choice,
+        "fitted_tilt_deg": measure_limb(sections, SPACING_MM, axis="centreline").axis.tilt_deg,
+        "lift_scale": lift_scale,
+        "volume_ml": m.levels_volume_mm3 / 1000.0,
+        "true_volume_ml": true["volume_ml"],
+        "turntable_volume_ml": upright.levels_volume_mm3 / 1000.0,
+        "turntable_true_volume_ml": true_upright["volume_ml"],
+        "levels": [
+            level_record(lv, c) for lv, c in zip(m.levels, true["circumference_mm"], strict=True)
+        ],
+        "warnings": list(recon.warnings),
+        "acquire_s": raw.acquire_s,
+        "wall_s": time.perf_counter() - start,
+    }
+
+
+def level_record(level: Any, true_mm: float) -> dict[str, Any]:
+    """Return one level's figures: offset, height, circumference and its truth."""
+    return {
+        "offset_mm": level.offset_mm,
+        "z_mm": level.z_mm,
+        "circumference_mm": level.circumference_mm,
+        "true_mm": true_mm,
+        "source": level.source,
+    }
+
+
+def limits(differences: list[float]) -> dict[str, float]:
+    """Return the Bland-Altman limits of agreement: mean +- 1.96 SD (n - 1) of differences."""
+    d = np.asarray(differences, dtype=float)
+    d = d[np.isfinite(d)]
+    if len(d) < 2:
+        return {"n": len(d), "mean": math.nan, "sd": math.nan, "lo": math.nan, "hi": math.nan}
+    mean, sd = float(d.mean()), float(d.std(ddof=1))
+    return {"n": len(d), "mean": mean, "sd": sd, "lo": mean - 1.96 * sd, "hi": mean + 1.96 * sd}
+
+
+def summarise(reps: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return one phantom's limits of agreement against its first scan and the truth."""
+    done = [r for r in reps if "volume_ml" in r]
+    if not done:
+        return {}
+    first = done[0]
+    v0 = first["volume_ml"]
+    out: dict[str, Any] = {
+        "volume_ml_vs_first": limits([r["volume_ml"] - v0 for r in done[1:]]),
+        "volume_percent_vs_first": limits([100.0 * (r["volume_ml"] / v0 - 1.0) for r in done[1:]]),
+        "volume_ml_vs_truth": limits([r["volume_ml"] - r["true_volume_ml"] for r in done]),
+        "volume_percent_vs_truth": limits(
+            [100.0 * (r["volume_ml"] / r["true_volume_ml"] - 1.0) for r in done]
+        ),
+        "turntable_volume_percent_vs_truth": limits(
+            [100.0 * (r["turntable_volume_ml"] / r["turntable_true_volume_ml"] - 1.0) for r in done]
+        ),
+        "fitted_tilt_error_deg": limits([r["fitted_tilt_deg"] - r["tilt_deg"] for r in done]),
+        "axes": {a: sum(r["axis"] == a for r in done) for a in ("turntable", "centreline")},
+    }
+    by_first = {round(lv["offset_mm"], 6): lv["circumference_mm"] for lv in first["levels"]}
+    levels: dict[float, dict[str, list[float]]] = {}
+    for k, r in enumerate(done):
+        for lv in r["levels"]:
+            key = round(lv["offset_mm"], 6)
+            entry = levels.setdefault(key, {"vs_first": [], "vs_truth": []})
+            entry["vs_truth"].append(lv["circumference_mm"] - lv["true_mm"])
+            if k and key in by_first:
+                entry["vs_first"].append(lv["circumference_mm"] - by_first[key])
+    out["circumference_mm"] = {
+        f"{offset:g}": {name: limits(values) for name, values in entry.items()}
+        for offset, entry in sorted(levels.items())
+    }
+    return out
+
+
+def reps_wanted(given: int | None = None) -> int:
+    """Return the repeats per phantom: ``given``, else ``LAMINA_REPEAT_N``, else 10."""
+    if given is not None:
+        return given
+    text = os.environ.get(REPS_ENV, "")
+    try:
+        return max(2, int(text)) if text else DEFAULT_REPS
+    except ValueError:
+        raise SystemExit(f"{REPS_ENV}={text!r} must be a whole number of repeats") from None
+
+
+def run(reps: int | None = None, only: list[str] | None = None, keep: Path | None = None) -> dict:
+    """Scan every phantom ``reps`` times, put back each time; return the figures."""
+    count = reps_wanted(reps)
+    mechanics = Mechanics.preset(NOISE)
+    results: dict[str, Any] = {
+        "reps": count, "noise": NOISE, "views": VIEWS, "pitch_mm": PITCH_MM,
+        "spacing_mm": SPACING_MM, "shift_mm": SHIFT_MM, "tilt_deg": TILT_DEG,
+    }  # fmt: skip
+    for index, phantom in enumerate(PHANTOMS):
+        if only and phantom.name not in only:
+            continue
+        reps_done = []
+        for rep in range(count):
+            try:
+                reps_done.append(scan_record(phantom, index, rep, keep, mechanics))
+            except Exception as exc:  # a failed scan is a figure too: counted, named
+                reps_done.append({"error": f"{type(exc).__name__}: {exc}"[:300]})
+            print(f"  {phantom.name} {rep + 1}/{count}", file=sys.stderr, flush=True)
+        results[phantom.name] = {
+            "spec": phantom.spec,
+            "what": phantom.what,
+            "sections": phantom.sections,
+            "reps": reps_done,
+            "summary": summarise(reps_done),
+        }
+    return results
+
+
+def _loa(d: dict[str, float], unit: str = "", digits: int = 2) -> str:
+    if not d or not math.isfinite(d.get("mean", math.nan)):
+        return "-"
+    return f"{d['mean']:+.{digits}f} [{d['lo']:+.{digits}f}, {d['hi']:+.{digits}f}]{unit}"
+
+
+def report(results: dict[str, Any]) -> list[str]:
+    """Return the table: limits of agreement per phantom, volume then each level."""
+    lines = [
+        f"  {results['reps']} scans per phantom; mean difference [95 % limits of agreement]",
+        "  phantom  axes (tt/cl)  volume mL   vs first mL            vs first %"
+        "               vs truth %               turntable axis vs truth %  "
+        "tilt fit error deg",
+    ]
+    for name in (k for k in results if isinstance(results[k], dict) and "reps" in results[k]):
+        row = results[name]
+        s = row["summary"]
+        failed = [r["error"] for r in row["reps"] if "error" in r]
+        if not s:
+            lines.append(f"  {name:<8} failed: {failed[:1]}")
+            continue
+        done = [r for r in row["reps"] if "volume_ml" in r]
+        axes = f"{s['axes']['turntable']}/{s['axes']['centreline']}"
+        lines.append(
+            f"  {name:<8} {axes:>12}  {done[0]['volume_ml']:9.2f}  "
+            f"{_loa(s['volume_ml_vs_first']):<22} {_loa(s['volume_percent_vs_first'], '', 3):<24} "
+            f"{_loa(s['volume_percent_vs_truth'], '', 3):<24} "
+            f"{_loa(s['turntable_volume_percent_vs_truth'], '', 3):<26} "
+            f"{_loa(s['fitted_tilt_error_deg'], '', 3)}"
+        )
+        for offset, entry in s["circumference_mm"].items():
+            lines.append(
+                f"           circumference at {offset:>4} mm: vs first "
+                f"{_loa(entry['vs_first']):<24} vs truth {_loa(entry['vs_truth'])}"
+            )
+        if failed:
+            lines.append(f"           {len(failed)} scan(s) failed: {failed[0]}")
+        wall = sum(r["wall_s"] for r in done) / len(done)
+        lines.append(f"           mean wall time per scan {wall:.0f} s")
+    return lines
+
+
+def main() -> int:
+    """Run the bench on its own (``--reps``, ``--only``, ``--keep``, ``--out``)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reps", type=int, help=f"scans per phantom (default ${REPS_ENV} or 10)")
+    parser.add_argument("--only", action="append", help="only this phantom (arm, stump, leg)")
+    parser.add_argument("--keep", type=Path, help="keep the raw scans here (and reuse them)")
+    parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
+    args = parser.parse_args()
+    from run import show  # the bench runner beside this file
+
+    show("repeat", sys.modules[__name__], run(args.reps, args.only, args.keep), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
