@@ -131,6 +131,8 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         raise
     board = config.board
     plan = config.plan
+    cylinder_plan = ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views)
+    reference = config.lift_reference
     hardware = Hardware(
         "pi",
         camera,
@@ -142,12 +144,13 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         config.cylinder.diameter_mm,
         {
             "object": ScanPlan.regular(plan.sections, plan.pitch_mm, plan.views),
-            "cylinder": ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views),
+            "cylinder": reference.plan(cylinder_plan) if reference else cylinder_plan,
         },
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
         timing=config,
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
         extract=config.extract,
+        lift_reference=reference,
     )
     return watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)

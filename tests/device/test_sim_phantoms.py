@@ -156,7 +156,7 @@ def test_tilt_is_refused_where_an_object_stands_upright_and_random_shapes_take_p
         parse_object("cylinder:d=20,tilt=2")
     with pytest.raises(ValueError, match="tilt_dir= needs tilt="):
         parse_object("stump:tilt_dir=30")
-    with pytest.raises(ValueError, match="outside 0..60 deg"):
+    with pytest.raises(ValueError, match=r"outside 0\.\.60 deg"):
         parse_object("stump:tilt=61")
     shape = parse_object("random:seed=101,scale=limb")
     moved = parse_object("random:seed=101,scale=limb,x=5,tilt=2,tilt_dir=180")

@@ -21,6 +21,7 @@ import pytest
 
 from lamina_device.sim import Rig
 from lamina_device.sim.objects import grooved_cylinder
+from lamina_host.reconstruct.axis import fit_circle
 from lamina_host.reconstruct.calibration import calibrate_lift
 from lamina_host.reconstruct.pipeline import lift_sections
 from lamina_host.store.library import Library
@@ -35,6 +36,12 @@ GROOVES = (25.0, 165.0)
 def flank_radius(true_z: float, groove: float) -> float:
     """The radius of a 90 degree V-groove's lower flank at height ``true_z``."""
     return RADIUS - (true_z - (groove - 5.0))
+
+
+def circle(points: np.ndarray) -> tuple[float, float]:
+    """The pipeline's circle fit: radius and RMS residual."""
+    fitted = fit_circle(points)
+    return fitted.r, fitted.rms_mm
 
 
 def arcs(radius: float, views: int = 4, bias: float = 0.0, centre=(10.0, -6.0)) -> list:
@@ -54,7 +61,7 @@ def test_the_scale_comes_back_from_the_two_flank_radii(error: float) -> None:
     scale = 1.0 + error
     radii = [flank_radius(scale * c, g) for c, g in zip(REFERENCE.marks_mm, GROOVES, strict=True)]
     for bias in (0.0, 0.08):
-        lift = calibrate_lift([arcs(r, bias=bias) for r in radii], REFERENCE, RADIUS)
+        lift = calibrate_lift([arcs(r, bias=bias) for r in radii], REFERENCE, RADIUS, circle)
         assert lift.applied and lift.warnings == ()
         assert lift.scale == pytest.approx(scale, abs=1e-9)
         assert lift.error_percent == pytest.approx(100 * error, abs=1e-7)
@@ -67,13 +74,13 @@ def test_bad_lift_data_leave_the_lift_trusted_and_say_why() -> None:
     """A section off the flank's straight middle, a section without two views, and a
     reference that would mean a 10 % error: not applied, one line each."""
     good = flank_radius(22.5, 25.0)
-    off = calibrate_lift([arcs(29.5), arcs(flank_radius(162.5, 165.0))], REFERENCE, RADIUS)
+    off = calibrate_lift([arcs(29.5), arcs(flank_radius(162.5, 165.0))], REFERENCE, RADIUS, circle)
     assert not off.applied and "off the straight middle" in off.warnings[0]
-    blind = calibrate_lift([arcs(good, views=1), arcs(good)], REFERENCE, RADIUS)
+    blind = calibrate_lift([arcs(good, views=1), arcs(good)], REFERENCE, RADIUS, circle)
     assert not blind.applied and "1 view(s)" in blind.warnings[0]
     json.dumps(blind.to_dict(), allow_nan=False)  # NaN radii are written as null
     wrong = replace(REFERENCE, spacing_mm=154.0)
-    far = calibrate_lift([arcs(good), arcs(flank_radius(162.5, 165.0))], wrong, RADIUS)
+    far = calibrate_lift([arcs(good), arcs(flank_radius(162.5, 165.0))], wrong, RADIUS, circle)
     assert not far.applied and "+10.00 %" in far.warnings[0] and "trusted" in far.warnings[0]
 
 

@@ -191,7 +191,8 @@ def _placed_random(body: str, form: str) -> SceneObject:
     The shape places itself first (its own offset and tilt); ``x=``, ``y=``, ``z=``,
     ``yaw=``, ``tilt=`` and ``tilt_dir=`` then move it as they move a phantom.
     """
-    own, moves = [], []
+    own: list[str] = []
+    moves: list[str] = []
     for part in filter(None, (p.strip() for p in body.split(","))):
         key = part.partition("=")[0].strip()
         (moves if key in _PLACEMENT else own).append(part)

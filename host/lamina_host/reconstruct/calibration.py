@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -792,10 +793,16 @@ def _finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
+CircleFit = Callable[[np.ndarray], tuple[float, float]]
+"""Fits a circle to (N, 2) points: returns its radius and the points' RMS distance from it
+(``lamina_host.reconstruct.axis.fit_circle``, which the pipeline passes in)."""
+
+
 def calibrate_lift(
     marks: list[list[np.ndarray]],
     reference: LiftReference,
     cylinder_radius_mm: float,
+    fit_circle: CircleFit,
 ) -> LiftCalibration:
     """Measure the lift's scale from the two grooves of the calibration cylinder.
 
@@ -813,6 +820,7 @@ def calibrate_lift(
             points in mm (the turntable axis at the origin, scale corrected).
         reference: the marks' commanded heights, spacing and flank.
         cylinder_radius_mm: the cylinder's radius (where each flank begins).
+        fit_circle: the circle fit (radius, RMS residual) of a flank's points.
 
     Returns:
         The calibration; ``applied`` False (and a warning) when the data cannot give it.
@@ -820,8 +828,6 @@ def calibrate_lift(
     Raises:
         CalibrationError: not one list of arcs per mark.
     """
-    from lamina_host.reconstruct.axis import fit_circle  # axis.py imports this module
-
     if len(marks) != 2:
         raise CalibrationError(f"the lift reference has two marks, not {len(marks)} arc lists")
     radii, rms, counts, warnings = [], [], [], []
@@ -837,16 +843,16 @@ def calibrate_lift(
             rms.append(math.nan)
             counts.append(0 if points is None else len(points))
             continue
-        circle = fit_circle(points)
-        radii.append(circle.r)
-        rms.append(circle.rms_mm)
+        radius, residual = fit_circle(points)
+        radii.append(radius)
+        rms.append(residual)
         counts.append(len(points))
         lo = cylinder_radius_mm - reference.depth_mm * (1.0 - FLANK_MARGIN)
         hi = cylinder_radius_mm - reference.depth_mm * FLANK_MARGIN
-        if not lo <= circle.r <= hi:
+        if not lo <= radius <= hi:
             warnings.append(
                 f"the lift reference section at {height:g} mm met the cylinder at radius "
-                f"{circle.r:.2f} mm, off the straight middle of its groove's flank ({lo:.2f} to "
+                f"{radius:.2f} mm, off the straight middle of its groove's flank ({lo:.2f} to "
                 f"{hi:.2f} mm): the lift is not calibrated; check the marks' heights in the "
                 "device configuration ([cylinder] marks_mm) against the cylinder"
             )

@@ -27,7 +27,13 @@ from lamina_host.reconstruct.assembly import (
     trim,
     trim_problem,
 )
-from lamina_host.reconstruct.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
+from lamina_host.reconstruct.axis import (
+    AXIS_METHODS,
+    AxisCalibration,
+    find_axis,
+    find_axis_joint,
+    fit_circle,
+)
 from lamina_host.reconstruct.calibration import (
     CALIBRATION_METHODS,
     DISTORTION_MODES,
@@ -1247,7 +1253,7 @@ def lift_sections(
     if reference is None:
         return cylinder, []
     marks: list[list[Segment]] = [[] for _ in reference.marks_mm]
-    axis_views = []
+    axis_views: list[Segment] = []
     for segment in cylinder:
         at = [k for k, z in enumerate(reference.marks_mm) if abs(segment.z_mm - z) <= 1e-6]
         (marks[at[0]] if at else axis_views).append(segment)
@@ -1268,8 +1274,12 @@ def lift_calibration(
         points = world_points(s, grid, trim_fraction)
         return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
 
+    def circle(points: np.ndarray) -> tuple[float, float]:
+        fitted = fit_circle(points)
+        return fitted.r, fitted.rms_mm
+
     arcs = [[local(s) for s in views] for views in marks]
-    return calibrate_lift(arcs, reference, axis.actual_diameter_mm / 2.0)
+    return calibrate_lift(arcs, reference, axis.actual_diameter_mm / 2.0, circle)
 
 
 def reconstruct(
