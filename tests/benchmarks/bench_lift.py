@@ -4,8 +4,8 @@ The simulated lift runs ``--lift-error`` % off its commanded travel; the host me
 scale on the calibration cylinder's two grooves (``LiftReference``: a section on the lower
 flank of each groove, 140 mm apart on the limb rig's cylinder, 4 views each) and multiplies
 every section height by it. Each limb phantom of ``bench_repeat`` is scanned upright on the
-limb rig, harsh preset, with the lift 0.5 % short and 0.5 % long (8 views, sections 10 mm
-apart), and its volume between the first and last section is set against
+limb rig, harsh preset, with the lift 0.5 % short and 0.5 % long (the same plans: 8 views,
+6 sections 10 mm apart), and its volume between the first and last section is set against
 the truth between the true heights of those sections:
 
 - ``lift %``: the simulated lift error and the one measured;
@@ -24,15 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from bench_limb import true_volume_mm3
-from bench_repeat import PHANTOMS, acquire_scan, cached, process
+from bench_repeat import PHANTOMS, PITCH_MM, acquire_scan, cached, process
 
 from lamina_device.sim import Mechanics, parse_object
 from lamina_host.clinical.measures import measure_limb, sections_from_reconstruction
 
 NOISE = "harsh"
-PITCH_MM = 10.0
-SECTIONS = {"arm": 8, "stump": 11, "leg": 8}
-"""Sections 10 mm apart from z = 0: the arm to 70 mm, the stump 5 mm below its apex."""
 LIFT_ERRORS_PERCENT = (-0.5, 0.5)
 TARGET_PERCENT = 0.1
 TITLE = (
@@ -44,9 +41,9 @@ TITLE = (
 
 def scan_row(phantom: Any, error: float, keep: Path | None) -> dict[str, Any]:
     """Scan one phantom upright with the lift ``error`` % off; measure it against the truth."""
-    seed, sections = 77, SECTIONS[phantom.name]
-    key = f"lift-{phantom.name}-{error:+g}-{sections}x{PITCH_MM:g}"
-    raw = cached(keep, key, lambda: acquire_scan(phantom.spec, sections, seed, error, PITCH_MM))
+    seed = 77
+    key = f"lift-{phantom.name}-{error:+g}-{phantom.sections}x{PITCH_MM:g}"
+    raw = cached(keep, key, lambda: acquire_scan(phantom.spec, phantom.sections, seed, error))
     recon, scale = process(raw)
     m = measure_limb(sections_from_reconstruction(recon))
     mechanics = Mechanics.preset(NOISE).with_lift_error(error)

@@ -21,8 +21,10 @@ Figures per phantom, as Bland-Altman 95 % limits of agreement (mean difference +
   and %, each repeat against the first scan, and each scan against the truth (the placed
   phantom's true volume between the true heights of those two levels);
 - ``circumference`` at each level (distance from the landmark), mm, against the first
-  scan and against the truth (the perimeter of the phantom's own cross-section at right
-  angles to its axis, where the true axis crosses the level's true height);
+  scan and against the truth: the phantom's own cross-section at right angles to its
+  axis, where the true axis crosses the level's true height, its perimeter taken at the
+  tape's resolution as the host takes it (``TAPE_RESOLUTION_MM``: folds shorter than
+  10 mm round the outline left out) and (``exact``) its whole perimeter;
 - the axis each scan was measured along and the fitted tilt against the true tilt, and
   the volume's limits on the turntable axis (what measuring a leant limb upright costs).
 
@@ -51,10 +53,14 @@ from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.sim import Mechanics, open_sim, parse_object
 from lamina_device.sim.objects import Placement, TriangleMesh
 from lamina_host.clinical.measures import (
+    OUTLINE_SAMPLES,
+    TAPE_RESOLUTION_MM,
     LimbMeasurement,
     measure_limb,
     sections_from_reconstruction,
 )
+from lamina_host.reconstruct.efd import efd_fit
+from lamina_host.reconstruct.measure import perimeter
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_shared.types import LiftReference, ScanPlan, Segment
 
@@ -63,7 +69,7 @@ if __package__ in (None, ""):  # run on its own: find the shared test builders
 
 from tests.helpers.campaign import _unwatched
 
-NOISE, RIG, VIEWS, PITCH_MM, SPACING_MM = "harsh", "limb", 8, 20.0, 20.0
+NOISE, RIG, VIEWS, PITCH_MM, SPACING_MM = "harsh", "limb", 8, 10.0, 10.0
 SHIFT_MM, TILT_DEG = 10.0, 3.0
 REPS_ENV = "LAMINA_REPEAT_N"
 DEFAULT_REPS = 10
@@ -78,19 +84,36 @@ TITLE = (
 
 @dataclass(frozen=True)
 class Phantom:
-    """A limb phantom and its plan: ``spec`` takes the placement keys of each repeat."""
+    """A limb phantom, where it stands and its plan.
+
+    ``shape`` is the phantom in its own frame; ``z_mm`` lowers it so the plan's sections
+    (from z = 0, ``PITCH_MM`` apart) cover the band of it that matters; ``pivot_mm`` is the
+    height on its own axis of its distal end's level (the landmark), about which a repeat
+    leans it: a limb is put back with its landmark at the scanner's mark, as a tape's zero
+    is put on the landmark.
+    """
 
     name: str
-    spec: str
+    shape: str
+    z_mm: float
+    pivot_mm: float
     sections: int
     what: str
 
+    @property
+    def spec(self) -> str:
+        """Return the ``--object`` of the phantom standing upright on the axis."""
+        return f"{self.shape},z={self.z_mm:g}"
+
 
 PHANTOMS = (
-    Phantom("arm", "arm:scale=5,relief=0.3,wave=8", 5, "forearm with 0.3 mm skin relief"),
-    Phantom("stump", "stump:scale=5", 6, "residual limb, up to 5 mm below its rounded end"),
-    Phantom("leg", "random:seed=101,scale=limb", 6, "random limb-scale body, 0.66 mm relief"),
-)
+    Phantom("arm", "arm:scale=5,relief=0.3,wave=8", -30.0, 30.0, 6,
+            "forearm with 0.3 mm skin relief, 30-80 mm from its wrist end"),
+    Phantom("stump", "stump:scale=5", -40.0, 90.0, 6,
+            "residual limb, 40 mm up to 15 mm below the apex of its rounded end"),
+    Phantom("leg", "random:seed=101,scale=limb", -10.0, 60.0, 6,
+            "random limb-scale body with a waist and 0.66 mm relief, 10-60 mm"),
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -119,18 +142,19 @@ class Reposition:
             1000 * phantom_index + rep,
         )
 
-    def keys(self) -> str:
-        """Return the placement as ``--object`` keys."""
+    def spec(self, phantom: Phantom) -> str:
+        """Return the ``--object`` of ``phantom`` put back as this repeat puts it."""
         return (
-            f"x={self.x_mm:.4f},y={self.y_mm:.4f},yaw={self.yaw_deg:.4f},"
-            f"tilt={self.tilt_deg:.4f},tilt_dir={self.tilt_dir_deg:.4f}"
+            f"{phantom.spec},x={self.x_mm:.4f},y={self.y_mm:.4f},yaw={self.yaw_deg:.4f},"
+            f"tilt={self.tilt_deg:.4f},tilt_dir={self.tilt_dir_deg:.4f},"
+            f"pivot={phantom.pivot_mm:g}"
         )
 
-    @property
-    def placement(self) -> Placement:
+    def placement(self, phantom: Phantom) -> Placement:
         """Return the move from the phantom's own frame to where this repeat puts it."""
-        return Placement(1.0, self.yaw_deg, (self.x_mm, self.y_mm, 0.0), self.tilt_deg,
-                         self.tilt_dir_deg)  # fmt: skip
+        shift = (self.x_mm, self.y_mm, phantom.z_mm)
+        return Placement(1.0, self.yaw_deg, shift, self.tilt_deg, self.tilt_dir_deg,
+                         phantom.pivot_mm)  # fmt: skip
 
 
 @dataclass
@@ -195,11 +219,11 @@ def process(raw: Raw) -> tuple[Reconstruction, float]:
 
 
 def truth(
-    own: Any, rep: Reposition, m: LimbMeasurement, lift_scale: float, mechanics: Mechanics
+    own: Any, placement: Placement, m: LimbMeasurement, lift_scale: float, mechanics: Mechanics
 ) -> dict[str, Any]:
     """Return the true volume between the first and last level and each level's true
-    circumference, for the scan measured as ``m`` of the phantom put back as ``rep``."""
-    placement = rep.placement
+    circumference, for the scan measured as ``m`` of the phantom (``own``: in its own
+    frame) put where ``placement`` puts it."""
     obj = TriangleMesh(placement.apply(own.vertices), own.faces, own.name)
 
     def true_z(z_host_mm: float) -> float:
@@ -208,15 +232,28 @@ def truth(
     first, last = m.levels[0], m.levels[-1]
     z_lo, z_hi = sorted((true_z(first.z_mm), true_z(last.z_mm)))
     rotation = placement.rotation
-    circumferences = []
+    circumferences, tape = [], []
     for level in m.levels:
         # Where the phantom's own axis crosses the level's true height, in its own frame.
-        own_height = (true_z(level.z_mm) - placement.shift_mm[2]) / rotation[2, 2]
+        own_height = (true_z(level.z_mm) - placement.offset_mm[2]) / rotation[2, 2]
         circumferences.append(true_circumference_mm(own, own_height))
+        tape.append(tape_circumference_mm(own, own_height))
     return {
         "volume_ml": true_volume_mm3(obj, z_lo, z_hi) / 1000.0,
         "circumference_mm": circumferences,
+        "tape_mm": tape,
     }
+
+
+def tape_circumference_mm(obj: Any, z_mm: float) -> float:
+    """Return the true outline's perimeter at the tape's resolution (as the host measures
+    circumferences: harmonics shorter than ``TAPE_RESOLUTION_MM`` round it left out)."""
+    outlines = obj.section_outline(z_mm)
+    if not outlines:
+        return math.nan
+    outline = max(outlines, key=perimeter)
+    order = max(1, int(perimeter(outline) / TAPE_RESOLUTION_MM))
+    return perimeter(efd_fit(outline, order, "chord").evaluate(OUTLINE_SAMPLES))
 
 
 def scan_record(
@@ -224,17 +261,18 @@ def scan_record(
 ) -> dict[str, Any]:
     """Scan (or reuse) one repeat, measure it and set it against the truth."""
     reposition = Reposition.draw(index, rep)
-    spec = f"{phantom.spec},{reposition.keys()}"
-    key = f"{phantom.name}-{rep}-{reposition.seed}-{phantom.sections}x{PITCH_MM:g}x{VIEWS}"
+    spec = reposition.spec(phantom)
+    key = f"{phantom.name}-{rep}-{reposition.seed}-{phantom.sections}x{PITCH_MM:g}x{VIEWS}-lift"
     start = time.perf_counter()
     raw = cached(keep, key, lambda: acquire_scan(spec, phantom.sections, reposition.seed))
     recon, lift_scale = process(raw)
     sections = sections_from_reconstruction(recon)
     m = measure_limb(sections, SPACING_MM)
     upright = measure_limb(sections, SPACING_MM, axis="turntable")
-    own = parse_object(phantom.spec)
-    true = truth(own, reposition, m, lift_scale, mechanics)
-    true_upright = truth(own, reposition, upright, lift_scale, mechanics)
+    own = parse_object(phantom.shape)
+    placement = reposition.placement(phantom)
+    true = truth(own, placement, m, lift_scale, mechanics)
+    true_upright = truth(own, placement, upright, lift_scale, mechanics)
     return {
         "spec": spec,
         "seed": reposition.seed,
@@ -249,7 +287,8 @@ def scan_record(
         "turntable_volume_ml": upright.levels_volume_mm3 / 1000.0,
         "turntable_true_volume_ml": true_upright["volume_ml"],
         "levels": [
-            level_record(lv, c) for lv, c in zip(m.levels, true["circumference_mm"], strict=True)
+            level_record(lv, c, t)
+            for lv, c, t in zip(m.levels, true["circumference_mm"], true["tape_mm"], strict=True)
         ],
         "warnings": list(recon.warnings),
         "acquire_s": raw.acquire_s,
@@ -257,13 +296,15 @@ def scan_record(
     }
 
 
-def level_record(level: Any, true_mm: float) -> dict[str, Any]:
-    """Return one level's figures: offset, height, circumference and its truth."""
+def level_record(level: Any, true_mm: float, tape_mm: float) -> dict[str, Any]:
+    """Return one level's figures: offset, height, circumference and its truths (the exact
+    perimeter, and at the tape's resolution)."""
     return {
         "offset_mm": level.offset_mm,
         "z_mm": level.z_mm,
         "circumference_mm": level.circumference_mm,
         "true_mm": true_mm,
+        "true_tape_mm": tape_mm,
         "source": level.source,
     }
 
@@ -303,8 +344,9 @@ def summarise(reps: list[dict[str, Any]]) -> dict[str, Any]:
     for k, r in enumerate(done):
         for lv in r["levels"]:
             key = round(lv["offset_mm"], 6)
-            entry = levels.setdefault(key, {"vs_first": [], "vs_truth": []})
-            entry["vs_truth"].append(lv["circumference_mm"] - lv["true_mm"])
+            entry = levels.setdefault(key, {"vs_first": [], "vs_truth": [], "vs_exact": []})
+            entry["vs_truth"].append(lv["circumference_mm"] - lv["true_tape_mm"])
+            entry["vs_exact"].append(lv["circumference_mm"] - lv["true_mm"])
             if k and key in by_first:
                 entry["vs_first"].append(lv["circumference_mm"] - by_first[key])
     out["circumference_mm"] = {
@@ -386,7 +428,8 @@ def report(results: dict[str, Any]) -> list[str]:
         for offset, entry in s["circumference_mm"].items():
             lines.append(
                 f"           circumference at {offset:>4} mm: vs first "
-                f"{_loa(entry['vs_first']):<24} vs truth {_loa(entry['vs_truth'])}"
+                f"{_loa(entry['vs_first']):<24} vs truth {_loa(entry['vs_truth']):<24} "
+                f"vs exact perimeter {_loa(entry['vs_exact'])}"
             )
         if failed:
             lines.append(f"           {len(failed)} scan(s) failed: {failed[0]}")

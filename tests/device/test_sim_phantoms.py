@@ -145,6 +145,12 @@ def test_a_tilted_placement_leans_the_object_and_its_own_frame_undoes_it():
     t = np.radians(3.0)
     assert centre == pytest.approx([7.0, -4.0 + top * np.sin(t), 2.0 + top * np.cos(t)], abs=1e-6)
     assert np.sort(own[:, 2]) == pytest.approx(np.sort(upright.vertices[:, 2]), abs=1e-6)
+    # Leant about a pivot up its axis instead, the pivot's point stays where it was.
+    pivoted = Placement(5.0, 30.0, (7.0, -4.0, 2.0), 3.0, 90.0, 60.0)
+    assert pivoted.apply(np.array([0.0, 0.0, 12.0])) == pytest.approx([7.0, -4.0, 62.0])
+    assert pivoted.own_frame(pivoted.apply(own / 5.0)) == pytest.approx(own / 5.0)
+    lean = parse_object("arm:scale=5,yaw=30,tilt=3,tilt_dir=90,pivot=60,x=7,y=-4,z=2")
+    assert lean.vertices == pytest.approx(pivoted.apply(own / 5.0))
     # The true section of the placed mesh is its own slice: every point on the surface.
     (cut,) = tilted.section_outline(42.0)
     assert np.abs(cut[:, 0] - 7.0).max() < 45.0 and len(cut) > 100
@@ -156,6 +162,8 @@ def test_tilt_is_refused_where_an_object_stands_upright_and_random_shapes_take_p
         parse_object("cylinder:d=20,tilt=2")
     with pytest.raises(ValueError, match="tilt_dir= needs tilt="):
         parse_object("stump:tilt_dir=30")
+    with pytest.raises(ValueError, match="pivot= needs tilt="):
+        parse_object("stump:pivot=30")
     with pytest.raises(ValueError, match=r"outside 0\.\.60 deg"):
         parse_object("stump:tilt=61")
     shape = parse_object("random:seed=101,scale=limb")

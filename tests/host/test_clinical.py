@@ -385,3 +385,26 @@ def test_auto_axis_follows_a_tilted_limb_and_keeps_the_turntable_for_an_upright_
     axis = fit_axis(noisy)
     assert axis.method == "turntable" and "(+-" in axis.choice
     assert fit_axis(noisy, "centreline").tilt_deg > 0.5
+
+
+def test_circumferences_are_taken_at_the_tapes_resolution() -> None:
+    """Folds shorter than 10 mm round the outline (0.2 mm at 8 mm on a 251 mm limb) are left
+    out of the circumference, as a tape spans them, whatever order the series kept; folds
+    of 25 mm are followed. Volumes are untouched."""
+    r = 40.0
+    t = np.linspace(0.0, 2 * np.pi, 4000, endpoint=False)
+
+    def folded(waves: int, order: int) -> list[LimbSection]:
+        radius = r + 0.2 * np.cos(waves * t)
+        pts = np.column_stack([radius * np.cos(t), radius * np.sin(t)])
+        return [LimbSection(z, efd_fit(pts, order)) for z in (0.0, 20.0, 40.0)]
+
+    fine = [measure_limb(folded(31, order), spacing_mm=20.0) for order in (20, 40, 60)]
+    for m in fine:
+        assert [lv.circumference_mm for lv in m.levels] == pytest.approx(
+            [2 * np.pi * r] * 3, abs=0.01
+        )
+    assert fine[2].volume_mm3 == pytest.approx(np.pi * (r * r + 0.02) * 40.0, rel=1e-5)
+    coarse = measure_limb(folded(10, 60), spacing_mm=20.0)
+    wiggly = 2 * np.pi * r * (1 + (0.2 * 10 / r) ** 2 / 4)  # the folds' length, to 2nd order
+    assert coarse.levels[0].circumference_mm == pytest.approx(wiggly, abs=0.01)

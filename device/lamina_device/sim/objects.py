@@ -85,8 +85,9 @@ class Placement:
     """Where a mesh object stands: scaled about its origin, yawed, tilted, then shifted.
 
     ``yaw_deg`` turns the object about its own vertical axis; ``tilt_deg`` then leans that
-    axis towards azimuth ``tilt_dir_deg`` about the origin (a limb put back on the
-    turntable not quite upright); ``shift_mm`` moves it last.
+    axis towards azimuth ``tilt_dir_deg`` about the point of the axis ``pivot_mm`` above
+    the origin (scaled mm: where a limb put back on the turntable not quite upright is
+    held); ``shift_mm`` moves it last.
     """
 
     scale: float = 1.0
@@ -94,20 +95,27 @@ class Placement:
     shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     tilt_deg: float = 0.0
     tilt_dir_deg: float = 0.0
+    pivot_mm: float = 0.0
 
     @property
     def rotation(self) -> np.ndarray:
         """Return the 3x3 rotation of the placement (yaw, then tilt)."""
         return tilt_matrix(self.tilt_deg, self.tilt_dir_deg) @ _yaw_matrix(self.yaw_deg)
 
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Return where the object's origin lands: the shift, and the pivot's lean."""
+        pivot = np.array([0.0, 0.0, self.pivot_mm])
+        return pivot - self.rotation @ pivot + np.asarray(self.shift_mm)
+
     def apply(self, tris: np.ndarray) -> np.ndarray:
         """Return triangles (F, 3, 3) (or points (..., 3)) given in the object's own frame,
         placed."""
-        return (np.asarray(tris) * self.scale) @ self.rotation.T + np.asarray(self.shift_mm)
+        return (np.asarray(tris) * self.scale) @ self.rotation.T + self.offset_mm
 
     def own_frame(self, points_mm: np.ndarray) -> np.ndarray:
         """Return placed points (..., 3) in the object's own frame (the inverse of apply)."""
-        moved = np.asarray(points_mm, dtype=float) - np.asarray(self.shift_mm)
+        moved = np.asarray(points_mm, dtype=float) - self.offset_mm
         return moved @ self.rotation / self.scale
 
 

@@ -40,7 +40,7 @@ _FORMS = {
         for name in RELIEF_PHANTOMS
     },
 }
-_PLACEMENT = {"x", "y", "z", "yaw", "tilt", "tilt_dir"}
+_PLACEMENT = {"x", "y", "z", "yaw", "tilt", "tilt_dir", "pivot"}
 _TILTED = ("mesh", "random", *PHANTOMS)
 """The kinds that take ``tilt=`` (the solids and the patches cylinder stand upright)."""
 MAX_TILT_DEG = 60.0
@@ -98,7 +98,7 @@ def _number(kind: str, key: str, value: str, form: str) -> float:
         else (MIN_SIZE_MM, MAX_OBJECT_MM)
         if key in _LENGTHS
         else (-MAX_OBJECT_MM, MAX_OBJECT_MM)
-        if key in {"x", "y", "z"}
+        if key in {"x", "y", "z", "pivot"}
         else (0.0, MAX_TILT_DEG)
         if key == "tilt"
         else (-math.inf, math.inf)
@@ -137,9 +137,10 @@ def parse_object(spec: str) -> SceneObject:
     before any placement keys move it).
 
     Placement keys: ``x=``, ``y=``, ``z=`` (mm) and ``yaw=`` (deg) for every kind but
-    ``patches``; ``tilt=`` (deg, 0 to :data:`MAX_TILT_DEG`) and ``tilt_dir=`` (the azimuth
-    the top leans towards, deg, default 0: +x) for phantoms, meshes and random shapes:
-    yaw about the object's own axis, then the tilt about its origin, then the shift.
+    ``patches``; ``tilt=`` (deg, 0 to :data:`MAX_TILT_DEG`), ``tilt_dir=`` (the azimuth
+    the top leans towards, deg, default 0: +x) and ``pivot=`` (the height on the object's
+    own axis it leans about, scaled mm, default 0) for phantoms, meshes and random shapes:
+    yaw about the object's own axis, then the tilt about the pivot, then the shift.
     """
     kind, colon, body = spec.strip().partition(":")
     kind = kind.strip().lower()
@@ -171,25 +172,27 @@ def _placement(num: dict[str, float], scale: float = 1.0) -> Placement:
     """Return the placement the keys ask for: scale, yaw, tilt (and its direction), shift."""
     shift = (num.get("x", 0.0), num.get("y", 0.0), num.get("z", 0.0))
     return Placement(scale, num.get("yaw", 0.0), shift, num.get("tilt", 0.0),
-                     num.get("tilt_dir", 0.0))  # fmt: skip
+                     num.get("tilt_dir", 0.0), num.get("pivot", 0.0))  # fmt: skip
 
 
 def _check_tilt(kind: str, num: dict[str, float], form: str) -> None:
-    """Refuse ``tilt=``/``tilt_dir=`` on a kind that stands upright (one line)."""
-    if ("tilt" in num or "tilt_dir" in num) and kind not in _TILTED:
+    """Refuse ``tilt=``, ``tilt_dir=``, ``pivot=`` on a kind that stands upright, and the
+    last two without a tilt (one line)."""
+    if ("tilt" in num or "tilt_dir" in num or "pivot" in num) and kind not in _TILTED:
         raise ValueError(
             f"{kind}: tilt= is offered on the phantoms, mesh files and random shapes; a "
             f"{kind} stands upright (e.g. {form})"
         )
-    if "tilt_dir" in num and "tilt" not in num:
-        raise ValueError(f"{kind}: tilt_dir= needs tilt= (the tilt in degrees); e.g. tilt=3")
+    for key in ("tilt_dir", "pivot"):
+        if key in num and "tilt" not in num:
+            raise ValueError(f"{kind}: {key}= needs tilt= (the tilt in degrees); e.g. tilt=3")
 
 
 def _placed_random(body: str, form: str) -> SceneObject:
     """Build ``random:seed=N[,scale=...]`` and move it by any placement keys given.
 
     The shape places itself first (its own offset and tilt); ``x=``, ``y=``, ``z=``,
-    ``yaw=``, ``tilt=`` and ``tilt_dir=`` then move it as they move a phantom.
+    ``yaw=``, ``tilt=``, ``tilt_dir=`` and ``pivot=`` then move it as they move a phantom.
     """
     own: list[str] = []
     moves: list[str] = []
