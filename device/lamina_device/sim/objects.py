@@ -20,6 +20,7 @@ import numpy as np
 __all__ = [
     "Cylinder",
     "Ellipsoid",
+    "Revolved",
     "SceneObject",
     "SectionCurve",
     "TriangleMesh",
@@ -123,6 +124,15 @@ AS_BUILT = Placement()
 """No scale, yaw or shift: the object where its own frame puts it."""
 
 
+def _near_axis(o: np.ndarray, d: np.ndarray, x: float, y: float, radius: float) -> np.ndarray:
+    """Return the indices of the rays whose line passes within ``radius`` of the vertical line
+    through ``(x, y)``: the only ones that can meet a solid of revolution that wide (most of
+    a camera's rays do not)."""
+    rx, ry = o[:, 0] - x, o[:, 1] - y
+    dxy = d[:, 0] ** 2 + d[:, 1] ** 2
+    return np.flatnonzero((rx * d[:, 1] - ry * d[:, 0]) ** 2 <= radius * radius * dxy)
+
+
 def _smallest_positive(*candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return the smallest candidate t > eps per ray and which candidate it was."""
     stack = np.stack([np.where(c > _EPS_T_MM, c, np.inf) for c in candidates])
@@ -144,6 +154,14 @@ class Cylinder:
     def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the first hit t (N,) and outward normals (N, 3) of the wall and both caps."""
         o, d = _as_rays(origins, dirs)
+        near = _near_axis(o, d, self.x_mm, self.y_mm, self.diameter_mm / 2.0)
+        best, normal = np.full(len(d), np.inf), np.zeros_like(d)
+        if near.size:
+            best[near], normal[near] = self._cast(o[near], d[near])
+        return best, normal
+
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t and outward normals of rays (N, 3) that may meet it."""
         r = self.diameter_mm / 2.0
         z0, z1 = self.z_mm, self.z_mm + self.height_mm
         ox, oy = o[:, 0] - self.x_mm, o[:, 1] - self.y_mm
@@ -746,9 +764,75 @@ def cylinder(
     return Cylinder(diameter_mm, height_mm, x, y, z)
 
 
-GROOVED_CYLINDER_SEGMENTS = 1440
-"""Facets round the grooved calibration cylinder: its polygon's mean radius falls short of
-the circle's by 2e-6 of it (0.00007 mm on a 60 mm cylinder), far inside its tolerance."""
+@dataclass(frozen=True)
+class Revolved:
+    """A solid of revolution about the vertical line through ``(x, y)``: flat end faces at
+    the first and last heights of ``profile``, a wall of cylinders and cones between them.
+
+    ``profile`` holds (z, r) pairs, z rising strictly; the radius runs linearly between
+    them. Ray casts and sections are exact (no facets).
+    """
+
+    profile: tuple[tuple[float, float], ...]
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    name: str = "revolved"
+
+    def radius_at(self, z_mm: float) -> float:
+        """Return the wall's radius at height ``z_mm`` (NaN above or below the solid)."""
+        z = [p[0] for p in self.profile]
+        if not z[0] <= z_mm <= z[-1]:
+            return math.nan
+        return float(np.interp(z_mm, z, [p[1] for p in self.profile]))
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t (N,) and outward normals (N, 3) of the wall and end faces."""
+        o, d = _as_rays(origins, dirs)
+        best = np.full(len(d), np.inf)
+        normal = np.zeros_like(d)
+        near = _near_axis(o, d, self.x_mm, self.y_mm, max(r for _, r in self.profile))
+        if near.size:
+            t, n = self._cast(o[near], d[near])
+            best[near], normal[near] = t, n
+        return best, normal
+
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t and unit outward normals of rays (N, 3) near the solid."""
+        ox, oy, oz = o[:, 0] - self.x_mm, o[:, 1] - self.y_mm, o[:, 2]
+        best = np.full(len(d), np.inf)
+        normal = np.zeros_like(d)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for (z0, r0), (z1, r1) in itertools.pairwise(self.profile):
+                s = (r1 - r0) / (z1 - z0)  # dr/dz of this piece
+                k = r0 - s * z0 + s * oz  # the piece's radius at the ray's origin height
+                a = d[:, 0] ** 2 + d[:, 1] ** 2 - (s * d[:, 2]) ** 2
+                b = 2.0 * (ox * d[:, 0] + oy * d[:, 1] - s * d[:, 2] * k)
+                c = ox**2 + oy**2 - k * k
+                root = np.sqrt(np.where(b * b - 4.0 * a * c >= 0.0, b * b - 4.0 * a * c, np.nan))
+                for t in ((-b - root) / (2.0 * a), (-b + root) / (2.0 * a)):
+                    z = oz + t * d[:, 2]
+                    ok = (t > _EPS_T_MM) & (z >= z0) & (z <= z1) & (k + s * t * d[:, 2] >= 0.0)
+                    closer = ok & (t < best)
+                    best = np.where(closer, t, best)
+                    hx, hy = ox + t * d[:, 0], oy + t * d[:, 1]
+                    wall = np.stack([hx, hy, -s * (k + s * t * d[:, 2])], axis=1)
+                    normal = np.where(closer[:, None], wall, normal)
+            for zc, rc, up in ((*self.profile[0], -1.0), (*self.profile[-1], 1.0)):
+                t = (zc - oz) / d[:, 2]
+                px, py = ox + t * d[:, 0], oy + t * d[:, 1]
+                closer = (t > _EPS_T_MM) & (px * px + py * py <= rc * rc) & (t < best)
+                best = np.where(closer, t, best)
+                normal = np.where(closer[:, None], np.array([0.0, 0.0, up]), normal)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        return best, normal
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Return the circle at height ``z_mm`` as one CCW polygon, or [] above or below."""
+        r = self.radius_at(z_mm)
+        if not r > 0.0:
+            return []
+        phi = np.linspace(0.0, 2.0 * np.pi, OUTLINE_VERTICES, endpoint=False)
+        return [np.stack([self.x_mm + r * np.cos(phi), self.y_mm + r * np.sin(phi)], axis=1)]
 
 
 def grooved_cylinder(
@@ -759,32 +843,18 @@ def grooved_cylinder(
     z: float,
     grooves_mm: tuple[float, ...],
     depth_mm: float,
-) -> TriangleMesh:
+) -> Revolved:
     """Return an upright cylinder (base centre ``(x, y, z)``) with 90 degree V-grooves.
 
     Each groove is centred at a height in ``grooves_mm`` (object frame), ``depth_mm`` deep
-    and twice as wide: its flanks are 45 degree cones. The mesh is a surface of revolution
-    whose rings lie on the exact profile, closed by flat end faces.
+    and twice as wide: its flanks are 45 degree cones.
     """
     r = diameter_mm / 2.0
     profile = [(z, r)]
     for g in sorted(grooves_mm):
         profile += [(g - depth_mm, r), (g, r - depth_mm), (g + depth_mm, r)]
     profile.append((z + height_mm, r))
-    phi = np.linspace(0.0, 2.0 * math.pi, GROOVED_CYLINDER_SEGMENTS, endpoint=False)
-    unit = np.column_stack([np.cos(phi), np.sin(phi)])
-    rings = [
-        np.column_stack([x + rk * unit[:, 0], y + rk * unit[:, 1], np.full(len(phi), zk)])
-        for zk, rk in profile
-    ]
-    nxt = np.roll(np.arange(len(phi)), -1)
-    tris = []
-    for a, b in itertools.pairwise(rings):
-        tris += [np.stack([a, a[nxt], b[nxt]], axis=1), np.stack([a, b[nxt], b], axis=1)]
-    for ring in (rings[0], rings[-1]):
-        hub = np.broadcast_to(ring.mean(axis=0), ring.shape)
-        tris.append(np.stack([hub, ring, ring[nxt]], axis=1))
-    return TriangleMesh.from_triangles(np.concatenate(tris), name="grooved cylinder")
+    return Revolved(tuple(profile), x, y, name="grooved cylinder")
 
 
 def sphere(diameter_mm: float, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> Ellipsoid:
