@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import Rig
-from lamina_device.sim.objects import grooved_cylinder
+from lamina_device.sim.objects import Cylinder, grooved_cylinder
 from lamina_host.reconstruct.axis import fit_circle
 from lamina_host.reconstruct.calibration import calibrate_lift
 from lamina_host.reconstruct.pipeline import lift_sections
@@ -124,12 +124,22 @@ def test_the_cylinder_views_split_between_axis_and_marks() -> None:
 
 
 def test_the_grooved_cylinder_has_its_flanks_where_the_reference_says() -> None:
-    """The simulated limb rig's cylinder: 60 mm, 45 degree flanks, grooves 140 mm apart."""
+    """The simulated limb rig's cylinder: 60 mm, 45 degree flanks, grooves 140 mm apart; a
+    ray meets the flank where the profile says, with the cone's normal, and the wall away
+    from the grooves exactly as the plain cylinder does."""
     rig = Rig.limb()
     assert rig.lift_reference() == REFERENCE
-    mesh = grooved_cylinder(60.0, 185.0, 10.0, -6.0, -5.0, GROOVES, 5.0)
+    solid = grooved_cylinder(60.0, 185.0, 10.0, -6.0, -5.0, GROOVES, 5.0)
     for z, expected in ((0.0, 30.0), (22.5, 27.5), (25.0, 25.0), (163.0, 27.0)):
-        (outline,) = mesh.section_outline(z)
+        (outline,) = solid.section_outline(z)
         radius = np.hypot(outline[:, 0] - 10.0, outline[:, 1] - -6.0)
-        assert radius.max() == pytest.approx(expected, abs=1e-9)
-        assert radius.min() >= expected * math.cos(math.pi / 1440) - 1e-9
+        assert radius == pytest.approx(expected, abs=1e-9)
+    assert solid.section_outline(181.0) == []
+    origins = np.array([[10.0, -300.0, 22.5], [10.0, -300.0, 0.0], [10.0, -6.0, 400.0]])
+    dirs = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
+    t, normal = solid.raycast(origins, dirs)
+    assert t == pytest.approx([300.0 - 6.0 - 27.5, 300.0 - 6.0 - 30.0, 400.0 - 180.0])
+    s2 = math.sqrt(0.5)
+    assert normal == pytest.approx(np.array([[0.0, -s2, s2], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]))
+    plain_t, plain_n = Cylinder(60.0, 185.0, 10.0, -6.0, -5.0).raycast(origins[1:2], dirs[1:2])
+    assert t[1] == plain_t[0] and normal[1] == pytest.approx(plain_n[0])
