@@ -2,7 +2,7 @@
 
 The simulated lift runs ``--lift-error`` % off its commanded travel; the host measures its
 scale on the calibration cylinder's two grooves (``LiftReference``: a section on the lower
-flank of each groove, 140 mm apart on the limb rig's cylinder, 4 views each) and multiplies
+flank of each groove, 140 mm apart on the limb rig's cylinder, 8 views each) and multiplies
 every section height by it. Each limb phantom of ``bench_repeat`` is scanned upright on the
 limb rig, harsh preset, with the lift 0.5 % short and 0.5 % long (the same plans: 8 views,
 6 sections 10 mm apart), and its volume between the first and last section is set against

@@ -118,8 +118,8 @@ def test_the_cylinder_views_split_between_axis_and_marks() -> None:
              for k, v in enumerate(plan.views)]  # fmt: skip
     axis_views, marks = lift_sections(views, REFERENCE)
     assert [v.z_mm for v in axis_views] == [0.0] * 8
-    assert [[v.z_mm for v in m] for m in marks] == [[22.5] * 4, [162.5] * 4]
-    assert [v.angle_deg for v in marks[1]] == [0.0, 90.0, 180.0, 270.0]
+    assert [[v.z_mm for v in m] for m in marks] == [[22.5] * 8, [162.5] * 8]
+    assert [v.angle_deg for v in marks[1]] == [45.0 * k for k in range(8)]
     assert lift_sections(views, None) == (views, [])
 
 
