@@ -507,7 +507,9 @@ class Library(Scoped):
     def _migrate_lift_reference(self) -> None:
         """Add the calibrations' lift reference (none for scans recorded before it)."""
         columns = {row[1] for row in self._db.execute("PRAGMA table_info(calibrations)")}
-        if "lift_reference" not in columns:  # a library marked older than it is has it
+        # No table yet (schema 1): the schema below makes it whole. A library marked older
+        # than it is may have the column already.
+        if columns and "lift_reference" not in columns:
             self._db.execute("ALTER TABLE calibrations ADD COLUMN lift_reference TEXT")
 
     def leave(self) -> None:
