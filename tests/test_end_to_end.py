@@ -142,16 +142,20 @@ def test_replay_of_a_recorded_capture_gives_identical_segments(live_scan, captur
     assert replay_report["accuracy"] == live_report["accuracy"]
 
 
-def test_no_chessboard_in_view(capture, tmp_path):
+def test_no_chessboard_in_view_stops_before_anything_is_acquired(capture, tmp_path):
+    """Issue 24: the board is found before the cylinder and the object are acquired (as
+    the terminal UI does), so a board out of view wastes no acquisition and records no scan."""
     broken = tmp_path / "blank-grid"
     shutil.copytree(capture, broken)
     cv2.imwrite(str(broken / "calib/grid.png"), np.full((480, 640), 30, np.uint8))
-    message = one_line_error(
-        lamina("scan", "--device", f"replay:{broken}", "-o", str(tmp_path / "out"))
-    )
+    library = tmp_path / "library.sqlite"
+    out = tmp_path / "out"
+    args = ["--device", f"replay:{broken}", "-o", str(out), "--library", str(library)]
+    message = one_line_error(lamina("scan", *args))
     assert "no chessboard" in message
-    # The segments already received are kept.
-    assert (tmp_path / "out" / "segments.npz").exists()
+    assert not (tmp_path / "out" / "segments.npz").exists()
+    assert not (tmp_path / "out" / "cylinder-segments.npz").exists()
+    assert "no scans" in lamina("scans", "--library", str(library)).stdout
 
 
 def test_fewer_than_four_corners(capture, tmp_path):

@@ -349,7 +349,8 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
         with pytest.raises(StoreError, match="source"):
             library.check_identity(1, {**same, "source": "sim object=sphere:d=25"})
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 5  # 4: side, 5: lift reference
+        # 3: colour, 4: side, 5: test mark, 6: lift reference
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
 
 
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):
@@ -676,7 +677,11 @@ def test_resume_replaces_planted_links_and_never_writes_through_them(processed, 
         file.unlink()
         file.symlink_to(victim)
         victims[victim] = file
-    status, _, err = run(capsys, "scan", "--device", "sim", "--library", str(path), "--resume", "1")
+    resume = ["scan", "--device", "sim", "--library", str(path), "--resume", "1"]
+    status, said, err = run(capsys, *resume)  # complete: nothing is written (issue #24)
+    assert status == 0 and "is complete" in said, err
+    assert all(file.is_symlink() for file in victims.values())
+    status, _, err = run(capsys, *resume, "--reprocess")
     assert status == 0, err
     for victim, file in victims.items():
         assert victim.read_bytes() == b"precious"

@@ -27,7 +27,14 @@ belongs to a chain of at least ``min_chain_px`` neighbouring columns whose runs 
 within ``max_row_jump_px`` rows: a stripe is a curve, noise is not. Each point carries
 its peak over that noise as a confidence byte for the host. The thesis's method alone
 is :meth:`ExtractSettings.thesis`. Optionally the centres are smoothed along each
-chain by a local line fit (fewer speckle errors, a small bias on tight curves).
+chain by a local line fit (fewer speckle errors, a small bias on tight curves); the
+host fits them along the chains instead, unbiased (``lamina_shared.centreline``).
+
+The centre at the sub-pixel limit (issue 21). By default the centre also weighs 3
+pixels beyond either end of the run (``margin_px``: which pixels Otsu's cut keeps
+changes with the stripe's sub-pixel phase, a ripple no fit along the stripe removes),
+and runs of one column at most 2 rows apart are one run (``bridge_px``: speckle
+darkens spots inside a wide stripe), the pixels between weighed in.
 
 Selectable as well: background removal by morphological opening (thesis 5.2.1), a fixed
 threshold, weights above the threshold, and the thesis's first method, Otsu
@@ -37,8 +44,9 @@ that its bias can be measured.
 Speed: the whole frame is touched three times, by cheap vectorised passes: one
 saturating subtraction, one comparison and one test of 8 pixels per machine word (plus
 a sum). Otsu's counts, the runs and their sums then come from the few words that hold
-a bright pixel, ordered column by column with a single sort; the noise comes from a
-subsample and the gate and chains work on the points alone.
+a bright pixel, ordered column by column with a single sort, or, in the usual frame
+of one run per column, from column sums and one window per column with no ordering;
+the noise comes from a subsample and the gate and chains work on the points alone.
 """
 
 from __future__ import annotations
@@ -54,7 +62,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_shared.centreline import chain_starts
+from lamina_shared.centreline import DEFAULT_ROW_JUMP_PX, chain_starts
 from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
@@ -72,6 +80,7 @@ FLAG_SATURATED = 4
 _FULL_SCALE = 255
 _MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
 _MAX_MARGIN_PX = 16  # pixels beyond a run's ends its centre may weigh in
+_MAX_BRIDGE_PX = 8  # rows between two runs of one column that may still join them
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
@@ -107,9 +116,13 @@ class ExtractSettings:
     ``max_width_px`` rows (or shorter than ``min_width_px``) are no laser profile.
     ``smooth_sigma_px`` > 0 smooths the centres along each chain (a local line fit with
     Gaussian weights of that many columns). ``margin_px`` > 0 weighs that many pixels
-    beyond each end of the run into its centre (``p`` = 1 without ``subtract_threshold``
-    only): the centre no longer jumps as the run's edge pixels cross the threshold (the
-    sub-pixel bench, issue 21). :meth:`thesis` turns all of this off.
+    beyond each end of the run into its centre (centre of gravity only; with
+    ``subtract_threshold`` they weigh nothing): the centre no longer jumps as the run's
+    edge pixels cross the threshold (the sub-pixel bench, issue 21). ``bridge_px`` > 0
+    makes runs of one column at most that many rows apart one run, the pixels between
+    them weighed in (centre of gravity only): speckle darkens spots inside a wide
+    stripe below the threshold, and the brightest piece alone is not its centre.
+    :meth:`thesis` turns all of this off.
     """
 
     threshold: float | None = None
@@ -122,11 +135,12 @@ class ExtractSettings:
     noise_gate: bool = True
     false_points_per_frame: float = 1e-4
     min_chain_px: int = 8
-    max_row_jump_px: float = 4.0
+    max_row_jump_px: float = DEFAULT_ROW_JUMP_PX
     min_width_px: int = 1
     max_width_px: int = 64
     smooth_sigma_px: float = 0.0
-    margin_px: int = 0
+    margin_px: int = 3
+    bridge_px: int = 2
 
     def __post_init__(self) -> None:
         problems = settings_problems(self)
@@ -138,7 +152,7 @@ class ExtractSettings:
         """Return the thesis's method alone: no noise gate, no chains, any run width."""
         plain: dict[str, object] = {
             "noise_gate": False, "min_chain_px": 1, "min_width_px": 1, "max_width_px": 255,
-            "margin_px": 0,
+            "margin_px": 0, "bridge_px": 0,
         }  # fmt: skip
         return cls(**{**plain, **changes})  # type: ignore[arg-type]
 
@@ -205,10 +219,8 @@ def settings_problems(settings: ExtractSettings) -> list[str]:
         problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
     if not 0 <= settings.margin_px <= _MAX_MARGIN_PX:
         problems.append(f"margin_px {settings.margin_px} is not in 0..{_MAX_MARGIN_PX}")
-    elif settings.margin_px and (
-        settings.power != 1.0 or settings.subtract_threshold or settings.method != "cog"
-    ):
-        problems.append("margin_px > 0 needs method cog with power 1 and subtract_threshold false")
+    if not 0 <= settings.bridge_px <= _MAX_BRIDGE_PX:
+        problems.append(f"bridge_px {settings.bridge_px} is not in 0..{_MAX_BRIDGE_PX}")
     return problems
 
 
@@ -435,22 +447,31 @@ class _Bright:
         words = np.flatnonzero((image > level).reshape(-1).view(np.uint64) != 0)
         return cls(height, image.shape[1], words, all_words[words].view(np.uint8))
 
+    def above(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the pixels above ``level`` in row-major order: column, row and word index."""
+        chosen = np.flatnonzero(self.pixels > math.floor(level))
+        word = chosen >> 3
+        word_row, word_col = np.divmod(self.words, self.width // 8)
+        word_col <<= 3
+        col = word_col[word]
+        col |= chosen & 7
+        return col, word_row[word], chosen
+
     def column_major(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """Return the pixels above ``level`` column by column, rows ascending.
 
         Returns:
             Each pixel's column-major index ``col * height + row`` and its level (int64).
         """
-        chosen = np.flatnonzero(self.pixels > math.floor(level))
-        # Sort keys hold the column-major index with the level in the low byte, so one
-        # plain sort orders both; 32 bits are enough below 2**24 pixels and sort faster.
-        key_type = np.uint32 if self.height * self.width < 1 << 24 else np.int64
-        word_row, word_col = np.divmod(self.words, self.width // 8)
-        word_key = ((word_col * (8 * self.height) + word_row) << 8).astype(key_type)
-        lane_key = ((chosen & 7) * (self.height << 8)).astype(key_type)
-        key = word_key[chosen >> 3] + lane_key + self.pixels[chosen]
-        key.sort()
-        return np.right_shift(key, 8, dtype=np.int64), np.bitwise_and(key, 0xFF, dtype=np.int64)
+        col, row, chosen = self.above(level)
+        # The pixels come row by row, so a stable sort by column alone leaves each
+        # column's rows ascending, and 16-bit keys (no frame is wider:
+        # DeviceLimits.max_image_side_px) sort by radix, twice as fast as whole indices.
+        order = np.argsort(col.astype(np.uint16), kind="stable")
+        index = col[order]
+        index *= self.height
+        index += row[order]
+        return index, self.pixels[chosen[order]].astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -493,34 +514,62 @@ class _Runs:
 
 
 def _run_bounds(
-    index: np.ndarray, height: int, split_columns: bool
+    index: np.ndarray, height: int, split_columns: bool, bridge_px: int = 0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Return each run's first pixel, length, column and first row (a gap starts a run)."""
+    """Return each run's first pixel, length, column and first row.
+
+    A gap of more than ``bridge_px`` rows starts a run; a run's length is its span in
+    rows, the bridged gaps included.
+    """
     starts = np.empty(index.size, bool)
     starts[0] = True
-    np.not_equal(index[1:] - index[:-1], 1, out=starts[1:])
+    np.greater(index[1:] - index[:-1], 1 + bridge_px, out=starts[1:])
     if split_columns:  # a run reaching the bottom row must not continue at the next top
-        starts[index % height == 0] = True
+        column = index // height
+        starts[1:] |= column[1:] != column[:-1]
     start = np.flatnonzero(starts)
     length = np.empty_like(start)
-    length[:-1] = start[1:] - start[:-1]
-    length[-1] = index.size - start[-1]
+    length[:-1] = index[start[1:] - 1]
+    length[-1] = index[-1]
+    length -= index[start]
+    length += 1
     col, row0 = np.divmod(index[start], height)
     return start, length, col, row0
 
 
 def _find_runs(
-    bright: _Bright, threshold: float, power: float, subtract_threshold: bool
+    bright: _Bright,
+    threshold: float,
+    power: float,
+    subtract_threshold: bool,
+    bridge: tuple[np.ndarray, int] | None = None,
 ) -> _Runs | None:
-    """Return the above-threshold runs with their eq. 5.1 sums, or None when there are none."""
+    """Return the above-threshold runs with their eq. 5.1 sums, or None when there are none.
+
+    With ``bridge`` (the 8-bit difference image and a number of rows) runs of one column
+    that far apart or nearer are one run, the pixels between them weighed in too.
+    """
     index, values = bright.column_major(threshold)
     if index.size == 0:
         return None
     height = bright.height
-    start, length, col, row0 = _run_bounds(index, height, split_columns=False)
+    bridge_px = 0 if bridge is None else bridge[1]
+    start, length, col, row0 = _run_bounds(index, height, False, bridge_px)
     if (row0 + length).max() > height:  # rare: a stripe touching both image edges
-        start, length, col, _ = _run_bounds(index, height, split_columns=True)
+        start, length, col, _ = _run_bounds(index, height, True, bridge_px)
     weights = _weights(values, threshold, power, subtract_threshold)
+    weight = np.add.reduceat(weights, start)
+    moment = np.add.reduceat(weights * index, start)
+    if bridge is not None and bridge_px and length.sum() > index.size:
+        gaps = _gap_pixels(index, start, bridge_px)
+        if gaps[0].size:
+            run, gap_index = gaps
+            level = _levels_at(bridge[0], gap_index).astype(np.int64)
+            gap_weight = np.maximum(_weights(level, threshold, power, subtract_threshold), 0)
+            weight = weight + np.bincount(run, gap_weight, start.size).astype(weight.dtype)
+            moment = moment + np.bincount(run, gap_weight * gap_index, start.size).astype(
+                moment.dtype
+            )
     return _Runs(
         height=height,
         point_index=index,
@@ -528,9 +577,34 @@ def _find_runs(
         col=col,
         length=length,
         peak=np.maximum.reduceat(values, start),
-        weight=np.add.reduceat(weights, start),
-        moment=np.add.reduceat(weights * index, start),
+        weight=weight,
+        moment=moment,
     )
+
+
+def _levels_at(diff: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Return the levels of ``diff`` at column-major indices ``col * height + row``."""
+    height, width = diff.shape
+    col, row = np.divmod(index, height)
+    row *= width
+    row += col
+    return diff.reshape(-1)[row]
+
+
+def _gap_pixels(
+    index: np.ndarray, start: np.ndarray, bridge_px: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the run and the column-major index of every pixel a run bridges."""
+    step = index[1:] - index[:-1]
+    inside = np.ones(step.size, bool)
+    inside[start[1:] - 1] = False  # the step into the next run is no gap of this one
+    after = np.flatnonzero(inside & (step > 1))
+    runs, pixels = [], []
+    for k in range(1, bridge_px + 1):
+        chosen = after[step[after] > k]
+        runs.append(np.searchsorted(start, chosen, "right") - 1)
+        pixels.append(index[chosen] + k)
+    return np.concatenate(runs), np.concatenate(pixels)
 
 
 def _weights(
@@ -609,25 +683,96 @@ def _centres(
     power: float,
     subtract_threshold: bool,
     run_choice: str,
-    margin: tuple[np.ndarray, int] | None = None,
+    diff: np.ndarray | None = None,
+    margin_px: int = 0,
+    bridge_px: int = 0,
 ) -> StripePoints:
     """Return the eq. 5.1 centre of the kept run of every column with one.
 
-    With ``margin`` (the 8-bit difference image and a number of pixels) the centre also
-    weighs that many pixels beyond each end of the run (:func:`_margin_centres`; eq. 5.1
-    with ``p`` = 1 and intensity weights only, as the settings check).
+    With ``diff`` (the 8-bit difference image) runs of one column at most ``bridge_px``
+    rows apart are one run (:func:`_find_runs`), and the centre also weighs
+    ``margin_px`` pixels beyond each end of the run (:func:`_margin_centres`).
     """
-    runs = _find_runs(bright, threshold, power, subtract_threshold)
+    if diff is not None and power == 1.0 and not subtract_threshold:
+        points = _single_run_centres(bright, threshold, diff, margin_px, bridge_px)
+        if points is not None:
+            return points
+    bridge = None if diff is None or bridge_px == 0 else (diff, bridge_px)
+    runs = _find_runs(bright, threshold, power, subtract_threshold, bridge)
     if runs is None:
         return _empty_points()
     chosen, flags = _choose_runs(runs, run_choice)
-    if margin is None or margin[1] == 0:
+    if diff is None or margin_px == 0:
         return _points(runs, chosen, runs.centre[chosen], flags)
-    return _points(runs, chosen, _margin_centres(runs, chosen, *margin, threshold), flags)
+    weighing = (threshold, power, subtract_threshold)
+    return _points(runs, chosen, _margin_centres(runs, chosen, diff, margin_px, weighing), flags)
+
+
+def _single_run_centres(
+    bright: _Bright, threshold: float, diff: np.ndarray, margin_px: int, bridge_px: int
+) -> StripePoints | None:
+    """Return :func:`_centres` (eq. 5.1, ``p`` = 1) when every column holds one run, else None.
+
+    The usual frame's fast path: with one run per column (its gaps no wider than
+    ``bridge_px``) nothing needs ordering column by column, so each column's first
+    bright row and its count come from unordered reductions, and the run, its bridged
+    gaps and ``margin_px`` pixels either side are weighed from one window per column.
+    The results equal the general path's (runs, choice, :func:`_margin_centres`).
+    """
+    col, row, _ = bright.above(threshold)
+    if col.size == 0:
+        return _empty_points()
+    height, width = diff.shape
+    count = np.bincount(col, minlength=bright.width)
+    cols = np.flatnonzero(count)
+    count = count[cols]
+    # Of n distinct whole rows, only consecutive ones have the variance (n**2 - 1) / 12;
+    # their first is then their mean less (n - 1) / 2. Sums of squares stay exact.
+    total = np.bincount(col, row, bright.width)[cols]
+    spread = np.bincount(col, row * row, bright.width)[cols] * count - total * total
+    length = count
+    if np.array_equal(spread, count * count * (count * count - 1) / 12):
+        top = (total / count - (count - 1) / 2).astype(np.int64)
+    else:
+        top = np.full(bright.width, height, np.int64)
+        np.minimum.at(top, col, row)
+        bottom = np.full(bright.width, -1, np.int64)
+        np.maximum.at(bottom, col, row)
+        top = top[cols]
+        length = bottom[cols] - top + 1
+        if int((length - count).max()) > bridge_px:
+            return None  # some column holds two runs: they must be told apart
+    # (rows, N): the window of every column from ``start``, padded to the longest with
+    # zero weight; whole numbers below 2**24, so float32 sums are exact.
+    span = int(length.max()) + 2 * margin_px
+    start = top - margin_px
+    offsets = np.arange(span)[:, None]
+    flat = start * width
+    flat += cols
+    flat = flat + offsets * width
+    outside = offsets >= length + 2 * margin_px
+    if int(start.min()) < 0 or int(start.max()) + span > height:  # past the frame's edge
+        rows = start + offsets
+        outside |= (rows < 0) | (rows >= height)
+        flat = np.clip(rows, 0, height - 1) * width + cols
+    levels = diff.reshape(-1)[flat]
+    levels[outside] = 0
+    weights = levels.astype(np.float32)
+    centre = start + (np.arange(span, dtype=np.float32) @ weights) / weights.sum(axis=0)
+    peak = levels.max(axis=0)
+    flags = (peak >= _FULL_SCALE).view(np.uint8) * np.uint8(FLAG_SATURATED)
+    return StripePoints(
+        cols.astype(np.uint16), centre.astype(np.float32), peak,
+        np.minimum(length, _FULL_SCALE).astype(np.uint8), flags,
+    )  # fmt: skip
 
 
 def _margin_centres(
-    runs: _Runs, chosen: np.ndarray | slice, diff: np.ndarray, margin_px: int, threshold: float
+    runs: _Runs,
+    chosen: np.ndarray | slice,
+    diff: np.ndarray,
+    margin_px: int,
+    weighing: tuple[float, float, bool],
 ) -> np.ndarray:
     """Return the chosen runs' centres with ``margin_px`` pixels beyond each end weighed in.
 
@@ -636,8 +781,10 @@ def _margin_centres(
     and along a gently sloping stripe these jumps add up to a slow ripple that no fit
     along the stripe removes. The pixels just beyond the run lie below the threshold by
     definition (or belong to a neighbouring run, which is left out), so they weigh
-    little and change smoothly. Eq. 5.1 with ``p`` = 1 over the widened run.
+    little and change smoothly. Eq. 5.1 over the widened run, ``weighing`` being its
+    threshold, power and threshold subtraction (the margin weighs nothing then).
     """
+    threshold, power, subtract_threshold = weighing
     height = runs.height
     col = runs.col[chosen]
     top = runs.point_index[runs.start[chosen]] - col * height  # the run's first row
@@ -653,9 +800,12 @@ def _margin_centres(
         levels[(rows < 0) | (rows >= height)] = 0
     if runs.several:  # a pixel above the threshold out there is another run's
         levels[levels > threshold] = 0
+    weights = _weights(levels, threshold, power, subtract_threshold)
+    if subtract_threshold:
+        weights = np.maximum(weights, 0.0)
     run_weight = runs.weight[chosen]
-    weight = run_weight + levels.sum(axis=0, dtype=np.int64)
-    moment = runs.centre[chosen] * run_weight + (rows * levels).sum(axis=0)
+    weight = run_weight + weights.sum(axis=0, dtype=np.float64)
+    moment = runs.centre[chosen] * run_weight + (rows * weights).sum(axis=0, dtype=np.float64)
     return moment / weight
 
 
@@ -816,7 +966,7 @@ def extract(
     else:
         points = _centres(
             bright, threshold, settings.power, settings.subtract_threshold, settings.run_choice,
-            (diff, settings.margin_px),
+            diff, settings.margin_px, settings.bridge_px,
         )  # fmt: skip
     return _trust(points, noise_dn, settings, diff.shape)
 

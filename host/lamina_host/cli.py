@@ -11,7 +11,10 @@ began with.
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
+import os
+import re
 import signal
 import sqlite3
 import sys
@@ -20,13 +23,20 @@ from contextlib import contextmanager, suppress
 from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from lamina_host import __version__
 from lamina_host.clinical.measures import AXES, COMPARISONS, Thresholds, parse_landmark
-from lamina_host.clinical.report import MeasureRequest, build_report_data, write_report
+from lamina_host.clinical.report import (
+    LENGTH_UNITS,
+    MeasureRequest,
+    build_report_data,
+    headline_flags,
+)
+from lamina_host.clinical.report_page import write_report
 from lamina_host.link.errors import DeviceError, RequestRefused
-from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION
+from lamina_host.link.local_box import is_endpoint
+from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION, THESIS_TRIM_FRACTION
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
 from lamina_host.reconstruct.mesh import meshlab
 from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
@@ -124,7 +134,7 @@ def _stop_signals_interrupt() -> Iterator[None]:
 
 SCAN_DEFAULTS: dict[str, Any] = {
     "subject": "anonymous",
-    "trim": DEFAULT_TRIM_FRACTION,
+    "trim": None,  # the pipeline's own (_pipeline_trim)
     "seed": 0,
     "noise": "thesis",
     "rig": "thesis",
@@ -133,9 +143,79 @@ SCAN_DEFAULTS: dict[str, Any] = {
 """Defaults of scan options a resume must be able to tell from values given (so None)."""
 
 
+def did_you_mean(word: str, choices: Sequence[str]) -> str:
+    """Return "; did you mean X?" for the choice nearest ``word`` (or "" if none is near)."""
+    near = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f"; did you mean {near[0]}?" if near else ""
+
+
+_INVALID_CHOICE = re.compile(r"argument (\S+): invalid choice: '(.*)' \(choose from (.*)\)$")
+
+
+class LaminaParser(argparse.ArgumentParser):
+    """argparse's parser, refusing a mistake in one line (not the whole usage) with a hint.
+
+    A word that is not one of an option's choices is answered with the nearest choice.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Print one line naming the mistake and the nearest right word, then exit 2."""
+        found = _INVALID_CHOICE.search(message)
+        if found is not None:
+            option, value, listed = found.groups()
+            choices = re.findall(r"'([^']*)'", listed)
+            what = "no command" if option == "command" else f"not a choice of {option}"
+            message = f"{value!r} is {what} (choose from {', '.join(choices)})" + did_you_mean(
+                value, choices
+            )
+        self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def check_option_names(parser: argparse.ArgumentParser, argv: Sequence[str]) -> None:
+    """Refuse an option the command does not have, in one line with the nearest one.
+
+    Checked before parsing, so that a misspelt required option (``--devce``) is named as
+    the mistake, not reported as the required one missing. Abbreviations argparse accepts
+    (a unique start of an option) pass.
+    """
+    commands = next(
+        (a.choices for a in parser._actions if isinstance(a, argparse._SubParsersAction)), {}
+    )
+    if not argv or argv[0] not in commands:
+        return  # no command yet, or an unknown one: argparse says so
+    command = commands[argv[0]]
+    known = [o for o in command._option_string_actions if o.startswith("--")]
+    for word in argv[1:]:
+        if word == "--":
+            return
+        name = word.split("=", 1)[0]
+        if word.startswith("--") and not any(o.startswith(name) for o in known):
+            command.error(f"there is no option {name}{did_you_mean(name, known)}")
+
+
+DEVICE_WORDS = (SIM, "local")
+"""The device names that are words rather than ports or URLs (``replay:DIR`` has a folder)."""
+
+
+def check_device_name(device: str) -> None:
+    """Refuse a DEVICE that is a near miss of ``sim`` or ``local``, in one line.
+
+    A port that does not exist is otherwise named by the link when it opens it; a typo
+    of a word Lamina knows is named here, before anything starts.
+    """
+    if spawns_device(device) or is_endpoint(device) or "://" in device:
+        return
+    near = difflib.get_close_matches(device, DEVICE_WORDS, n=1, cutoff=0.6)
+    if near and not os.path.exists(device):
+        raise UsageError(
+            f"--device {device} is neither a serial port here nor a device Lamina knows; "
+            f"did you mean --device {near[0]}?"
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser."""
-    parser = argparse.ArgumentParser(prog="lamina", description=__doc__)
+    parser = LaminaParser(prog="lamina", description=__doc__)
     parser.add_argument("--version", action="version", version=f"lamina {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     scan = sub.add_parser("scan", help="calibrate, scan and reconstruct one object")
@@ -157,6 +237,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--side", choices=SIDES, help="the limb scanned: left, right or none (default none)"
     )
     scan.add_argument("--resume", type=int, metavar="SCAN", help="finish scan SCAN of the library")
+    scan.add_argument(
+        "--reprocess",
+        action="store_true",
+        help="with --resume of a complete scan: process it again (its outputs are replaced)",
+    )
     _add_library_option(scan)
     scan.add_argument("--object", help="simulated object (sim only), e.g. cylinder:d=19.05")
     scan.add_argument(
@@ -194,7 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--trim",
         type=float,
-        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:.2f})",
+        help=f"fraction dropped from each segment end (default {DEFAULT_TRIM_FRACTION:g}; "
+        f"{THESIS_TRIM_FRACTION:g} with --pipeline thesis)",
     )
     scan.add_argument("--seed", type=int, help="simulation seed (sim only, default 0)")
     scan.add_argument(
@@ -211,6 +297,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("SCAN", "SIDE"),
         help="record which limb scan SCAN is (left, right or none), then list",
     )
+    scans.add_argument(
+        "--set-test",
+        type=int,
+        metavar="SCAN",
+        help="mark scan SCAN as a test (kept, but out of trends and comparisons), then list",
+    )
+    scans.add_argument(
+        "--unset-test", type=int, metavar="SCAN", help="count scan SCAN as a visit again, then list"
+    )
+    scans.add_argument("--subject", help="list only the scans of this subject code")
     _add_library_option(scans)
     export = sub.add_parser(
         "export",
@@ -289,15 +385,20 @@ def _add_ui_options(parser: argparse.ArgumentParser) -> None:
         choices=NOISE_PRESETS,
         help="simulated camera (sim only); 'harsh' is a colour camera, for colour scans",
     )
+    parser.add_argument(
+        "--rig", choices=RIG_PRESETS, help="simulated rig at start (sim only; the Scan screen "
+        "changes it)",
+    )  # fmt: skip
     _add_library_option(parser)
 
 
 def _check_ui_options(args: argparse.Namespace) -> list[str]:
     """Refuse sim-only options for another device; return them as ``lamina tui`` options."""
-    if (args.object or args.noise) and args.device != SIM:
-        raise UsageError("--object and --noise only apply to --device sim")
+    check_device_name(args.device)
+    if (args.object or args.noise or args.rig) and args.device != SIM:
+        raise UsageError("--object, --noise and --rig only apply to --device sim")
     options = ["--device", args.device]
-    for flag, value in (("--object", args.object), ("--noise", args.noise)):
+    for flag, value in (("--object", args.object), ("--noise", args.noise), ("--rig", args.rig)):
         options += [flag, value] if value else []
     return options + (["--library", str(args.library.resolve())] if args.library else [])
 
@@ -340,13 +441,27 @@ def _add_report_parser(sub: Any) -> None:
         default=COMPARISONS[0],
         help="limbs: excess over the other limb (default); visits: change from a baseline",
     )
+    report.add_argument(
+        "--compare-other-subject",
+        action="store_true",
+        help="allow --compare with a scan of another subject code (both codes are printed)",
+    )
+    report.add_argument(
+        "--length-unit",
+        choices=LENGTH_UNITS,
+        default=next(iter(LENGTH_UNITS)),
+        help="unit of the table's distances and girths: cm (default) or mm",
+    )
     _add_measure_options(report)
     for name, default, what in (
         ("difference-ml", limits.limb_difference_ml, "inter-limb volume difference in mL"),
         ("difference-percent", limits.limb_difference_percent, "inter-limb difference in %%"),
         ("circumference-mm", limits.circumference_mm, "circumference difference in mm"),
         ("change-percent", limits.change_percent, "change from baseline in %%"),
-    ):
+        ("rvc-percent", limits.rvc_percent, "relative volume change in %% (lymphoedema)"),
+        ("subclinical-percent", limits.subclinical_percent, "relative volume change in %% "
+         "(subclinical)"),
+    ):  # fmt: skip
         report.add_argument(
             f"--flag-{name}",
             type=float,
@@ -528,6 +643,13 @@ def _apply_defaults(args: argparse.Namespace) -> None:
     for name, default in SCAN_DEFAULTS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)
+    if args.trim is None:
+        args.trim = _pipeline_trim(args)
+
+
+def _pipeline_trim(args: argparse.Namespace) -> float:
+    """Return the trim fraction of the pipeline asked for (the thesis' or Lamina's)."""
+    return THESIS_TRIM_FRACTION if args.pipeline == "thesis" else DEFAULT_TRIM_FRACTION
 
 
 def _plan(args: argparse.Namespace) -> ScanPlan | None:
@@ -551,6 +673,7 @@ def _check_args(
     if args.out is None:
         raise UsageError("name an output folder with -o OUT")
     check_subject(args.subject)
+    check_device_name(args.device)
     _check_numbers(args)
     if spawns_device(args.device) and find_spec("lamina_device") is None:
         raise UsageError(
@@ -628,7 +751,7 @@ def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
     if table is not None and accuracy:
         print(
             f"   mean RMS radial error: {table.mean_own_mm:.4f} mm (own centroid), "
-            f"{table.mean_mean_mm:.4f} mm (mean centroid); thesis: 0.1069, 0.1354"
+            f"{table.mean_mean_mm:.4f} mm (mean centroid) from the shape given by --expect"
         )
     print(f"mesh: {mesh_summary(report.mesh)}")
     for warning in report.warnings:
@@ -680,6 +803,15 @@ def scan(args: argparse.Namespace) -> int:
 def _scan(args: argparse.Namespace) -> int:
     with _open_library(args.library) as library:
         record = library.scan(args.resume) if args.resume is not None else None
+        if args.reprocess and record is None:
+            raise UsageError("--reprocess applies to a scan resumed with --resume SCAN")
+        if record is not None and record.status == "processed" and not args.reprocess:
+            print(
+                f"scan {record.id} is complete (every view held, processed); nothing was "
+                f"written: see it with lamina report {record.id} -o FILE.pdf, or process it "
+                f"again with --reprocess"
+            )
+            return 0
         if record is not None:
             _apply_resume(args, record)
         _apply_defaults(args)
@@ -805,7 +937,7 @@ def process(args: argparse.Namespace) -> int:
         if getattr(args, name) is None:
             setattr(args, name, record.options.get(name))
     if args.trim is None:
-        args.trim = SCAN_DEFAULTS["trim"]
+        args.trim = _pipeline_trim(args)
     options = _process_options(args)  # the trim and harmonics recorded are checked too
     try:
         expect = parse_expectation(args.expect) if args.expect else None
@@ -822,19 +954,25 @@ def process(args: argparse.Namespace) -> int:
 
 def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
+    if args.set_test is not None and args.set_test == args.unset_test:
+        raise UsageError("give a scan to --set-test or to --unset-test, not to both")
     with _open_library(args.library) as library:
         if args.set_side:
             scan_id, side = args.set_side
             if not scan_id.isdigit():
                 raise UsageError(f"--set-side {scan_id[:20]!r}: give a scan id, e.g. 3 left")
             library.set_side(int(scan_id), side)
-        summaries = library.scans()
+        for scan_id, test in ((args.set_test, True), (args.unset_test, False)):
+            if scan_id is not None:
+                library.set_test(scan_id, test)
+        summaries = library.scans(subject=args.subject)
         if not summaries:
-            print(f"no scans in {library.path}")
+            whose = f" of subject {printable(args.subject)}" if args.subject else ""
+            print(f"no scans{whose} in {library.path}")
             return 0
         print(
             f"{'scan':>5}  {'subject':<12} {'side':<5}  {'created':<25} {'status':<10} "
-            "sections  views  result"
+            "sections  views  result  test"
         )
         for s in summaries:
             views = f"{s.received}/{s.views}"
@@ -842,7 +980,8 @@ def list_scans(args: argparse.Namespace) -> int:
             subject, created, status = (printable(t) for t in (s.subject, s.created, s.status))
             print(
                 f"{s.id:>5}  {subject:<12} {s.side:<5}  {created:<25} {status:<10} "
-                f"{s.sections:>8}  {views:>5}  {'yes' if s.has_result else 'no'}"
+                f"{s.sections:>8}  {views:>5}  {'yes' if s.has_result else 'no':<6}  "
+                f"{'test' if s.test else ''}".rstrip()
             )
     return 0
 
@@ -889,7 +1028,8 @@ def tui(args: argparse.Namespace) -> int:
     _check_ui_options(args)
     from lamina_host.ui.tui.app import LaminaApp  # deferred: Textual is only needed here
 
-    LaminaApp(args.device, args.library, args.object, noise=args.noise or "thesis").run()
+    noise, rig = args.noise or "thesis", args.rig or "thesis"
+    LaminaApp(args.device, args.library, args.object, noise=noise, rig=rig).run()
     return 0
 
 
@@ -914,6 +1054,7 @@ def clinical_report(args: argparse.Namespace) -> int:
     """Run ``lamina report SCAN -o FILE``: measure a processed scan and write its report."""
     limits: tuple[float, ...] = (args.flag_difference_ml, args.flag_difference_percent)
     limits += (args.flag_circumference_mm, args.flag_change_percent)
+    limits += (args.flag_rvc_percent, args.flag_subclinical_percent)
     if not all(math.isfinite(v) and v >= 0 for v in limits):
         raise UsageError("the --flag-... thresholds must be numbers of at least 0")
     _check_spacing(args.spacing_mm)
@@ -924,13 +1065,19 @@ def clinical_report(args: argparse.Namespace) -> int:
         if problem := new_file_problem(path):
             raise UsageError(problem)  # before the measuring, not after it
     request = MeasureRequest(
-        args.spacing_mm, parse_landmark(args.landmark), args.limb_axis, Thresholds(*limits)
+        args.spacing_mm,
+        parse_landmark(args.landmark),
+        args.limb_axis,
+        Thresholds(*limits),
+        args.length_unit,
     )
     with _open_library(args.library) as library:
-        data = build_report_data(library, args.scan, request, args.compare, args.compare_as)
+        data = build_report_data(
+            library, args.scan, request, args.compare, args.compare_as, args.compare_other_subject
+        )
     for path in outputs:
         print(f"wrote {write_report(path, data)}")
-    for flag in data.comparison.flags if data.comparison else ():
+    for flag in headline_flags(data):
         print(f"flag: {flag}")
     return 0
 
@@ -1024,7 +1171,9 @@ def _check_path_names(args: argparse.Namespace) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit status."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    check_option_names(parser, list(sys.argv[1:] if argv is None else argv))
+    args = parser.parse_args(argv)
     try:
         _check_path_names(args)
         return COMMANDS[args.command](args)

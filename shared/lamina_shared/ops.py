@@ -43,6 +43,7 @@ EXTRACT_FIELDS: dict[str, str] = {
     "max_width_px": "int",
     "smooth_sigma_px": "number",
     "margin_px": "int",
+    "bridge_px": "int",
 }
 """The wire schema of the device's extraction settings: each field's JSON kind. The
 device checks the ranges (``lamina_device.extract.settings_problems``)."""

@@ -36,7 +36,7 @@ MODES = ("auto", "off")
 def _scan(spec: str, out: Path, library: Path, mode: str, resume: bool) -> str:
     """Scan (or reprocess the library's scan 1) with ``--distortion mode``; return the error."""
     if resume:
-        command = ["scan", "--device", "sim", "--resume", "1", "-o", str(out)]
+        command = ["scan", "--device", "sim", "--resume", "1", "--reprocess", "-o", str(out)]
     else:
         command = [
             "scan", "--device", "sim", "--rig", "limb", "--noise", NOISE, "--object", spec,

@@ -5,7 +5,10 @@ signal), bright uneven ambient light, strong speckle, and a red laser that shows
 weakly in the luma frame (peak ~55 DN). The views are the ones where a weak or short
 stripe lets noise through: a sphere seen near its top and bottom, a thin cylinder, a
 flat ellipsoid at grazing angles, and stripe-free views (the sheet passes above the
-object) for the false-point rate.
+object) for the false-point rate. The anatomical views (issue 21) are the per-point
+accuracy's test: the code-built phantoms (a face, a hand, a foot, a forearm, a stump's
+rounded end, a bone, a torus), whose stripes bend, break at occlusions and cross
+creases of shading.
 
 ``noise_model(preset)`` names the light and noise model. The default is the
 simulator's own ``NoiseModel.harsh()`` (RGB sensor read as luma, halo, lens); the
@@ -61,6 +64,16 @@ GOOD_VIEWS = (
     ("cylinder wall", "cylinder:d=19.05", 0.0, 10.0),
     ("ellipsoid equator", "ellipsoid:a=12,b=9,c=20", 30.0, 0.0),
     ("ellipsoid equator", "ellipsoid:a=12,b=9,c=20", 150.0, 2.0),
+)
+ANATOMICAL_VIEWS = (
+    ("face, nose on", "bust", 0.0, 8.0),
+    ("face, cheek", "bust", 60.0, 12.0),
+    ("hand, fingers", "hand", 20.0, 10.0),
+    ("foot, ankle", "foot", 120.0, 4.0),
+    ("forearm, belly", "arm", 200.0, 7.0),
+    ("stump, rounded end", "stump", 300.0, 14.0),
+    ("bone, waist", "bone", 45.0, 8.0),
+    ("torus", "ring", 90.0, 6.0),
 )
 STRIPE_FREE_OBJECT = ("sphere above the sheet", "sphere:d=20", 0.0, 14.0)
 """The sheet passes 4 mm above the top of the sphere: the laser lights nothing in view."""
@@ -162,6 +175,11 @@ def good_views(preset: str = DEFAULT_PRESET, rig: Rig | None = None) -> list[Vie
     return [render_view(*v, preset=preset, rig=rig) for v in GOOD_VIEWS]
 
 
+def anatomical_views(preset: str = DEFAULT_PRESET, rig: Rig | None = None) -> list[View]:
+    """Return views of the anatomy-like phantoms (``sim.phantoms``)."""
+    return [render_view(*v, preset=preset, rig=rig) for v in ANATOMICAL_VIEWS]
+
+
 def stripe_free_views(
     count: int, preset: str = DEFAULT_PRESET, rig: Rig | None = None
 ) -> list[View]:
@@ -261,7 +279,7 @@ def score(
         # Every point against its nearest true row, in mm; no true row: beyond 1 mm.
         has_truth = np.isfinite(error)
         beyond_1mm += int((~has_truth).sum())
-        distance_mm = _nearest_mm(view, cols[has_truth], rows[has_truth])
+        distance_mm = distances_mm(view, cols[has_truth], rows[has_truth])
         beyond_1mm += int((distance_mm > 1.0).sum())
         good_squares_mm.append(distance_mm[distance_mm <= GOOD_MM] ** 2)
     all_px, all_mm = np.concatenate(squares_px), np.concatenate(squares_mm)
@@ -274,7 +292,7 @@ def score(
     )
 
 
-def _nearest_mm(view: View, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def distances_mm(view: View, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Return each point's distance (mm, laser plane) to the nearest true point of its column."""
     if cols.size == 0:
         return np.zeros(0)

@@ -9,12 +9,14 @@ red laser is seen through the luma weights). The truth in every column is the ro
 where the centre curve crosses the pixel-centre column: not an intensity-weighted
 centre, so a method's own bias on curves, steps or saturation shows.
 
-Methods: the device's centre of gravity (eq. 5.1, p = 1 and 2); Gaussian and parabolic
-three-point peak fits and a Hessian normal-direction centre (Steger-like), each started
-from the device's points; the device's line fit along chains; the host's quadratic fit
-along chains (``lamina_shared.centreline``); the device's centre with 3 pixels beyond
-each end of the run weighed in (``margin_px``), alone and with the host's fit; and the
-Horus-style baseline.
+Methods: the centre of gravity over the Otsu run alone (eq. 5.1, p = 1 and 2: the
+device's default before issue 21); Gaussian and parabolic three-point peak fits and a
+Hessian normal-direction centre (Steger-like), each started from the device's points;
+the device's line fit along chains (an option); the device's default (eq. 5.1 with 3
+pixels beyond each end of the run weighed in, ``margin_px``, and speckle gaps bridged,
+``bridge_px``), alone and with the host's fit along chains (``lamina_shared.centreline``,
+what the reconstruction uses), the latter also without its correction of the curve's
+pull; and the Horus-style baseline.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ CASES = (
     Case("sloped 1.2", slope=1.2),
     Case("arcs r=10", shape="arcs", radius_px=10.0),
     Case("arcs r=20", shape="arcs", radius_px=20.0),
+    Case("arcs r=20, 6 px", shape="arcs", radius_px=20.0, fwhm_px=6.0),
     Case("arcs r=50", shape="arcs", radius_px=50.0),
     Case("arcs r=100", shape="arcs", radius_px=100.0),
     Case("arcs r=500", shape="arcs", radius_px=500.0),
@@ -218,12 +221,13 @@ def _device(settings: ExtractSettings) -> Method:
     return run
 
 
-def _host_refined(settings: ExtractSettings) -> Method:
+def _host_refined(settings: ExtractSettings, correct_pull: bool = True) -> Method:
     """Return the device's points (with ``settings``) refined on the host along their chains."""
 
     def run(on: np.ndarray, off: np.ndarray) -> Found:
         points = extract(on, off, settings)
-        return points.cols, refine_rows(points.cols, points.rows, points.width)
+        fitted = refine_rows(points.cols, points.rows, points.width, correct_pull=correct_pull)
+        return points.cols, fitted
 
     return run
 
@@ -288,16 +292,19 @@ def steger(on: np.ndarray, off: np.ndarray) -> Found:
     return points.cols, row
 
 
+RUN_ALONE = ExtractSettings(margin_px=0, bridge_px=0)
+DEFAULT_AND_FIT = "default + fit"
+"""The product's default: the device's default centre, fitted along chains by the host."""
 METHODS: dict[str, Method] = {
-    "COG p=1 (device)": _device(ExtractSettings()),
-    "COG p=2": _device(ExtractSettings(power=2.0)),
+    "COG p=1, run": _device(RUN_ALONE),
+    "COG p=2, run": _device(ExtractSettings(power=2.0, margin_px=0, bridge_px=0)),
     "Gauss 3-pt": _peak_fit("gaussian"),
     "parabola 3-pt": _peak_fit("parabolic"),
     "Hessian (Steger)": steger,
-    "line fit s2 (dev.)": _device(ExtractSettings(smooth_sigma_px=2.0)),
-    "quad. fit (host)": _host_refined(ExtractSettings()),
-    "COG margin 3": _device(ExtractSettings(margin_px=3)),
-    "margin 3 + fit": _host_refined(ExtractSettings(margin_px=3)),
+    "line fit s2 (dev.)": _device(ExtractSettings(smooth_sigma_px=2.0, margin_px=0, bridge_px=0)),
+    "device default": _device(ExtractSettings()),
+    DEFAULT_AND_FIT: _host_refined(ExtractSettings()),
+    "fit, no pull": _host_refined(ExtractSettings(), correct_pull=False),
     "Horus-style": lambda on, off: horus_extract(on, off),
 }
 

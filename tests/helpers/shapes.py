@@ -87,4 +87,4 @@ def view_segment(
     rows = np.interp(cols, u, v) + rng.normal(0.0, noise_px, len(cols))
     return Segment(target, section, view, z_mm, commanded_deg, cols.astype(np.uint16),
                    rows.astype(np.float32), np.full(len(cols), 200, np.uint8),
-                   np.full(len(cols), 5, np.uint8))  # fmt: skip
+                   np.full(len(cols), 1, np.uint8))  # fmt: skip

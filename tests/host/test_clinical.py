@@ -280,25 +280,70 @@ def test_comparison_flags_follow_the_thresholds() -> None:
     assert same.flags == () and same.difference_ml == pytest.approx(0.0, abs=1e-6)
     swollen = measure_limb(cone(43.5, 53.5, 300.0, 10.0))  # +22 mm circumference
     c = compare(swollen, right, "limbs")
-    r_a = np.array([43.5, 53.5 - 10.0 / 300.0 * 20.0])  # at offsets 0 and 280
     assert c.levels[0].difference_mm == pytest.approx(2 * np.pi * 3.5, rel=1e-4)
+    assert c.levels[0].difference_percent == pytest.approx(100 * 3.5 / 40.0, rel=1e-4)
     assert all(d.flagged for d in c.levels)
-    expected = (
-        np.pi * 280.0 * (r_a[0] ** 2 + r_a[0] * r_a[1] + r_a[1] ** 2) / 3.0
-        - np.pi * 280.0 * (40.0**2 + 40.0 * (r_a[1] - 3.5) + (r_a[1] - 3.5) ** 2) / 3.0
+    # The whole common range (0..300 mm), not only the levels' 0..280 mm.
+    assert c.span_mm == (0.0, 300.0)
+    expected = frustum_volume_mm3(2 * np.pi * 43.5, 2 * np.pi * 53.5, 300.0) - frustum_volume_mm3(
+        2 * np.pi * 40.0, 2 * np.pi * 50.0, 300.0
     )
-    assert c.difference_ml == pytest.approx(expected / 1000.0, rel=1e-3)
+    assert c.difference_ml == pytest.approx(expected / 1000.0, rel=1e-4)
+    # Each segment's excess, against the cone's own segments.
+    for s in c.segments:
+        ra, rb = (40.0 + 10.0 * off / 300.0 for off in (s.offset_lo_mm, s.offset_hi_mm))
+        truth = frustum_volume_mm3(2 * np.pi * (ra + 3.5), 2 * np.pi * (rb + 3.5), 40.0)
+        assert s.volume_mm3 == pytest.approx(truth, rel=1e-4)
+        assert s.difference_percent == pytest.approx(
+            100 * (truth / frustum_volume_mm3(2 * np.pi * ra, 2 * np.pi * rb, 40.0) - 1), rel=1e-4
+        )
     assert any("mL" in f for f in c.flags) and any("%" in f for f in c.flags)
+    whole = [f for f in c.alerts if f.where == "whole limb"]
+    assert [f.quantity for f in whole] == ["excess_ml", "excess_percent"]
+    assert whole[0].threshold == 200.0 and "reaches the 200 mL threshold" in whole[0].text
+    assert any(f.where == "segment 0-40 mm" for f in c.alerts)
+    assert any(f.quantity == "girth_mm" and f.where == "level 0 mm" for f in c.alerts)
     relaxed = compare(
         swollen, right, "limbs", Thresholds(limb_difference_ml=1e6, limb_difference_percent=90)
     )
-    assert not any("volume" in f for f in relaxed.flags)
+    assert not any(f.quantity.startswith("excess") for f in relaxed.alerts)
     # A visit 2 % above its baseline is below the 3 % change threshold; 4 % is above.
     small = measure_limb(cone(40.0 * 1.01, 50.0 * 1.01, 300.0, 10.0))
     big = measure_limb(cone(40.0 * 1.02, 50.0 * 1.02, 300.0, 10.0))
     assert compare(small, right, "visits").difference_percent == pytest.approx(2.01, rel=1e-3)
     assert compare(small, right, "visits").flags == ()
     assert any("change" in f for f in compare(big, right, "visits").flags)
+
+
+def test_the_headline_excess_does_not_depend_on_the_level_spacing() -> None:
+    """Issue #24: +18.9 % at 40 mm spacing (0-40 mm of a 70 mm scan) and +16.6 % at 10 mm.
+    The excess is taken over the whole range both scans measured, at any spacing."""
+    other = cone(30.0, 32.0, 70.0, 5.0)
+    swollen = [ellipse_section(s.z_mm, 33.0 + 0.2 * s.z_mm, 33.0 + 0.2 * s.z_mm) for s in other]
+    excess = {
+        spacing: compare(measure_limb(swollen, spacing), measure_limb(other, spacing))
+        for spacing in (10.0, 20.0, 40.0)
+    }
+    truth = 100.0 * (
+        frustum_volume_mm3(2 * np.pi * 33.0, 2 * np.pi * 47.0, 70.0)
+        / frustum_volume_mm3(2 * np.pi * 30.0, 2 * np.pi * 32.0, 70.0)
+        - 1.0
+    )
+    for c in excess.values():
+        assert c.span_mm == (0.0, 70.0)
+        assert c.difference_percent == pytest.approx(truth, rel=1e-4)
+
+
+def test_comparisons_need_a_common_stretch_of_limb() -> None:
+    """Scans sharing under a centimetre of limb from their landmarks are refused in one line."""
+    a = measure_limb(cone(40.0, 40.0, 100.0, 10.0), landmark=Landmark("bottom"))
+    b = measure_limb(cone(40.0, 40.0, 100.0, 10.0), landmark=Landmark("top"))
+    assert compare(a, b).span_mm == (0.0, 100.0)  # both measured 0..100 mm from their marks
+    short = measure_limb(cone(40.0, 40.0, 5.0, 1.0))
+    with pytest.raises(ClinicalError, match="share 5 mm of limb"):
+        compare(a, short)
+    with pytest.raises(ClinicalError, match="same level spacing"):
+        compare(a, measure_limb(cone(40.0, 40.0, 100.0, 10.0), spacing_mm=30.0))
 
 
 def test_history_orders_visits_and_measures_change_from_baseline() -> None:
@@ -309,11 +354,12 @@ def test_history_orders_visits_and_measures_change_from_baseline() -> None:
     assert [v.scan_id for v in visits] == [3, 7]
     assert visits[0].change_ml == 0.0
     assert visits[1].change_percent == pytest.approx(100 * (1.02**2 - 1), rel=1e-4)
-    assert visits[1].flags
+    assert visits[1].flags and visits[1].alerts[0].quantity == "change_percent"
 
 
 def test_history_follows_each_side_and_gives_the_excess_over_the_other() -> None:
-    """Left and right have their own baselines; each visit's excess is over the other limb."""
+    """Left and right have their own baselines; each visit's excess is over the other limb
+    scanned at the same visit (within a day), never over one of another visit."""
     right = measure_limb(cone(40.0, 50.0, 300.0, 10.0))
     left_1 = measure_limb(cone(40.0 * 1.05, 50.0 * 1.05, 300.0, 10.0))
     left_2 = measure_limb(cone(40.0 * 1.10, 50.0 * 1.10, 300.0, 10.0))
@@ -322,22 +368,34 @@ def test_history_follows_each_side_and_gives_the_excess_over_the_other() -> None
             (5, "2026-04-01T10:00:00", left_2),
             (1, "2026-01-05T09:00:00", right),
             (2, "2026-01-05T09:30:00", left_1),
+            (6, "2026-04-01T10:10:00+00:00", right),
         ],
-        sides={1: "right", 2: "left", 5: "left"},
+        sides={1: "right", 2: "left", 5: "left", 6: "right"},
     )
-    assert [(v.scan_id, v.side) for v in visits] == [(1, "right"), (2, "left"), (5, "left")]
+    assert [(v.scan_id, v.side) for v in visits] == [
+        (1, "right"), (2, "left"), (5, "left"), (6, "right")
+    ]  # fmt: skip
     # Each side is its own baseline: the first left scan has no change.
     assert visits[0].change_ml == 0.0 and visits[1].change_ml == 0.0
     assert visits[2].change_percent == pytest.approx(100 * ((1.10 / 1.05) ** 2 - 1), rel=1e-4)
-    # Excess of the left limb over the (only) right scan: 1.05^2 and 1.10^2 of its volume.
-    assert visits[1].excess_over == 1
+    # Excess of the left limb over the right scan of its visit: 1.05^2 and 1.10^2 of its volume.
+    assert (visits[1].excess_over, visits[2].excess_over) == (1, 6)
     assert visits[1].excess_percent == pytest.approx(100 * (1.05**2 - 1), rel=1e-4)
     assert visits[2].excess_percent == pytest.approx(100 * (1.10**2 - 1), rel=1e-4)
-    assert visits[0].excess_over == 2  # the right limb against the left scan nearest in time
+    assert visits[0].excess_over == 2  # the right limb against the left scan of its visit
     assert visits[0].excess_percent == pytest.approx(100 * (1 / 1.05**2 - 1), rel=1e-4)
-    assert any(f.startswith("left over right scan 1") for f in visits[2].flags)
+    assert any(f.startswith("whole limb, left over right (scan 6)") for f in visits[2].flags)
+    # The smaller limb's negative excess is not flagged (the larger one's row is).
+    assert not any(f.quantity.startswith("excess") for f in visits[0].alerts)
     unsided = history([(1, "2026-01-05T09:00:00", right), (2, "2026-01-06T09:00:00", left_1)])
     assert math.isnan(unsided[1].excess_ml) and unsided[1].change_percent > 0
+    # A left scan with no right scan within a day has no excess, and says why.
+    alone = history(
+        [(1, "2026-01-05T09:00:00", right), (2, "2026-01-07T09:00:00", left_1)],
+        sides={1: "right", 2: "left"},
+    )
+    assert alone[1].excess_over is None and math.isnan(alone[1].rvc_percent)
+    assert any("no right scan within 24 h" in f for f in alone[1].flags)
 
 
 def test_landmark_parsing_and_reports_without_efd() -> None:

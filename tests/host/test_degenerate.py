@@ -25,6 +25,8 @@ from hypothesis import strategies as st
 from lamina_host.reconstruct.assembly import (
     average_overlap_colours,
     average_overlaps,
+    blend_overlaps,
+    join_arcs,
     split_outlines,
     to_object_frame,
     trim,
@@ -37,7 +39,7 @@ from lamina_host.reconstruct.axis import (
     taubin_circle,
 )
 from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
-from lamina_host.reconstruct.coverage import measure_coverage
+from lamina_host.reconstruct.coverage import bridge_gaps, match_sides, measure_coverage
 from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
     PARAMETERS,
@@ -48,7 +50,13 @@ from lamina_host.reconstruct.efd import (
 )
 from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area, radial_error_table
 from lamina_host.reconstruct.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
-from lamina_host.reconstruct.outliers import OutlierRules, angular_extent_deg, clean_section
+from lamina_host.reconstruct.outliers import (
+    OutlierRules,
+    angular_extent_deg,
+    clean_section,
+    confirmed_along,
+)
+from lamina_host.reconstruct.outline_frame import OutlineFrame, outline_frame, reference_curve
 from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
@@ -214,6 +222,74 @@ def test_average_overlap_colours_takes_any_views(pieces: list[np.ndarray]) -> No
     points, mean = average_overlap_colours(pieces, colours)
     assert len(points) == len(mean) == sum(len(p) for p in pieces)
     assert np.allclose(mean, 100.0)
+
+
+@FAST
+@given(sections())
+def test_blend_takes_any_views(pieces: list[np.ndarray]) -> None:
+    """The blend in either frame: one point per measured point, finite, in frame order."""
+    blend = lamina_or_result(lambda: blend_overlaps(pieces))
+    total = sum(len(p) for p in pieces)
+    if blend is None:
+        assert total == 0, "only a section without points is refused"
+        return
+    assert blend.points.shape == (total, 2) and finite(blend.points)
+    t, offset = blend.frame.to_local(blend.points)
+    assert finite(t) and finite(offset)
+
+
+@FAST
+@given(point_sets(), st.sampled_from([0.5, 3.0, 20.0]))
+def test_outline_frames_take_any_points(points: np.ndarray, link_mm: float) -> None:
+    """A reference curve, or none; a frame whose coordinates go there and back."""
+    curve = reference_curve(points, link_mm) if len(points) else None
+    assert curve is None or (curve.ndim == 2 and len(curve) >= 16 and finite(curve))
+    frame = outline_frame(points, link_mm)
+    if len(points) == 0:
+        return
+    t, offset = frame.to_local(points)
+    assert finite(t) and finite(offset) and np.all(np.abs(t) <= np.pi + 1e-9)
+    assert finite(frame.to_xy(t, offset))
+    if curve is not None and np.isfinite(points).all():  # the frame along it, used whole
+        along = OutlineFrame(points.mean(axis=0), curve)
+        coverage = lamina_or_result(lambda: measure_coverage(points, along, [points]))
+        assert coverage is None or 0.0 <= coverage.fraction <= 1.0
+        assert finite(bridge_gaps(points, along))
+
+
+@FAST
+@given(st.lists(sections(max_views=3), max_size=4))
+def test_join_arcs_takes_any_outlines(groups: list[list[np.ndarray]]) -> None:
+    """Joined or not, every piece is handed on once."""
+    outlines = [[p for p in g if len(p)] for g in groups]
+    outlines = [o for o in outlines if o]
+    joined = join_arcs(outlines)
+    assert sum(len(p) for o in joined for p in o) == sum(len(p) for o in outlines for p in o)
+    assert len(joined) <= len(outlines)
+
+
+@FAST
+@given(point_sets(), point_sets())
+def test_gap_bridges_and_fills_take_any_outline(points: np.ndarray, fill: np.ndarray) -> None:
+    """Bridging and side-matching in a polar frame: finite, nothing measured lost."""
+    frame = OutlineFrame(points.mean(axis=0) if len(points) else np.zeros(2))
+    if len(points):
+        bridged = bridge_gaps(points, frame)
+        assert len(bridged) >= len(points) and finite(bridged)
+    moved = match_sides(points, fill, frame)
+    assert moved.shape == fill.reshape(-1, 2).shape and finite(moved)
+
+
+@FAST
+@given(sections())
+def test_confirmation_along_takes_any_views(pieces: list[np.ndarray]) -> None:
+    segs = [p for p in pieces if len(p)]
+    if not segs:
+        return
+    points = np.concatenate(segs)
+    views = np.repeat(np.arange(len(segs)), [len(p) for p in segs])
+    asked = np.ones(len(points), dtype=bool)
+    assert confirmed_along(points, views, asked, 1.0).shape == (len(points),)
 
 
 @FAST
@@ -472,11 +548,22 @@ def test_processing_takes_any_degraded_views(
 def test_an_object_larger_than_the_view_is_named_so(
     calibrated: tuple[ScanInputs, GridCalibration, AxisCalibration],
 ) -> None:
-    """Every point outside the working volume: one line says the object does not fit."""
+    """Points beyond the working volume are kept where two views agree, and a line says the
+    object is wider than the view; where no view confirms them, one line refuses."""
     inputs, grid, axis = calibrated
     rules = OutlierRules(working_radius_mm=2.0)  # the ellipsoid is 6.5-10 mm round the axis
+    sections, warnings, _, _ = process_segments(
+        grid, axis, inputs.segments, ProcessOptions(), Timer(), rules
+    )
+    assert sections and all(s.closed for s in sections)
+    [line] = [w for w in warnings if "wider than this rig's view" in w]
+    assert "further than 2.0 mm from the turntable axis" in line
+    # One view per section: nothing confirms anything beyond the disc.
+    first = {}
+    for s in inputs.segments:
+        first.setdefault(s.section, s)
     with pytest.raises(CalibrationError) as refused:
-        process_segments(grid, axis, inputs.segments, ProcessOptions(), Timer(), rules)
+        process_segments(grid, axis, list(first.values()), ProcessOptions(), Timer(), rules)
     message = str(refused.value)
     assert "further than 2.0 mm from the turntable axis" in message
     assert "larger than this rig's field of view" in message and "\n" not in message

@@ -92,6 +92,11 @@ def test_every_export_of_a_scan_shares_its_study_and_series() -> None:
     other = encapsulated_stl(vertices, faces, DicomContext(SUBJECT, 4, context.created))
     assert other.StudyInstanceUID != one.StudyInstanceUID
     assert "InstitutionName" not in one
+    assert "ImageLaterality" not in one and "Laterality" not in one  # side none: no laterality
+    right = encapsulated_stl(
+        vertices, faces, DicomContext(SUBJECT, 3, context.created, side="right")
+    )
+    assert right.ImageLaterality == "R" and right.SeriesInstanceUID == one.SeriesInstanceUID
 
 
 @needs_dciodvfy
@@ -107,6 +112,10 @@ def test_cli_exports_a_scan_as_dicom(scanned_library: Path, tmp_path: Path) -> N
     assert ds.PatientID == SUBJECT and str(ds.PatientName) == ""
     assert ds.InstitutionName == "Lamina Test Clinic" and ds.Modality == "M3D"
     assert ds.MeasurementUnitsCodeSequence[0].CodeValue == "mm"
+    # Issue #24: no limb side in the DICOM file. The scan is a left limb: Image Laterality
+    # (the Encapsulated Document module's; this IOD's series has no Laterality), no warning.
+    assert ds.ImageLaterality == "L" and ds.SeriesDescription.endswith("left limb")
+    assert "Laterality" not in ds and warnings == []
     with Library(scanned_library) as library:
         vertices, faces = load_ply(library.result_mesh(1))
     triangles = read_stl_triangles(str(out))
@@ -125,6 +134,7 @@ def test_cli_exports_a_surface_scan_mesh_that_reads_back_exactly(
     export_scan_1(scanned_library, out, "--dicom-sop", "surface-scan")
     ds = pydicom.dcmread(out)
     assert ds.SOPClassUID == SURFACE_SCAN_MESH and ds.Modality == "OSS"
+    assert ds.Laterality == "L"  # the series' laterality: the scan is a left limb
     assert ds.PatientID == SUBJECT and str(ds.PatientName) == ""
     surface = ds.SurfaceSequence[0]
     assert ds.NumberOfSurfaces == 1 and surface.SurfaceNumber == 1
@@ -176,6 +186,7 @@ def test_cli_record_rebuilds_the_scan_measurements(scanned_library: Path, tmp_pa
     with Library(scanned_library) as library:
         report = library.result(1)
     assert report is not None and record.subject == SUBJECT and record.scan_id == 1
+    assert record.side == "left"  # issue #24: the side in the .lrec record
     print(f"record {out.stat().st_size} bytes for {len(record.outlines)} outlines")
     assert record.axis["axis_xy_mm"] == report["axis"]["axis_xy_mm"]
     assert record.calibration["matrix"] == report["calibration"]["matrix"]

@@ -88,7 +88,7 @@ def test_the_reference_travels_in_the_welcome_and_is_kept_with_the_calibration(
     tmp_path: Path,
 ) -> None:
     """WELCOME carries it (a malformed one is a listed problem); the library stores it
-    with the scan's calibration, and a library of schema 4 gains the column, empty."""
+    with the scan's calibration, and a library of schema 5 gains the column, empty."""
     welcome = Welcome(4, hardware="sim", image_size=(8, 8), lift_reference=REFERENCE)
     assert Welcome.from_wire(welcome.to_wire()).lift_reference == REFERENCE
     wire = welcome.to_wire() | {"lift_reference": {"marks_mm": [5, 1], "spacing_mm": 1}}
@@ -100,14 +100,16 @@ def test_the_reference_travels_in_the_welcome_and_is_kept_with_the_calibration(
     with Library(path) as library:
         old = library.create_scan("P1", plans)
         library.save_calibration(old, np.zeros((8, 8), np.uint8), board, 60.0)
-    with sqlite3.connect(path) as db:  # back to schema 4: no lift reference column
+    with sqlite3.connect(path) as db:  # back to schema 5: no lift reference column
         db.execute("ALTER TABLE calibrations DROP COLUMN lift_reference")
-        db.execute("PRAGMA user_version=4")
+        db.execute("PRAGMA user_version=5")
     with Library(path) as library:
         assert library.calibration(old).lift_reference is None
         new = library.create_scan("P1", plans)
         library.save_calibration(new, np.zeros((8, 8), np.uint8), board, 60.0, None, REFERENCE)
         assert library.calibration(new).lift_reference == REFERENCE
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
 
 
 def test_the_cylinder_views_split_between_axis_and_marks() -> None:

@@ -42,3 +42,28 @@ def test_without_overlap_there_is_no_estimate():
     angle = np.linspace(0.0, 1.0, 50)
     apart = [np.stack([np.cos(angle + s), np.sin(angle + s)], axis=1) for s in (0.0, 3.0)]
     assert section_precision_mm(apart) is None
+
+
+def kidney_views(noise_mm: float, views: int = 6, seed: int = 3):
+    """Return overlapping arcs of a kidney outline (not star-shaped about its centroid)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(views):
+        start = 2 * np.pi * k / views
+        s = start + np.linspace(0.0, 2 * np.pi / views * 1.8, 400)
+        radius = 20.0 + 12.0 * np.cos(2 * s) ** 3  # deep waists: rays cross it twice
+        xy = np.stack([radius * np.cos(s) * 1.6, radius * np.sin(s) * 0.5], axis=1)
+        tangent = np.gradient(xy, axis=0)
+        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        out.append(xy + normal * rng.normal(0.0, noise_mm, (len(s), 1)))
+    return out
+
+
+def test_precision_along_a_reference_curve_for_a_folded_outline():
+    from lamina_host.reconstruct.outline_frame import outline_frame
+
+    views = kidney_views(0.03)
+    frame = outline_frame(np.concatenate(views), link_mm=2.0)
+    assert not frame.polar, "the test shape should need a reference curve"
+    assert section_precision_mm(views, frame) == pytest.approx(0.03, rel=0.25)

@@ -9,6 +9,8 @@ record holds what a real limb scan gives it.
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -114,6 +116,21 @@ def test_rebuilt_contours_lie_on_the_true_outline(limb) -> None:
         phi = np.arctan2(s.contour[:, 1], s.contour[:, 0])
         error = np.hypot(*s.contour.T) - limb_radius_mm(phi, s.z_mm)
         assert np.sqrt(np.mean(error**2)) < NOISE_MM
+
+
+def test_the_record_keeps_the_limb_side_and_reads_older_records_as_none(limb) -> None:
+    """Issue #24: no limb side in the .lrec record. It is kept now; a record written before
+    (no side in its header) reads as side none."""
+    data = record_bytes(limb, 3, "P1", "2026-11-29T10:00:00+00:00", "right")
+    assert load_record(data).side == "right"
+    payload = zlib.decompress(data[5:])
+    (size,) = struct.unpack_from("<I", payload)
+    header = json.loads(payload[4 : 4 + size])
+    del header["side"]
+    text = json.dumps(header).encode()
+    older = data[:5] + zlib.compress(struct.pack("<I", len(text)) + text + payload[4 + size :])
+    record = load_record(older)
+    assert record.side == "none" and len(record.outlines) == len(limb.sections)
 
 
 def test_damaged_or_foreign_bytes_are_refused_in_one_line(limb) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import Mechanics, Rig
+from lamina_host.reconstruct.assembly import trim
 from lamina_host.reconstruct.coverage import measure_coverage
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.mesh import (
@@ -124,7 +125,7 @@ def test_phantom_strokes_and_noise_columns_are_rejected(ellipse_scan: dict) -> N
     print(f"mean contour error: clean {clean_error:.4f} mm, with phantoms {error:.4f} mm")
     assert error < clean_error + 0.005
     # Every phantom point that entered the pipeline went, and hardly a genuine one.
-    by_section, _, _ = assemble(segments, result.grid, result.axis, 0.1)
+    by_section, _, _ = assemble(segments, result.grid, result.axis, result.options.trim_fraction)
     points = np.concatenate([np.concatenate(parts) for parts in by_section.values()])
     phantoms = int((distance_to(points, truth) > 1.0).sum())
     print(f"{phantoms} phantom points of {len(points)}; rejected {result.rejected.to_dict()}")
@@ -207,15 +208,14 @@ def true_coverage(scan: dict, rig: Rig, section: int, centre: tuple[float, float
     """Return the share of 2-degree bins about the true centre holding a used stripe point.
 
     The stripe's pixels are mapped to the plane with the rig's true geometry, trimmed like
-    the host trims them (10 % each end) and turned back by the true view angle.
+    the host trims them (by default, not at all) and turned back by the true view angle.
     """
     covered = np.zeros(180, dtype=bool)
     for s in scan["segments"]:
         if s.section != section:
             continue
         world = rig.backproject_to_plane(s.uv)
-        k = int(np.floor(len(world) * 0.1 + 1e-9))
-        world = world[k : len(world) - k] - np.asarray(rig.axis_xy_mm)
+        world = trim(world, ProcessOptions().trim_fraction) - np.asarray(rig.axis_xy_mm)
         th = np.deg2rad(s.angle_deg)  # ideal mechanics: commanded = true
         obj = world @ np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]]).T
         d = obj - np.asarray(centre)
@@ -261,12 +261,16 @@ def test_a_section_seen_from_one_side_reports_its_coverage_and_stays_open() -> N
     assert result.mesh_topology is not None and result.mesh_topology.kind == "open surface"
     assert distance_to(result.vertices[:, :2], truth).max() < 0.25
     # Nothing is meshed in the unseen gap; the side boundary lies at the seen arc's ends.
+    # (A hole of a bin or two between two views' ends is joined over, as the mesh joins
+    # unseen runs of under three ring samples.)
     section = result.sections[0]
-    assert not section.coverage.unseen(result.vertices[:, :2], tolerance_mm=0.25).any()
+    gap = max(section.coverage.gaps_deg(), key=lambda g: g[1])
+    vertex_deg = np.degrees(np.arctan2(*(result.vertices[:, :2] - CIRCLE["centre"]).T[::-1]))
+    inside_gap = (vertex_deg - gap[0] - 1.0) % 360.0 < gap[1] - 2.0  # a degree of leeway
+    assert gap[1] > 60 and not inside_gap.any()
     ends = boundary_vertices(result.vertices, result.faces)
     ends = ends[(ends[:, 2] > 0.0) & (ends[:, 2] < 4.0)]  # not the end sections' rims
     side = np.degrees(np.arctan2(*(ends[:, :2] - CIRCLE["centre"]).T[::-1]))
-    [gap] = section.coverage.gaps_deg()
     edges = np.array([gap[0], gap[0] + gap[1]])
     off = np.abs((side[:, None] - edges[None] + 180.0) % 360.0 - 180.0).min(axis=1)
     assert len(side) >= 2 and off.max() < 4.0, side

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import signal
 import socket
 import subprocess
@@ -152,3 +153,21 @@ def test_serving_is_said_only_once_the_port_is_bound():
         process.terminate()
         process.wait(timeout=20)
     assert process.returncode in (0, -signal.SIGTERM)
+
+
+async def test_the_page_fetches_nothing_from_outside_the_box():
+    """Issue 24: the page asked a web-font service for its font, which fails on an isolated
+    ward network; every URL it names is now this server's, and the font is served here."""
+    async with _served() as (session, base, port):
+        status, page = await _status(session, f"{base}/", Host=f"127.0.0.1:{port}")
+        assert status == 200
+        named = re.findall(r"""(?:href|src|url)\s*[=(]\s*["']?([^"')\s>]+)""", page)
+        assert named, "the page names no URL at all: the pattern is wrong"
+        for url in named:
+            assert not re.match(r"(https?:)?//", url) or url.startswith(base), url
+        assert "Roboto Mono" in page
+        fonts = re.findall(r"url\('([^']+\.ttf)'\)", page)
+        assert fonts
+        for font in fonts:
+            async with session.get(f"{base}{font}", headers={"Host": f"127.0.0.1:{port}"}) as got:
+                assert got.status == 200 and len(await got.read()) > 10_000, font

@@ -171,7 +171,8 @@ def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):
         first = lib.create_scan("P-01", PLANS)
         lib.add_segment(first, 0, segment(0))
         second = lib.create_scan("P-01", PLANS)
-    with sqlite3.connect(path) as db:  # back to schema 2: no side column
+    with sqlite3.connect(path) as db:  # back to schema 2: no side or test column
+        db.execute("ALTER TABLE scans DROP COLUMN test")
         db.execute("ALTER TABLE scans DROP COLUMN side")
         db.execute("PRAGMA user_version=2")
         before = [tuple(r) for r in db.execute("SELECT * FROM scans ORDER BY id")]
@@ -189,10 +190,64 @@ def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):
         with pytest.raises(StoreError, match="no scan"):
             lib.set_side(99, "left")
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 5
-        after = [tuple(r)[:-1] for r in db.execute("SELECT * FROM scans WHERE id < ?", (third,))]
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        after = [tuple(r)[:-2] for r in db.execute("SELECT * FROM scans WHERE id < ?", (third,))]
         assert after == before
         assert db.execute("SELECT data FROM segments").fetchall() == held
+
+
+def test_a_schema_4_library_gains_the_test_mark_and_loses_nothing(tmp_path):
+    """Opening a schema-4 library adds the test mark, unset, to every scan (sides, segments
+    and results kept); a scan can then be marked as a test and unmarked, by the library's
+    own method (the one the terminal UI's Library screen calls)."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as lib:
+        first = lib.create_scan("P-01", PLANS, side="left")
+        lib.add_segment(first, 0, segment(0))
+        lib.save_result(first, {"volume": 1.0}, {})
+        second = lib.create_scan("P-02", PLANS, side="right")
+    with sqlite3.connect(path) as db:  # back to schema 4: no test column
+        db.execute("ALTER TABLE scans DROP COLUMN test")
+        db.execute("PRAGMA user_version=4")
+        before = [tuple(r) for r in db.execute("SELECT * FROM scans ORDER BY id")]
+    with Library(path) as lib:
+        assert [(s.id, s.side, s.test) for s in lib.scans()] == [
+            (first, "left", False), (second, "right", False)
+        ]  # fmt: skip
+        assert lib.result(first) == {"volume": 1.0} and len(lib.segments(first, "object")) == 1
+        lib.set_test(first)
+        assert lib.scan(first).test and [s.test for s in lib.scans()] == [True, False]
+        assert [s.id for s in lib.scans(subject="P-02")] == [second]
+        assert lib.scans(subject="P-99") == []
+        lib.set_test(first, False)
+        assert not lib.scan(first).test
+        with pytest.raises(StoreError, match="no scan"):
+            lib.set_test(99)
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        assert [tuple(r)[:-1] for r in db.execute("SELECT * FROM scans ORDER BY id")] == before
+
+
+def test_cli_marks_a_test_scan_and_lists_one_subject(tmp_path):
+    """``lamina scans --set-test N`` marks it (listed as test), ``--unset-test N`` unmarks
+    it, ``--subject CODE`` lists one subject's scans; a scan given both is one line."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as lib:
+        lib.create_scan("P-02", PLANS)
+        lib.create_scan("P-03", PLANS)
+    done = lamina("scans", "--library", str(path), "--set-test", "1")
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].rstrip().endswith("result  test")
+    assert lines[1].rstrip().endswith("test") and not lines[2].rstrip().endswith("test")
+    one = lamina("scans", "--library", str(path), "--subject", "P-03", "--unset-test", "1")
+    assert one.returncode == 0 and len(one.stdout.splitlines()) == 2 and "P-02" not in one.stdout
+    with Library(path) as lib:
+        assert not lib.scan(1).test
+    both = lamina("scans", "--library", str(path), "--set-test", "2", "--unset-test", "2")
+    assert both.returncode == 2 and len(both.stderr.strip().splitlines()) == 1
+    missing = lamina("scans", "--library", str(path), "--set-test", "9")
+    assert missing.returncode == 2 and "no scan 9" in missing.stderr
 
 
 def test_cli_sets_and_lists_the_side(tmp_path):

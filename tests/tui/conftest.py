@@ -23,8 +23,26 @@ from lamina_host.ui.tui.widgets import FrameView
 # The helpers in drive.py sit beside the tests; pytest's importlib mode does not add
 # this folder to the import path by itself.
 sys.path.insert(0, str(Path(__file__).parent))
+from drive import CLINIC_PLAN
 
 FIXED_CREATED = "2025-01-01T09:00:00+00:00"
+
+
+@pytest.fixture(scope="session")
+def right_arm_library(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Return a library holding one processed scan of P-0077's right arm (the arm phantom)."""
+    path = tmp_path_factory.mktemp("clinic") / "library.sqlite"
+    job = ScanJob(DeviceTarget("sim", "arm"), path)
+    try:
+        job.connect()
+        job.acquisition.calibrate_grid()
+        job.acquisition.accept_grid(True)
+        job.acquisition.calibrate_axis()
+        scan_object(job, "P-0077", parse_plan(*CLINIC_PLAN), side="right")
+        process(job)
+    finally:
+        job.close()
+    return path
 
 
 @pytest.fixture(scope="session")

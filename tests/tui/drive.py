@@ -3,17 +3,25 @@
 from __future__ import annotations
 
 import asyncio
+import csv
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from textual import events
 from textual.pilot import Pilot
 from textual.widgets import DataTable, Input
 
+from lamina_host.clinical.report import LENGTH_UNITS
 from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.widgets import HelpScreen
 
 TIMEOUT_S = 60.0
+CLINIC_PLAN = ("3", "5", "8")
+"""The clinic tests' plan: three sections 5 mm apart (levels 0, 5, 10 mm at 5 mm spacing)."""
+LEFT_ARM_SCALE = 1.1
+"""The left arm the clinic tests scan is the right one (``right_arm_library``) scaled by
+this: its circumferences are larger by about this, its volume by about its square."""
 
 
 def wait_for_text(read: Callable[[], str], text: str, timeout_s: float = TIMEOUT_S) -> str:
@@ -124,3 +132,20 @@ async def help_key_latencies_s(
     while isinstance(app.screen, HelpScreen):
         await asyncio.sleep(poll_s)
     return opened_s, time.perf_counter() - closing
+
+
+def csv_levels(path: Path) -> list[tuple[float, float, float]]:
+    """Return a report CSV's level rows as (distance from the landmark, girth, the compared
+    scan's girth), in mm whatever unit the table gives lengths in."""
+    with path.open() as table:
+        rows = [r for r in csv.DictReader(table) if r["row"] == "level"]
+    [unit] = [u for u in LENGTH_UNITS if rows and f"girth_{u}" in rows[0]]
+    mm = LENGTH_UNITS[unit]
+    return [
+        (
+            float(r[f"from_landmark_{unit}"]) * mm,
+            float(r[f"girth_{unit}"]) * mm,
+            float(r[f"compared_girth_{unit}"]) * mm,
+        )
+        for r in rows
+    ]

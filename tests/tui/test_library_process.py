@@ -37,13 +37,15 @@ async def test_library_p_processes_a_stored_scan_again_after_a_failure(
     app = LaminaApp("sim", library)
     async with app.run_test(size=(100, 30)) as pilot:
         table = await open_library(pilot)
-        assert str(table.get_row_at(0)[3]) == "processed"
+        assert str(table.get_row_at(0)[4]) == "processed"
         monkeypatch.setattr(processing, "reconstruct", broken)
         await pilot.press("p")
         await wait_until(pilot, lambda: app.status[1], "the failure")
         message = app.status[0]
         assert message.startswith("processing failed: internal error (ZeroDivisionError")
-        assert "lamina process 1" in message and "Library screen" in message
+        # In the screen's words, never a command to type (issue 24).
+        assert "process it again: p on the Library screen" in message
+        assert "lamina " not in message and "--" not in message
         assert app.job.processing.results is None
         monkeypatch.undo()
         with Library(library) as lib:  # nothing stored was touched by the failure

@@ -86,8 +86,11 @@ def test_time_left_uses_this_runs_rate() -> None:
 @pytest.mark.parametrize(
     ("fields", "message"),
     [
-        (("x", "2", "8"), "sections ('x') and views ('8') must be whole numbers"),
-        (("2", "two", "8"), "pitch 'two' must be a number of mm"),
+        (("x", "2", "8"), "Sections is 'x': enter a whole number"),
+        (("2", "two", "8"), "Pitch mm is 'two': enter a number of mm"),
+        # Issue #24: an empty Sections field blamed the valid Views field too.
+        (("", "2", "8"), "Sections is empty: enter a whole number"),
+        (("4", "2", "eight"), "Views is 'eight': enter a whole number"),
         (("2", "nan", "8"), "pitch nan mm must be above 0"),
         (("501", "2", "8"), "sections 501 must be between 1 and 500"),
     ],

@@ -39,8 +39,8 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         grid, axis = job.acquisition.grid, job.acquisition.axis
         assert grid is not None and axis is not None
         grid_text, axis_text = text_of(app, "#grid-result"), text_of(app, "#axis-result")
-        assert f"corners        {grid.n_corners}" in grid_text and grid.n_corners == 143
-        assert f"{grid.rms_mm:.4f} mm" in grid_text and grid.rms_mm < 0.05
+        assert f"{grid.n_corners} corners" in grid_text and grid.n_corners == 143
+        assert f"PASS: residual {grid.rms_mm:.3f} mm RMS" in grid_text and grid.rms_mm < 0.05
         assert f"correction     {axis.correction_factor:.5f}" in axis_text
         assert f"{axis.estimated_diameter_mm:.3f} mm measured" in axis_text
         assert abs(axis.estimated_diameter_mm - 2 * RADIUS_MM) < 0.1
@@ -80,7 +80,9 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         assert shown == expected
         area_mm2 = math.pi * RADIUS_MM**2
         assert all(abs(r.area_mm2 - area_mm2) / area_mm2 < 0.02 for r in results.rows)
-        assert f"volume {results.volume_mm3:.1f} mm3" in text_of(app, "#summary")
+        summary = text_of(app, "#summary")
+        volume = results.volume_mm3
+        assert f"volume {volume / 1000:.1f} mL ({volume:.0f} mm3)" in summary
         assert [s.area_mm2 for s in results.report.sections if isinstance(s, OutlineEntry)] == [
             r.area_mm2 for r in results.rows
         ]

@@ -49,6 +49,7 @@ BT601_LUMA = np.array([0.299, 0.587, 0.114])
 _VIEW_CACHE_SIZE = 4
 _SHEET_REACH_SIGMAS = 5.0  # beyond 5 sigma the sheet adds < 1e-5 of its peak
 _SLAB_SIGMAS = 0.5  # lit-test outlines are sliced every half sigma of sheet height
+_MIN_FACING = 0.05  # the lit test's forgiveness stops growing toward grazing incidence here
 _GRID_SAMPLES = 64  # samples per pixel on the board: edges land to ~1/64 px
 _GRID_LATTICE_STEP = 39  # coprime to 64 and near 64 / golden ratio: well-spread samples
 
@@ -580,11 +581,18 @@ class SimScene:
         q_obj = (q[:, :2] - axis) @ to_obj.T
         # Test each point against the section at (nearly) its own height: slabs every half
         # sigma. A point may then sit off its slab's outline by up to half a slab times the
-        # surface's horizontal slope, so that much of the segment's end is forgiven.
+        # surface's horizontal slope, across the surface; along the ray that is that much
+        # over the cosine of the incidence in the plane, so that much of the segment's end
+        # is forgiven (forgiving only the offset across left oblique, sloping surfaces
+        # banded: every other slab's points fell short of their outline and went dark).
         slab_mm = _SLAB_SIGMAS * rig.laser_sigma_mm
         slab = np.rint(q[:, 2] / slab_mm).astype(int)
         n_xy = np.hypot(nrm[:, 0], nrm[:, 1])
-        tol = 1e-3 + np.minimum(0.5 * slab_mm * np.abs(nrm[:, 2]) / np.maximum(n_xy, 1e-3), 1.0)
+        ray = q[:, :2] - np.asarray(rig.laser_source_xy_mm)
+        facing = np.abs(np.einsum("ij,ij->i", ray, nrm[:, :2]))
+        facing /= np.maximum(np.hypot(ray[:, 0], ray[:, 1]) * n_xy, 1e-9)
+        across = 0.5 * slab_mm * np.abs(nrm[:, 2]) / np.maximum(n_xy, 1e-3)
+        tol = 1e-3 + np.minimum(across / np.maximum(facing, _MIN_FACING), 1.0)
         lit = np.ones(len(q), dtype=bool)
         for k in np.unique(slab):
             sel = slab == k

@@ -16,13 +16,22 @@ All distances along the limb are measured along its axis: the turntable axis (z)
 default, or a straight centre line fitted through the section centroids for a limb that
 does not stand upright. Then a circumference is that of the horizontal section projected
 onto the plane normal to the centre line (exact for a limb that is straight along it).
+
+Comparisons and the clinic's metrics (issue #23): two scans are compared over the whole
+stretch of limb both measured from their landmarks (:func:`compare`: the excess over the
+other limb or the change from another visit, per level and per segment too); the relative
+volume change RVC = (A2 x U1) / (U2 x A1) - 1 of an affected limb A against the other U
+between visits 1 and 2 (:func:`rvc_percent`, :func:`relative_volume_change`, whole and by
+segment); and a subject's :func:`trend`, per side and in time order, over the stretch every
+visit measured. Every value that reaches a threshold (:class:`Thresholds`, the clinics'
+conventions by default) is a :class:`Flag` that says which threshold it reached.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
@@ -128,12 +137,110 @@ def parse_landmark(text: str) -> Landmark:
 
 @dataclass(frozen=True)
 class Thresholds:
-    """When a comparison is flagged (issue #13: the thresholds clinics use)."""
+    """When a value is flagged: the conventions lymphoedema clinics use (issues #13, #23).
+
+    Attributes:
+        limb_difference_ml: the excess of one limb over the other (200 mL).
+        limb_difference_percent: the same as a share of the other limb (5 %).
+        circumference_mm: a girth difference at one level (2 cm).
+        change_percent: a limb's change from its own first visit, the baseline (3 %).
+        rvc_percent: the relative volume change (RVC) that marks lymphoedema (5 %; some
+            clinics use 10 %).
+        subclinical_percent: the RVC that marks subclinical change (3 %).
+    """
 
     limb_difference_ml: float = 200.0
     limb_difference_percent: float = 5.0
     circumference_mm: float = 20.0
     change_percent: float = 3.0
+    rvc_percent: float = 5.0
+    subclinical_percent: float = 3.0
+
+
+WHOLE_LIMB = "whole limb"
+"""Where a flag lies when it is about the whole compared range."""
+
+_FLAG_WORDS = {
+    "excess_ml": ("excess", "mL"),
+    "excess_percent": ("excess", "%"),
+    "change_percent": ("change", "%"),
+    "rvc_percent": ("RVC", "%"),
+    "girth_mm": ("girth difference", "mm"),
+}
+"""What each flagged quantity is called, and its unit."""
+
+
+@dataclass(frozen=True)
+class Flag:
+    """One value that reached a threshold, and which threshold it reached.
+
+    Attributes:
+        quantity: ``excess_ml``, ``excess_percent``, ``change_percent``, ``rvc_percent``
+            or ``girth_mm``.
+        value: the value (signed: an excess or change below zero is a loss).
+        threshold: the threshold it reached (:class:`Thresholds`).
+        where: :data:`WHOLE_LIMB`, ``segment A-B mm`` or ``level A mm`` (from the landmark).
+        label: what the threshold marks, if it has a name (``lymphoedema``, ``subclinical``).
+        context: which limbs or visits the value compares (e.g. ``left over right, scan 4``).
+    """
+
+    quantity: str
+    value: float
+    threshold: float
+    where: str = WHOLE_LIMB
+    label: str = ""
+    context: str = ""
+
+    @property
+    def unit(self) -> str:
+        """Return the unit of the value and the threshold."""
+        return _FLAG_WORDS[self.quantity][1]
+
+    @property
+    def text(self) -> str:
+        """Return the flag in one line: where, what, the value and the threshold it reached."""
+        name, unit = _FLAG_WORDS[self.quantity]
+        digits = 0 if unit == "mL" else 1
+        place = ", ".join(part for part in (self.where, self.context) if part)
+        label = f" ({self.label})" if self.label else ""
+        return (
+            f"{place}: {name} {self.value:+.{digits}f} {unit} reaches the "
+            f"{self.threshold:g} {unit} threshold{label}"
+        )
+
+    def __str__(self) -> str:
+        return self.text
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form (with the line of text)."""
+        return {
+            "quantity": self.quantity,
+            "value": self.value,
+            "threshold": self.threshold,
+            "where": self.where,
+            "label": self.label,
+            "context": self.context,
+            "text": self.text,
+        }
+
+
+def reached(
+    quantity: str, value: float, threshold: float, where: str = WHOLE_LIMB, context: str = "",
+    signed: bool = False,
+) -> list[Flag]:  # fmt: skip
+    """Return the flag of ``value`` if its size (its value, if ``signed``) reaches ``threshold``.
+
+    A value that is not a number (not measured) is never flagged.
+    """
+    size = value if signed else abs(value)
+    if not math.isfinite(value) or size < threshold:
+        return []
+    return [Flag(quantity, value, threshold, where, "", context)]
+
+
+def segment_place(offset_lo_mm: float, offset_hi_mm: float) -> str:
+    """Return where a segment lies, in the words of a flag (``segment 40-80 mm``)."""
+    return f"segment {offset_lo_mm:g}-{offset_hi_mm:g} mm"
 
 
 @dataclass(frozen=True)
@@ -271,6 +378,43 @@ class LimbMeasurement:
     profile_z_mm: np.ndarray
     profile_circumference_mm: np.ndarray
     notes: tuple[str, ...] = ()
+    direction: float = 1.0
+    """+1 when the distance from the landmark grows along the axis, -1 when against it."""
+
+    @property
+    def offset_range_mm(self) -> tuple[float, float]:
+        """Return the distances from the landmark the measured range spans (lowest, highest)."""
+        start = float(self.axis.position_mm(self.landmark_z_mm))
+        ends = [
+            self.direction * (float(self.axis.position_mm(z)) - start) for z in self.coverage_mm
+        ]
+        return min(ends), max(ends)
+
+    def z_at_offset(self, offset_mm: float) -> float:
+        """Return the height of the level ``offset_mm`` from the landmark (inside the range)."""
+        start = float(self.axis.position_mm(self.landmark_z_mm))
+        z = self.axis.height_mm(start + self.direction * offset_mm)
+        return min(max(z, self.coverage_mm[0]), self.coverage_mm[1])
+
+    def volume_between_mm3(self, offset_a_mm: float, offset_b_mm: float) -> float:
+        """Return the exact volume between two distances from the landmark (in the range)."""
+        za, zb = sorted((self.z_at_offset(offset_a_mm), self.z_at_offset(offset_b_mm)))
+        if abs(za - self.coverage_mm[0]) + abs(zb - self.coverage_mm[1]) < _LEVEL_TOLERANCE_MM:
+            return self.volume_mm3  # the whole range, integrated once already
+        return stack_volume_mm3(self.stack, za, zb)
+
+    def circumference_at(self, offset_mm: float) -> float:
+        """Return the circumference (girth) ``offset_mm`` from the landmark."""
+        z = self.z_at_offset(offset_mm)
+        return _circumference(self.stack.section(z), z, self.axis)
+
+    def segment_volume_mm3(self, offset_lo_mm: float, offset_hi_mm: float) -> float:
+        """Return the exact volume of the segment between two levels (NaN if not measured)."""
+        key = (round(offset_lo_mm, 6), round(offset_hi_mm, 6))
+        for s in self.segments:
+            if (round(s.offset_lo_mm, 6), round(s.offset_hi_mm, 6)) == key:
+                return s.volume_mm3
+        return math.nan
 
     @property
     def levels_volume_mm3(self) -> float:
@@ -515,6 +659,7 @@ def measure_limb(
         profile_z_mm=stack.z_mm.copy(),
         profile_circumference_mm=profile_c,
         notes=tuple(notes),
+        direction=sign,
     )
 
 
@@ -576,35 +721,78 @@ class LevelDifference:
         """Return this limb's circumference minus the reference's."""
         return self.circumference_mm - self.reference_mm
 
+    @property
+    def difference_percent(self) -> float:
+        """Return the difference as a percentage of the reference's circumference."""
+        return 100.0 * self.difference_mm / self.reference_mm if self.reference_mm else math.nan
+
+
+@dataclass(frozen=True)
+class SegmentDifference:
+    """One segment (between two levels) of a comparison: its volume against the reference's."""
+
+    offset_lo_mm: float
+    offset_hi_mm: float
+    volume_mm3: float
+    reference_mm3: float
+
+    @property
+    def difference_ml(self) -> float:
+        """Return this limb's segment volume minus the reference's, in mL."""
+        return (self.volume_mm3 - self.reference_mm3) / 1000.0
+
+    @property
+    def difference_percent(self) -> float:
+        """Return the difference as a percentage of the reference's segment volume."""
+        return percent_over(self.volume_mm3, self.reference_mm3)
+
+
+def percent_over(value: float, reference: float) -> float:
+    """Return how much ``value`` is above ``reference``, in % of it (NaN without a reference)."""
+    if not (math.isfinite(value) and math.isfinite(reference)) or reference <= 0:
+        return math.nan
+    return 100.0 * (value - reference) / reference
+
 
 COMPARISONS = ("limbs", "visits")
 """``limbs``: affected against other limb (excess); ``visits``: visit against baseline."""
 
+MIN_COMMON_MM = 10.0
+"""Two scans are compared over the stretch of limb both measured; less than a centimetre
+says nothing about a limb's volume, so it is refused."""
+
 
 @dataclass(frozen=True)
 class Comparison:
-    """Two scans aligned by their landmarks, over the levels both measured."""
+    """Two scans aligned by their landmarks: over the range both measured, and level by level.
+
+    The volumes are those of the whole common range (``span_mm``, distances from each
+    scan's landmark), so the excess or change does not depend on the level spacing; the
+    levels and segments are those both scans have.
+    """
 
     kind: str
     levels: tuple[LevelDifference, ...]
     volume_mm3: float
     reference_volume_mm3: float
-    flags: tuple[str, ...] = field(default=())
+    span_mm: tuple[float, float]
+    segments: tuple[SegmentDifference, ...] = ()
+    alerts: tuple[Flag, ...] = field(default=())
 
     @property
     def difference_ml(self) -> float:
-        """Return the excess (limbs) or change (visits) in mL over the common levels."""
+        """Return the excess (limbs) or change (visits) in mL over the common range."""
         return (self.volume_mm3 - self.reference_volume_mm3) / 1000.0
 
     @property
     def difference_percent(self) -> float:
         """Return the excess or change as a percentage of the reference volume."""
-        return 100.0 * (self.volume_mm3 - self.reference_volume_mm3) / self.reference_volume_mm3
+        return percent_over(self.volume_mm3, self.reference_volume_mm3)
 
     @property
-    def span_mm(self) -> tuple[float, float]:
-        """Return the first and last common level's offsets from the landmark."""
-        return self.levels[0].offset_mm, self.levels[-1].offset_mm
+    def flags(self) -> tuple[str, ...]:
+        """Return each flag as one line of text."""
+        return tuple(f.text for f in self.alerts)
 
     def summary(self) -> dict[str, Any]:
         """Return the JSON form."""
@@ -621,17 +809,64 @@ class Comparison:
                     "circumference_mm": d.circumference_mm,
                     "reference_mm": d.reference_mm,
                     "difference_mm": d.difference_mm,
+                    "difference_percent": d.difference_percent,
                     "flagged": d.flagged,
                 }
                 for d in self.levels
             ],
-            "flags": list(self.flags),
+            "segments": [
+                {
+                    "offset_lo_mm": s.offset_lo_mm,
+                    "offset_hi_mm": s.offset_hi_mm,
+                    "volume_ml": s.volume_mm3 / 1000.0,
+                    "reference_volume_ml": s.reference_mm3 / 1000.0,
+                    "difference_ml": s.difference_ml,
+                    "difference_percent": s.difference_percent,
+                }
+                for s in self.segments
+            ],
+            "flags": [f.to_dict() for f in self.alerts],
         }
 
 
-def _common(a: Iterable[float], b: Iterable[float]) -> list[float]:
-    keys_b = {round(x, 6) for x in b}
-    return [x for x in a if round(x, 6) in keys_b]
+def common_span_mm(measurements: Sequence[LimbMeasurement]) -> tuple[float, float]:
+    """Return the distances from the landmark that every measurement covers (low, high).
+
+    Raises:
+        ClinicalError: they share less than :data:`MIN_COMMON_MM` of limb.
+    """
+    ranges = [m.offset_range_mm for m in measurements]
+    lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
+    if hi - lo < MIN_COMMON_MM:
+        raise ClinicalError(
+            f"the scans share {max(hi - lo, 0.0):.0f} mm of limb from their landmarks (at least "
+            f"{MIN_COMMON_MM:g} mm needed): scan the same stretch of the limb, or choose a "
+            "landmark both scans reach"
+        )
+    return lo, hi
+
+
+def _common_levels(measurements: Sequence[LimbMeasurement]) -> list[float]:
+    """Return the level offsets every measurement has, in order."""
+    keys = [{round(lv.offset_mm, 6) for lv in m.levels} for m in measurements]
+    return [lv.offset_mm for lv in measurements[0].levels if all(round(lv.offset_mm, 6) in k
+                                                                 for k in keys)]  # fmt: skip
+
+
+def _common_segments(measurements: Sequence[LimbMeasurement]) -> list[tuple[float, float]]:
+    """Return the (low, high) offsets of the segments every measurement has, in order."""
+    return [
+        (s.offset_lo_mm, s.offset_hi_mm)
+        for s in measurements[0].segments
+        if all(math.isfinite(m.segment_volume_mm3(s.offset_lo_mm, s.offset_hi_mm))
+               for m in measurements)
+    ]  # fmt: skip
+
+
+def _check_spacing(measurements: Sequence[LimbMeasurement]) -> None:
+    spacings = {round(m.spacing_mm, 6) for m in measurements}
+    if len(spacings) > 1:
+        raise ClinicalError("compare scans measured at the same level spacing")
 
 
 def compare(
@@ -640,74 +875,200 @@ def compare(
     kind: str = COMPARISONS[0],
     thresholds: Thresholds | None = None,
 ) -> Comparison:
-    """Compare a limb with a reference (other limb or baseline visit) level by level.
+    """Compare a limb with a reference (other limb or baseline visit).
 
-    Both are aligned by their landmarks: level offsets are distances from each scan's own
-    landmark. Volumes are the exact volumes between the first and last level both scans
-    measured; flags follow ``thresholds``.
+    Both are aligned by their landmarks: distances are from each scan's own landmark. The
+    volumes are those of the whole range both measured (independent of the level
+    spacing); levels and segments are those both have. Flags follow ``thresholds``.
 
     Raises:
-        ClinicalError: different spacings, or fewer than two common levels.
+        ClinicalError: an unknown kind, different spacings, or too little common range.
     """
     if kind not in COMPARISONS:
         raise ClinicalError(f"comparison {kind!r} must be one of {', '.join(COMPARISONS)}")
     limits = thresholds or Thresholds()
-    if abs(scan.spacing_mm - reference.spacing_mm) > _LEVEL_TOLERANCE_MM:
-        raise ClinicalError("compare scans measured at the same level spacing")
-    offsets = _common(
-        [lv.offset_mm for lv in scan.levels], [lv.offset_mm for lv in reference.levels]
+    _check_spacing([scan, reference])
+    lo, hi = common_span_mm([scan, reference])
+    girth_a = {round(lv.offset_mm, 6): lv.circumference_mm for lv in scan.levels}
+    girth_b = {round(lv.offset_mm, 6): lv.circumference_mm for lv in reference.levels}
+    levels = []
+    for off in _common_levels([scan, reference]):
+        ca, cb = girth_a[round(off, 6)], girth_b[round(off, 6)]
+        levels.append(LevelDifference(off, ca, cb, abs(ca - cb) >= limits.circumference_mm))
+    segments = tuple(
+        SegmentDifference(a, b, scan.segment_volume_mm3(a, b), reference.segment_volume_mm3(a, b))
+        for a, b in _common_segments([scan, reference])
     )
-    if len(offsets) < 2:
-        raise ClinicalError(
-            "the two scans share fewer than two levels from their landmarks; use a smaller "
-            "spacing or a landmark both scans cover"
-        )
-    by_a = {round(lv.offset_mm, 6): lv for lv in scan.levels}
-    by_b = {round(lv.offset_mm, 6): lv for lv in reference.levels}
-    diffs = []
-    for off in offsets:
-        ca, cb = by_a[round(off, 6)].circumference_mm, by_b[round(off, 6)].circumference_mm
-        diffs.append(LevelDifference(off, ca, cb, abs(ca - cb) >= limits.circumference_mm))
-    lo, hi = min(offsets), max(offsets)
-
-    def span_volume(m: LimbMeasurement) -> float:
-        inside = [s for s in m.segments if lo - 1e-6 <= min(s.offset_lo_mm, s.offset_hi_mm)]
-        return float(
-            sum(s.volume_mm3 for s in inside if max(s.offset_lo_mm, s.offset_hi_mm) <= hi + 1e-6)
-        )
-
-    comparison = Comparison(kind, tuple(diffs), span_volume(scan), span_volume(reference))
-    return Comparison(
-        kind, comparison.levels, comparison.volume_mm3, comparison.reference_volume_mm3,
-        tuple(_flags(comparison, limits)),
+    c = Comparison(
+        kind, tuple(levels), scan.volume_between_mm3(lo, hi), reference.volume_between_mm3(lo, hi),
+        (lo, hi), segments,
     )  # fmt: skip
+    return replace(c, alerts=tuple(_comparison_flags(c, limits)))
 
 
-def _flags(c: Comparison, limits: Thresholds) -> list[str]:
-    """Return one line per threshold the comparison crosses."""
+def _comparison_flags(c: Comparison, limits: Thresholds) -> list[Flag]:
+    """Return one flag per value of the comparison that reaches its threshold."""
     flags = []
     if c.kind == "limbs":
-        if abs(c.difference_ml) > limits.limb_difference_ml:
-            flags.append(
-                f"volume difference {c.difference_ml:+.0f} mL exceeds "
-                f"{limits.limb_difference_ml:.0f} mL"
-            )
-        if abs(c.difference_percent) > limits.limb_difference_percent:
-            flags.append(
-                f"volume difference {c.difference_percent:+.1f} % exceeds "
-                f"{limits.limb_difference_percent:.1f} %"
-            )
-    elif abs(c.difference_percent) >= limits.change_percent:
-        flags.append(
-            f"volume change {c.difference_percent:+.1f} % reaches {limits.change_percent:.1f} %"
+        flags += reached("excess_ml", c.difference_ml, limits.limb_difference_ml)
+        flags += reached("excess_percent", c.difference_percent, limits.limb_difference_percent)
+        quantity, limit = "excess_percent", limits.limb_difference_percent
+    else:
+        flags += reached("change_percent", c.difference_percent, limits.change_percent)
+        quantity, limit = "change_percent", limits.change_percent
+    for s in c.segments:
+        flags += reached(
+            quantity, s.difference_percent, limit, segment_place(s.offset_lo_mm, s.offset_hi_mm)
         )
     for d in c.levels:
         if d.flagged:
-            flags.append(
-                f"circumference at {d.offset_mm:.0f} mm differs by {d.difference_mm:+.1f} mm "
-                f"(threshold {limits.circumference_mm:.0f} mm)"
-            )
+            flags += [Flag("girth_mm", d.difference_mm, limits.circumference_mm,
+                           f"level {d.offset_mm:g} mm")]  # fmt: skip
     return flags
+
+
+def rvc_percent(
+    affected_before: float, other_before: float, affected: float, other: float
+) -> float:
+    """Return the relative volume change in %: 100 ((A2 x U1) / (U2 x A1) - 1).
+
+    A is the affected limb, U the other, 1 the earlier visit and 2 the later (any one
+    volume unit). The other limb's change (growth, weight) is divided out, so only the
+    affected limb's change relative to it remains. NaN when a volume is not positive.
+    """
+    volumes = (affected_before, other_before, affected, other)
+    if not all(math.isfinite(v) and v > 0 for v in volumes):
+        return math.nan
+    return 100.0 * ((affected * other_before) / (other * affected_before) - 1.0)
+
+
+@dataclass(frozen=True)
+class VolumeChange:
+    """One stretch of both limbs at two visits: the clinic's figures for it (mm^3 inside).
+
+    ``offset_*_mm`` are distances from the landmarks; A is the affected limb, U the other,
+    ``before`` the earlier (baseline) visit.
+    """
+
+    offset_lo_mm: float
+    offset_hi_mm: float
+    affected_before_mm3: float
+    other_before_mm3: float
+    affected_mm3: float
+    other_mm3: float
+
+    @property
+    def rvc_percent(self) -> float:
+        """Return the relative volume change, (A2 x U1) / (U2 x A1) - 1, in %."""
+        return rvc_percent(
+            self.affected_before_mm3, self.other_before_mm3, self.affected_mm3, self.other_mm3
+        )
+
+    @property
+    def excess_ml(self) -> float:
+        """Return the affected limb's excess over the other at the later visit, in mL."""
+        return (self.affected_mm3 - self.other_mm3) / 1000.0
+
+    @property
+    def excess_percent(self) -> float:
+        """Return that excess in % of the other limb."""
+        return percent_over(self.affected_mm3, self.other_mm3)
+
+    @property
+    def baseline_excess_percent(self) -> float:
+        """Return the excess at the earlier visit, in % of the other limb."""
+        return percent_over(self.affected_before_mm3, self.other_before_mm3)
+
+    @property
+    def change_ml(self) -> float:
+        """Return the affected limb's change from the earlier visit, in mL."""
+        return (self.affected_mm3 - self.affected_before_mm3) / 1000.0
+
+    @property
+    def change_percent(self) -> float:
+        """Return that change in % of the earlier volume."""
+        return percent_over(self.affected_mm3, self.affected_before_mm3)
+
+    @property
+    def other_change_percent(self) -> float:
+        """Return the other limb's change from the earlier visit, in %."""
+        return percent_over(self.other_mm3, self.other_before_mm3)
+
+
+@dataclass(frozen=True)
+class LimbChange:
+    """The relative volume change of an affected limb between two visits, whole and by segment."""
+
+    whole: VolumeChange
+    segments: tuple[VolumeChange, ...]
+    alerts: tuple[Flag, ...] = ()
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        """Return each flag as one line of text."""
+        return tuple(f.text for f in self.alerts)
+
+
+def rvc_flags(
+    value: float, limits: Thresholds, where: str = WHOLE_LIMB, context: str = ""
+) -> list[Flag]:
+    """Return the flag of an RVC: the lymphoedema threshold, else the subclinical one.
+
+    Only an increase is flagged (a limb that shrank relative to the other is the other
+    limb's increase).
+    """
+    for threshold, label in (
+        (limits.rvc_percent, "lymphoedema"),
+        (limits.subclinical_percent, "subclinical"),
+    ):
+        if math.isfinite(value) and value >= threshold:
+            return [Flag("rvc_percent", value, threshold, where, label, context)]
+    return []
+
+
+def relative_volume_change(
+    affected_before: LimbMeasurement,
+    other_before: LimbMeasurement,
+    affected: LimbMeasurement,
+    other: LimbMeasurement,
+    thresholds: Thresholds | None = None,
+    span_mm: tuple[float, float] | None = None,
+) -> LimbChange:
+    """Return the RVC, excess and change of an affected limb between two visits.
+
+    RVC = (A2 x U1) / (U2 x A1) - 1 over the range all four scans measured (or ``span_mm``,
+    distances from the landmarks, which all four must cover), and for each segment all
+    four have. Flags: the RVC (lymphoedema, else subclinical threshold), the excess at the
+    later visit (mL and %) and the affected limb's change from the earlier one.
+
+    Raises:
+        ClinicalError: different spacings, too little common range, or a ``span_mm`` one of
+            the scans does not cover.
+    """
+    limits = thresholds or Thresholds()
+    scans = (affected_before, other_before, affected, other)
+    _check_spacing(scans)
+    common = common_span_mm(scans)
+    lo, hi = span_mm or common
+    if lo < common[0] - 1e-6 or hi > common[1] + 1e-6:
+        raise ClinicalError(
+            f"the range {lo:g}..{hi:g} mm from the landmark is not measured in all four scans "
+            f"(they share {common[0]:g}..{common[1]:g} mm)"
+        )
+    whole = VolumeChange(lo, hi, *(m.volume_between_mm3(lo, hi) for m in scans))
+    segments = tuple(
+        VolumeChange(a, b, *(m.segment_volume_mm3(a, b) for m in scans))
+        for a, b in _common_segments(scans)
+    )
+    flags = rvc_flags(whole.rvc_percent, limits)
+    flags += reached("excess_ml", whole.excess_ml, limits.limb_difference_ml, signed=True)
+    flags += reached(
+        "excess_percent", whole.excess_percent, limits.limb_difference_percent, signed=True
+    )
+    flags += reached("change_percent", whole.change_percent, limits.change_percent)
+    for s in segments:
+        flags += rvc_flags(s.rvc_percent, limits, segment_place(s.offset_lo_mm, s.offset_hi_mm))
+    return LimbChange(whole, segments, tuple(flags))
 
 
 SIDES = ("none", "left", "right")
@@ -715,14 +1076,23 @@ SIDES = ("none", "left", "right")
 
 _OTHER_SIDE = {"left": "right", "right": "left"}
 
+PAIR_WINDOW_H = 24.0
+"""Scans of the two sides this close in time are one visit (both limbs measured together):
+their excess and RVC compare them; scans further apart are not paired."""
+
 
 @dataclass(frozen=True)
 class Visit:
-    """One processed scan of a subject: its volume, change and excess over the other limb.
+    """One scan in a subject's trend: its volume, change, excess over the other limb and RVC.
 
-    ``change_*`` is against the first scan of the same side (the baseline); ``excess_*``
-    is this limb over the other side's scan nearest in time (NaN when there is none, or
-    for side ``none``), measured over the levels both share.
+    All figures but ``whole_volume_ml`` are over the trend's range (:attr:`Trend.span_mm`,
+    the stretch every visit measured), so they can be compared and recomputed from each
+    other. ``change_*`` is against the first scan of the same side (``baseline_id``);
+    ``excess_*`` is this limb over the other side's scan of the same visit
+    (``excess_over``, within :data:`PAIR_WINDOW_H`); ``rvc_percent`` is this side's RVC
+    since the first visit with both limbs (``rvc_scans``: that visit's scans of this side
+    and of the other), as if this side were the affected one. NaN where a figure cannot be
+    had (and ``flags`` says why).
     """
 
     scan_id: int
@@ -735,6 +1105,39 @@ class Visit:
     excess_ml: float = math.nan
     excess_percent: float = math.nan
     excess_over: int | None = None
+    rvc_percent: float = math.nan
+    baseline_id: int | None = None
+    rvc_scans: tuple[int, int] | None = None
+    whole_volume_ml: float = math.nan
+    alerts: tuple[Flag, ...] = ()
+
+
+@dataclass(frozen=True)
+class Trend:
+    """A subject's visits in time order, per side, with the thresholds they are judged by.
+
+    ``span_mm`` is the stretch of limb (distances from the landmark) every visit measured,
+    over which every figure is taken; None when the visits share too little of it (then
+    only each scan's own volume is given, and ``notes`` says which scan is short).
+    """
+
+    visits: tuple[Visit, ...]
+    span_mm: tuple[float, float] | None
+    thresholds: Thresholds = field(default_factory=Thresholds)
+    notes: tuple[str, ...] = ()
+
+    def side(self, side: str) -> list[Visit]:
+        """Return the visits of one side, in time order."""
+        return [v for v in self.visits if v.side == side]
+
+    def visit(self, scan_id: int) -> Visit | None:
+        """Return the visit of scan ``scan_id`` (None if it is not in the trend)."""
+        return next((v for v in self.visits if v.scan_id == scan_id), None)
+
+    @property
+    def flags(self) -> tuple[Flag, ...]:
+        """Return every visit's flags."""
+        return tuple(f for v in self.visits for f in v.alerts)
 
 
 def _days(created: str) -> float:
@@ -748,20 +1151,135 @@ def _days(created: str) -> float:
     return stamp.timestamp() / 86400.0
 
 
-def _change(
-    scan_id: int, created: str, m: LimbMeasurement, baseline: LimbMeasurement,
-    thresholds: Thresholds | None, side: str,
-) -> Visit:  # fmt: skip
-    """Return a visit compared with its side's baseline (NaN and the reason if it cannot be)."""
+def _trend_span(
+    scans: Sequence[tuple[int, str, LimbMeasurement]],
+) -> tuple[tuple[float, float] | None, list[str]]:
+    """Return the range every scan covers (None if too short) and a note naming the shortest."""
+    if not scans:
+        return None, []
     try:
-        c = compare(m, baseline, "visits", thresholds)
-    except ClinicalError as exc:
-        return Visit(scan_id, created, m.volume_mm3 / 1000.0, math.nan, math.nan, (str(exc),),
-                     side)  # fmt: skip
-    return Visit(
-        scan_id, created, m.volume_mm3 / 1000.0, c.difference_ml, c.difference_percent,
-        c.flags, side,
+        span = common_span_mm([m for _, _, m in scans])
+    except ClinicalError:
+        span = None
+    shortest_id, _, shortest = min(
+        scans, key=lambda s: s[2].offset_range_mm[1] - s[2].offset_range_mm[0]
+    )
+    lo, hi = shortest.offset_range_mm
+    widest = max(m.offset_range_mm[1] - m.offset_range_mm[0] for _, _, m in scans)
+    if span is None or span[1] - span[0] < 0.8 * widest:
+        reach = f"scan {shortest_id} covers only {lo:.0f}..{hi:.0f} mm from the landmark"
+        what = "the visits share too little of the limb for a trend" if span is None else (
+            f"the trend is taken over {span[0]:.0f}..{span[1]:.0f} mm, the range every visit "
+            "measured")  # fmt: skip
+        return span, [f"{what}; {reach}: if it is not a visit, mark it as a test scan"]
+    return span, []
+
+
+def _pairs(
+    ordered: Sequence[tuple[int, str, LimbMeasurement]], side_of: Mapping[int, str],
+    window_h: float,
+) -> dict[int, int]:  # fmt: skip
+    """Return each left or right scan's partner: the other side's scan nearest in time within
+    ``window_h`` hours (one visit), if there is one."""
+    pairs = {}
+    for scan_id, created, _ in ordered:
+        other = _OTHER_SIDE.get(side_of[scan_id])
+        when = _days(created)
+        near = [
+            (abs(_days(c) - when) * 24.0, c, i) for i, c, _ in ordered
+            if side_of[i] == other and abs(_days(c) - when) * 24.0 <= window_h
+        ]  # fmt: skip
+        if near:
+            pairs[scan_id] = min(near)[2]
+    return pairs
+
+
+def trend(
+    scans: Sequence[tuple[int, str, LimbMeasurement]],
+    thresholds: Thresholds | None = None,
+    sides: Mapping[int, str] | None = None,
+    pair_window_h: float = PAIR_WINDOW_H,
+) -> Trend:
+    """Return a subject's trend: every scan's volume, change, excess and RVC, in time order.
+
+    Args:
+        scans: (scan id, creation time ISO 8601, measurement) of one subject's scans.
+        thresholds: when a change, an excess or an RVC is flagged.
+        sides: each scan's limb side (:data:`SIDES`; a scan not named is ``none``).
+        pair_window_h: scans of the two sides this close in time are one visit.
+
+    Every figure is taken over the stretch of limb every scan measured (the trend's span).
+    Left and right are followed apart, each from its own first scan (its baseline). A left
+    or right scan paired with the other side's scan of the same visit gets its excess over
+    it; and, once a visit with both limbs exists, its RVC since the first such visit.
+    Flags: the change from baseline (either way), an excess (on the larger limb), and an
+    RVC increase (the lymphoedema threshold, else the subclinical one).
+    """
+    limits = thresholds or Thresholds()
+    side_of = {scan_id: (sides or {}).get(scan_id, SIDES[0]) for scan_id, _, _ in scans}
+    ordered = sorted(scans, key=lambda item: (item[1], item[0]))
+    span, notes = _trend_span(ordered)
+    volume = {
+        i: (m.volume_between_mm3(*span) if span else m.volume_mm3) / 1000.0 for i, _, m in ordered
+    }
+    baseline: dict[str, int] = {}
+    for scan_id, _, _ in ordered:
+        baseline.setdefault(side_of[scan_id], scan_id)
+    pairs = _pairs(ordered, side_of, pair_window_h)
+    first_pair = next(((i, pairs[i]) for i, _, _ in ordered if i in pairs), None)
+    by_side = {side_of[i]: i for i in first_pair} if first_pair else {}
+    visits = []
+    for scan_id, created, m in ordered:
+        side = side_of[scan_id]
+        base = baseline[side]
+        known = span is not None or scan_id == base
+        change_ml = volume[scan_id] - volume[base] if known else math.nan
+        visit = Visit(
+            scan_id, created, volume[scan_id], change_ml,
+            percent_over(volume[scan_id], volume[base]) if known else math.nan,
+            side=side, baseline_id=base, whole_volume_ml=m.volume_mm3 / 1000.0,
+        )  # fmt: skip
+        partner = pairs.get(scan_id)
+        if partner is not None and span is not None:
+            a1, u1 = by_side.get(side), by_side.get(_OTHER_SIDE[side])
+            visit = replace(
+                visit,
+                excess_ml=volume[scan_id] - volume[partner],
+                excess_percent=percent_over(volume[scan_id], volume[partner]),
+                excess_over=partner,
+            )
+            if a1 is not None and u1 is not None:
+                rvc = rvc_percent(volume[a1], volume[u1], volume[scan_id], volume[partner])
+                visit = replace(visit, rvc_percent=rvc, rvc_scans=(a1, u1))
+        visits.append(_with_flags(visit, limits, span is not None))
+    return Trend(tuple(visits), span, limits, tuple(notes))
+
+
+def _with_flags(visit: Visit, limits: Thresholds, measured: bool) -> Visit:
+    """Return the visit with its flags (and a line saying why a figure is missing)."""
+    side = f"{visit.side} " if visit.side != SIDES[0] else ""
+    alerts = reached(
+        "change_percent", visit.change_percent, limits.change_percent,
+        context=f"{side}since scan {visit.baseline_id}",
     )  # fmt: skip
+    if visit.excess_over is not None:
+        over = f"{visit.side} over {_OTHER_SIDE[visit.side]} (scan {visit.excess_over})"
+        alerts += reached("excess_ml", visit.excess_ml, limits.limb_difference_ml,
+                          context=over, signed=True)  # fmt: skip
+        alerts += reached("excess_percent", visit.excess_percent, limits.limb_difference_percent,
+                          context=over, signed=True)  # fmt: skip
+    if visit.rvc_scans is not None:
+        alerts += rvc_flags(
+            visit.rvc_percent, limits, context=f"{visit.side} since scan {visit.rvc_scans[0]}"
+        )
+    notes = []
+    if not measured:
+        notes.append("no trend figures: the visits share too little of the limb")
+    elif visit.side in _OTHER_SIDE and visit.excess_over is None:
+        notes.append(
+            f"no {_OTHER_SIDE[visit.side]} scan within {PAIR_WINDOW_H:g} h: no excess or RVC"
+        )
+    return replace(visit, alerts=tuple(alerts), flags=tuple(f.text for f in alerts) + tuple(notes))
 
 
 def history(
@@ -769,59 +1287,5 @@ def history(
     thresholds: Thresholds | None = None,
     sides: Mapping[int, str] | None = None,
 ) -> list[Visit]:
-    """Return the visits in time order, each compared with its side's first (the baseline).
-
-    Args:
-        scans: (scan id, creation time ISO 8601, measurement) of one subject's scans.
-        thresholds: when a change or an excess is flagged.
-        sides: each scan's limb side (:data:`SIDES`; a scan not named is ``none``).
-
-    Left and right limbs are followed apart: a visit's change is measured against the
-    first scan of the same side, between the first and last level it shares with it
-    (scans of one limb may cover more or less of it). A left or right visit also gets
-    its excess over the other side's scan nearest in time (the limbs comparison). A
-    visit sharing fewer than two levels has no change (NaN) and says why.
-    """
-    side_of = {scan_id: (sides or {}).get(scan_id, SIDES[0]) for scan_id, _, _ in scans}
-    ordered = sorted(scans, key=lambda item: (item[1], item[0]))
-    baselines: dict[str, tuple[int, LimbMeasurement]] = {}
-    visits = []
-    for scan_id, created, m in ordered:
-        side = side_of[scan_id]
-        base_id, baseline = baselines.setdefault(side, (scan_id, m))
-        if scan_id == base_id:
-            visit = Visit(scan_id, created, m.volume_mm3 / 1000.0, 0.0, 0.0, (), side)
-        else:
-            visit = _change(scan_id, created, m, baseline, thresholds, side)
-        visits.append(_with_excess(visit, m, ordered, side_of, thresholds))
-    return visits
-
-
-def _with_excess(
-    visit: Visit,
-    m: LimbMeasurement,
-    scans: Sequence[tuple[int, str, LimbMeasurement]],
-    side_of: Mapping[int, str],
-    thresholds: Thresholds | None,
-) -> Visit:
-    """Return ``visit`` with its excess over the other side's scan nearest in time."""
-    other = _OTHER_SIDE.get(visit.side)
-    candidates = [item for item in scans if side_of[item[0]] == other]
-    if not candidates:
-        return visit
-    when = _days(visit.created)
-    other_id, _, other_m = min(
-        candidates, key=lambda item: (abs(_days(item[1]) - when), item[1], item[0])
-    )
-    try:
-        c = compare(m, other_m, "limbs", thresholds)
-    except ClinicalError as exc:
-        return replace(visit, flags=(*visit.flags, f"no excess over scan {other_id}: {exc}"))
-    flags = tuple(f"{visit.side} over {other} scan {other_id}: {f}" for f in c.flags)
-    return replace(
-        visit,
-        flags=visit.flags + flags,
-        excess_ml=c.difference_ml,
-        excess_percent=c.difference_percent,
-        excess_over=other_id,
-    )
+    """Return the visits of :func:`trend` alone, in time order."""
+    return list(trend(scans, thresholds, sides).visits)

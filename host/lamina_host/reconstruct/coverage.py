@@ -18,6 +18,7 @@ import numpy as np
 from lamina_host.reconstruct.axis import taubin_circle
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.outliers import MAX_EXTENT_POINTS, group_range
+from lamina_host.reconstruct.outline_frame import OutlineFrame, unwrap_angles
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bins about the outline's centre; a bin with a measured point is covered."""
@@ -30,16 +31,23 @@ chord across a wide gap passes near the centre)."""
 
 @dataclass(frozen=True, eq=False)
 class Coverage:
-    """Which angular bins about ``centre_mm`` hold measured points of an outline.
+    """Which bins along an outline hold measured points of it.
 
-    ``radius_lo_mm`` and ``radius_hi_mm`` are each bin's smallest and largest measured
-    radius (inf and -inf where nothing was measured).
+    The bins are of the position ``t`` in ``frame`` (:mod:`.outline_frame`): angular bins
+    about the centre of a star-shaped outline, stretches of equal length along the
+    reference curve of another. ``radius_lo_mm`` and ``radius_hi_mm`` are each bin's
+    smallest and largest measured offset (radius; inf and -inf where nothing was measured).
     """
 
-    centre_mm: tuple[float, float]
+    frame: OutlineFrame
     covered: np.ndarray
     radius_lo_mm: np.ndarray
     radius_hi_mm: np.ndarray
+
+    @property
+    def centre_mm(self) -> tuple[float, float]:
+        """Return the centre of the outline's frame."""
+        return float(self.frame.centre_mm[0]), float(self.frame.centre_mm[1])
 
     @property
     def bin_deg(self) -> float:
@@ -74,18 +82,20 @@ class Coverage:
         return max((w for _, w in self.gaps_deg()), default=0.0)
 
     def bins_of(self, points: np.ndarray) -> np.ndarray:
-        """Return the bin index of each (N, 2) point about the centre."""
-        d = np.asarray(points, dtype=float).reshape(-1, 2) - np.asarray(self.centre_mm)
+        """Return the bin index of each (N, 2) point along the outline."""
+        return self._bins(self.frame.to_local(points)[0])
+
+    def _bins(self, t: np.ndarray) -> np.ndarray:
+        """Return the bin index of each position ``t`` (radians)."""
         n = len(self.covered)
-        idx = ((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2.0 * np.pi) * n).astype(np.int64)
-        return np.minimum(idx, n - 1)
+        idx = ((np.asarray(t) + np.pi) / (2.0 * np.pi) * n).astype(np.int64)
+        return np.clip(idx, 0, n - 1)
 
     def unseen(self, points: np.ndarray, tolerance_mm: float = MEASURED_TOLERANCE_MM) -> np.ndarray:
         """Return True for points not backed by a measurement (estimated): in an unseen gap,
         or further than ``tolerance_mm`` in radius from what was measured in their bin."""
-        pts = np.asarray(points, dtype=float).reshape(-1, 2)
-        b = self.bins_of(pts)
-        r = np.hypot(*(pts - np.asarray(self.centre_mm)).T)
+        t, r = self.frame.to_local(points)
+        b = self._bins(t)
         off = (r < self.radius_lo_mm[b] - tolerance_mm) | (r > self.radius_hi_mm[b] + tolerance_mm)
         return ~self.covered[b] | off
 
@@ -118,11 +128,31 @@ def outline_centre(points: np.ndarray) -> np.ndarray:
     return centre
 
 
-def measure_coverage(points: np.ndarray, bin_deg: float = COVERAGE_BIN_DEG) -> Coverage:
-    """Return the angular coverage of an outline's measured points about its centre.
+CONTINUOUS_STEP_MM = 0.75
+"""Two consecutive points of one view's stripe closer than this saw the surface between
+them: at a grazing end a stripe's points thin out, each column spanning more of the
+outline, and the bins they skip are not a gap."""
 
-    A bin is covered when it holds a point; a single empty bin between covered ones is
-    counted as covered (sampling, not a gap).
+
+def measure_coverage(
+    points: np.ndarray,
+    frame: OutlineFrame | None = None,
+    pieces: list[np.ndarray] | None = None,
+    bin_deg: float = COVERAGE_BIN_DEG,
+) -> Coverage:
+    """Return the coverage of an outline's measured points along it.
+
+    A bin is covered when it holds a point, or when consecutive points of one view's
+    stripe (``pieces``) no further apart than ``CONTINUOUS_STEP_MM`` lie either side of
+    it; a single empty bin between covered ones is counted as covered (sampling, not a
+    gap).
+
+    Args:
+        points: (N, 2) measured points of one outline.
+        frame: the outline's frame when it is not star-shaped (a reference curve); None or
+            a polar frame: angular bins about :func:`outline_centre`.
+        pieces: the views' stripes the points came from, each in stripe order.
+        bin_deg: the bins' width, degrees of a turn.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if not len(pts) or not np.isfinite(pts).all():
@@ -130,16 +160,37 @@ def measure_coverage(points: np.ndarray, bin_deg: float = COVERAGE_BIN_DEG) -> C
             f"an outline of {len(pts)} point(s), not all finite, has no coverage to measure"
         )
     n = round(360.0 / bin_deg)
-    centre = outline_centre(pts)
+    if frame is None or frame.polar:
+        frame = OutlineFrame(outline_centre(pts))
     empty = np.zeros(n)
-    probe = Coverage((float(centre[0]), float(centre[1])), empty > 0, empty, empty)
-    bins = probe.bins_of(pts)
-    lo, hi = group_range(np.hypot(*(pts - centre).T), bins, n)
+    probe = Coverage(frame, empty > 0, empty, empty)
+    t, offset = frame.to_local(pts)
+    bins = probe._bins(t)
+    lo, hi = group_range(offset, bins, n)
+    for piece in pieces or []:
+        _cover_steps(probe, np.asarray(piece, dtype=float).reshape(-1, 2), lo, hi)
     covered = np.isfinite(lo)
     hole = ~covered & np.roll(covered, 1) & np.roll(covered, -1)
     lo[hole] = np.minimum(np.roll(lo, 1), np.roll(lo, -1))[hole]
     hi[hole] = np.maximum(np.roll(hi, 1), np.roll(hi, -1))[hole]
-    return Coverage(probe.centre_mm, covered | hole, lo, hi)
+    return Coverage(frame, covered | hole, lo, hi)
+
+
+def _cover_steps(probe: Coverage, piece: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Extend ``lo``/``hi`` over the bins a stripe's short steps skip (in place)."""
+    if len(piece) < 2:
+        return
+    step = np.hypot(*np.diff(piece, axis=0).T)
+    t, offset = probe.frame.to_local(piece)
+    b = probe._bins(t)
+    n = len(probe.covered)
+    ahead = (b[1:] - b[:-1]) % n  # bins forward from one point to the next
+    skip = np.minimum(ahead, n - ahead) > 1
+    for k in np.flatnonzero(skip & (step <= CONTINUOUS_STEP_MM)):
+        first, width = (b[k], ahead[k]) if ahead[k] <= n // 2 else (b[k + 1], n - ahead[k])
+        between = (first + np.arange(1, width)) % n
+        lo[between] = np.minimum(lo[between], min(offset[k], offset[k + 1]))
+        hi[between] = np.maximum(hi[between], max(offset[k], offset[k + 1]))
 
 
 BRIDGE_MIN_GAP_DEG = 4.0
@@ -161,34 +212,37 @@ def _side(ang: np.ndarray, rad: np.ndarray) -> tuple[float, float]:
     """
     if len(ang) < 2 or np.ptp(ang) <= 0:
         return float(np.mean(rad)), 0.0
-    coeffs = np.polyfit(ang, rad, 2 if len(ang) >= 6 else 1)
-    return float(coeffs[-1]), float(coeffs[-2])
+    # Least squares on angles scaled to about 1 (a Vandermonde of raw radians is badly
+    # conditioned); the rank it finds is what the points can carry.
+    scale = float(np.max(np.abs(ang)))
+    x = ang / scale
+    degree = 2 if len(ang) >= 6 else 1
+    coeffs = np.linalg.lstsq(np.vander(x, degree + 1), rad, rcond=None)[0]
+    return float(coeffs[-1]), float(coeffs[-2]) / scale
 
 
-def bridge_gaps(points: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+def bridge_gaps(points: np.ndarray, frame: OutlineFrame) -> np.ndarray:
     """Return an outline's measured points with every unseen gap bridged from its own sides.
 
-    About ``centre_mm``, each gap between angularly consecutive points wider than
-    ``BRIDGE_MIN_GAP_DEG`` is spanned by a cubic Hermite curve in polar coordinates whose
-    ends take the value and slope of a parabola fitted to the measured points within
-    ``BRIDGE_SIDE_DEG`` on that side: the outline continues smoothly as it was seen
-    arriving at the gap and leaving it. The outline must be star-shaped about the centre
-    (as overlap blending assumes). A chord, which EFD would draw, cuts inside a convex
-    outline (by 2.4 mm over 36 degrees of a 50 mm radius).
+    In the outline's frame (polar about its centre when star-shaped), each gap between
+    consecutive points wider than ``BRIDGE_MIN_GAP_DEG`` is spanned by a cubic Hermite
+    curve of the offset (radius) over the position (angle) whose ends take the value and
+    slope of a parabola fitted to the measured points within ``BRIDGE_SIDE_DEG`` on that
+    side: the outline continues smoothly as it was seen arriving at the gap and leaving
+    it. A chord, which EFD would draw, cuts inside a convex outline (by 2.4 mm over 36
+    degrees of a 50 mm radius).
 
     Args:
         points: (N, 2) measured points of one outline in mm.
-        centre_mm: the centre the gaps are measured about (``Coverage.centre_mm``).
+        frame: the frame the gaps are measured in (``Coverage.frame``).
 
     Returns:
-        (M, 2) points, the measured ones and the bridges', sorted by angle about the centre.
+        (M, 2) points, the measured ones and the bridges', in order along the outline.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    centre = np.asarray(centre_mm, dtype=float)
-    d = pts - centre
-    ang = np.arctan2(d[:, 1], d[:, 0])
+    ang, rad = frame.to_local(pts)
     order = np.argsort(ang, kind="stable")
-    pts, ang, rad = pts[order], ang[order], np.hypot(*d[order].T)
+    pts, ang, rad = pts[order], ang[order], rad[order]
     if len(pts) < 4:
         return pts
     step = np.diff(np.append(ang, ang[0] + 2.0 * np.pi))
@@ -209,9 +263,63 @@ def bridge_gaps(points: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
         h01, h11 = -2 * t**3 + 3 * t**2, t**3 - t**2
         r = h00 * r0 + h10 * width * s0 + h01 * r1 + h11 * width * s1
         a = start + t * width
-        extra.append(centre + np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
+        extra.append(np.stack([a, r], axis=1))
     if not extra:
         return pts
-    merged = np.concatenate([pts, *extra])
-    m = merged - centre
-    return merged[np.argsort(np.arctan2(m[:, 1], m[:, 0]), kind="stable")]
+    bridged = np.concatenate(extra)
+    bridged[:, 0] = np.mod(bridged[:, 0] + np.pi, 2.0 * np.pi) - np.pi
+    merged_t = np.concatenate([ang, bridged[:, 0]])
+    merged = np.concatenate([pts, frame.to_xy(bridged[:, 0], bridged[:, 1])])
+    return merged[np.argsort(merged_t, kind="stable")]
+
+
+def match_sides(points: np.ndarray, fill: np.ndarray, frame: OutlineFrame) -> np.ndarray:
+    """Return ``fill`` (curve samples inside an outline's unseen gaps) moved to meet its sides.
+
+    A neighbouring section's outline has this one's shape across the gap but not its
+    size: a limb narrows between sections. Each gap's run of fill samples is shifted
+    outwards by a ramp from the difference at the gap's one side to that at the other,
+    each side's offset from a parabola fitted to the measured points within
+    ``BRIDGE_SIDE_DEG`` of it (as :func:`bridge_gaps`), so the filled outline keeps the
+    neighbour's shape and joins its own measured stretches without a step.
+
+    Args:
+        points: (N, 2) measured points of the outline.
+        fill: (M, 2) curve samples inside its gaps.
+        frame: the outline's frame (``Coverage.frame``).
+
+    Returns:
+        (M, 2) the fill samples, shifted along the frame's offset.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    fill = np.asarray(fill, dtype=float).reshape(-1, 2)
+    if len(pts) < 4 or len(fill) < 2:
+        return fill
+    ang, rad = frame.to_local(pts)
+    f_ang, f_rad = frame.to_local(fill)
+    order = np.argsort(f_ang, kind="stable")
+    f_ang, f_rad = f_ang[order], f_rad[order]
+    # Runs of fill: a step wider than the fill's own spacing is measured outline between.
+    spacing = np.median(np.diff(f_ang)) if len(f_ang) > 2 else np.pi
+    cut = np.flatnonzero(np.diff(f_ang) > 4.0 * max(spacing, 1e-9)) + 1
+    runs = np.split(np.arange(len(f_ang)), cut)
+    if len(runs) > 1 and (f_ang[0] + 2.0 * np.pi - f_ang[-1]) <= 4.0 * max(spacing, 1e-9):
+        runs = [np.concatenate([runs[-1], runs[0]]), *runs[1:-1]]  # one run across +-pi
+    side = np.deg2rad(BRIDGE_SIDE_DEG)
+    shifted = f_rad.copy()
+    for run in runs:
+        t = unwrap_angles(f_ang[run])
+        start, end = t[0], t[-1]
+        rel = np.mod(ang - start + np.pi, 2.0 * np.pi) - np.pi  # <= 0 before the run
+        before = (rel < 0.0) & (rel >= -side)
+        rel_end = np.mod(ang - end + np.pi, 2.0 * np.pi) - np.pi  # >= 0 after it
+        after = (rel_end > 0.0) & (rel_end <= side)
+        if not before.any() or not after.any():
+            continue
+        d0 = _side(rel[before], rad[before])[0] - f_rad[run[0]]
+        d1 = _side(rel_end[after], rad[after])[0] - f_rad[run[-1]]
+        u = (t - start) / (end - start) if end > start else np.zeros(len(t))
+        shifted[run] = f_rad[run] + d0 + (d1 - d0) * u
+    out = np.empty_like(fill)
+    out[order] = frame.to_xy(f_ang, shifted)
+    return out

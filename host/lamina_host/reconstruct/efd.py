@@ -28,6 +28,7 @@ from scipy.interpolate import PchipInterpolator, make_smoothing_spline
 
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area
+from lamina_host.reconstruct.outline_frame import OutlineFrame, unwrap_angles
 
 
 @dataclass(frozen=True, eq=False)
@@ -360,10 +361,11 @@ plateau the residual settles on, the plateau test (``PLATEAU_MARGIN``) stops the
 
 @dataclass(frozen=True, eq=False)
 class MeasuredPoints:
-    """The measured points an outline's order is judged by: polar coordinates about
-    ``centre_mm`` (as the overlap blending took them) and their noise from the overlaps."""
+    """The measured points an outline's order is judged by: their coordinates in the
+    outline's ``frame`` (polar about its centre when star-shaped, as the overlap blending
+    took them) and their noise from the overlaps."""
 
-    centre_mm: np.ndarray
+    frame: OutlineFrame
     angle_rad: np.ndarray
     radius_mm: np.ndarray
     noise_mm: float
@@ -383,22 +385,22 @@ def _truncations(pts: np.ndarray, top: int, parameter: str) -> tuple[np.ndarray,
     return np.fft.rfft(xy, axis=1), np.array(length)
 
 
-def _polar_table(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return a closed curve's samples as (angle, radius) sorted by angle about the origin.
+def _frame_table(frame: OutlineFrame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return a closed curve's samples as (position, offset) in ``frame``, by position.
 
-    A star-shaped curve's unwrapped angle runs one way round: it is reversed if need be,
-    with no sort; otherwise the angles in (-pi, pi] are sorted. The angles ascend from the
-    first and span less than one turn.
+    A curve that runs one way round the frame (a star-shaped outline about its centre, or
+    one that follows its reference curve) has positions that ascend once reversed if need
+    be, with no sort; otherwise the positions in (-pi, pi] are sorted. The positions
+    ascend from the first and span less than one turn.
     """
-    rad = np.hypot(x, y)
-    ang = np.unwrap(np.arctan2(y, x))
+    t, offset = frame.to_local(xy)
+    ang = unwrap_angles(t)
     if ang[-1] < ang[0]:
-        ang, rad = ang[::-1], rad[::-1]
+        ang, offset = ang[::-1], offset[::-1]
     if np.all(np.diff(ang) > 0) and ang[-1] - ang[0] < 2.0 * np.pi:
-        return ang, rad
-    wrapped = np.arctan2(y, x)
-    order = np.argsort(wrapped)
-    return wrapped[order], np.hypot(x, y)[order]
+        return ang, offset
+    order = np.argsort(t)
+    return t[order], frame.to_local(xy)[1][order]
 
 
 def harmonics_residual(
@@ -413,7 +415,7 @@ def harmonics_residual(
     epsilon, and the thesis leaves open how to choose it; here it is the points' own
     noise, measured where views overlap (``MeasuredPoints.noise_mm``). The residual of
     order N is the RMS radial distance of the measured points (each view's own points,
-    before blending) from the series truncated at N, about the blending centre; it falls
+    before blending) from the series truncated at N, in the blending's frame; it falls
     as N grows, to the noise once the shape is fitted, and lower only by following noise.
     So the order is the smallest N whose residual is at most ``(1 + margin)`` noise, or
     within ``PLATEAU_MARGIN`` of it and no longer falling (all higher orders together
@@ -434,7 +436,6 @@ def harmonics_residual(
     pts = _clean_closed(contour)
     top = max(1, min(nyquist_max(len(pts)), MAX_TESTED_HARMONICS))
     spectrum, length = _truncations(pts, top, parameter)
-    centre = np.asarray(measured.centre_mm, dtype=float)
     noise = measured.noise_mm
     cache: dict[int, float] = {}
 
@@ -442,8 +443,8 @@ def harmonics_residual(
         if order not in cache:
             kept = spectrum.copy()
             kept[:, order + 1 :] = 0.0
-            x, y = np.fft.irfft(kept, int(length), axis=1) - centre[:, None]
-            ang, rad = _polar_table(x, y)
+            xy = np.fft.irfft(kept, int(length), axis=1).T
+            ang, rad = _frame_table(measured.frame, xy)
             # One turn from the first sample, closed: np.interp's period would sort again.
             at = ang[0] + np.mod(measured.angle_rad - ang[0], 2.0 * np.pi)
             fit = np.interp(at, np.append(ang, ang[0] + 2.0 * np.pi), np.append(rad, rad[0]))

@@ -4,11 +4,13 @@ A real camera's stripe finder reports points that are not on the object: reflect
 stray light and noise columns. The thesis assembles every point (6.3), so each such point
 becomes a phantom outline or a bump. Five steps, cheapest first, each vectorised:
 
-1. **Working volume**: a point further from the turntable axis than the object can be (the
-   disc the camera sees at every turntable angle) is not on the object.
-2. **Spikes**: a point far from the coordinate-wise median of its neighbours along its own
+1. **Spikes**: a point far from the coordinate-wise median of its neighbours along its own
    stripe is a noise column (the median of a locally monotone curve is its middle point,
    and a step, such as an occlusion edge, survives a median filter).
+2. **Working volume**: a point further from the turntable axis than the disc the camera
+   sees at every turntable angle is not on the object unless other views confirm most of
+   its stretch of stripe: an object wider than that disc, or standing off the axis, keeps
+   what two views agree on beyond it.
 3. **View consensus** (polar coordinates about the axis): the views overlap, so a surface
    point is normally seen by more than one view. A point no other view confirms nearby,
    in an angular sector where other views agree on surfaces only at radii far from it,
@@ -65,6 +67,12 @@ MIN_RUN_CONFIRMED = 0.5
 views is surface: its unconfirmed points are kept even where other views disagree."""
 
 
+ALONG_DEG = 30.0
+"""Beyond the disc every view sees, another view's point confirms a point only where the
+two stripes run within this angle of each other: two views of one surface run along it
+together, two stray strokes cross."""
+
+
 @dataclass(frozen=True)
 class OutlierRules:
     """Thresholds of the outlier tests (module docstring); the defaults suit both rigs."""
@@ -104,7 +112,7 @@ class Rejected:
     (not points) that were not outlines."""
 
     outside_volume: int = 0
-    """Points further from the axis than the working radius."""
+    """Points further from the axis than the working radius that no other view supports."""
     spikes: int = 0
     """Points too far from their stripe's local median."""
     view_consensus: int = 0
@@ -213,6 +221,55 @@ def confirmed_by_other_views(points: np.ndarray, views: np.ndarray, radius_mm: f
         at = np.minimum(np.searchsorted(cells, probe), len(cells) - 1)
         confirmed |= (cells[at] == probe) & ((lo[at] != pair_view) | (hi[at] != pair_view))
     return confirmed[inverse.ravel()]
+
+
+DIRECTION_SPAN = 4
+"""A stripe's direction at a point is taken over this many points either side of it
+(fewer at the stripe's ends): one pixel's step is mostly noise."""
+
+
+def stripe_directions(points: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """Return each point's unit direction along its own view's stripe (points in stripe
+    order, view after view): from ``DIRECTION_SPAN`` points before it to as many after,
+    within its view."""
+    n = len(points)
+    at = np.arange(n)
+    first = np.searchsorted(views, views, side="left")  # views run in blocks, ascending
+    last = np.searchsorted(views, views, side="right") - 1
+    ahead = points[np.minimum(at + DIRECTION_SPAN, last)]
+    step = ahead - points[np.maximum(at - DIRECTION_SPAN, first)]
+    length = np.hypot(step[:, 0], step[:, 1])
+    return step / np.maximum(length, 1e-12)[:, None]
+
+
+def confirmed_along(
+    points: np.ndarray, views: np.ndarray, asked: np.ndarray, radius_mm: float
+) -> np.ndarray:
+    """Return True for the ``asked`` points that another view's stripe runs along.
+
+    A point is confirmed when a point of another view lies within ``radius_mm`` and that
+    view's stripe runs within ``ALONG_DEG`` of its own there (either way round).
+
+    Args:
+        points: (N, 2) points in stripe order, view after view.
+        views: (N,) each point's view.
+        asked: (N,) the points to test; the others are returned False.
+        radius_mm: the distance within which another view's point confirms.
+    """
+    out = np.zeros(len(points), dtype=bool)
+    asked_at = np.flatnonzero(asked)
+    if len(asked_at) == 0:
+        return out
+    from scipy.spatial import cKDTree  # deferred: only objects wider than the view need it
+
+    direction = stripe_directions(points, views)
+    cos_limit = np.cos(np.deg2rad(ALONG_DEG))
+    near = cKDTree(points).query_ball_point(points[asked_at], radius_mm)
+    for i, found in zip(asked_at, near, strict=True):
+        found = np.asarray(found, dtype=np.int64)
+        found = found[views[found] != views[i]]
+        out[i] = bool(np.any(np.abs(direction[found] @ direction[i]) >= cos_limit))
+    return out
 
 
 def contradicted(points: np.ndarray, confirmed: np.ndarray, consensus_mm: float) -> np.ndarray:
@@ -439,6 +496,24 @@ def angular_extent_deg(points: np.ndarray) -> float:
     return float(len(np.unique(np.minimum(angle_bin, n_bins - 1))) * EXTENT_BIN_DEG)
 
 
+def _outside_unconfirmed(
+    points: np.ndarray, run_share: np.ndarray, radius_mm: float | None
+) -> np.ndarray:
+    """Return True for points beyond the working radius that no other view supports.
+
+    The working radius is the disc the camera sees at every turntable angle. An object
+    wider than it (or standing off the axis) is still surface where a stretch of one
+    view's stripe is mostly confirmed by the others (``MIN_RUN_CONFIRMED``), beyond the
+    disc or running on into it. A point merely confirmed is not enough out there: two
+    views' reflections cross at a point or two, while two views of one surface agree
+    along their whole overlap.
+    """
+    if radius_mm is None:
+        return np.zeros(len(points), dtype=bool)
+    outside = np.hypot(points[:, 0], points[:, 1]) > radius_mm
+    return outside & (run_share < MIN_RUN_CONFIRMED)
+
+
 def clean_section(
     pieces: list[np.ndarray], gap_mm: float, rules: OutlierRules
 ) -> tuple[list[list[np.ndarray]], Rejected]:
@@ -461,18 +536,25 @@ def clean_section(
         return [], rejected
     pts = np.concatenate(segs)
     views = np.repeat(np.arange(len(segs)), [len(s) for s in segs])
-    keep = np.ones(len(pts), dtype=bool)
-    if rules.working_radius_mm is not None:
-        keep = np.hypot(pts[:, 0], pts[:, 1]) <= rules.working_radius_mm
-        rejected.outside_volume = int((~keep).sum())
-    spikes = spike_mask(pts, [len(s) for s in segs], rules.spike_mm) & keep
+    spikes = spike_mask(pts, [len(s) for s in segs], rules.spike_mm)
     rejected.spikes = int(spikes.sum())
-    keep &= ~spikes
-    pts, views = pts[keep], views[keep]
+    pts, views = pts[~spikes], views[~spikes]
+    # A stretch may step a little (an occlusion edge) and still be one stretch here.
+    run_gap_mm = max(gap_mm, rules.continue_mm)
+    if rules.working_radius_mm is not None:
+        confirmed = confirmed_by_other_views(pts, views, rules.consensus_mm)
+        beyond = np.hypot(pts[:, 0], pts[:, 1]) > rules.working_radius_mm
+        if beyond.any():
+            along = confirmed_along(pts, views, beyond & confirmed, rules.consensus_mm)
+            confirmed = np.where(beyond, along, confirmed)
+        share, _ = run_confirmed_share(pts, views, confirmed, run_gap_mm)
+        far = _outside_unconfirmed(pts, share, rules.working_radius_mm)
+        rejected.outside_volume = int(far.sum())
+        # What is rejected out there confirms nothing inside (two reflections may cross).
+        pts, views = pts[~far], views[~far]
     confirmed = confirmed_by_other_views(pts, views, rules.consensus_mm)
     bad = contradicted(pts, confirmed, rules.consensus_mm)
-    # A stretch may step a little (an occlusion edge) and still be one stretch here.
-    share, run = run_confirmed_share(pts, views, confirmed, max(gap_mm, rules.continue_mm))
+    share, run = run_confirmed_share(pts, views, confirmed, run_gap_mm)
     bad &= share < MIN_RUN_CONFIRMED
     bad &= ~thin_runs(pts, run, bad, confirmed, rules)
     rejected.view_consensus = int(bad.sum())

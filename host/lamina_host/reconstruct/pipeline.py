@@ -8,6 +8,7 @@ method and Lamina's default side by side; ``ProcessOptions.thesis()`` runs the t
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -19,9 +20,11 @@ import numpy as np
 
 from lamina_host.reconstruct.assembly import (
     DEFAULT_TRIM_FRACTION,
+    THESIS_TRIM_FRACTION,
     Blend,
     average_overlap_colours,
     blend_overlaps,
+    join_arcs,
     split_outlines,
     to_object_frame,
     trim,
@@ -44,9 +47,11 @@ from lamina_host.reconstruct.calibration import (
     calibrate_lift,
 )
 from lamina_host.reconstruct.coverage import (
+    CONTINUOUS_STEP_MM,
     MEASURED_TOLERANCE_MM,
     Coverage,
     bridge_gaps,
+    match_sides,
     measure_coverage,
 )
 from lamina_host.reconstruct.efd import (
@@ -74,7 +79,9 @@ from lamina_host.reconstruct.mesh import (
     screened_poisson,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
+from lamina_host.reconstruct.precision import section_precision_mm, views_disagreement_mm
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
+from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, LiftReference, Segment
 
@@ -112,8 +119,12 @@ class ProcessOptions:
     """Choices of the processing stages; defaults are Lamina's best, ``thesis()`` the thesis'.
 
     Attributes:
-        trim_fraction: share of each segment dropped at each end (thesis 6.1: 10 %).
-        outline_points: samples per EFD contour (thesis Table 8.2: 500).
+        trim_fraction: share of each segment dropped at each end (thesis 6.1: 10 %;
+            Lamina's default none, ``DEFAULT_TRIM_FRACTION``).
+        outline_points: samples per EFD contour (thesis Table 8.2: 500), and per mesh ring.
+        contour_spacing_mm: a longer outline's contour is sampled at least this finely
+            (``contour_samples``): 500 samples of a 300 mm limb outline lie 0.6 mm apart,
+            coarser than the stripe measures it; None keeps ``outline_points`` (thesis).
         harmonics: a fixed EFD order instead of ``harmonic_rule``.
         ball_radius_mm: ball radius for ball pivoting (default: the section pitch).
         calibration: one of ``CALIBRATION_METHODS``.
@@ -142,10 +153,14 @@ class ProcessOptions:
             is left open (not meshed). None lets EFD close every gap (thesis).
         max_efd_points: longer outlines are thinned to this many points before the EFD
             fit (``thin_outline``); None fits every point (thesis).
+        refine_stripes: fit every segment's stripe centres along its chains before they
+            become world points (``lamina_shared.centreline``: less speckle, no pull on
+            curves); False takes the device's centres as sent (thesis).
     """
 
     trim_fraction: float = DEFAULT_TRIM_FRACTION
     outline_points: int = 500
+    contour_spacing_mm: float | None = 0.1
     harmonics: int | None = None
     ball_radius_mm: float | None = None
     calibration: str = CALIBRATION_METHODS[0]
@@ -162,11 +177,13 @@ class ProcessOptions:
     working_radius_mm: float | None = None
     max_bridge_deg: float | None = 30.0
     max_efd_points: int | None = 4096
+    refine_stripes: bool = True
 
     @classmethod
     def thesis(cls) -> ProcessOptions:
         """Return the thesis' pipeline: DLT, centroid of arc centres, HN, ball pivoting."""
         return cls(
+            trim_fraction=THESIS_TRIM_FRACTION,
             calibration="dlt",
             distortion="off",
             axis="centroid",
@@ -179,6 +196,8 @@ class ProcessOptions:
             reject_outliers=False,
             max_bridge_deg=None,
             max_efd_points=None,
+            contour_spacing_mm=None,
+            refine_stripes=False,
         )
 
     def check(self) -> None:
@@ -235,6 +254,8 @@ class ProcessOptions:
             yield "max_efd_points", "the EFD needs at least 16 points per outline"
         if self.max_bridge_deg is not None and not 0 <= self.max_bridge_deg <= 360:
             yield "max_bridge_deg", "the widest gap to bridge must be 0 to 360 degrees"
+        if self.contour_spacing_mm is not None and not self.contour_spacing_mm >= 0.01:
+            yield "contour_spacing_mm", "the contour spacing must be at least 0.01 mm"
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form (for the report)."""
@@ -287,6 +308,10 @@ class Section:
     """(M, 2) measured object-frame points that carry colour (a colour scan), by angle."""
     colours: np.ndarray | None = None
     """(M, 3) uint8 sRGB of ``colour_points``, averaged over the views that saw them."""
+    precision_mm: float | None = None
+    """The per-point precision from where the views overlap (``precision``); None: no overlap."""
+    views_apart_mm: float = 0.0
+    """How far apart the overlapping views stand beyond their noise (``precision``)."""
 
     @property
     def harmonics(self) -> int:
@@ -583,11 +608,21 @@ def fit_outline(
     return efd_fit(pts, order, options.efd_parameter)
 
 
+def contour_samples(efd: EllipticFourier, options: ProcessOptions) -> np.ndarray:
+    """Return an outline's contour: ``options.outline_points`` samples, or more where the
+    outline is so long that they would lie further apart than ``contour_spacing_mm``."""
+    contour = efd.evaluate(options.outline_points)
+    if options.contour_spacing_mm is None:
+        return contour
+    wanted = math.ceil(perimeter(contour) / options.contour_spacing_mm)
+    return contour if wanted <= options.outline_points else efd.evaluate(wanted)
+
+
 def measured_points(blend: Blend) -> MeasuredPoints | None:
     """Return what the order rule needs of a blend: its points and noise (None: unknown)."""
     if blend.noise_mm is None or not blend.noise_mm > 0:
         return None
-    return MeasuredPoints(blend.centre_mm, blend.angle_rad, blend.radius_mm, blend.noise_mm)
+    return MeasuredPoints(blend.frame, blend.angle_rad, blend.radius_mm, blend.noise_mm)
 
 
 def fit_section(
@@ -605,15 +640,19 @@ def fit_section(
     """
     blend = blend_overlaps(parts)
     raw = blend.points
-    coverage = measure_coverage(raw)
+    # A polar blend turns about the points' mean, which an arc seen from one side pulls
+    # towards itself: its coverage and bridges turn about the outline's own centre.
+    coverage = measure_coverage(raw, None if blend.frame.polar else blend.frame, parts)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
     # A gap of a mostly measured outline is bridged from its own sides (an EFD closing it
     # alone draws a chord, and its kinks cost harmonics); None leaves it to EFD (thesis).
     own = limit is not None and (gap <= limit or coverage.fraction >= OWN_BRIDGE_FRACTION)
-    fitted = bridge_gaps(raw, np.asarray(coverage.centre_mm)) if own and gap > 0 else raw
+    # An open outline is bridged too, for the fit alone (the bridge is flagged estimated
+    # and not meshed): an EFD jumping across the gap rings near the seen stretch's ends.
+    fitted = bridge_gaps(raw, coverage.frame) if limit is not None and gap > 0 else raw
     efd = fit_outline(fitted, options, measured_points(blend))
-    contour = efd.evaluate(options.outline_points)
+    contour = contour_samples(efd, options)
     status = (
         OutlineStatus.MEASURED
         if gap == 0
@@ -622,7 +661,11 @@ def fit_section(
         else OutlineStatus.OPEN
     )
     estimated = coverage.unseen(contour)
-    return Section(index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated)
+    return Section(
+        index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
+        precision_mm=section_precision_mm(parts, blend.frame),
+        views_apart_mm=views_disagreement_mm(parts, blend.frame),
+    )  # fmt: skip
 
 
 def outline_groups(
@@ -638,6 +681,7 @@ def outline_groups(
     if options.reject_outliers:
         gap = options.split_gap_mm or DEFAULT_SPLIT_GAP_MM
         outlines, rejected = clean_section(parts, gap, rules)
+        outlines = join_arcs(outlines)
         if options.split_gap_mm is None and outlines:
             outlines = [[piece for outline in outlines for piece in outline]]
         return outlines, rejected
@@ -743,18 +787,23 @@ def fill_gap(section: Section, neighbours: list[Section], options: ProcessOption
     """Close a large unseen gap with the neighbouring sections' contour (z-interpolated).
 
     The neighbours' EFDs are interpolated to this height (``EfdStack``, thesis ref. [86]);
-    its samples inside the gap join the measured points and the outline is refitted.
+    its samples inside the gap, moved to meet the gap's measured sides
+    (``coverage.match_sides``), join the measured points and the outline is refitted.
     ``raw`` keeps the measured points only; the contour samples in the gap are flagged.
     """
     assert section.coverage is not None
     stack_ = EfdStack.from_sections([s.z_mm for s in neighbours], [s.efd for s in neighbours])
     predicted = stack_.section(section.z_mm).evaluate(GAP_FILL_SAMPLES)
-    fill = predicted[section.coverage.unseen(predicted)]
+    coverage = section.coverage
+    # Only what falls in the gaps: the neighbour's size differs, and where this outline
+    # was measured its own points say where it is.
+    fill = predicted[~coverage.covered[coverage.bins_of(predicted)]]
+    fill = match_sides(section.raw, fill, coverage.frame)
     merged = np.concatenate([section.raw, fill])
-    d = merged - np.asarray(section.coverage.centre_mm)
-    merged = merged[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
-    efd = fit_outline(merged, options)
-    contour = efd.evaluate(options.outline_points)
+    merged = merged[np.argsort(section.coverage.frame.to_local(merged)[0], kind="stable")]
+    # The order the outline's own points chose (the filled curve adds no detail to judge).
+    efd = fit_outline(merged, replace(options, harmonics=options.harmonics or section.harmonics))
+    contour = contour_samples(efd, options)
     estimated = section.coverage.unseen(contour)
     return replace(
         section, efd=efd, contour=contour, status=OutlineStatus.INTERPOLATED, estimated=estimated
@@ -894,8 +943,26 @@ def seen_samples(section: Section, ring: np.ndarray) -> np.ndarray:
         return np.ones(len(ring), dtype=bool)
     from scipy.spatial import cKDTree  # deferred: only open outlines need it
 
-    near = cKDTree(section.raw).query(ring, distance_upper_bound=MEASURED_TOLERANCE_MM)[0]
+    measured = _along_steps(section.raw, CONTINUOUS_STEP_MM, MEASURED_TOLERANCE_MM / 2.0)
+    near = cKDTree(measured).query(ring, distance_upper_bound=MEASURED_TOLERANCE_MM)[0]
     return _clean_runs(~section.coverage.unseen(ring) & np.isfinite(near))
+
+
+def _along_steps(points: np.ndarray, step_mm: float, spacing_mm: float) -> np.ndarray:
+    """Return ``points`` (in order along the outline) with samples every ``spacing_mm`` on
+    each step between consecutive ones of at most ``step_mm``: the stripe saw the surface
+    between them, as coverage counts it (``coverage.CONTINUOUS_STEP_MM``)."""
+    if len(points) < 2:
+        return points
+    step = np.diff(points, axis=0)
+    length = np.hypot(step[:, 0], step[:, 1])
+    fill = np.flatnonzero((length > spacing_mm) & (length <= step_mm))
+    if not len(fill):
+        return points
+    counts = np.ceil(length[fill] / spacing_mm).astype(np.int64)
+    owner = np.repeat(fill, counts - 1)
+    frac = np.concatenate([np.arange(1, c) / c for c in counts])
+    return np.vstack([points, points[owner] + frac[:, None] * step[owner]])
 
 
 def _ring_seen(chain: list[Section], rings: np.ndarray, measured: np.ndarray) -> np.ndarray:
@@ -933,8 +1000,11 @@ def radial_ring(
     surface is the same. Only the seen stretches (:func:`seen_samples`) are sampled so:
     the invented curve may pass the centre on the wrong side (a half-seen outline).
     A closed outline must be star-shaped all round; None also when less than 75 % of a
-    seen stretch advances round the centre.
+    seen stretch advances round the centre, or when the outline was blended along a
+    reference curve (not star-shaped about its centre).
     """
+    if section.coverage is not None and not section.coverage.frame.polar:
+        return None
     centre = np.asarray(
         section.coverage.centre_mm if section.coverage else (section.efd.a0, section.efd.c0)
     )
@@ -1148,6 +1218,33 @@ def camera_disc_mm(
     return float(np.hypot(d[:, 0], d[:, 1]).min() * axis.correction_factor)
 
 
+def beyond_view_warning(
+    by_section: dict[int, list[np.ndarray]], rules: OutlierRules, rejected: Rejected
+) -> str | None:
+    """Return the line saying the object reaches beyond the camera's view, or None.
+
+    Stripe points further from the axis than the disc the camera sees at every angle are
+    kept where other views confirm them (:mod:`.outliers`), but the views that turned that
+    part out of the image saw nothing of it: the object is wider than the rig's view.
+    """
+    if rules.working_radius_mm is None:
+        return None
+    beyond = sum(
+        int(np.sum(np.hypot(p[:, 0], p[:, 1]) > rules.working_radius_mm))
+        for parts in by_section.values()
+        for p in parts
+    )
+    kept = beyond - rejected.outside_volume
+    if kept <= 0:
+        return None
+    return (
+        f"{kept} stripe point(s) lie further than {rules.working_radius_mm:.1f} mm from the "
+        "turntable axis, beyond what the camera sees at every angle: the object is wider "
+        "than this rig's view, so some views missed that part and it may be left open; "
+        "kept where two views agree (a rig with a wider view sees it all)"
+    )
+
+
 def rejection_warning(rejected: Rejected) -> str:
     """Return one line saying how many points the outlier tests removed and why."""
     return (
@@ -1223,6 +1320,8 @@ def process_segments(
         failed += outcome.failed
     if rejected.points:
         warnings.append(rejection_warning(rejected))
+    if line := beyond_view_warning(by_section, rules, rejected):
+        warnings.append(line)
     if not sections:
         total = sum(len(p) for parts in by_section.values() for p in parts)
         if rules.working_radius_mm is not None and rejected.outside_volume * 2 > total:
@@ -1303,6 +1402,10 @@ def reconstruct(
     options = options or ProcessOptions()
     options.check()
     timer = Timer()
+    if options.refine_stripes:
+        with timer.stage("refine_stripes"):
+            refined = refined_segments([*cylinder, *segments])
+            cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
     with timer.stage("calibrate_grid"):
         distortion = options.distortion if options.calibration == "ml" else "off"
         grid = calibrate_grid(grid_image, board, options.calibration, distortion)

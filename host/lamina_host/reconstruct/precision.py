@@ -1,10 +1,11 @@
-"""Each section's per-point precision, measured where its views overlap (issue 21).
+"""Each outline's per-point precision, measured where its views overlap (issue 21).
 
 Two views that see the same stretch of outline measure it independently, so their
 difference there holds the noise of both (speckle, the stripe centre, the calibration
 seen from two angles) and nothing of the true shape. For every point of one view that
-lies inside another view's angular cover (polar about the section's centroid, as the
-overlap averaging of thesis 6.3 does), the radial difference to the other view's
+lies inside another view's cover along the outline (in the outline's frame, as the
+overlap blending takes it: polar about its centre when star-shaped, along its reference
+curve otherwise, :mod:`.outline_frame`), the difference in offset to the other view's
 outline, interpolated between its two neighbouring points, is taken; the robust sigma
 of all these differences, divided by the noise of one point plus the interpolated
 neighbour, is the precision of one point in mm.
@@ -15,6 +16,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from lamina_host.reconstruct.outline_frame import OutlineFrame, unwrap_angles
 
 MIN_OVERLAP_POINTS = 20
 """Fewer overlapping points than this give no estimate."""
@@ -27,40 +30,43 @@ _DIFFERENCE_VARIANCE = 1.0 + 2.0 / 3.0
 _MAX_GAP_SPACINGS = 4.0  # neighbours further apart than this many median spacings: a gap
 
 
-def _polar_sorted(points: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return one view's unwrapped angles (ascending) and radii about ``centre``."""
-    d = points - centre
-    angle = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    order = np.argsort(angle, kind="stable")
-    return angle[order], np.hypot(d[:, 0], d[:, 1])[order]
+def _local_sorted(points: np.ndarray, frame: OutlineFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Return one view's positions along the outline (unwrapped, ascending) and offsets."""
+    t, offset = frame.to_local(points)
+    t = unwrap_angles(t)
+    order = np.argsort(t, kind="stable")
+    return t[order], offset[order]
 
 
-def overlap_differences(views: list[np.ndarray]) -> np.ndarray:
-    """Return the radial differences (mm) between each pair of views where they overlap.
+def overlap_differences(views: list[np.ndarray], frame: OutlineFrame | None = None) -> np.ndarray:
+    """Return the differences (mm) between each pair of views where they overlap.
 
     Args:
-        views: each view's (K, 2) object-frame points of one section, in mm.
+        views: each view's (K, 2) object-frame points of one outline, in mm.
+        frame: the outline's frame; None: polar about the views' centroid.
 
     Returns:
         One difference per point of a view lying inside a later view's cover (each pair
-        of views counted once), where the later view has no gap about that angle.
+        of views counted once), where the later view has no gap about that position.
     """
-    pairs = pair_differences(views)
+    pairs = pair_differences(views, frame)
     return np.concatenate(pairs) if pairs else np.zeros(0)
 
 
-def pair_differences(views: list[np.ndarray]) -> list[np.ndarray]:
+def pair_differences(
+    views: list[np.ndarray], frame: OutlineFrame | None = None
+) -> list[np.ndarray]:
     """Return :func:`overlap_differences` pair by pair (pairs without overlap left out)."""
     usable = [v for v in views if len(v) >= 2]
     if len(usable) < 2:
         return []
-    centre = np.concatenate(usable).mean(axis=0)
-    polar = [_polar_sorted(v, centre) for v in usable]
+    frame = frame or OutlineFrame(np.concatenate(usable).mean(axis=0))
+    local = [_local_sorted(v, frame) for v in usable]
     differences = []
-    for m, (angle_m, radius_m) in enumerate(polar):
-        for angle_n, radius_n in polar[m + 1 :]:
+    for m, (angle_m, radius_m) in enumerate(local):
+        for angle_n, radius_n in local[m + 1 :]:
             spacing = float(np.median(np.diff(angle_n))) if len(angle_n) > 2 else math.inf
-            # Shift view m's angles into view n's turn so the wrap at +-pi hides no cover.
+            # Shift view m's positions into view n's turn so the wrap hides no cover.
             shifted = angle_n[0] + np.mod(angle_m - angle_n[0], 2 * math.pi)
             inside = shifted <= angle_n[-1]
             if not inside.any():
@@ -75,17 +81,20 @@ def pair_differences(views: list[np.ndarray]) -> list[np.ndarray]:
     return differences
 
 
-def section_precision_mm(views: list[np.ndarray]) -> float | None:
-    """Return the per-point radial precision (mm) of one section, or None without overlaps.
+def section_precision_mm(
+    views: list[np.ndarray], frame: OutlineFrame | None = None
+) -> float | None:
+    """Return the per-point precision (mm) of one outline, or None without overlaps.
 
     Args:
-        views: each view's (K, 2) object-frame points of the section, in mm.
+        views: each view's (K, 2) object-frame points of the outline, in mm.
+        frame: the outline's frame; None: polar about the views' centroid.
 
     Returns:
         The robust sigma of one point, from :func:`overlap_differences`; None when fewer
         than :data:`MIN_OVERLAP_POINTS` points overlap.
     """
-    d = overlap_differences(views)
+    d = overlap_differences(views, frame)
     if d.size < MIN_OVERLAP_POINTS:
         return None
     spread = _MAD_SIGMAS * float(np.median(np.abs(d - np.median(d))))
@@ -100,7 +109,7 @@ preset), a breath or a shift of weight far more."""
 _MOTION_SIGMAS = 4.0  # an offset counts only beyond this many standard errors
 
 
-def views_disagreement_mm(views: list[np.ndarray]) -> float:
+def views_disagreement_mm(views: list[np.ndarray], frame: OutlineFrame | None = None) -> float:
     """Return how far apart a section's overlapping views stand, beyond their noise (mm).
 
     Noise scatters two views' differences about zero; a subject who moved between them
@@ -108,13 +117,14 @@ def views_disagreement_mm(views: list[np.ndarray]) -> float:
     zero. Only offsets beyond :data:`_MOTION_SIGMAS` standard errors count.
 
     Args:
-        views: each view's (K, 2) object-frame points of one section, in mm.
+        views: each view's (K, 2) object-frame points of one outline, in mm.
+        frame: the outline's frame; None: polar about the views' centroid.
 
     Returns:
         The largest such offset of any pair (0.0 where none stands out).
     """
     largest = 0.0
-    for d in pair_differences(views):
+    for d in pair_differences(views, frame):
         if d.size < MIN_OVERLAP_POINTS:
             continue
         centre = float(np.median(d))

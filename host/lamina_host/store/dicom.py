@@ -5,6 +5,11 @@ wraps a binary STL file with the patient, study, series, equipment and unit modu
 archive needs. Lamina keeps subjects pseudonymous: Patient ID carries the subject code,
 Patient's Name stays empty (never a name), and the institution is what the user configures.
 
+The limb side a scan records is written as the object's laterality (R or L) and in the
+series description: Image Laterality (0020,0062) of the Encapsulated Document module for
+Encapsulated STL (that IOD's series module has no Laterality), Laterality (0020,0060) of
+the series for the Surface Scan Mesh. A scan of side ``none`` has neither.
+
 Study, series and frame-of-reference UIDs are derived from the scan (library scan id,
 creation time and subject code), so every export of one scan lands in one study and
 series; each export gets a fresh SOP Instance UID.
@@ -57,6 +62,7 @@ class DicomContext:
         institution: Institution Name, or "" to leave it out.
         device_serial: the scanner's serial (Device Serial Number), "unknown" if not known.
         device_software: the scanner's software version, if known.
+        side: the limb scanned, ``left``, ``right`` or ``none`` (Laterality L, R or absent).
     """
 
     subject: str
@@ -65,6 +71,11 @@ class DicomContext:
     institution: str = ""
     device_serial: str = "unknown"
     device_software: str = ""
+    side: str = "none"
+
+
+LATERALITY = {"left": "L", "right": "R"}
+"""DICOM (Image) Laterality of each limb side; a scan of side ``none`` has none."""
 
 
 def check_institution(name: str) -> str:
@@ -149,6 +160,8 @@ def _new_dataset(sop: str, context: DicomContext, series: tuple[str, int, str]) 
     ds.SeriesInstanceUID = _uid(context, "series" if number == 1 else f"series-{modality}")
     ds.SeriesNumber = number
     ds.SeriesDescription = description
+    if context.side in LATERALITY:
+        ds.SeriesDescription = f"{description}, {context.side} limb"[:64]
     return ds
 
 
@@ -158,6 +171,8 @@ def encapsulated_stl(vertices: np.ndarray, faces: np.ndarray, context: DicomCont
     ds = _new_dataset(ENCAPSULATED_STL, context, ("M3D", 1, "Surface mesh (STL)"))
     # Encapsulated Document.
     ds.AcquisitionDateTime = ds.StudyDate + ds.StudyTime
+    if context.side in LATERALITY:
+        ds.ImageLaterality = LATERALITY[context.side]
     ds.BurnedInAnnotation = "NO"
     # A surface scan of a face can identify its subject: flag it, archives then treat it so.
     ds.RecognizableVisualFeatures = "YES"
@@ -187,6 +202,8 @@ def surface_scan_mesh(
     ds.SurfaceScanAcquisitionTypeCodeSequence = [
         _code("LIGHT-SECTION", "99LAMINA", "Laser light sectioning")
     ]
+    if context.side in LATERALITY:
+        ds.Laterality = LATERALITY[context.side]
     ds.SurfaceScanModeCodeSequence = [_code("TURNTABLE", "99LAMINA", "Turntable views")]
     ds.RegistrationMethodCodeSequence = [_code("AXIS-CAL", "99LAMINA", "Calibrated turntable axis")]
     # Surface Mesh: one surface, its points and triangles. DICOM numbers the points from 1

@@ -32,7 +32,12 @@ unchanged, and an older Lamina refuses the library instead of taking colour for 
 Schema 4 added the limb side of each scan (:data:`SIDES`: a clinic's history must tell
 the left arm from the right); older libraries are migrated on opening, their scans given
 side ``none`` (nothing else changes, so nothing is lost) until set with
-:meth:`Library.set_side`.
+:meth:`Library.set_side`. Schema 5 lets a scan be marked as a test (a calibration check, a
+phantom, a trial run under a subject's code: :meth:`Library.set_test`), so it stays in the
+library but out of the subject's trend and comparisons; older libraries are migrated on
+opening with no scan marked. Schema 6 keeps each calibration's lift reference (the
+calibration cylinder's two grooves, from which the lift's scale is measured); calibrations
+recorded before it have none, and their scans' heights stay as the lift commanded them.
 """
 
 from __future__ import annotations
@@ -67,7 +72,7 @@ from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.scoped import Scoped
 from lamina_shared.types import BoardSpec, LiftReference, ScanPlan, Segment
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 SIDES = ("none", "left", "right")
 """The limb side a scan records; ``none`` for anything that is not one of a pair."""
 BUSY_TIMEOUT_S = 30.0
@@ -90,7 +95,8 @@ CREATE TABLE IF NOT EXISTS scans (
     options TEXT NOT NULL,
     plans TEXT NOT NULL,
     identity TEXT NOT NULL DEFAULT '{}',
-    side TEXT NOT NULL DEFAULT 'none' CHECK (side IN ('none', 'left', 'right'))
+    side TEXT NOT NULL DEFAULT 'none' CHECK (side IN ('none', 'left', 'right')),
+    test INTEGER NOT NULL DEFAULT 0 CHECK (test IN (0, 1))
 );
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,
@@ -178,6 +184,8 @@ class ScanSummary:
     received: int
     has_result: bool
     side: str = SIDES[0]
+    test: bool = False
+    """Marked as a test scan: kept, but out of trends and comparisons."""
 
 
 @dataclass(frozen=True)
@@ -193,6 +201,7 @@ class ScanRecord:
     device: dict[str, Any]
     identity: dict[str, Any]
     side: str = SIDES[0]
+    test: bool = False
 
 
 @dataclass(frozen=True)
@@ -454,6 +463,8 @@ class Library(Scoped):
             if 1 <= version <= 3:
                 self._migrate_side()
             if 1 <= version <= 4:
+                self._migrate_test()
+            if 1 <= version <= 5:
                 self._migrate_lift_reference()
             for statement in _SCHEMA.split(";"):
                 if statement.strip():
@@ -502,6 +513,12 @@ class Library(Scoped):
         self._db.execute(
             "ALTER TABLE scans ADD COLUMN side TEXT NOT NULL DEFAULT 'none' "
             "CHECK (side IN ('none', 'left', 'right'))"
+        )
+
+    def _migrate_test(self) -> None:
+        """Add the scans' test mark, unset for every scan already recorded."""
+        self._db.execute(
+            "ALTER TABLE scans ADD COLUMN test INTEGER NOT NULL DEFAULT 0 CHECK (test IN (0, 1))"
         )
 
     def _migrate_lift_reference(self) -> None:
@@ -586,6 +603,7 @@ class Library(Scoped):
             json.loads(row["device"]),
             json.loads(row["identity"]),
             row["side"],
+            bool(row["test"]),
         )
 
     def check_identity(self, scan_id: int, identity: dict[str, Any] | None) -> None:
@@ -616,13 +634,15 @@ class Library(Scoped):
             self._guards[scan_id] = (record.identity, record.plans)
         return self._guards[scan_id]
 
-    def scans(self) -> list[ScanSummary]:
-        """Return every scan, oldest first."""
+    def scans(self, subject: str | None = None) -> list[ScanSummary]:
+        """Return every scan (of the subject code ``subject`` only, if given), oldest first."""
+        where, parameters = ("WHERE code = ? ", (subject,)) if subject is not None else ("", ())
         rows = self._rows(
-            "SELECT scans.id, code, scans.created, status, plans, side, "
+            "SELECT scans.id, code, scans.created, status, plans, side, test, "
             "(SELECT COUNT(*) FROM segments WHERE scan_id = scans.id AND target = 'object') "
             "AS received, (SELECT COUNT(*) FROM results WHERE scan_id = scans.id) AS results "
-            "FROM scans JOIN subjects ON subjects.id = subject_id ORDER BY scans.id"
+            f"FROM scans JOIN subjects ON subjects.id = subject_id {where}ORDER BY scans.id",
+            parameters,
         )
         out = []
         for row in rows:
@@ -640,6 +660,7 @@ class Library(Scoped):
                     row["received"],
                     row["results"] > 0,
                     row["side"],
+                    bool(row["test"]),
                 )
             )
         return out
@@ -650,6 +671,20 @@ class Library(Scoped):
         self.scan(scan_id)
         with self._write():
             self._db.execute("UPDATE scans SET side = ? WHERE id = ?", (side, scan_id))
+
+    def set_test(self, scan_id: int, test: bool = True) -> None:
+        """Mark scan ``scan_id`` as a test scan (or, ``test=False``, as a visit again).
+
+        A test scan (a phantom, a calibration check, a trial run under a subject's code)
+        stays in the library with everything it recorded, but is left out of the subject's
+        trend and refused as the scan a report compares with.
+
+        Raises:
+            StoreError: there is no such scan.
+        """
+        self.scan(scan_id)
+        with self._write():
+            self._db.execute("UPDATE scans SET test = ? WHERE id = ?", (int(test), scan_id))
 
     def set_status(self, scan_id: int, status: str) -> None:
         """Set the scan's status (one of :data:`STATUSES`)."""

@@ -34,15 +34,10 @@ from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
     Section,
-    assemble,
     coloured_cloud,
     stack,
 )
-from lamina_host.reconstruct.precision import (
-    MOTION_WARN_MM,
-    section_precision_mm,
-    views_disagreement_mm,
-)
+from lamina_host.reconstruct.precision import MOTION_WARN_MM
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.files import json_text, replace_file
 from lamina_shared.types import Segment
@@ -336,10 +331,8 @@ def build_report(
         subject_id: the subject's code.
         volume_mm3: the volume between the first and last section.
     """
-    views = _single_outline_views(result, segments)
-    precision = {k: None if v is None else section_precision_mm(v) for k, v in views.items()}
     outlines: list[OutlineEntry | FailedEntry] = [
-        outline_entry(s, precision.get(s.index)) for s in result.sections
+        outline_entry(s, s.precision_mm) for s in result.sections
     ]
     outlines += [FailedEntry(f) for f in result.failed]
     outlines.sort(key=lambda entry: (entry.section, entry.part))
@@ -365,7 +358,7 @@ def build_report(
         point_counts=counts,
         mesh=mesh,
         timings_s={**acquisition_s, **result.timings_s},
-        warnings=(*result.warnings, *_motion_warnings(views)),
+        warnings=(*result.warnings, *_motion_warnings(result.sections)),
         accuracy=_accuracy(result, expect),
         subject_id=subject_id,
         volume_mm3=volume_mm3,
@@ -391,34 +384,17 @@ def _accuracy(result: Reconstruction, expect: Expectation | None) -> Accuracy | 
     return Accuracy(expect.spec, table, sphere)
 
 
-def _single_outline_views(
-    result: Reconstruction, segments: list[Segment]
-) -> dict[int, list[np.ndarray] | None]:
-    """Return each section's views (object-frame points), None for a section of several.
-
-    A section of several outlines (two legs) gets none: its views' polar overlaps about
-    one centroid would pair different outlines.
-    """
-    objects = [s for s in segments if s.target == "object"]
-    by_section, _, _ = assemble(objects, result.grid, result.axis, result.options.trim_fraction)
-    several = {s.index for s in result.sections if s.part > 0}
-    return {k: None if k in several else v for k, v in by_section.items()}
-
-
-def _motion_warnings(views: Mapping[int, list[np.ndarray] | None]) -> list[str]:
-    """Return a warning for each section whose overlapping views show the subject moving."""
-    warnings = []
-    for section, section_views in sorted(views.items()):
-        if section_views is None:
-            continue
-        apart_mm = views_disagreement_mm(section_views)
-        if apart_mm > MOTION_WARN_MM:
-            warnings.append(
-                f"section {section}: its overlapping views stand {apart_mm:.2f} mm apart, "
-                "beyond their noise: the subject may have moved during the scan; scan again "
-                "with the limb supported and still"
-            )
-    return warnings
+def _motion_warnings(sections: list[Section]) -> list[str]:
+    """Return a warning for each outline whose overlapping views show the subject moving."""
+    return [
+        f"section {s.index}"
+        + (f" outline {s.part}" if s.part else "")
+        + f": its overlapping views stand {s.views_apart_mm:.2f} mm apart, beyond their "
+        "noise: the subject may have moved during the scan; scan again with the limb "
+        "supported and still"
+        for s in sorted(sections, key=lambda s: (s.index, s.part))
+        if s.views_apart_mm > MOTION_WARN_MM
+    ]
 
 
 def outline_entry(s: Section, precision_mm: float | None = None) -> OutlineEntry:

@@ -5,14 +5,16 @@ scan's contours, re-measure it and rebuild its mesh in a few kilobytes (a 40-sec
 scan fits in well under 10 KB), where the raw segments take megabytes.
 
 Layout: ``b"LREC"``, one version byte, then a zlib stream holding a little-endian u32
-length, that many bytes of JSON (scan, subject code, calibration and axis summaries,
-processing options, one row per outline: section, part, height, harmonics, segments)
+length, that many bytes of JSON (scan, subject code, limb side, calibration and axis
+summaries, processing options, one row per outline: section, part, height, harmonics,
+segments)
 and the coefficients. Each outline's EFD is first aligned (counter-clockwise, starting
 on the +x ray, :func:`lamina_host.reconstruct.efd.align`: the same curve, so the same measurements),
 padded to the record's largest order, quantised to :data:`QUANTUM_MM` and differenced
 from the outline before it; neighbouring sections of a limb differ little, so these
 differences are small integers, zig-zag coded and split into byte planes before zlib.
 The quantisation moves a contour point by about 10 um at most (with 100 harmonics).
+A record written before the side was kept reads as side ``none``.
 """
 
 from __future__ import annotations
@@ -69,6 +71,8 @@ class CompactRecord:
     axis: dict[str, Any]
     options: dict[str, Any]
     outlines: tuple[RecordOutline, ...]
+    side: str = "none"
+    """The limb scanned: left, right or none (as the library records it)."""
 
     def process_options(self) -> ProcessOptions:
         """Return the processing options the scan used (those the record keeps)."""
@@ -131,14 +135,20 @@ def _unpack(data: bytes, orders: list[int]) -> list[np.ndarray]:
     return [row * QUANTUM_MM for row in steps]
 
 
-def record_bytes(result: Reconstruction, scan_id: int, subject: str, created: str) -> bytes:
-    """Return the compact record of a reconstruction (see the module docstring)."""
+def record_bytes(
+    result: Reconstruction, scan_id: int, subject: str, created: str, side: str = "none"
+) -> bytes:
+    """Return the compact record of a reconstruction (see the module docstring).
+
+    ``side`` is the limb scanned (left, right or none).
+    """
     efds = [align(s.efd) for s in result.sections]
     order = max((e.order for e in efds), default=0)
     header = {
         "scan": scan_id,
         "subject": subject,
         "created": created,
+        "side": side,
         "quantum_mm": QUANTUM_MM,
         "calibration": _subset(result.grid.to_dict(), CALIBRATION_KEYS),
         "axis": _subset(result.axis.to_dict(), AXIS_KEYS),
@@ -190,4 +200,5 @@ def load_record(data: bytes) -> CompactRecord:
         header["axis"],
         header["options"],
         outlines,
+        str(header.get("side", "none")),
     )

@@ -11,12 +11,17 @@ wildcard bind an address of this machine or its name), a websocket must come fro
 of the origins those imply, and anything else gets 403 Forbidden. That also closes DNS
 rebinding, where another site's name is pointed at this address. The page names the
 address the check accepted, rebuilt from its parsed parts, never the request's text.
+
+Nothing the page loads comes from outside the box (a ward network may reach nothing else):
+textual-serve's page asks a web-font service for Roboto Mono, so the page is served with
+that link replaced by the same font from textual-serve's own static folder.
 """
 
 from __future__ import annotations
 
 import asyncio
 import ipaddress
+import re
 import shlex
 import signal
 import socket
@@ -37,6 +42,14 @@ WILDCARDS = frozenset({"", "0.0.0.0", "::"})
 """Bind addresses meaning every interface of this machine."""
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 """What a browser on this machine may call a loopback server."""
+
+OUTSIDE_FONT = re.compile(r"<link\b[^>]*\bhref=\"https?://fonts\.googleapis\.com/[^>]*>", re.S)
+"""textual-serve's link to a web-font service (the only thing its page fetches from outside)."""
+LOCAL_FONT = (
+    "<style>@font-face {{ font-family: 'Roboto Mono'; font-weight: 100 700; "
+    "src: url('{static}fonts/RobotoMono-VariableFont_wght.ttf') format('truetype'); }}</style>"
+)
+"""The same font from textual-serve's own static folder (``{static}``: its URL)."""
 
 CHECKED_HOST = web.RequestKey("lamina_checked_host", str)
 """The request's ``Host`` as :meth:`UiServer.checked_host` accepted it."""
@@ -163,9 +176,14 @@ class UiServer(Server):
         """Print nothing yet: :meth:`serve` says where the UI is once the port is bound."""
 
     async def handle_index(self, request: web.Request) -> Any:
-        """Serve the page that opens the app's websocket on the checked host."""
+        """Serve the page that opens the app's websocket on the checked host, its font
+        from this server rather than a web-font service."""
         self.public_url = f"http://{request.get(CHECKED_HOST) or self.checked_host(request)}"
-        return await super().handle_index(request)
+        response = await super().handle_index(request)
+        if isinstance(response, web.Response) and response.text is not None:
+            font = LOCAL_FONT.format(static="/static/")
+            response.text = OUTSIDE_FONT.sub(lambda _: font, response.text)
+        return response
 
     def serve(self, debug: bool = False) -> None:
         """Bind, say where the UI is, and serve until SIGINT or SIGTERM.

@@ -10,6 +10,7 @@ and stores into the job's library (:class:`~lamina_host.workflow.library_access.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from contextlib import suppress
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,16 +18,17 @@ import numpy as np
 
 from lamina_host.link.client import DeviceClient
 from lamina_host.reconstruct.axis import AxisCalibration
-from lamina_host.reconstruct.calibration import GridCalibration, calibrate_grid
+from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
 from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     assemble,
     calibrate_axis,
+    camera_disc_mm,
     lift_sections,
 )
 from lamina_host.store.library import SIDES, Library, check_side
 from lamina_host.store.subjects import check_subject
-from lamina_host.workflow.checks import check_plan_limits, check_positive_mm
+from lamina_host.workflow.checks import check_object_fits, check_plan_limits, check_positive_mm
 from lamina_host.workflow.device_session import (
     DeviceSession,
     NoticeHandler,
@@ -139,6 +141,37 @@ class Acquisition:
             self.grid = None
             self.axis = None
 
+    def board_calibration(self) -> GridCalibration:
+        """Return the chessboard calibration the scan uses, finding the board now if needed.
+
+        The terminal UI calibrates and accepts the board first; the command line has it
+        found here, before anything is acquired, in the image the scan stores (grabbed from
+        the device when the job holds none yet).
+
+        Raises:
+            CalibrationError: no chessboard in view (the one line says what to do).
+        """
+        if self.grid is None or not self.grid_accepted:
+            if self.data.grid_image is None or self.data.board is None:
+                self.grab_grid()
+            assert self.data.grid_image is not None and self.data.board is not None
+            self.grid = calibrate_grid(self.data.grid_image, self.data.board)
+            self.grid_accepted = True
+        return self.grid
+
+    def find_axis(self) -> AxisCalibration | None:
+        """Return the turntable axis from the cylinder views held (None if it cannot be found).
+
+        Only what :meth:`fetch_object` needs to check the object's size: processing finds
+        the axis again with its own options and says why when it cannot.
+        """
+        data, grid = self.data, self.grid
+        if self.axis is None and grid is not None and data.cylinder and data.cylinder_mm:
+            axis_views, _ = lift_sections(data.cylinder, data.lift_reference)
+            with suppress(CalibrationError):
+                self.axis = calibrate_axis(axis_views, grid, data.cylinder_mm, TRIM_FRACTION)
+        return self.axis
+
     def _accepted_grid(self) -> GridCalibration:
         if self.grid is None or not self.grid_accepted:
             raise InputError("calibrate and accept the chessboard first (Calibrate screen, F4)")
@@ -243,6 +276,8 @@ class Acquisition:
             raise InputError(
                 "the device does not know its calibration cylinder: pass --cylinder-mm"
             )
+        # The board is found before the scan exists: one out of view wastes no acquisition.
+        self.board_calibration()
         data = self.data
         library = self.store.library()
         scan_id = library.create_scan(
@@ -366,14 +401,53 @@ class Acquisition:
         self._forget_results()
         with self.device.busy():
             try:
+                checked = self._fetch_first_view(plan, on_segment, on_progress, on_notice)
                 self.device.run_views(
-                    "object", plan, self.held, self._storer(), on_segment, on_progress, on_notice
-                )
+                    "object", plan, self.held, self._storer(), on_segment, on_progress, on_notice,
+                    resumed=False if checked else None,
+                )  # fmt: skip
             finally:
                 self.data.segments = [self.held[k] for k in sorted(self.held)]
         self.store.library().set_status(scan_id, "acquired")
         self.data.complete = True
         return self.data.segments
+
+    def _fetch_first_view(
+        self,
+        plan: ScanPlan,
+        on_segment: SegmentHandler | None,
+        on_progress: ProgressHandler | None,
+        on_notice: NoticeHandler | None,
+    ) -> bool:
+        """Fetch the object's first view alone and check the object fits the camera's view.
+
+        Returns True when the view was fetched and checked (nothing is checked when the
+        first view is held already, or without the calibration to place it).
+
+        Raises:
+            ObjectTooLarge: the view shows an object beyond the camera's view.
+        """
+        field = self.field_radius_mm()
+        if self.held or field is None:
+            return False
+        self.device.run_views(
+            "object", plan, self.held, self._storer(), on_segment, on_progress, on_notice, limit=1
+        )
+        first = self.held.get(0)
+        if first is not None:
+            check_object_fits(self.section_points([first]), field)
+        return True
+
+    def field_radius_mm(self) -> float | None:
+        """Return the radius about the axis the camera sees at every angle (None: unknown).
+
+        Known once the chessboard and the axis are: the image's border mapped into the
+        laser plane (:func:`~lamina_host.reconstruct.pipeline.camera_disc_mm`).
+        """
+        image = self.data.grid_image
+        if self.grid is None or self.axis is None or image is None:
+            return None
+        return camera_disc_mm(self.grid, image.shape, self.axis)
 
     def section_points(self, segments: list[Segment]) -> np.ndarray:
         """Return the object-frame points (mm) of one section's views so far.

@@ -5,7 +5,12 @@ One place for the rules both front ends apply, so they cannot drift apart:
 - :func:`check_plan`: the regular plan's three numbers, refused (never replaced by a
   default) when zero, negative, not finite or beyond the ranges below;
 - :func:`check_plan_limits`: a plan against the limits the device advertised, before
-  the scan exists in the library.
+  the scan exists in the library;
+- :func:`check_object_fits`: the object's first view against the disc the camera sees at
+  every turntable angle, before any other view of it is taken;
+- :data:`PLAN_PRESETS`: plans named for what they scan, made to fit the device's lift
+  (:func:`preset_plan`) and refused before the first view when that kind of object is
+  wider than the camera's view (:func:`check_preset_fits`).
 
 Subject codes are the library's rule (:mod:`lamina_host.store.subjects`); the identity of
 what acquires a scan is the link's (:mod:`lamina_host.link.identity`);
@@ -17,6 +22,9 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
+
+import numpy as np
 
 from lamina_shared.errors import InputError
 from lamina_shared.limits import DeviceLimits
@@ -154,3 +162,121 @@ def check_plan_limits(
     problems = plan_fits(plan, limits)
     if problems:
         raise InputError(f"the {target} plan cannot be sent to the device: {problems[0]}")
+
+
+FIT_OUTSIDE_SHARE = 0.5
+"""The share of the first view's points beyond the camera's disc that stops a scan: the
+same share at which processing gives up on the object (fewer are outliers it rejects)."""
+
+
+class ObjectTooLarge(InputError):
+    """The object reaches beyond what the camera sees at every turntable angle."""
+
+
+def check_object_fits(points_mm: np.ndarray, field_radius_mm: float | None) -> None:
+    """Refuse an object larger than the camera's view, from its first view alone.
+
+    Args:
+        points_mm: (N, 2) object-frame points of the object's first view (axis at 0, mm).
+        field_radius_mm: the radius about the axis of the disc the camera sees at every
+            angle (None: unknown, nothing is checked).
+
+    Raises:
+        ObjectTooLarge: most of the view lies outside that disc (the one line names the
+            figures and what to do).
+    """
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 2)
+    if field_radius_mm is None or not len(pts):
+        return
+    outside = int(np.count_nonzero(np.hypot(pts[:, 0], pts[:, 1]) > field_radius_mm))
+    if outside > FIT_OUTSIDE_SHARE * len(pts):
+        raise ObjectTooLarge(
+            f"the object does not fit the camera's view: {outside} of {len(pts)} points of "
+            f"its first view lie further than {field_radius_mm:.1f} mm from the turntable "
+            "axis, beyond what the camera sees at every angle; nothing more was acquired: "
+            "use a rig with a wider view, or centre a smaller object on the turntable"
+        )
+
+
+@dataclass(frozen=True)
+class PlanPreset:
+    """A plan named for what it scans, with that object's usual size.
+
+    Attributes:
+        name: what the front ends offer (``arm``).
+        what: the object in words, for the lines that name it (``an arm``).
+        width_mm: the widest such object usually is (what must fit the camera's view).
+        length_mm: how much of it a scan covers from its distal end (the lift's travel
+            may cut it short).
+        pitch_mm: the sections' spacing.
+        views: views per section.
+    """
+
+    name: str
+    what: str
+    width_mm: float
+    length_mm: float
+    pitch_mm: float
+    views: int
+
+
+PLAN_PRESETS: dict[str, PlanPreset] = {
+    p.name: p
+    for p in (
+        PlanPreset("arm", "an arm", 130.0, 400.0, 10.0, 8),
+        PlanPreset("leg", "a leg", 180.0, 600.0, 10.0, 8),
+        # Fingers hide each other: more views, finer sections.
+        PlanPreset("hand", "a hand", 110.0, 200.0, 5.0, 12),
+        PlanPreset("cast", "a cast", 150.0, 300.0, 10.0, 8),
+    )
+}
+"""The plan presets, by name. Widths and lengths are adult sizes, on the large side: a
+smaller object fits whatever these fit."""
+
+
+@dataclass(frozen=True)
+class PresetPlan:
+    """A preset's plan on one device, and a line when the lift cut its length short."""
+
+    sections: int
+    pitch_mm: float
+    views: int
+    note: str = ""
+
+
+def preset_plan(preset: PlanPreset, axes: AxesInfo | None = None) -> PresetPlan:
+    """Return the preset's plan, its length cut to the lift's travel where the device gives it.
+
+    Args:
+        preset: one of :data:`PLAN_PRESETS`.
+        axes: the connected device's axes (None: not connected; the preset's own length).
+    """
+    length = preset.length_mm
+    note = ""
+    travel = None
+    if axes is not None and axes.lift_max_mm is not None:
+        travel = axes.lift_max_mm - (axes.lift_min_mm or 0.0)
+    if travel is not None and travel < length:
+        note = f"cut to the lift's {travel:g} mm travel ({preset.what}: {length:g} mm)"
+        length = travel
+    sections = min(int(length // preset.pitch_mm) + 1, SECTIONS_RANGE[1])
+    return PresetPlan(sections, preset.pitch_mm, preset.views, note)
+
+
+def check_preset_fits(preset: PlanPreset, field_radius_mm: float | None) -> None:
+    """Refuse a preset whose object is wider than the camera's view, before any view is taken.
+
+    Args:
+        preset: the chosen preset.
+        field_radius_mm: the radius about the axis the camera sees at every angle (None:
+            not calibrated yet, nothing is checked).
+
+    Raises:
+        ObjectTooLarge: naming the object's width and the view's.
+    """
+    if field_radius_mm is not None and preset.width_mm > 2 * field_radius_mm:
+        raise ObjectTooLarge(
+            f"{preset.what} is up to {preset.width_mm:g} mm across, and this rig sees "
+            f"{2 * field_radius_mm:.0f} mm across the turntable: choose a rig with a wider "
+            f"view, or type the plan's numbers for a smaller object"
+        )

@@ -253,16 +253,25 @@ class DeviceSession:
         on_segment: SegmentHandler | None,
         on_progress: ProgressHandler | None,
         on_notice: NoticeHandler | None,
+        limit: int | None = None,
+        resumed: bool | None = None,
     ) -> list[Segment]:
         """Fetch the views of ``plan`` not in ``held``; keep each arrival in ``held``.
 
         ``held`` maps plan index to segment and survives an abort or a broken link, so the
         same call with the same ``held`` resumes the scan where it stopped. ``on_store``
         commits each view before the link acknowledges it. The caller holds :meth:`busy`.
+
+        Args:
+            limit: fetch only the first ``limit`` views of the plan (the device is told it
+                holds the others); None: every view.
+            resumed: whether this run goes on with a scan begun earlier (its progress says
+                how many views are held first); None: when ``held`` is not empty.
         """
         if len(held) >= len(plan.views):
             return [held[k] for k in sorted(held)]
         start, first = time.monotonic(), len(held)
+        skipped = () if limit is None else tuple(range(limit, len(plan.views)))
 
         def report(section: int, starting: bool = False) -> None:
             if on_progress is not None:
@@ -292,7 +301,7 @@ class DeviceSession:
                 # The count is ours (what is held here); the device says where it is.
                 report(event.progress.section)
 
-        if first:
+        if first if resumed is None else resumed:
             # A resumed run: say how many views are held, and where it goes on.
             missing = min(k for k in range(len(plan.views)) if k not in held)
             report(plan.views[missing].section, starting=True)
@@ -304,7 +313,7 @@ class DeviceSession:
                 target,
                 plan,
                 progress,
-                have=tuple(held),
+                have=tuple(sorted(set(held) | set(skipped))),
                 on_segment=take,
                 on_notice=on_notice,
                 **extra,

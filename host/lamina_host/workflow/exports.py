@@ -111,6 +111,7 @@ def dicom_export(
         institution,
         _serial(record.identity),
         str(record.device.get("software", "")),
+        record.side,
     )
     if DICOM_SOPS[sop] == SURFACE_SCAN_MESH:
         report = library.result(scan_id) or {}
@@ -128,4 +129,4 @@ def record_export(library: Library, scan_id: int) -> bytes:
         )
     inputs = library.inputs(scan_id)
     result = reprocess(inputs)
-    return record_bytes(result, scan_id, inputs.subject, inputs.created)
+    return record_bytes(result, scan_id, inputs.subject, inputs.created, library.scan(scan_id).side)

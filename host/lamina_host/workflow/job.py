@@ -149,8 +149,10 @@ def acquire(
     data = scan.fetch_calibration(request.cylinder_mm if request else None)
     if out is not None:
         replace_file(out / "calibration-grid.png", lambda path: _write_image(path, data))
+    scan.board_calibration()  # a resumed scan's stored board, checked before any view
     try:
         scan.fetch_cylinder(on_progress, on_notice)
+        scan.find_axis()  # so the object's first view is checked against the camera's view
         timings["acquire_calibration"] = time.perf_counter() - start
         start = time.perf_counter()
         scan.fetch_object(None, on_progress, on_notice)

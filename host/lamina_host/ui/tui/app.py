@@ -66,13 +66,20 @@ class LaminaApp(JobApp):
         library: Path | None = None,
         object_spec: str | None = None,
         noise: str = "thesis",
+        rig: str = "thesis",
     ) -> None:
-        super().__init__(ScanJob(DeviceTarget(device, object_spec, noise=noise), library))
+        target = DeviceTarget(device, object_spec, noise=noise, rig=rig)
+        super().__init__(ScanJob(target, library))
+
+    def on_mount(self) -> None:
+        """Install the help once: laid out on first use, it then opens at once, even during a
+        scan (its text is long)."""
+        self.install_screen(HelpScreen(), "help")
 
     def action_help(self) -> None:
         """Show the keys and the workflow."""
         if not isinstance(self.screen, HelpScreen):
-            self.push_screen(HelpScreen())
+            self.push_screen("help")
 
     def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
         """Offer every screen and the help in the command palette."""

@@ -3,19 +3,24 @@ view and the worker helper."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import ClassVar, TypeVar
 
 import numpy as np
+from rich.console import Console
+from rich.markdown import Markdown as RichMarkdown
 from rich.text import Text
+from textual import events
 from textual.app import App, ComposeResult, RenderResult
 from textual.binding import Binding, BindingType
-from textual.containers import Container
+from textual.containers import Container, Horizontal, VerticalScroll
+from textual.content import Content
+from textual.geometry import Size
 from textual.reactive import reactive
 from textual.screen import ModalScreen, Screen
 from textual.widget import Widget
-from textual.widgets import Footer, Input, Markdown, Static
+from textual.widgets import Button, Checkbox, Footer, Input, Select, Static
 from textual.worker import get_current_worker
 
 from lamina_host.ui.tui.adapter import USER_ERRORS, ScanJob, user_message
@@ -57,8 +62,25 @@ class JobApp(App[None]):
         self.job = job
 
 
+NAV_TITLE = " Lamina "
+
+
+def nav_spans() -> list[tuple[int, int, str]]:
+    """Return (first column, end column, mode) of each screen's name in the top bar."""
+    spans, x = [], len(NAV_TITLE)
+    for mode, key, title in SCREENS:
+        width = len(f" {key.upper()} {title} ")
+        spans.append((x, x + width, mode))
+        x += width
+    return spans
+
+
 class NavBar(Static):
-    """One line naming every screen and its key, the current one highlighted."""
+    """One line naming every screen and its key, the current one highlighted.
+
+    A click (or a tap in the browser) on a screen's name shows that screen: a tablet has
+    no F-keys.
+    """
 
     def __init__(self, current: str) -> None:
         super().__init__(id="nav")
@@ -66,11 +88,18 @@ class NavBar(Static):
 
     def render(self) -> RenderResult:
         """Draw the screen list."""
-        text = Text(" Lamina ", style="bold")
+        text = Text(NAV_TITLE, style="bold")
         for mode, key, title in SCREENS:
             style = "reverse bold" if mode == self.current else ""
             text.append(f" {key.upper()} {title} ", style=style)
         return text
+
+    def on_click(self, event: events.Click) -> None:
+        """Show the screen whose name was clicked."""
+        for first, end, mode in nav_spans():
+            if first <= event.x < end:
+                self.app.switch_mode(mode)
+                return
 
 
 class StatusLine(Static):
@@ -101,29 +130,98 @@ class FrameView(Widget):
         return grid_text(grid)
 
 
+def name_choice(names: Sequence[str], widget_id: str) -> Select[str]:
+    """Return a compact field choosing one of ``names`` (the first at start)."""
+    return Select(
+        [(name, name) for name in names],
+        value=names[0],
+        allow_blank=False,
+        id=widget_id,
+        compact=True,
+    )
+
+
+class TickBox(Checkbox):
+    """A checkbox that shows a tick only when ticked (Textual's shows a dim X either way)."""
+
+    @property
+    def _button(self) -> Content:
+        self.BUTTON_INNER = "X" if self.value else " "
+        return super()._button
+
+
 HELP_TEXT = """\
 # Lamina: keys and workflow
 
-Everything works from the keyboard. **F2-F7** switch screens, **Tab** moves between
-fields and buttons, **Enter** presses a button, **Escape** leaves a field,
-**Ctrl+P** opens the command palette, **Ctrl+Q** quits.
+Everything works from the keyboard, and by mouse or touch: **click or tap** a screen's
+name in the top bar, a key in the footer, a button or a field. **F2-F7** switch screens,
+**Tab** moves between fields and buttons, **Enter** presses a button, **Escape** leaves a
+field, **Ctrl+P** opens the command palette, **Ctrl+Q** quits. This help scrolls:
+**arrows**, **Page Up/Down**, the mouse wheel or a swipe.
 
-1. **Connect (F2)**: choose a port (or `sim`, `replay:DIR`) and press **c**.
-2. **Live (F3)**: **g** grabs a frame, **l** switches the laser, arrows jog the
-   turntable and the lift, **h** homes; the last scanned stripe is drawn in red.
-3. **Calibrate (F4)**: **g** captures the chessboard (corners, residuals in mm);
-   **a** accepts, **x** rejects; **y** scans the calibration cylinder (axis and
-   correction factor; more than 5% from 1 is flagged).
-4. **Scan (F5)**: enter the subject id and plan, **s** starts; **p** pauses or
-   resumes, **b** aborts (views already received are kept); **r** reconnects a
-   dropped link.
-5. **Results (F6)**: **p** processes again with the chosen harmonics and mesh
-   method; **e** exports PLY, OBJ, STL and the report into the folder given.
-6. **Library (F7)**: past scans; **o** opens one, **e** exports, **d** deletes
-   (asks first).
+1. **Connect (F2)**: pick a port in the list (or `sim`, the simulated scanner) and press
+   **c** (or type a device and press Enter); **d** disconnects, **l** lists the ports again.
+2. **Live (F3)**: **g** grabs a frame, **l** switches the laser, the arrows turn the
+   turntable and move the lift, **h** homes, **+** and **-** change the exposure; the
+   last scanned stripe is drawn in red.
+3. **Calibrate (F4)**: place the chessboard flat on the laser plane and press **g**: the
+   picture shows what the camera sees, the corners found in red, and whether the residual
+   passes its limit; **a** accepts, **x** rejects. Then place the calibration cylinder
+   upright on the turntable and press **y**: the axis and the correction factor (more than
+   5% from 1 fails).
+4. **Scan (F5)**: type the **Subject** code (never a name), choose the **Side** (left,
+   right, or none for what is not a limb) and the **Plan**: a preset named for what it
+   scans (arm, leg, hand, cast), cut to the lift's travel, or your own numbers
+   (sections, pitch, views). The **Rig** is the simulator's (thesis or limb; choosing one
+   starts it again, so calibrate again) or the scanner's own. **s** starts: the first view
+   is checked against the camera's view before any other is taken; the time left counts
+   down. **p** pauses or resumes, **b** aborts (views received are kept), **r** reconnects
+   a dropped link.
+5. **Results (F6)**: **p** processes again with the harmonics and mesh method chosen; **m**
+   opens the clinical view; **Compare** picks the other limb's latest scan or an earlier
+   visit of the same side; **e** exports into the new folder typed: the mesh (PLY, OBJ,
+   STL), report.json, the clinical report report.pdf, its table measures.csv and the
+   DICOM file scan.dcm.
+6. **Clinical view (m on Results)**: circumferences every **Spacing mm** from the
+   **Landmark** (distal, bottom, top or a height in mm); **k** puts the landmark at the
+   row picked on Results; with a comparison, each level's difference and the excess or
+   change in mL and %; **Escape** closes it. The exported report measures the same way.
+7. **Library (F7)**: past scans with their side; **/** filters by subject code; **o** opens
+   one, **p** processes it again, **e** exports it, **d** deletes it (asks first), **u**
+   reads the list again.
 
-Press **Escape** to close this help.
+In a browser (`lamina serve-ui`), everything above works by tap: the top bar's names
+switch screens, the footer's keys run, and a tap in a field brings up the keyboard.
+
+Press **Escape** (or tap *Close help*) to close this help.
 """
+
+
+class HelpText(Static):
+    """The help's text, laid out once per width: Rich lays out Markdown in tens of ms, which
+    delayed the keys pressed while a scan ran."""
+
+    def __init__(self) -> None:
+        super().__init__(id="help-text")
+        self._laid_out: dict[int, Text] = {}
+
+    def laid_out(self, width: int) -> Text:
+        """Return the help laid out ``width`` cells wide (from the cache after the first time)."""
+        width = max(width, 20)
+        if width not in self._laid_out:
+            console = Console(width=width, color_system="truecolor", force_terminal=True)
+            with console.capture() as captured:
+                console.print(RichMarkdown(HELP_TEXT))
+            self._laid_out[width] = Text.from_ansi(captured.get().rstrip("\n"))
+        return self._laid_out[width]
+
+    def get_content_height(self, container: Size, viewport: Size, width: int) -> int:
+        """Return the laid-out help's line count at ``width``."""
+        return self.laid_out(width).plain.count("\n") + 1
+
+    def render(self) -> RenderResult:
+        """Return the help laid out for this width."""
+        return self.laid_out(self.content_size.width)
 
 
 class HelpScreen(ModalScreen[None]):
@@ -131,13 +229,24 @@ class HelpScreen(ModalScreen[None]):
 
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("escape,f1,q", "dismiss", "Close help"),
+        Binding("down", "scroll('down')", "Scroll", key_display="↑↓"),
+        Binding("up", "scroll('up')", "Scroll up", show=False),
+        Binding("pagedown,space", "scroll('page_down')", "Page down", show=False),
+        Binding("pageup", "scroll('page_up')", "Page up", show=False),
     ]
 
     def compose(self) -> ComposeResult:
-        """Lay out the help text."""
-        with Container(id="help"):
-            yield Markdown(HELP_TEXT)
-        yield Footer()
+        """Lay out the help text in a scrolling box."""
+        with VerticalScroll(id="help"):
+            # One widget: Textual's Markdown makes one per paragraph and list item, and
+            # laying those out each time the help opens slowed keys during a scan.
+            yield HelpText()
+        yield Footer(compact=True, show_command_palette=False)
+
+    def action_scroll(self, how: str) -> None:
+        """Scroll the help: ``up``, ``down``, ``page_up`` or ``page_down``."""
+        box = self.query_one("#help", VerticalScroll)
+        getattr(box, f"scroll_{how}")()
 
 
 class LaminaScreen(Screen[None]):
@@ -151,11 +260,18 @@ class LaminaScreen(Screen[None]):
         with Container(classes="body"):
             yield from self.body()
         yield StatusLine(id="status")
-        yield Footer()
+        # Compact, without the palette's key (Ctrl+P, in the help): every key fits at 80.
+        yield Footer(compact=True, show_command_palette=False)
 
     def body(self) -> ComposeResult:
         """Yield this screen's own widgets."""
         yield from ()
+
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        """Offer "leave field" (Escape) only while a text field has the keys."""
+        if action == "leave_field":
+            return isinstance(self.focused, Input)
+        return True
 
     @property
     def lamina(self) -> JobApp:
@@ -237,6 +353,7 @@ class LaminaScreen(Screen[None]):
 class ConfirmScreen(ModalScreen[bool]):
     """Ask a yes/no question; y confirms, n or Escape cancels."""
 
+    AUTO_FOCUS = "#no"  # Enter on a question about deleting must not say yes
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("y", "answer(True)", "Yes"),
         Binding("n,escape", "answer(False)", "No"),
@@ -247,10 +364,17 @@ class ConfirmScreen(ModalScreen[bool]):
         self.question = question
 
     def compose(self) -> ComposeResult:
-        """The question and the two keys."""
+        """The question, the two keys and their buttons (a tablet has no keys to press)."""
         with Container(classes="dialog"):
             yield Static(self.question)
             yield Static("y: yes    n: no", classes="dim")
+            with Horizontal(classes="buttons"):
+                yield Button("Yes", id="yes", variant="error", compact=True)
+                yield Button("No", id="no", compact=True)
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        """Answer with the button pressed."""
+        self.dismiss(event.button.id == "yes")
 
     def action_answer(self, yes: bool) -> None:
         """Close with the answer."""
@@ -268,14 +392,22 @@ class AskScreen(ModalScreen[str | None]):
         self.placeholder = placeholder
 
     def compose(self) -> ComposeResult:
-        """The question and the field."""
+        """The question, the field and the buttons (a tablet has no Enter or Escape key)."""
         with Container(classes="dialog"):
             yield Static(self.question)
             yield Input(placeholder=self.placeholder, id="answer", compact=True)
+            with Horizontal(classes="buttons"):
+                yield Button("OK", id="ok", variant="primary", compact=True)
+                yield Button("Cancel", id="cancel", compact=True)
 
     def on_input_submitted(self, event: Input.Submitted) -> None:
         """Answer with the text typed."""
         self.dismiss(event.value.strip() or None)
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        """Answer with the text typed (OK) or nothing (Cancel)."""
+        text = self.query_one("#answer", Input).value.strip()
+        self.dismiss(text or None if event.button.id == "ok" else None)
 
     def action_cancel(self) -> None:
         """Close without an answer."""

@@ -1,9 +1,16 @@
-"""Calibrate: the chessboard (corners, residuals, accept or reject) and the cylinder axis."""
+"""Calibrate, guided: what to place, what the camera sees, and whether each step passed.
+
+First the chessboard, flat on the laser plane: the picture is the camera's frame with the
+corners found drawn in red, and the residual is judged against a stated limit before it is
+accepted. Then the calibration cylinder on the turntable: the axis and the correction
+factor, judged against 5 % (thesis sections 4.2 and 6.2 give the method).
+"""
 
 from __future__ import annotations
 
 from typing import ClassVar
 
+import numpy as np
 from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
@@ -14,21 +21,56 @@ from textual.widgets import Button, Label, ProgressBar, Static
 from lamina_host.reconstruct.axis import CF_WARNING, AxisCalibration
 from lamina_host.reconstruct.calibration import GridCalibration
 from lamina_host.ui.tui.adapter import Progress
-from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_host.ui.tui.widgets import FrameView, LaminaScreen
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import Segment
+from lamina_shared.types import BoardSpec, Segment
+
+GRID_RMS_LIMIT_MM = 0.05
+"""The chessboard's residual RMS passes at or below this (or 1 % of a square, if more)."""
+GRID_RMS_LIMIT_SQUARE = 0.01
+
+BOARD_STEP = "Place the chessboard flat on the laser plane, every square in view; press g."
+CYLINDER_STEP = (
+    "Take the board away, stand the {d}calibration cylinder upright on the turntable; press y."
+)
 
 
-def grid_summary(grid: GridCalibration | None, accepted: bool) -> str:
-    """Return the chessboard result as text."""
+def board_outline(grid: GridCalibration, board: BoardSpec) -> np.ndarray:
+    """Return the detected corners round the board's edge (every corner would hide it)."""
+    nx, ny = board.inner_corners
+    pts = np.asarray(grid.image_pts)
+    if len(pts) != nx * ny:
+        return pts
+    grid_uv = pts.reshape(ny, nx, 2)
+    edge = np.zeros((ny, nx), dtype=bool)
+    edge[[0, -1], :] = True
+    edge[:, [0, -1]] = True
+    return grid_uv[edge]
+
+
+def grid_limit_mm(grid: GridCalibration, square_mm: float | None) -> float:
+    """Return the residual RMS the chessboard must not exceed (mm)."""
+    return max(GRID_RMS_LIMIT_MM, GRID_RMS_LIMIT_SQUARE * (square_mm or 0.0))
+
+
+def grid_passes(grid: GridCalibration, square_mm: float | None) -> bool:
+    """Return True when the chessboard's residual RMS is within its limit."""
+    return grid.rms_mm <= grid_limit_mm(grid, square_mm)
+
+
+def grid_summary(
+    grid: GridCalibration | None, accepted: bool, square_mm: float | None = None
+) -> str:
+    """Return the chessboard result as text: pass or fail against the limit, then the state."""
     if grid is None:
-        return "no chessboard captured: press g"
-    state = "accepted" if accepted else "waiting: a accepts, x rejects"
+        return "no chessboard captured yet"
+    limit = grid_limit_mm(grid, square_mm)
+    verdict = "PASS" if grid_passes(grid, square_mm) else "FAIL"
+    state = "accepted" if accepted else "a accepts, x rejects (then g again)"
     lines = [
-        f"corners        {grid.n_corners}",
-        f"residual RMS   {grid.rms_mm:.4f} mm",
-        f"residual max   {grid.max_mm:.4f} mm",
-        f"state          {state}",
+        f"{verdict}: residual {grid.rms_mm:.3f} mm RMS",
+        f"limit {limit:.2f} mm; {grid.n_corners} corners",
+        state,
     ]
     return "\n".join(lines + [f"warning: {w}" for w in grid.warnings])
 
@@ -36,15 +78,17 @@ def grid_summary(grid: GridCalibration | None, accepted: bool) -> str:
 def axis_summary(axis: AxisCalibration | None) -> str:
     """Return the cylinder result as text, with the 5% correction-factor warning."""
     if axis is None:
-        return "cylinder not scanned: accept the chessboard, then press y"
+        return "cylinder not scanned yet (accept the chessboard first)"
+    good = abs(axis.correction_factor - 1.0) <= CF_WARNING
     lines = [
-        f"axis           ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm",
+        f"PASS: correction within {CF_WARNING:.0%} of 1"
+        if good
+        else f"FAIL: correction beyond {CF_WARNING:.0%} of 1",
         f"correction     {axis.correction_factor:.5f}",
+        f"axis           ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm",
         f"diameter       {axis.estimated_diameter_mm:.3f} mm measured, "
         f"{axis.actual_diameter_mm:.3f} mm true",
     ]
-    if abs(axis.correction_factor - 1.0) <= CF_WARNING:
-        lines.append(f"correction within {CF_WARNING:.0%} of 1: good")
     return "\n".join(lines + [f"WARNING: {w}" for w in axis.warnings])
 
 
@@ -76,17 +120,20 @@ class CalibrateScreen(LaminaScreen):
     ]
 
     def body(self) -> ComposeResult:
-        """Two panels: the chessboard and the cylinder."""
+        """Two panels, in the order they are done: the chessboard, then the cylinder."""
         with Horizontal():
             with Vertical(classes="panel"):
-                yield Label("Chessboard (thesis 4.2)", classes="panel-title")
+                yield Label("1. Chessboard", classes="panel-title")
+                yield Static(BOARD_STEP, id="board-step", classes="step")
+                yield FrameView(id="board-view")
                 yield Static(id="grid-result")
                 with Horizontal(classes="buttons"):
                     yield Button("Capture", id="capture", compact=True)
                     yield Button("Accept", id="accept", variant="success", compact=True)
                     yield Button("Reject", id="reject", variant="error", compact=True)
             with Vertical(classes="panel"):
-                yield Label("Cylinder axis (thesis 6.2)", classes="panel-title")
+                yield Label("2. Calibration cylinder", classes="panel-title")
+                yield Static(CYLINDER_STEP.format(d=""), id="cylinder-step", classes="step")
                 yield Static(id="axis-result")
                 yield ProgressBar(total=1, show_eta=False, id="cylinder-progress")
                 yield Button("Scan cylinder", id="cylinder", compact=True)
@@ -102,7 +149,21 @@ class CalibrateScreen(LaminaScreen):
         self.refresh_from_job()
         grid = self.job.acquisition.grid
         if grid is not None:
-            self.say(f"chessboard: {grid.n_corners} corners, RMS {grid.rms_mm:.4f} mm; a/x")
+            passed = grid_passes(grid, self._square_mm())
+            self.say(
+                f"chessboard {'passes' if passed else 'FAILS'}: residual {grid.rms_mm:.3f} mm "
+                + ("RMS; a accepts, x rejects" if passed else "RMS: place it again, press g"),
+                error=not passed,
+            )
+
+    def failed(self, message: str) -> None:
+        """Show the frame the camera gave (the board not found in it) and say why."""
+        self.refresh_from_job()
+        super().failed(message)
+
+    def _square_mm(self) -> float | None:
+        board = self.job.acquisition.data.board
+        return board.square_mm if board else None
 
     @on(Button.Pressed, "#accept")
     def _accept_pressed(self) -> None:
@@ -156,9 +217,21 @@ class CalibrateScreen(LaminaScreen):
         )
 
     def refresh_from_job(self) -> None:
-        """Show the job's calibration."""
+        """Show the job's calibration: the board's frame and corners, and both verdicts."""
         s = self.job.acquisition
-        self.query_one("#grid-result", Static).update(grid_summary(s.grid, s.grid_accepted))
+        grid_text = self.query_one("#grid-result", Static)
+        grid_text.update(grid_summary(s.grid, s.grid_accepted, self._square_mm()))
+        grid_text.set_class(s.grid is not None and not grid_passes(s.grid, self._square_mm()),
+                            "-warning")  # fmt: skip
+        view = self.query_one("#board-view", FrameView)
+        view.image = s.data.grid_image
+        board = s.data.board
+        view.stripe_uv = None if s.grid is None or board is None else board_outline(s.grid, board)
         axis_text = self.query_one("#axis-result", Static)
         axis_text.update(axis_summary(s.axis))
         axis_text.set_class(bool(s.axis and s.axis.warnings), "-warning")
+        info = self.job.device.info
+        diameter = (
+            f"{info.cylinder_diameter_mm:g} mm " if info and info.cylinder_diameter_mm else ""
+        )
+        self.query_one("#cylinder-step", Static).update(CYLINDER_STEP.format(d=diameter))

@@ -53,7 +53,7 @@ class ConnectScreen(LaminaScreen):
     def body(self) -> ComposeResult:
         """Device field, port list and the device information."""
         with Horizontal(classes="row"):
-            yield Label("Device ", classes="field-label")
+            yield Label("Device", classes="field-label")
             yield Input(placeholder="sim, replay:DIR or /dev/ttyACM0", id="device", compact=True)
             yield Button("Connect", id="connect-button", compact=True)
         with Horizontal():

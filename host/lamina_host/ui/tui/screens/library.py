@@ -7,10 +7,12 @@ from pathlib import Path
 from typing import ClassVar, TypeVar
 
 from rich.text import Text
+from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
+from textual.containers import Horizontal
 from textual.screen import ModalScreen
-from textual.widgets import DataTable, Static
+from textual.widgets import DataTable, Input, Label, Static
 
 from lamina_host.store.library import ScanSummary
 from lamina_host.ui.tui.adapter import Results, process
@@ -19,7 +21,7 @@ from lamina_shared.errors import printable
 
 T = TypeVar("T")
 
-COLUMNS = ("scan", "subject", "created", "status", "sections", "views", "result")
+COLUMNS = ("scan", "subject", "side", "created", "status", "sect", "views", "result")
 
 
 class LibraryScreen(LaminaScreen):
@@ -32,13 +34,40 @@ class LibraryScreen(LaminaScreen):
         Binding("p", "process", "Process"),
         Binding("e", "export", "Export"),
         Binding("d", "delete", "Delete"),
-        Binding("u", "reload", "Update list"),
+        Binding("u", "reload", "Update"),
+        Binding("slash", "filter", "Filter"),
+        Binding("escape", "leave_field", "Leave field"),
     ]
 
+    def __init__(self) -> None:
+        super().__init__()
+        self.scans: list[ScanSummary] = []
+        """The library's scans as last read (the table shows those the filter keeps)."""
+
     def body(self) -> ComposeResult:
-        """The table of scans and a note on the chosen one."""
+        """The subject filter, the table of scans and a note on the chosen one."""
+        with Horizontal(classes="row"):
+            yield Label("Subject", classes="field-label")
+            yield Input(placeholder="all subjects (type a code or its start)", id="filter",
+                        compact=True)  # fmt: skip
         yield DataTable(id="scans", cursor_type="row", zebra_stripes=True)
         yield Static("", id="library-note")
+
+    def action_filter(self) -> None:
+        """Put the cursor in the subject filter."""
+        self.query_one("#filter", Input).focus()
+
+    def action_leave_field(self) -> None:
+        """Leave the filter: the table takes the keys again."""
+        self.query_one("#scans", DataTable).focus()
+
+    @on(Input.Changed, "#filter")
+    def _filter_changed(self) -> None:
+        self.listed(self.scans)
+
+    @on(Input.Submitted, "#filter")
+    def _filter_submitted(self) -> None:
+        self.action_leave_field()
 
     def on_mount(self) -> None:
         """Set up the columns."""
@@ -53,13 +82,17 @@ class LibraryScreen(LaminaScreen):
         self.in_thread("library", self.job.store.scans, self.listed)
 
     def listed(self, scans: list[ScanSummary]) -> None:
-        """Fill the table."""
+        """Fill the table with the scans whose subject code starts as the filter says."""
+        self.scans = scans
+        wanted = self.query_one("#filter", Input).value.strip().lower()
+        shown = [s for s in scans if s.subject.lower().startswith(wanted)]
         table = self.query_one("#scans", DataTable)
         table.clear()
-        for s in scans:
+        for s in shown:
             table.add_row(
                 str(s.id),
                 Text(printable(s.subject)),  # plain text: an old code may hold markup or escapes
+                s.side,
                 s.created.replace("T", " ")[:16],
                 s.status,
                 str(s.sections),
@@ -67,11 +100,12 @@ class LibraryScreen(LaminaScreen):
                 "yes" if s.has_result else "no",
                 key=str(s.id),
             )
-        note = (
-            f"{len(scans)} scan{'s' if len(scans) != 1 else ''}: o opens one, "
-            "p processes it again, d deletes it"
-        )
-        self.query_one("#library-note", Static).update(note if scans else "no scans yet")
+        count = f"{len(shown)} scan{'s' if len(shown) != 1 else ''}"
+        if wanted:
+            count += f" of {len(scans)} (subject {printable(wanted)!r})"
+        note = f"{count}: o opens one, p processes it again, d deletes it"
+        empty = f"no scan of a subject starting {printable(wanted)!r}" if wanted else "no scans yet"
+        self.query_one("#library-note", Static).update(note if shown else empty)
 
     def _chosen(self) -> int | None:
         table = self.query_one("#scans", DataTable)
@@ -164,7 +198,7 @@ class LibraryScreen(LaminaScreen):
             self.say(f"scan {scan_id} kept")
             return
         self.in_thread(
-            "library", lambda: self.job.delete_scan(scan_id), lambda _: self.deleted(scan_id)
+            "library-delete", lambda: self.job.delete_scan(scan_id), lambda _: self.deleted(scan_id)
         )
 
     def deleted(self, scan_id: int) -> None:

@@ -27,8 +27,8 @@ class LiveScreen(LaminaScreen):
     _shown: Segment | None = None
     _followed: Segment | None = None
     BINDINGS: ClassVar[list[BindingType]] = [
-        Binding("g", "grab", "Grab frame"),
-        Binding("l", "laser", "Laser on/off"),
+        Binding("g", "grab", "Grab"),
+        Binding("l", "laser", "Laser"),
         Binding("left", "jog('turntable', -1)", "Turn -15", show=False),
         Binding("right", "jog('turntable', 1)", "Turn"),
         Binding("up", "jog('lift', 1)", "Lift"),

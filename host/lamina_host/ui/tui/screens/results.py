@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import ClassVar
 
@@ -13,18 +14,26 @@ from textual.containers import Horizontal
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 from textual_plotext import PlotextPlot
 
-from lamina_host.clinical.measures import Visit, sections_from_reconstruction
-from lamina_host.clinical.report import MeasureRequest, subject_visits
+from lamina_host.clinical.measures import LimbMeasurement, Visit, sections_from_reconstruction
+from lamina_host.clinical.report import MeasureRequest, measure_stored, subject_visits
 from lamina_host.reconstruct.efd import HARMONIC_RULES
 from lamina_host.reconstruct.mesh import MESH_METHODS
 from lamina_host.reconstruct.status import ESTIMATED
-from lamina_host.ui.tui.adapter import Results, UserError, process, radius_profile
+from lamina_host.ui.tui.adapter import (
+    CompareChoice,
+    Results,
+    UserError,
+    compare_choices,
+    export_all,
+    process,
+    radius_profile,
+)
 from lamina_host.ui.tui.clinical_view import ClinicalView
-from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_host.ui.tui.widgets import LaminaScreen, name_choice
 from lamina_host.workflow.results import SectionRow, colour_bins, mesh_summary
 from lamina_shared.errors import LaminaError
 
-COLUMNS = ("sec", "z mm", "points", "cover %", "closed", "perim mm", "area mm2", "round", "harm")
+COLUMNS = ("sec", "z mm", "pts", "cov %", "closed", "perim mm", "area mm2", "round", "harm")
 """Per-outline table; roundness is 4 pi A / P^2 (1 for a circle); cover % is the share of
 the circumference the views saw; closed says how: measured all round, bridged (small gaps
 closed by EFD), interpolated (a wide gap filled from the neighbouring sections) or open
@@ -86,7 +95,11 @@ def summary_text(results: Results | None) -> str:
         return "nothing processed yet: scan (F5) or open a scan (F7), then press p"
     result = results.reconstruction
     mesh = f"mesh ({results.mesh_method}): {mesh_summary(results.report.mesh)}"
-    lines = [f"volume {results.volume_mm3:.1f} mm3 (between first and last section)", mesh]
+    lines = [
+        f"volume {results.volume_mm3 / 1000:.1f} mL ({results.volume_mm3:.0f} mm3) between "
+        "the first and last section",
+        mesh,
+    ]
     estimated = [s for s in result.sections if s.status in ESTIMATED]
     if estimated or not all(s.closed for s in result.sections):
         lines.append(
@@ -107,32 +120,36 @@ class ResultsScreen(LaminaScreen):
     AUTO_FOCUS = "#sections"
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("p", "process", "Process"),
+        Binding("m", "clinical", "Measure"),
         Binding("e", "export", "Export"),
-        Binding("m", "clinical", "Measure", show=False),
-        Binding("escape", "leave_field", "Leave field", show=False),
+        Binding("escape", "leave_field", "Leave field"),
     ]
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.measure_request = MeasureRequest()
+        """How the clinical view last measured (the report exports the same)."""
+        self.choices: list[CompareChoice] = []
+        """What the open scan may be compared with (the Compare field's choices)."""
 
     def body(self) -> ComposeResult:
         """Options row, table and profile, summary, export row."""
         with Horizontal(classes="row"):
-            yield Label("Harmonics ", classes="field-label")
+            yield Label("Harmonics", classes="field-label")
             yield Input(placeholder="auto", id="harmonics", compact=True)
-            yield Label(" Mesh ", classes="field-label")
-            yield Select(
-                [(m, m) for m in MESH_METHODS],
-                value=MESH_METHODS[0],
-                allow_blank=False,
-                id="mesh-method",
-                compact=True,
-            )
+            yield Label("Mesh", classes="field-label")
+            yield name_choice(MESH_METHODS, "mesh-method")
             yield Button("Process", id="process", variant="primary", compact=True)
         with Horizontal(id="results-main"):
             yield DataTable(id="sections", cursor_type="row", zebra_stripes=True)
             yield PlotextPlot(id="profile")
         yield Static(summary_text(None), id="summary")
         with Horizontal(classes="row"):
-            yield Label("Export to ", classes="field-label")
-            yield Input(placeholder="folder, e.g. out/P001", id="export-dir", compact=True)
+            yield Label("Compare", classes="field-label")
+            yield Select([], prompt="no comparison", id="compare", compact=True, allow_blank=True)
+        with Horizontal(classes="row"):
+            yield Label("Export to", classes="field-label")
+            yield Input(placeholder="a new folder, e.g. out/P-0042", id="export-dir", compact=True)
             yield Button("Export", id="export", compact=True)
 
     def on_mount(self) -> None:
@@ -148,11 +165,31 @@ class ResultsScreen(LaminaScreen):
             return
         row = self.query_one("#sections", DataTable).cursor_row
         picked = results.rows[row].z_mm if 0 <= row < len(results.rows) else None
+        choice = self.chosen_comparison()
         self.app.push_screen(
             ClinicalView(
-                sections_from_reconstruction(results.reconstruction), picked, self._visits()
+                sections_from_reconstruction(results.reconstruction),
+                picked,
+                self._visits(),
+                choice,
+                None if choice is None else self._reference(choice),
+                self._measured,
             )
         )
+
+    def _reference(self, choice: CompareChoice) -> Callable[[MeasureRequest], LimbMeasurement]:
+        """Return what measures the compared scan as the clinical view asks."""
+        library = self.job.store.library()
+        return lambda request: measure_stored(library, choice.scan_id, request)
+
+    def _measured(self, request: MeasureRequest) -> None:
+        """Keep how the clinical view measured: the exported report measures the same."""
+        self.measure_request = request
+
+    def chosen_comparison(self) -> CompareChoice | None:
+        """Return the scan chosen in the Compare field (None: no comparison)."""
+        value = self.query_one("#compare", Select).value
+        return self.choices[value] if isinstance(value, int) else None
 
     def _visits(self) -> list[Visit]:
         """Return the visits of the open scan's subject in the library (none if unsaved)."""
@@ -192,7 +229,7 @@ class ResultsScreen(LaminaScreen):
         self.refresh_from_job()
         failed = len(results.reconstruction.failed)
         self.say(
-            f"processed {len(results.rows)} sections; volume {results.volume_mm3:.1f} mm3"
+            f"processed {len(results.rows)} sections; volume {results.volume_mm3 / 1000:.1f} mL"
             + (f"; {failed} outline(s) failed (see the summary)" if failed else "")
         )
 
@@ -205,15 +242,19 @@ class ResultsScreen(LaminaScreen):
     @on(Button.Pressed, "#export")
     @on(Input.Submitted, "#export-dir")
     def action_export(self) -> None:
-        """Export PLY, OBJ, STL and the report into the folder typed."""
-        folder = self.query_one("#export-dir", Input).value.strip()
+        """Export the mesh (PLY, OBJ, STL), the JSON report, the clinical report (PDF) and
+        its table (CSV) with the comparison chosen, and the DICOM file into the folder typed."""
+        field = self.query_one("#export-dir", Input)
+        folder = field.value.strip()
         if not folder:
-            self.say("type the folder to export into (a new or empty folder)", error=True)
+            field.focus()
+            self.say("Export to is empty: type a new folder to export into, then Enter", error=True)
             return
         self.query_one("#export", Button).disabled = True
         self.say(f"exporting to {folder} ...")
         path = Path(folder).expanduser()
-        self.in_thread("export", lambda: self.job.processing.export(path), self.exported)
+        request, choice = self.measure_request, self.chosen_comparison()
+        self.in_thread("export", lambda: export_all(self.job, path, request, choice), self.exported)
 
     def exported(self, paths: list[Path]) -> None:
         """Say what was written."""
@@ -251,3 +292,20 @@ class ResultsScreen(LaminaScreen):
         if strip is not None:
             summary = Text(str(summary)) + strip
         self.query_one("#summary", Static).update(summary)
+        self.in_thread("compare", lambda: compare_choices(self.job), self._offer)
+
+    @on(Select.Changed, "#compare")
+    def _compared(self) -> None:
+        """Give the keys back to the table: the footer shows the screen's keys again."""
+        self.query_one("#sections", DataTable).focus()
+
+    def _offer(self, choices: list[CompareChoice]) -> None:
+        """Offer the scans the open one may be compared with (keeping the choice made)."""
+        kept = self.chosen_comparison()
+        self.choices = choices
+        select = self.query_one("#compare", Select)
+        select.set_options([(c.label, k) for k, c in enumerate(choices)])
+        for k, choice in enumerate(choices):
+            if kept is not None and (choice.scan_id, choice.kind) == (kept.scan_id, kept.kind):
+                select.value = k
+        select.prompt = "no comparison" if choices else "no other scan of this subject"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -10,29 +11,58 @@ from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
 from textual.message import Message
-from textual.widgets import Button, Checkbox, Input, Label, ProgressBar, Static
+from textual.widgets import Button, Input, Label, ProgressBar, Select, Static
 from textual.worker import get_current_worker
 from textual_plotext import PlotextPlot
 
+from lamina_host.store.library import SIDES
 from lamina_host.ui.tui.adapter import (
     USER_ERRORS,
     Progress,
     check_subject,
+    choose_rig,
+    is_simulated,
     parse_plan,
     scan_object,
     user_message,
 )
-from lamina_host.ui.tui.widgets import LaminaScreen
+from lamina_host.ui.tui.widgets import LaminaScreen, TickBox, name_choice
+from lamina_host.workflow.checks import (
+    PLAN_PRESETS,
+    ObjectTooLarge,
+    PlanPreset,
+    PresetPlan,
+    check_preset_fits,
+    preset_plan,
+)
 from lamina_shared.durations import duration_text
+from lamina_shared.presets import RIG_PRESETS
 from lamina_shared.replies import ScanEstimate
 from lamina_shared.types import ScanPlan, Segment
 
 
-def progress_text(p: Progress) -> str:
-    """Return e.g. 'object view 5/16, section 0, 3 s left' for the progress line."""
-    left = p.left_s
-    left_text = "estimating time left" if left is None else f"{left:.0f} s left"
+def progress_text(p: Progress, left_s: float | None = None) -> str:
+    """Return e.g. 'object view 5/16, section 0, 3 s left' for the progress line.
+
+    Args:
+        p: the latest progress.
+        left_s: the time left as counted down since (None: the progress's own estimate).
+    """
+    left = p.left_s if left_s is None else left_s
+    left_text = "estimating time left" if left is None else f"{duration_text(left)} left"
     return f"{p.target} view {p.done}/{p.total}, section {p.section}, {left_text}"
+
+
+SIDE_CHOICES = (("left", "left"), ("right", "right"), ("none: not a limb", SIDES[0]))
+"""The Side field's choices (label, value); a scan of no limb is side ``none``."""
+CUSTOM = "custom"
+"""The Plan field's value when the numbers are typed rather than a preset's."""
+PLAN_CHOICES = (*((name, name) for name in PLAN_PRESETS), ("my numbers", CUSTOM))
+"""The Plan field's choices: the presets named for what they scan, then typed numbers."""
+DEVICE_RIG = "device"
+"""The Rig field's value for a scanner (not the simulator): its own rig, no choice."""
+TICK_S = 1.0
+"""How often the time left is counted down between views."""
 
 
 PLAN_ERRORS: tuple[type[Exception], ...] = (*USER_ERRORS, ValueError)
@@ -61,9 +91,9 @@ class ScanScreen(LaminaScreen):
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("s", "start", "Start"),
         Binding("p", "pause", "Pause/resume"),
-        Binding("b", "abort", "Abort", show=False),
+        Binding("b", "abort", "Abort"),
         Binding("r", "reconnect", "Reconnect"),
-        Binding("escape", "leave_field", "Leave field", show=False),
+        Binding("escape", "leave_field", "Leave field"),
     ]
 
     def __init__(self) -> None:
@@ -75,23 +105,37 @@ class ScanScreen(LaminaScreen):
         """The current section's views so far (the plot assembles them as the result will)."""
         self._plot_stale = False
         self.scanning = False
+        self._estimate_s: float | None = None
+        """The device's estimate of the typed plan (None: none yet)."""
+        self._progress: Progress | None = None
+        self._left: tuple[float, float] | None = None
+        """(seconds left, when that was known): counted down between views."""
+        self._rig_choices = [(name, name) for name in RIG_PRESETS]
+        """The Rig field's choices now (the simulator's rigs, or the scanner's own)."""
 
     def body(self) -> ComposeResult:
         """Form, progress and the live plot of the current section."""
         with Horizontal(classes="row"):
-            yield Label("Subject ", classes="field-label")
-            yield Input(placeholder="e.g. P001-left-leg", id="subject", compact=True)
+            yield Label("Subject", classes="field-label")
+            yield Input(placeholder="e.g. P-0042", id="subject", compact=True)
+            yield Label("Side", classes="field-label")
+            yield Select(SIDE_CHOICES, value=SIDES[0], allow_blank=False, id="side", compact=True)
             # Colour: each point's colour from the laser-off frames (a colour camera).
-            yield Checkbox("Colour", id="colour", compact=True)
+            yield TickBox("Colour", id="colour", compact=True)
         with Horizontal(classes="row"):
-            yield Label("Sections ", classes="field-label")
+            yield Label("Plan", classes="field-label")
+            yield Select(PLAN_CHOICES, value=CUSTOM, allow_blank=False, id="preset", compact=True)
+            yield Label("Sections", classes="field-label")
             yield Input("2", id="sections", type="integer", compact=True, classes="short")
-            yield Label(" Pitch mm ", classes="field-label")
+            yield Label("Pitch mm", classes="field-label")
             yield Input("2", id="pitch", type="number", compact=True, classes="short")
-            yield Label(" Views ", classes="field-label")
+            yield Label("Views", classes="field-label")
             yield Input("8", id="views", type="integer", compact=True, classes="short")
+        with Horizontal(classes="row"):
+            yield Label("Rig", classes="field-label")
+            yield name_choice(RIG_PRESETS, "rig")
             yield Button("Start", id="start", variant="primary", compact=True)
-            yield Button("Abort", id="abort", variant="error", compact=True)
+            yield Button("Abort", id="abort", variant="error", compact=True, disabled=True)
         with Horizontal(classes="row"):
             yield ProgressBar(total=1, show_eta=False, id="scan-progress")
             yield Static("not started", id="progress-text")
@@ -104,9 +148,11 @@ class ScanScreen(LaminaScreen):
     def on_mount(self) -> None:
         """Label the empty plot and redraw it at a steady pace while views arrive."""
         self._draw_points()
+        self.query_one("#rig", Select).value = self.job.device.target.rig
         # Plotting every view as it lands kept the event loop busy for tens of ms per
         # view; a few redraws a second look the same and keep keys answered promptly.
         self.set_interval(PLOT_INTERVAL_S, self._redraw_if_stale)
+        self.set_interval(TICK_S, self._count_down)
 
     def _redraw_if_stale(self) -> None:
         if self._plot_stale:
@@ -127,7 +173,64 @@ class ScanScreen(LaminaScreen):
 
     @on(Input.Changed, "#sections, #pitch, #views")
     def _plan_changed(self) -> None:
+        preset = self._preset()
+        if preset is not None and self._typed() != self._preset_numbers(preset):
+            self.query_one("#preset", Select).value = CUSTOM  # the numbers are the user's now
         self.show_estimate(replace_progress=True)
+
+    def _typed(self) -> tuple[str, str, str]:
+        """Return the Sections, Pitch mm and Views fields as typed."""
+        sections, pitch, views = (
+            self.query_one(f"#{k}", Input).value.strip() for k in ("sections", "pitch", "views")
+        )
+        return sections, pitch, views
+
+    def _preset(self) -> PlanPreset | None:
+        """Return the chosen preset (None: the typed numbers)."""
+        return PLAN_PRESETS.get(str(self.query_one("#preset", Select).value))
+
+    def _preset_plan(self, preset: PlanPreset) -> PresetPlan:
+        """Return the preset's plan on the connected device (its lift's travel)."""
+        info = self.job.device.info
+        return preset_plan(preset, info.axes if info else None)
+
+    def _preset_numbers(self, preset: PlanPreset) -> tuple[str, str, str]:
+        plan = self._preset_plan(preset)
+        return str(plan.sections), f"{plan.pitch_mm:g}", str(plan.views)
+
+    @on(Select.Changed, "#preset")
+    def _preset_chosen(self) -> None:
+        """Fill the numbers with the preset's plan (cut to the lift's travel, saying so)."""
+        preset = self._preset()
+        if preset is None or self._typed() == self._preset_numbers(preset):
+            return
+        numbers = self._preset_numbers(preset)
+        for key, value in zip(("sections", "pitch", "views"), numbers, strict=True):
+            self.query_one(f"#{key}", Input).value = value
+        note = self._preset_plan(preset).note
+        try:  # said now, not only at Start: the rig may be the wrong one for it
+            check_preset_fits(preset, self.job.acquisition.field_radius_mm())
+        except ObjectTooLarge as exc:
+            self.say(str(exc), error=True)
+            return
+        self.say(f"{preset.name} plan: {note}" if note else f"{preset.name} plan chosen")
+
+    @on(Select.Changed, "#rig")
+    def _rig_chosen(self, event: Select.Changed) -> None:
+        """Use the simulated rig chosen (the simulator starts again; calibrate again)."""
+        rig = str(event.value)
+        if rig == DEVICE_RIG or rig == self.job.device.target.rig:
+            return
+        if self.scanning:
+            self.say("a scan is running: abort it (b) before changing the rig", error=True)
+            self.query_one("#rig", Select).value = self.job.device.target.rig
+            return
+        self.say(f"changing to the simulated {rig} rig ...")
+        self.in_thread("connect", lambda: choose_rig(self.job, rig), lambda _: self._rig_set(rig))
+
+    def _rig_set(self, rig: str) -> None:
+        self.refresh_from_job()
+        self.say(f"simulated {rig} rig: calibrate on it before scanning (F4)")
 
     def show_estimate(self, replace_progress: bool = False) -> None:
         """Ask the device how long the typed plan would keep the subject still.
@@ -159,6 +262,7 @@ class ScanScreen(LaminaScreen):
             self.app.call_from_thread(self._estimated, estimate)
 
     def _estimated(self, estimate: ScanEstimate) -> None:
+        self._estimate_s = estimate.modelled_s
         if not self.scanning:
             self.query_one("#progress-text", Static).update(
                 f"not started: {estimate.views} views take about "
@@ -166,8 +270,7 @@ class ScanScreen(LaminaScreen):
             )
 
     def _plan_numbers(self) -> ScanPlan:
-        value = {k: self.query_one(f"#{k}", Input).value for k in ("sections", "pitch", "views")}
-        return parse_plan(value["sections"], value["pitch"], value["views"])
+        return parse_plan(*self._typed())
 
     def _plan(self) -> tuple[str, ScanPlan]:
         subject = check_subject(self.query_one("#subject", Input).value)
@@ -188,9 +291,16 @@ class ScanScreen(LaminaScreen):
         self._section, self._segments = -1, []
         self._set_scanning(True)
         self.query_one("#scan-progress", ProgressBar).update(total=len(plan.views), progress=0)
+        self._progress = None
+        now = time.monotonic()
+        self._left = None if self._estimate_s is None else (self._estimate_s, now)
         self.query_one("#progress-text", Static).update("starting ...")
-        self.say(f"scanning {subject}: {len(plan.sections)} sections, {len(plan.views)} views")
-        colour = self.query_one("#colour", Checkbox).value
+        side = str(self.query_one("#side", Select).value)
+        self.say(
+            f"scanning {subject} ({side}): {len(plan.sections)} sections, {len(plan.views)} views"
+        )
+        colour = self.query_one("#colour", TickBox).value
+        preset = self._preset()
         # Segments and progress come back from the scan's thread as messages.
         self.in_thread(
             "scan",
@@ -202,6 +312,8 @@ class ScanScreen(LaminaScreen):
                 on_progress=lambda p: self.post_message(ScanEvent(progress=p)),
                 on_notice=self._notice,
                 colour=colour,
+                side=side,
+                preset=preset,
             ),
             self.finished,
         )
@@ -215,9 +327,29 @@ class ScanScreen(LaminaScreen):
         if event.progress is not None:
             p = event.progress
             self.query_one("#scan-progress", ProgressBar).update(total=p.total, progress=p.done)
-            self.query_one("#progress-text", Static).update(progress_text(p))
+            self._progress = p
+            if p.left_s is not None:
+                self._left = (p.left_s, time.monotonic())
+            self._count_down()
         if event.segment is not None:
             self._add_segment(event.segment)
+
+    def _count_down(self) -> None:
+        """Show the progress with the time left counted down since it was last known."""
+        if not self.scanning:
+            return
+        left = None
+        if self._left is not None:
+            seconds, since = self._left
+            held = self.paused  # a paused scan's time left does not run down
+            left = seconds if held else max(seconds - (time.monotonic() - since), 0.0)
+            if held:
+                self._left = (seconds, time.monotonic())
+        p = self._progress
+        text = "starting ..." if left is None else f"starting: about {duration_text(left)} left"
+        self.query_one("#progress-text", Static).update(
+            text if p is None else progress_text(p, left)
+        )
 
     def _add_segment(self, segment: Segment) -> None:
         self.lamina.latest_segment = segment  # the live screen draws its stripe
@@ -248,6 +380,8 @@ class ScanScreen(LaminaScreen):
     def failed(self, message: str) -> None:
         """The scan stopped: keep what arrived and say what to do."""
         self._set_scanning(False)
+        if self._progress is None:  # refused before any view: nothing is under way
+            self.query_one("#progress-text", Static).update("not started: see the line below")
         if self._aborting:
             self.say(f"{message}; p resumes")
         else:
@@ -332,4 +466,26 @@ class ScanScreen(LaminaScreen):
             text = "not connected (F2)"
         calibrated = "calibrated" if acquisition.axis is not None else "not calibrated (F4)"
         self.query_one("#link-state", Static).update(f"{text}\n{calibrated}")
+        self._show_rig()
         self.show_estimate()  # the device may have changed: only before any scan
+
+    def _show_rig(self) -> None:
+        """Offer the simulator's rigs, or name the scanner's own (no choice).
+
+        Called whenever the screen shows (the help closing too, during a scan): the
+        choices are only built again when the device changed.
+        """
+        select = self.query_one("#rig", Select)
+        if is_simulated(self.job):
+            choices = [(name, name) for name in RIG_PRESETS]
+            rig = self.job.device.target.rig
+        else:
+            info = self.job.device.info
+            label = info.hardware if info and info.hardware != "?" else "the scanner's own"
+            choices, rig = [(label, DEVICE_RIG)], DEVICE_RIG
+        if choices != self._rig_choices:
+            self._rig_choices = choices
+            select.set_options(choices)
+        if select.value != rig:
+            select.value = rig
+        select.disabled = self.scanning or rig == DEVICE_RIG
