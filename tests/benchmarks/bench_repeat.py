@@ -8,17 +8,26 @@ preset, each time as a patient would be put back: moved up to 10 mm off the turn
 (uniform) towards any azimuth about the point of its axis at its distal landmark (a limb is
 put back with its landmark at the scanner's mark, as a tape's zero on the landmark), with a
 new noise seed and a new calibration (board, cylinder and lift reference acquired again,
-as at each visit).
+as at each visit; once per phantom in the default size, below).
 
 Each scan is the product's path without the link (as the random-shape campaign): the
 simulated device (``open_sim``, :func:`lamina_device.acquisition.acquire`) acquires, the
 host reconstructs (:func:`lamina_host.reconstruct.pipeline.reconstruct`) and measures
 (:func:`lamina_host.clinical.measures.measure_limb`: levels every ``SPACING_MM`` from the
 distal end, PCHIP along z, the default ``auto`` limb axis). The plan is a real limb plan
-made shorter: 8 views per section, 6 sections 10 mm apart over a 50 mm band of the limb
-(20 mm apart, the contour stack's interpolation alone is 0.1-0.3 % off the true volume of
-these phantoms). Scans run in ``LAMINA_REPEAT_WORKERS`` processes (default 2); each takes
-about 100 s of one core.
+made shorter: 8 views per section, sections 10 mm apart (20 mm apart, the contour stack's
+interpolation alone is 0.1-0.3 % off the true volume of these phantoms). Scans run in
+``LAMINA_REPEAT_WORKERS`` processes (default 2). Nearly all of a scan's time is the
+simulator rendering its frames (the host's processing takes about a second).
+
+Two sizes. The full study (``LAMINA_REPEAT_FULL=1`` or ``--full``): 6 sections over a
+50 mm band of each limb, and each repeat calibrated afresh (board, cylinder and lift
+reference acquired again, as at a new visit); 72 views a scan, about 100 s of one core,
+30 scans take about half an hour on two cores. The default (``make bench``): 3 sections
+over a 20 mm band, and one calibration per phantom, acquired with its first scan, for all
+its repeats (one box calibrated once, as in a clinic's session; the rig's geometry does
+not depend on the seed, only its noise does); about 8 minutes on two cores. The repeats
+are put back, leant and seeded alike in both sizes.
 
 Figures per phantom, as Bland-Altman 95 % limits of agreement (mean difference +- 1.96 SD):
 
@@ -34,7 +43,7 @@ Figures per phantom, as Bland-Altman 95 % limits of agreement (mean difference +
   the volume's limits on the turntable axis (what measuring a leant limb upright costs).
 
 Targets (issue #23): volume within +-0.2 %, circumferences within +-0.5 mm.
-``python tests/benchmarks/bench_repeat.py [--reps N] [--only NAME] [--keep DIR]``;
+``python tests/benchmarks/bench_repeat.py [--reps N] [--only NAME] [--keep DIR] [--full]``;
 ``--keep`` stores each scan's raw data and reuses it (reprocessing takes seconds).
 """
 
@@ -47,8 +56,8 @@ import pickle
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +90,9 @@ REPS_ENV = "LAMINA_REPEAT_N"
 DEFAULT_REPS = 10
 WORKERS_ENV = "LAMINA_REPEAT_WORKERS"
 DEFAULT_WORKERS = 2
+FULL_ENV = "LAMINA_REPEAT_FULL"
+QUICK_SECTIONS = 3
+"""Sections of a scan in the default size (levels at 0, 10 and 20 mm from the landmark)."""
 TARGET_VOLUME_PERCENT, TARGET_CIRCUMFERENCE_MM = 0.2, 0.5
 TITLE = (
     f"repeatability at limb scale, {NOISE} preset, {VIEWS} views, {PITCH_MM:g} mm pitch: "
@@ -112,6 +124,14 @@ class Phantom:
     def spec(self) -> str:
         """Return the ``--object`` of the phantom standing upright on the axis."""
         return f"{self.shape},z={self.z_mm:g}"
+
+    def quick(self) -> Phantom:
+        """Return the phantom for the default size: ``QUICK_SECTIONS`` sections, the band
+        moved to end at the full band's distal end (``pivot_mm``, the landmark), so the
+        short scan keeps the part of the limb the full one is measured from."""
+        distal_top = self.pivot_mm >= -self.z_mm + PITCH_MM * (self.sections - 1)
+        z_mm = -(self.pivot_mm - PITCH_MM * (QUICK_SECTIONS - 1)) if distal_top else self.z_mm
+        return replace(self, z_mm=z_mm, sections=QUICK_SECTIONS)
 
 
 PHANTOMS = (
@@ -184,22 +204,29 @@ def acquire_scan(
     seed: int,
     lift_error: float | None = None,
     pitch_mm: float = PITCH_MM,
+    calibration: Raw | None = None,
 ) -> Raw:
-    """Acquire one scan on the simulated limb rig (a fresh calibration included)."""
+    """Acquire one scan on the simulated limb rig: a fresh calibration included, or the
+    object alone with ``calibration``'s board, cylinder and lift reference (taken earlier
+    on the same rig, the same lift)."""
     start = time.perf_counter()
     hardware = _unwatched(open_sim(spec, seed, NOISE, RIG, lift_error_percent=lift_error))
     cylinder: list[Segment] = []
     segments: list[Segment] = []
     try:
-        grid = grab_grid(hardware)
-        acquire(hardware, "cylinder", hardware.default_plans["cylinder"], cylinder.append)
+        if calibration is None:
+            grid = grab_grid(hardware)
+            acquire(hardware, "cylinder", hardware.default_plans["cylinder"], cylinder.append)
         plan = ScanPlan.regular(sections, pitch_mm, VIEWS)
         acquire(hardware, "object", plan, segments.append)
     finally:
         hardware.close()
+    seconds = time.perf_counter() - start
+    if calibration is not None:
+        return replace(calibration, segments=segments, acquire_s=seconds)
     assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
     return Raw(grid, hardware.board, hardware.cylinder_diameter_mm, cylinder, segments,
-               time.perf_counter() - start, hardware.lift_reference)  # fmt: skip
+               seconds, hardware.lift_reference)  # fmt: skip
 
 
 def cached(keep: Path | None, key: str, make: Callable[[], Raw]) -> Raw:
@@ -265,14 +292,28 @@ def tape_circumference_mm(obj: Any, z_mm: float) -> float:
 
 
 def scan_record(
-    phantom: Phantom, index: int, rep: int, keep: Path | None, mechanics: Mechanics
-) -> dict[str, Any]:
-    """Scan (or reuse) one repeat, measure it and set it against the truth."""
+    phantom: Phantom,
+    index: int,
+    rep: int,
+    keep: Path | None,
+    mechanics: Mechanics,
+    calibration: Raw | None = None,
+) -> tuple[dict[str, Any], Raw]:
+    """Scan (or reuse) one repeat, measure it and set it against the truth; return the
+    figures and the raw scan (whose calibration the default size's later repeats share).
+    With ``calibration`` only the object is acquired."""
     reposition = Reposition.draw(index, rep)
     spec = reposition.spec(phantom)
     key = f"{phantom.name}-{rep}-{reposition.seed}-{phantom.sections}x{PITCH_MM:g}x{VIEWS}-lift"
+    if calibration is not None:
+        key += "-shared"
     start = time.perf_counter()
-    raw = cached(keep, key, lambda: acquire_scan(spec, phantom.sections, reposition.seed))
+    seed, sections = reposition.seed, phantom.sections
+
+    def scan() -> Raw:
+        return acquire_scan(spec, sections, seed, None, PITCH_MM, calibration)
+
+    raw = cached(keep, key, scan)
     recon, lift_scale = process(raw)
     sections = sections_from_reconstruction(recon)
     m = measure_limb(sections, SPACING_MM)
@@ -281,7 +322,7 @@ def scan_record(
     placement = reposition.placement(phantom)
     true = truth(own, placement, m, lift_scale, mechanics)
     true_upright = truth(own, placement, upright, lift_scale, mechanics)
-    return {
+    record = {
         "spec": spec,
         "seed": reposition.seed,
         "tilt_deg": reposition.tilt_deg,
@@ -302,6 +343,7 @@ def scan_record(
         "acquire_s": raw.acquire_s,
         "wall_s": time.perf_counter() - start,
     }
+    return record, raw
 
 
 def level_record(level: Any, true_mm: float, tape_mm: float) -> dict[str, Any]:
@@ -375,12 +417,26 @@ def reps_wanted(given: int | None = None) -> int:
         raise SystemExit(f"{REPS_ENV}={text!r} must be a whole number of repeats") from None
 
 
-def safe_record(phantom: Phantom, index: int, rep: int, keep: Path | None) -> dict[str, Any]:
-    """Return :func:`scan_record`'s figures, or the failure named (a figure too)."""
+def safe_record(
+    phantom: Phantom, index: int, rep: int, keep: Path | None, calibration: Raw | None = None
+) -> tuple[dict[str, Any], Raw | None]:
+    """Return :func:`scan_record`'s figures and the scan's calibration (its raw data without
+    the object), or the failure named (a figure too) and None."""
     try:
-        return scan_record(phantom, index, rep, keep, Mechanics.preset(NOISE))
+        record, raw = scan_record(phantom, index, rep, keep, Mechanics.preset(NOISE), calibration)
     except Exception as exc:
-        return {"error": f"{type(exc).__name__}: {exc}"[:300]}
+        return {"error": f"{type(exc).__name__}: {exc}"[:300]}, None
+    return record, replace(raw, segments=[])
+
+
+def full_wanted(given: bool | None = None) -> bool:
+    """Return whether the full study is asked for: ``given``, else ``LAMINA_REPEAT_FULL``."""
+    if given is not None:
+        return given
+    text = os.environ.get(FULL_ENV, "").strip().lower()
+    if text not in ("", "0", "1", "no", "yes", "false", "true"):
+        raise SystemExit(f"{FULL_ENV}={text!r} must be 1 (the full study) or 0")
+    return text in ("1", "yes", "true")
 
 
 def workers_wanted() -> int:
@@ -392,23 +448,51 @@ def workers_wanted() -> int:
         raise SystemExit(f"{WORKERS_ENV}={text!r} must be a whole number of processes") from None
 
 
-def run(reps: int | None = None, only: list[str] | None = None, keep: Path | None = None) -> dict:
-    """Scan every phantom ``reps`` times, put back each time; return the figures."""
-    count = reps_wanted(reps)
-    workers = workers_wanted()
+def run(
+    reps: int | None = None,
+    only: list[str] | None = None,
+    keep: Path | None = None,
+    full: bool | None = None,
+) -> dict:
+    """Scan every phantom ``reps`` times, put back each time; return the figures.
+
+    The full study (``full``, else ``LAMINA_REPEAT_FULL``) calibrates every scan afresh;
+    the default size scans fewer sections and gives each phantom's first scan's
+    calibration to its other repeats (they are submitted once that scan is done).
+    """
+    count, workers, whole = reps_wanted(reps), workers_wanted(), full_wanted(full)
+    start = time.perf_counter()
     results: dict[str, Any] = {
         "reps": count, "noise": NOISE, "views": VIEWS, "pitch_mm": PITCH_MM,
         "spacing_mm": SPACING_MM, "shift_mm": SHIFT_MM, "tilt_deg": TILT_DEG,
-        "workers": workers,
+        "workers": workers, "full": whole,
+        "calibration": "each scan" if whole else "once per phantom",
     }  # fmt: skip
-    chosen = [(k, p) for k, p in enumerate(PHANTOMS) if not only or p.name in only]
-    jobs = [(phantom, index, rep) for index, phantom in chosen for rep in range(count)]
+    chosen = [
+        (k, p if whole else p.quick()) for k, p in enumerate(PHANTOMS) if not only or p.name in only
+    ]
+    done: dict[tuple[str, int], dict[str, Any]] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(safe_record, p, k, rep, keep): (p.name, rep) for p, k, rep in jobs}
-        done: dict[tuple[str, int], dict[str, Any]] = {}
-        for future in as_completed(futures):
-            done[futures[future]] = future.result()
-            print(f"  {futures[future][0]} {futures[future][1] + 1}/{count}", file=sys.stderr)
+        futures: dict[Future[Any], tuple[Phantom, int, int]] = {}
+
+        def submit(phantom: Phantom, index: int, rep: int, calibration: Raw | None) -> None:
+            future = pool.submit(safe_record, phantom, index, rep, keep, calibration)
+            futures[future] = (phantom, index, rep)
+
+        for index, phantom in chosen:  # the first scans (all of them in the full study)
+            for rep in range(count if whole else 1):
+                submit(phantom, index, rep, None)
+        while futures:
+            future = next(as_completed(futures))
+            phantom, index, rep = futures.pop(future)
+            done[(phantom.name, rep)], calibration = future.result()
+            print(f"  {phantom.name} {rep + 1}/{count}", file=sys.stderr)
+            if not whole and rep == 0:  # the others share this scan's calibration
+                for later in range(1, count):
+                    submit(phantom, index, later, calibration)
+    for rep_key in [(p.name, r) for _, p in chosen for r in range(count)]:
+        done.setdefault(rep_key, {"error": "not scanned: its phantom's first scan failed"})
+    results["wall_s"] = time.perf_counter() - start
     for _, phantom in chosen:
         reps_done = [done[(phantom.name, rep)] for rep in range(count)]
         results[phantom.name] = {
@@ -429,8 +513,12 @@ def _loa(d: dict[str, float], unit: str = "", digits: int = 2) -> str:
 
 def report(results: dict[str, Any]) -> list[str]:
     """Return the table: limits of agreement per phantom, volume then each level."""
+    size = "full study" if results.get("full") else "default size"
     lines = [
-        f"  {results['reps']} scans per phantom; mean difference [95 % limits of agreement]",
+        f"  {results['reps']} scans per phantom ({size}: calibrated "
+        f"{results.get('calibration', 'each scan')}; "
+        f"{results.get('wall_s', math.nan) / 60:.1f} min); "
+        "mean difference [95 % limits of agreement]",
         "  phantom  axes (tt/cl)  volume mL   vs first mL            vs first %"
         "               vs truth %               turntable axis vs truth %  "
         "tilt fit error deg",
@@ -471,10 +559,15 @@ def main() -> int:
     parser.add_argument("--only", action="append", help="only this phantom (arm, stump, leg)")
     parser.add_argument("--keep", type=Path, help="keep the raw scans here (and reuse them)")
     parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
+    parser.add_argument(
+        "--full", action="store_true", default=None,
+        help=f"the full study: 6 sections, each scan calibrated afresh (or ${FULL_ENV}=1)",
+    )  # fmt: skip
     args = parser.parse_args()
     from run import show  # the bench runner beside this file
 
-    show("repeat", sys.modules[__name__], run(args.reps, args.only, args.keep), args.out)
+    figures = run(args.reps, args.only, args.keep, args.full)
+    show("repeat", sys.modules[__name__], figures, args.out)
     return 0
 
 
