@@ -349,7 +349,8 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
         with pytest.raises(StoreError, match="source"):
             library.check_identity(1, {**same, "source": "sim object=sphere:d=25"})
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 5  # 3: colour, 4: side, 5: test
+        # 3: colour, 4: side, 5: test mark, 6: lift reference
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
 
 
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):

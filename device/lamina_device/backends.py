@@ -29,6 +29,7 @@ def open_hardware(
     pin_factory: Factory | None = None,
     rig: str = "thesis",
     sway: str = "none",
+    lift_error_percent: float | None = None,
 ) -> Hardware:
     """Return the hardware named by ``spec``: ``sim``, ``replay:DIR`` or ``pi``.
 
@@ -41,12 +42,16 @@ def open_hardware(
         pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
         rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
         sway: how the simulated object moves while scanned, e.g. ``patient`` (sim only).
+        lift_error_percent: the simulated lift's scale error in % (sim only; None: the
+            noise preset's).
 
     Raises:
         HardwareError: naming what is wrong and what to do.
     """
     if spec == SIM:
-        return open_sim(object_spec, seed, noise, rig, sway=sway)
+        return open_sim(
+            object_spec, seed, noise, rig, sway=sway, lift_error_percent=lift_error_percent
+        )
     if (folder := replay_folder(spec)) is not None:
         if not folder:
             raise HardwareError("replay needs a capture folder: --hardware replay:DIR")

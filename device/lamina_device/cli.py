@@ -78,6 +78,13 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
         help="simulated patient motion during the scan: none (default), patient (1 mm/min "
         "drift, 0.5 mm breathing at 0.25 Hz) or drift=MM_PER_MIN,breath=MM,hz=HZ (sim only)",
     )
+    parser.add_argument(
+        "--lift-error",
+        type=float,
+        metavar="PCT",
+        help="simulated lift scale error in %%, e.g. 0.5 (runs long) or -0.5 (sim only; "
+        "default: the noise preset's, 0.2 %% except with --noise none)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -300,6 +307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.config,
             rig=args.rig,
             sway=args.sway,
+            lift_error_percent=args.lift_error,
         )
     except CaptureError as exc:
         # The first problems one per line, then the summary last: a host that started this

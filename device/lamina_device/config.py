@@ -13,7 +13,7 @@ import math
 import re
 import tomllib
 import typing
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,7 @@ from lamina_device.extract import ExtractSettings, changed_settings
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import Problems, check_extract, check_plan
+from lamina_shared.types import LiftReference
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
 MAX_SPIN_STEP_HZ = 10_000
@@ -193,10 +194,13 @@ class DeviceConfig:
     """Optional ``[device] id``: names this box in the WELCOME instead of the Pi's serial."""
     extract: ExtractSettings = field(default_factory=ExtractSettings)
     """Optional ``[extract]``: the stripe extraction's settings (a scan may change them)."""
+    lift_reference: LiftReference | None = None
+    """Optional ``[lift_reference]``: the calibration cylinder's grooves that calibrate the
+    lift (hardware/calibration-cylinder.md); left out, the lift is trusted."""
 
 
 DEVICE_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
-OPTIONAL_TABLES = ("device", "extract")
+OPTIONAL_TABLES = ("device", "extract", "lift_reference")
 
 
 def default_config_path() -> Path:
@@ -317,6 +321,23 @@ def _extract(table: Any, problems: list[str]) -> ExtractSettings | None:
     return settings
 
 
+LIFT_REFERENCE_KEYS = ("marks_mm", "spacing_mm", "flank_slope", "depth_mm")
+
+
+def _lift_reference(table: Any, problems: list[str]) -> LiftReference | None:
+    """Return the optional ``[lift_reference]``, appending what is wrong with the table."""
+    if table is None:
+        return None
+    if not isinstance(table, dict) or set(table) != set(LIFT_REFERENCE_KEYS):
+        problems.append(f"[lift_reference]: the keys {', '.join(LIFT_REFERENCE_KEYS)} are required")
+        return None
+    try:
+        return LiftReference.from_dict(table)
+    except (TypeError, ValueError) as exc:
+        problems.append(f"[lift_reference]: {exc}")
+        return None
+
+
 def _pin_problems(data: dict[str, Any]) -> list[str]:
     """Return one problem per GPIO pin claimed by more than one setting."""
     owners: dict[int, list[str]] = {}
@@ -324,7 +345,10 @@ def _pin_problems(data: dict[str, Any]) -> list[str]:
         table = data.get(cls_field.name)
         if not isinstance(table, dict):
             continue
-        for spec in fields(typing.get_type_hints(DeviceConfig)[cls_field.name]):
+        kind = typing.get_type_hints(DeviceConfig)[cls_field.name]
+        if not is_dataclass(kind):  # [lift_reference] holds no pins
+            continue
+        for spec in fields(kind):
             value = table.get(spec.name)
             if spec.metadata.get("pin") and isinstance(value, int) and not isinstance(value, bool):
                 owners.setdefault(value, []).append(f"[{cls_field.name}] {spec.name}")
@@ -386,6 +410,14 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
         f"[plan] {text.replace('plan.regular.', '').replace('plan.regular', 'default scan')}"
         for text in dict.fromkeys(found.items)
     )
+    reference = config.lift_reference
+    if reference is not None and not all(
+        lift.min_mm <= z <= lift.max_mm for z in reference.marks_mm
+    ):
+        problems.append(
+            f"[lift_reference] marks_mm {list(reference.marks_mm)} must lie within the lift's "
+            f"{lift.min_mm:g}..{lift.max_mm:g} mm"
+        )
     top_mm = (config.plan.sections - 1) * config.plan.pitch_mm
     if not (lift.min_mm <= 0.0 and top_mm <= lift.max_mm):
         problems.append(
@@ -405,7 +437,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
     tables = {
         f.name: typing.get_type_hints(DeviceConfig)[f.name]
         for f in fields(DeviceConfig)
-        if f.name not in ("device_id", "extract")
+        if f.name not in ("device_id", "extract", "lift_reference")
     }
     problems.extend(
         f"[{key}]: unknown section"
@@ -414,6 +446,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
     )
     device_id = _device_id(data.get("device"), problems)
     extract = _extract(data.get("extract"), problems)
+    lift_reference = _lift_reference(data.get("lift_reference"), problems)
     built: dict[str, Any] = {}
     for name, cls in tables.items():
         if name not in data:
@@ -422,7 +455,10 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> DeviceConfig
         built[name] = _build_table(cls, name, data[name], problems)
     problems.extend(_pin_problems(data))
     if not problems:
-        config = DeviceConfig(**built, device_id=device_id, extract=extract or ExtractSettings())
+        config = DeviceConfig(
+            **built, device_id=device_id, extract=extract or ExtractSettings(),
+            lift_reference=lift_reference,
+        )  # fmt: skip
         problems.extend(_consistency_problems(config))
         if not problems:
             return config

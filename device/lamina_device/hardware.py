@@ -22,7 +22,7 @@ from lamina_device.laser import Laser
 from lamina_device.motion import Lift, StepperLift, StepperTurntable, Turntable
 from lamina_device.safety import LaserWatchdog
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import BoardSpec, ScanPlan
+from lamina_shared.types import BoardSpec, LiftReference, ScanPlan
 
 
 class HardwareError(LaminaError, ValueError):
@@ -61,6 +61,9 @@ class Hardware:
     lift_settle_s: float | None = None
     """The lift's own settle, which a continuous scan waits after each section's lift move
     (the table keeps turning); None: :attr:`settle_s`."""
+    lift_reference: LiftReference | None = None
+    """The calibration cylinder's marks that calibrate the lift (WELCOME ``lift_reference``);
+    the default cylinder plan then holds a section at each (None: the lift is trusted)."""
 
     def place(self, target: str) -> None:
         """Put ``target`` on the turntable (the operator does this on a real scanner)."""
@@ -146,6 +149,8 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         raise
     board = config.board
     plan = config.plan
+    cylinder_plan = ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views)
+    reference = config.lift_reference
     hardware = Hardware(
         "pi",
         camera,
@@ -157,7 +162,7 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         config.cylinder.diameter_mm,
         {
             "object": ScanPlan.regular(plan.sections, plan.pitch_mm, plan.views),
-            "cylinder": ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views),
+            "cylinder": reference.plan(cylinder_plan) if reference else cylinder_plan,
         },
         f"Lamina scanner box, {config.camera.width}x{config.camera.height}, config {source}",
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
@@ -165,5 +170,6 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         lift_settle_s=config.lift.settle_s,
         identity={"serial": config.device_id or pi_serial(), "source": "camera"},
         extract=config.extract,
+        lift_reference=reference,
     )
     return watched(hardware, config.safety.laser_max_on_s, config.safety.link_silence_s)

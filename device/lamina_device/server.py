@@ -112,6 +112,7 @@ class DeviceServer(DeviceEndpoint):
             extract=ExtractChanges(tuple(dataclasses.asdict(hw.extract).items())),
             colour=camera_has_colour(hw.camera),
             modes=scan_modes(hw),
+            lift_reference=hw.lift_reference,
         )
 
     def _welcome_plans(self) -> dict[str, ScanPlan]:

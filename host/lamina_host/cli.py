@@ -83,7 +83,7 @@ from lamina_host.workflow.batch import (
 )
 from lamina_host.workflow.exports import ALL_FORMATS, dicom_export, export_scan
 from lamina_host.workflow.job import Acquired, DeviceTarget, ScanJob, ScanRequest, acquire
-from lamina_host.workflow.results import distortion_summary, mesh_summary
+from lamina_host.workflow.results import distortion_summary, lift_summary, mesh_summary
 from lamina_shared.device_specs import SIM, replay_folder, spawns_device
 from lamina_shared.durations import duration_text
 from lamina_shared.errors import InputError, LaminaError, printable
@@ -755,6 +755,7 @@ def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
         f"axis: ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm, correction "
         f"factor {report.correction_factor:.5f}"
     )
+    print(f"lift: {lift_summary(report.lift)}")
     table = report.accuracy.table if report.accuracy is not None else None
     accuracy = {r.section: r for r in table.rows} if table is not None else {}
     header = "section  z_mm  points  harmonics  cover%  status      "

@@ -29,7 +29,7 @@ from lamina_shared.ops import (
     is_int,
 )
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
-from lamina_shared.types import SCAN_MODES, BoardSpec, ScanPlan
+from lamina_shared.types import SCAN_MODES, BoardSpec, LiftReference, ScanPlan
 
 MAX_LOST_SEQS = 64
 """Earlier plan indices one ACK names as lost (the device resends them at once)."""
@@ -350,6 +350,8 @@ class Welcome:
     """The device samples colour per point (absent on devices before the extension)."""
     modes: tuple[str, ...] = SCAN_MODES[:1]
     """The scan modes the device can run (``stop-and-go`` only from a device before them)."""
+    lift_reference: LiftReference | None = None
+    """The marks on its calibration cylinder that calibrate the lift (None: it has none)."""
 
     def to_wire(self) -> dict[str, Any]:
         """Return the JSON body the device sends."""
@@ -371,6 +373,7 @@ class Welcome:
             "extract": self.extract.to_wire() if self.extract else None,
             "colour": self.colour,
             "modes": list(self.modes),
+            "lift_reference": self.lift_reference.to_dict() if self.lift_reference else None,
         }
 
     @classmethod
@@ -414,6 +417,7 @@ class Welcome:
             _extract(data.get("extract"), problems),
             data.get("colour") is True,
             _modes(data.get("modes"), problems),
+            _lift_reference(data.get("lift_reference"), problems),
         )
         if problems.items:
             raise MessageError("WELCOME", problems.items)
@@ -439,6 +443,16 @@ def _board(value: Any, problems: Problems) -> BoardSpec | None:
         return BoardSpec.from_dict(value)
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
         problems.add(f"welcome.board: unusable ({show(str(exc))})")
+        return None
+
+
+def _lift_reference(value: Any, problems: Problems) -> LiftReference | None:
+    if value is None:
+        return None
+    try:
+        return LiftReference.from_dict(value)
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        problems.add(f"welcome.lift_reference: unusable ({show(str(exc))})")
         return None
 
 

@@ -216,6 +216,80 @@ class BoardSpec:
         return cls((nx, ny), float(data["square_mm"]), (ox, oy))
 
 
+LIFT_REFERENCE_VIEWS = 8
+"""Views of each lift reference section, evenly round the turn: a cylinder that stands a
+little off upright reads the flank's mean height (its lean cancels round a turn), and the
+stripe on a 45 degree flank is wide and noisy (0.5 mm per point on the limb rig, harsh):
+eight views measure its radius to about 0.015 mm, four to about 0.03 mm."""
+
+
+@dataclass(frozen=True)
+class LiftReference:
+    """Two marks on the calibration cylinder a known distance apart: the lift's length standard.
+
+    Each mark is a V-groove turned round the cylinder; the lift sections meet the middle of
+    each groove's lower flank, a cone on which the measured radius says how high the laser
+    sheet really is. Both grooves are cut alike, so a bias in the measured radius cancels
+    between them. ``marks_mm`` are the lift heights (as commanded) that meet the middle of
+    each lower flank, from the box's drawings; ``spacing_mm`` is the certified distance
+    between the two grooves; ``flank_slope`` the radius the flank loses per mm of height (1
+    for a 90 degree V); ``depth_mm`` the groove's depth (for the check that the sheet met
+    the flank's straight middle).
+    """
+
+    marks_mm: tuple[float, float]
+    spacing_mm: float
+    flank_slope: float = 1.0
+    depth_mm: float = 5.0
+
+    def __post_init__(self) -> None:
+        numbers = (*self.marks_mm, self.spacing_mm, self.flank_slope, self.depth_mm)
+        if len(self.marks_mm) != 2 or not all(math.isfinite(v) for v in numbers):
+            raise ValueError("a lift reference needs two mark heights and finite numbers")
+        low, high = self.marks_mm
+        if not (high > low and self.spacing_mm > 0 and self.flank_slope > 0 and self.depth_mm > 0):
+            raise ValueError(
+                "a lift reference needs its upper mark above the lower one and a positive "
+                "spacing, flank slope and groove depth"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form (WELCOME ``lift_reference``, the library's calibration)."""
+        return {
+            "marks_mm": list(self.marks_mm),
+            "spacing_mm": self.spacing_mm,
+            "flank_slope": self.flank_slope,
+            "depth_mm": self.depth_mm,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LiftReference:
+        """Build a reference from its JSON form.
+
+        Raises:
+            ValueError, KeyError, TypeError: the data are not a usable reference.
+        """
+        low, high = (float(v) for v in data["marks_mm"])
+        return cls(
+            (low, high),
+            float(data["spacing_mm"]),
+            float(data.get("flank_slope", 1.0)),
+            float(data.get("depth_mm", 5.0)),
+        )
+
+    def plan(self, cylinder: ScanPlan) -> ScanPlan:
+        """Return ``cylinder``'s plan with one section at each mark, ``LIFT_REFERENCE_VIEWS``
+        views evenly round the turn, after its own sections."""
+        first = max(v.section for v in cylinder.views) + 1
+        step = 360.0 / LIFT_REFERENCE_VIEWS
+        extra = tuple(
+            ViewSpec(first + k, z, round(v * step, 9))
+            for k, z in enumerate(self.marks_mm)
+            for v in range(LIFT_REFERENCE_VIEWS)
+        )
+        return ScanPlan(cylinder.views + extra)
+
+
 def _unknown_confidence() -> np.ndarray:
     return np.zeros(0, np.uint8)
 

@@ -10,9 +10,10 @@ the EFD sections stored in report.json (PCHIP along z, the clinical default):
   over the same range (the true shape's cross-section areas integrated between the true
   heights of the first and last section, 0.5 mm Simpson steps); ``linear %`` is the same
   with the EFD coefficients interpolated linearly (straight joins between sections);
-- ``lift %``: the scanned range as the host knows it (commanded heights) against the true
-  range: the lift's scale error, which the host trusts (it has no reference along z);
-  ``vol - lift %`` is the volume error with that share taken out, the host's own;
+- ``lift %``: the scanned range as the host knows it (the commanded heights times the
+  lift's scale it measured on the calibration cylinder's grooves) against the true range:
+  what is left of the lift's 0.2 % scale error (``cal %``: the scale error the host
+  measured); ``vol - lift %`` is the volume error with that share taken out;
 - ``max |dC| mm``: at every level, 20 mm apart from the distal end, the measured
   circumference minus the true outline's perimeter at the level's true height;
 - ``surf mm``: mean distance of points.ply (the EFD contours) to the true surface after
@@ -114,13 +115,19 @@ def measure(spec: str, report: dict[str, Any], spacing_mm: float = SPACING_MM) -
     """Compare one scan's clinical measurements (levels ``spacing_mm`` apart) with the truth."""
     obj = parse_object(spec)
     mechanics = Mechanics.preset(NOISE)
+    lift = report.get("lift", {})
+    scale = lift["scale"] if lift.get("applied") else 1.0
+
+    def true_z(z_mm: float) -> float:  # the host's height back to the commanded one
+        return mechanics.true_z_mm(z_mm / scale)
+
     m = measure_limb(sections_from_report(report), spacing_mm)
     lo, hi = m.coverage_mm
-    true_lo, true_hi = mechanics.true_z_mm(lo), mechanics.true_z_mm(hi)
+    true_lo, true_hi = true_z(lo), true_z(hi)
     truth = true_volume_mm3(obj, true_lo, true_hi)
     levels = []
     for level in m.levels:
-        true_c = true_circumference_mm(obj, mechanics.true_z_mm(level.z_mm))
+        true_c = true_circumference_mm(obj, true_z(level.z_mm))
         levels.append(
             {
                 "offset_mm": level.offset_mm,
@@ -133,15 +140,16 @@ def measure(spec: str, report: dict[str, Any], spacing_mm: float = SPACING_MM) -
         )
     linear = measure_limb(sections_from_report(report), spacing_mm, interpolation="linear")
     mesh_mm3 = report.get("mesh", {}).get("topology", {}).get("volume_mm3")
-    lift = (hi - lo) / (true_hi - true_lo) - 1.0
+    span = (hi - lo) / (true_hi - true_lo) - 1.0
     return {
         "range_mm": [lo, hi],
         "volume_ml": m.volume_mm3 / 1000.0,
         "true_volume_ml": truth / 1000.0,
         "volume_error_percent": 100.0 * (m.volume_mm3 - truth) / truth,
         "linear_volume_error_percent": 100.0 * (linear.volume_mm3 - truth) / truth,
-        "lift_span_error_percent": 100.0 * lift,
-        "volume_error_without_lift_percent": 100.0 * (m.volume_mm3 / (1.0 + lift) - truth) / truth,
+        "lift_span_error_percent": 100.0 * span,
+        "lift_measured_percent": 100.0 * (scale - 1.0),
+        "volume_error_without_lift_percent": 100.0 * (m.volume_mm3 / (1.0 + span) - truth) / truth,
         "mesh_vs_stack_percent": (
             100.0 * (mesh_mm3 - m.volume_mm3) / m.volume_mm3 if mesh_mm3 else None
         ),
@@ -180,8 +188,8 @@ def report(results: dict[str, Any]) -> list[str]:
     """Return the table lines: volume, circumference and surface errors per phantom."""
     lines = [
         f"  {results.get('config', 'full')} set",
-        "  object     range mm   volume mL  true mL   vol %  linear %  lift %  vol-lift %  "
-        "max |dC| mm  surf mm (direct)  mesh-stack %",
+        "  object     range mm   volume mL  true mL   vol %  linear %  cal %   lift %  "
+        "vol-lift %  max |dC| mm  surf mm (direct)  mesh-stack %",
     ]
     for name in (k for k in results if isinstance(results[k], dict)):
         row = results[name]
@@ -194,6 +202,7 @@ def report(results: dict[str, Any]) -> list[str]:
             f"  {name:<9} {row['range_mm'][0]:5.1f}-{row['range_mm'][1]:5.1f}  "
             f"{row['volume_ml']:9.2f} {row['true_volume_ml']:8.2f}  "
             f"{row['volume_error_percent']:+6.3f}  {row['linear_volume_error_percent']:+7.3f}  "
+            f"{row.get('lift_measured_percent', 0.0):+6.3f}  "
             f"{row['lift_span_error_percent']:+6.3f}  "
             f"{row['volume_error_without_lift_percent']:+9.3f}  "
             f"{row['max_abs_circumference_error_mm']:11.3f}  "

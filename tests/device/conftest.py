@@ -12,6 +12,7 @@ bright as the laser pin's recorded history says it was during each row's exposur
 from __future__ import annotations
 
 import itertools
+import json
 import sys
 import time
 import types
@@ -78,6 +79,11 @@ def config_toml(config: DeviceConfig) -> str:
         if table == "device_id":  # the optional [device] table, not a table field
             if values is not None:
                 lines.append(f'[device]\nid = "{values}"')
+            continue
+        if table == "lift_reference":  # the optional [lift_reference] table
+            if values is not None:
+                lines.append("[lift_reference]")
+                lines += [f"{k} = {json.dumps(v)}" for k, v in values.to_dict().items()]
             continue
         lines.append(f"[{table}]")
         for key, value in values.__dict__.items():

@@ -151,3 +151,24 @@ def test_a_continuous_speed_beyond_the_pulse_timer_or_a_readout_beyond_the_frame
     text = str(caught.value)
     assert "continuous_speed_deg_s 600 asks for 10667 steps/s" in text
     assert "readout_us 9000 must fit in frame_duration_us 8333" in text
+
+
+def test_the_lift_reference_is_an_optional_table_checked_whole():
+    """``[lift_reference]`` (the calibration cylinder's grooves): left out, none; given, the
+    four keys, its marks in order and inside the lift's travel, else one line each."""
+    from lamina_shared.types import LiftReference
+
+    data = tomllib.loads(default_config_path().read_text())
+    assert parse_config(data).lift_reference is None
+    reference = {"marks_mm": [22.5, 122.5], "spacing_mm": 100.0, "flank_slope": 1.0,
+                 "depth_mm": 5.0}  # fmt: skip
+    data["lift_reference"] = reference
+    assert parse_config(data).lift_reference == LiftReference((22.5, 122.5), 100.0, 1.0, 5.0)
+    for wrong, says in (
+        ({"marks_mm": [22.5], "spacing_mm": 100.0}, "the keys marks_mm, spacing_mm"),
+        (reference | {"marks_mm": [122.5, 22.5]}, "upper mark above the lower one"),
+        (reference | {"marks_mm": [22.5, 222.5]}, "must lie within the lift's 0..150 mm"),
+    ):
+        data["lift_reference"] = wrong
+        with pytest.raises(ConfigError, match=says):
+            parse_config(data)

@@ -126,3 +126,51 @@ def test_a_phantom_renders_a_stripe_on_the_limb_rig_when_scaled():
     on = scene.render("object", 0.0, 20.0, True).astype(int)
     off = scene.render("object", 0.0, 20.0, False)
     assert np.sum((on - off).max(axis=0) > 50) > 300  # hundreds of columns hold the stripe
+
+
+def test_a_tilted_placement_leans_the_object_and_its_own_frame_undoes_it():
+    """``tilt=3,tilt_dir=90`` leans the arm's axis 3 deg towards +y about the origin, after
+    the yaw and before the shift; :meth:`Placement.own_frame` takes it back."""
+    from lamina_device.sim.objects import Placement
+
+    upright = parse_object("arm:scale=5,yaw=30")
+    tilted = parse_object("arm:scale=5,yaw=30,tilt=3,tilt_dir=90,x=7,y=-4,z=2")
+    placement = Placement(5.0, 30.0, (7.0, -4.0, 2.0), 3.0, 90.0)
+    own = placement.own_frame(tilted.vertices)
+    assert placement.apply(own) == pytest.approx(tilted.vertices)
+    own = own * 5.0  # the scaled arm, upright and unmoved
+    # The top ring's centre (100 mm up the arm's own axis) moves towards +y by h sin t.
+    top = upright.vertices[:, 2].max()
+    centre = tilted.vertices[np.abs(own[:, 2] - top) < 1e-6].mean(axis=0)
+    t = np.radians(3.0)
+    assert centre == pytest.approx([7.0, -4.0 + top * np.sin(t), 2.0 + top * np.cos(t)], abs=1e-6)
+    assert np.sort(own[:, 2]) == pytest.approx(np.sort(upright.vertices[:, 2]), abs=1e-6)
+    # Leant about a pivot up its axis instead, the pivot's point stays where it was.
+    pivoted = Placement(5.0, 30.0, (7.0, -4.0, 2.0), 3.0, 90.0, 60.0)
+    assert pivoted.apply(np.array([0.0, 0.0, 12.0])) == pytest.approx([7.0, -4.0, 62.0])
+    assert pivoted.own_frame(pivoted.apply(own / 5.0)) == pytest.approx(own / 5.0)
+    lean = parse_object("arm:scale=5,yaw=30,tilt=3,tilt_dir=90,pivot=60,x=7,y=-4,z=2")
+    assert lean.vertices == pytest.approx(pivoted.apply(own / 5.0))
+    # The true section of the placed mesh is its own slice: every point on the surface.
+    (cut,) = tilted.section_outline(42.0)
+    assert np.abs(cut[:, 0] - 7.0).max() < 45.0 and len(cut) > 100
+
+
+def test_tilt_is_refused_where_an_object_stands_upright_and_random_shapes_take_placement():
+    """The solids refuse tilt= in one line; a random shape moves by the placement keys."""
+    with pytest.raises(ValueError, match="stands upright"):
+        parse_object("cylinder:d=20,tilt=2")
+    with pytest.raises(ValueError, match="tilt_dir= needs tilt="):
+        parse_object("stump:tilt_dir=30")
+    with pytest.raises(ValueError, match="pivot= needs tilt="):
+        parse_object("stump:pivot=30")
+    with pytest.raises(ValueError, match=r"outside 0\.\.60 deg"):
+        parse_object("stump:tilt=61")
+    shape = parse_object("random:seed=101,scale=limb")
+    moved = parse_object("random:seed=101,scale=limb,x=5,tilt=2,tilt_dir=180")
+    assert moved.features == shape.features and len(moved.faces) == len(shape.faces)
+    t = np.radians(2.0)  # leant towards -x about the origin, then moved 5 mm along +x
+    x, y, z = shape.vertices.T
+    assert moved.vertices == pytest.approx(
+        np.column_stack([x * np.cos(t) - z * np.sin(t) + 5.0, y, z * np.cos(t) + x * np.sin(t)])
+    )

@@ -190,7 +190,7 @@ def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):
         with pytest.raises(StoreError, match="no scan"):
             lib.set_side(99, "left")
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 5
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
         after = [tuple(r)[:-2] for r in db.execute("SELECT * FROM scans WHERE id < ?", (third,))]
         assert after == before
         assert db.execute("SELECT data FROM segments").fetchall() == held
@@ -224,7 +224,7 @@ def test_a_schema_4_library_gains_the_test_mark_and_loses_nothing(tmp_path):
         with pytest.raises(StoreError, match="no scan"):
             lib.set_test(99)
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 5
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
         assert [tuple(r)[:-1] for r in db.execute("SELECT * FROM scans ORDER BY id")] == before
 
 

@@ -18,7 +18,7 @@ import hashlib
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from lamina_device.config import DeviceConfig, load_config
 from lamina_device.motion import (
@@ -34,10 +34,20 @@ from lamina_device.motion import (
 from lamina_device.timing import frame_wait_s, lift_move_s, turntable_move_s
 from lamina_shared.presets import make_preset
 
-__all__ = ["SIM_LIFT_TRAVEL_MM", "Mechanics", "SimClock", "SimLift", "SimTurntable"]
+__all__ = [
+    "MAX_LIFT_ERROR_PERCENT",
+    "SIM_LIFT_TRAVEL_MM",
+    "Mechanics",
+    "SimClock",
+    "SimLift",
+    "SimTurntable",
+]
 
 SIM_LIFT_TRAVEL_MM = 200.0
 """The simulated lift's travel above its home (z = 0)."""
+
+MAX_LIFT_ERROR_PERCENT = 5.0
+"""Largest lift scale error the simulator takes (``--lift-error``)."""
 
 
 @dataclass
@@ -124,6 +134,20 @@ class Mechanics:
             "none": cls.ideal,
         }
         return make_preset("noise", noise, makers)
+
+    def with_lift_error(self, percent: float) -> Mechanics:
+        """Return these mechanics with the lift running ``percent`` % long (negative: short).
+
+        Raises:
+            ValueError: a value that is not a finite number within
+                +-:data:`MAX_LIFT_ERROR_PERCENT`.
+        """
+        if not (math.isfinite(percent) and abs(percent) <= MAX_LIFT_ERROR_PERCENT):
+            raise ValueError(
+                f"lift error {percent} % must be a number within +-{MAX_LIFT_ERROR_PERCENT:g} % "
+                "(a leadscrew's pitch error is a fraction of a percent)"
+            )
+        return replace(self, lift_scale_error=percent / 100.0)
 
     def true_angle_deg(self, commanded_deg: float) -> float:
         """Return where the turntable really is when told ``commanded_deg``."""

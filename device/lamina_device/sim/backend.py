@@ -56,11 +56,13 @@ def open_sim(
     rig_name: str = "thesis",
     rig: Rig | None = None,
     sway: str = "none",
+    lift_error_percent: float | None = None,
 ) -> Hardware:
     """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it.
 
     ``rig``, when given, replaces the preset (tests scan small, low-resolution variants).
     ``sway`` moves the object during the scan (:func:`lamina_device.sim.sway.parse_sway`).
+    ``lift_error_percent`` replaces the preset's lift scale error (``--lift-error``).
     """
     spec = object_spec or DEFAULT_OBJECT
     try:
@@ -70,6 +72,8 @@ def open_sim(
     try:
         noise_model = NoiseModel.preset(noise)
         mechanics = Mechanics.preset(noise)
+        if lift_error_percent is not None:
+            mechanics = mechanics.with_lift_error(lift_error_percent)
         rig = rig if rig is not None else Rig.preset(rig_name)
         motion = parse_sway(sway, seed)
     except ValueError as exc:
@@ -83,6 +87,8 @@ def open_sim(
     turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
     camera = SimCamera(scene, stage, turntable, lift, laser, motion)
+    reference = rig.lift_reference()
+    cylinder_plan = reference.plan(DEFAULT_CYLINDER_PLAN) if reference else DEFAULT_CYLINDER_PLAN
     hardware = Hardware(
         "sim",
         camera,
@@ -92,7 +98,7 @@ def open_sim(
         stage,
         rig.board,
         rig.cylinder_diameter_mm,
-        {"object": DEFAULT_PLAN, "cylinder": DEFAULT_CYLINDER_PLAN},
+        {"object": DEFAULT_PLAN, "cylinder": cylinder_plan},
         f"simulated {rig_name} rig, object {spec}, seed {seed}, noise {noise}",
         settle_s=clock.settle_s,
         timing=clock.config,
@@ -100,5 +106,6 @@ def open_sim(
         sleep=clock.advance,
         clock_ns=clock.now_ns,
         lift_settle_s=clock.config.lift.settle_s,
+        lift_reference=reference,
     )
     return watched(hardware)

@@ -8,6 +8,7 @@ cross-section at height ``z`` (for the laser-visibility test and as ground truth
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 from dataclasses import dataclass, field
@@ -19,15 +20,18 @@ import numpy as np
 __all__ = [
     "Cylinder",
     "Ellipsoid",
+    "Revolved",
     "SceneObject",
     "SectionCurve",
     "TriangleMesh",
     "cylinder",
     "ellipsoid",
+    "grooved_cylinder",
     "load_mesh",
     "section_curves",
     "section_edges",
     "sphere",
+    "tilt_matrix",
 ]
 
 OUTLINE_VERTICES = 4096
@@ -65,21 +69,68 @@ def _yaw_matrix(yaw_deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def tilt_matrix(tilt_deg: float, toward_deg: float) -> np.ndarray:
+    """Return the 3x3 rotation that leans +z by ``tilt_deg`` towards azimuth ``toward_deg``.
+
+    The rotation is about the horizontal axis at right angles to the azimuth, so a point
+    on +z moves towards ``(cos toward, sin toward)`` and nothing turns about z.
+    """
+    t, d = math.radians(tilt_deg), math.radians(toward_deg)
+    k = np.array([-math.sin(d), math.cos(d), 0.0])  # z x (cos d, sin d, 0)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(t) * cross + (1.0 - math.cos(t)) * (cross @ cross)
+
+
 @dataclass(frozen=True)
 class Placement:
-    """Where a mesh object stands: scaled about its origin, yawed, then shifted."""
+    """Where a mesh object stands: scaled about its origin, yawed, tilted, then shifted.
+
+    ``yaw_deg`` turns the object about its own vertical axis; ``tilt_deg`` then leans that
+    axis towards azimuth ``tilt_dir_deg`` about the point of the axis ``pivot_mm`` above
+    the origin (scaled mm: where a limb put back on the turntable not quite upright is
+    held); ``shift_mm`` moves it last.
+    """
 
     scale: float = 1.0
     yaw_deg: float = 0.0
     shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tilt_deg: float = 0.0
+    tilt_dir_deg: float = 0.0
+    pivot_mm: float = 0.0
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Return the 3x3 rotation of the placement (yaw, then tilt)."""
+        return tilt_matrix(self.tilt_deg, self.tilt_dir_deg) @ _yaw_matrix(self.yaw_deg)
+
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Return where the object's origin lands: the shift, and the pivot's lean."""
+        pivot = np.array([0.0, 0.0, self.pivot_mm])
+        return pivot - self.rotation @ pivot + np.asarray(self.shift_mm)
 
     def apply(self, tris: np.ndarray) -> np.ndarray:
-        """Return triangles (F, 3, 3) given in the object's own frame, placed."""
-        return (tris * self.scale) @ _yaw_matrix(self.yaw_deg).T + np.asarray(self.shift_mm)
+        """Return triangles (F, 3, 3) (or points (..., 3)) given in the object's own frame,
+        placed."""
+        return (np.asarray(tris) * self.scale) @ self.rotation.T + self.offset_mm
+
+    def own_frame(self, points_mm: np.ndarray) -> np.ndarray:
+        """Return placed points (..., 3) in the object's own frame (the inverse of apply)."""
+        moved = np.asarray(points_mm, dtype=float) - self.offset_mm
+        return moved @ self.rotation / self.scale
 
 
 AS_BUILT = Placement()
 """No scale, yaw or shift: the object where its own frame puts it."""
+
+
+def _near_axis(o: np.ndarray, d: np.ndarray, x: float, y: float, radius: float) -> np.ndarray:
+    """Return the indices of the rays whose line passes within ``radius`` of the vertical line
+    through ``(x, y)``: the only ones that can meet a solid of revolution that wide (most of
+    a camera's rays do not)."""
+    rx, ry = o[:, 0] - x, o[:, 1] - y
+    dxy = d[:, 0] ** 2 + d[:, 1] ** 2
+    return np.flatnonzero((rx * d[:, 1] - ry * d[:, 0]) ** 2 <= radius * radius * dxy)
 
 
 def _smallest_positive(*candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +154,14 @@ class Cylinder:
     def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the first hit t (N,) and outward normals (N, 3) of the wall and both caps."""
         o, d = _as_rays(origins, dirs)
+        near = _near_axis(o, d, self.x_mm, self.y_mm, self.diameter_mm / 2.0)
+        best, normal = np.full(len(d), np.inf), np.zeros_like(d)
+        if near.size:
+            best[near], normal[near] = self._cast(o[near], d[near])
+        return best, normal
+
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t and outward normals of rays (N, 3) that may meet it."""
         r = self.diameter_mm / 2.0
         z0, z1 = self.z_mm, self.z_mm + self.height_mm
         ox, oy = o[:, 0] - self.x_mm, o[:, 1] - self.y_mm
@@ -703,6 +762,99 @@ def cylinder(
 ) -> Cylinder:
     """Return an upright cylinder whose base centre sits at ``(x, y, z)``."""
     return Cylinder(diameter_mm, height_mm, x, y, z)
+
+
+@dataclass(frozen=True)
+class Revolved:
+    """A solid of revolution about the vertical line through ``(x, y)``: flat end faces at
+    the first and last heights of ``profile``, a wall of cylinders and cones between them.
+
+    ``profile`` holds (z, r) pairs, z rising strictly; the radius runs linearly between
+    them. Ray casts and sections are exact (no facets).
+    """
+
+    profile: tuple[tuple[float, float], ...]
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    name: str = "revolved"
+
+    def radius_at(self, z_mm: float) -> float:
+        """Return the wall's radius at height ``z_mm`` (NaN above or below the solid)."""
+        z = [p[0] for p in self.profile]
+        if not z[0] <= z_mm <= z[-1]:
+            return math.nan
+        return float(np.interp(z_mm, z, [p[1] for p in self.profile]))
+
+    def raycast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t (N,) and outward normals (N, 3) of the wall and end faces."""
+        o, d = _as_rays(origins, dirs)
+        best = np.full(len(d), np.inf)
+        normal = np.zeros_like(d)
+        near = _near_axis(o, d, self.x_mm, self.y_mm, max(r for _, r in self.profile))
+        if near.size:
+            t, n = self._cast(o[near], d[near])
+            best[near], normal[near] = t, n
+        return best, normal
+
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first hit t and unit outward normals of rays (N, 3) near the solid."""
+        ox, oy, oz = o[:, 0] - self.x_mm, o[:, 1] - self.y_mm, o[:, 2]
+        best = np.full(len(d), np.inf)
+        normal = np.zeros_like(d)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for (z0, r0), (z1, r1) in itertools.pairwise(self.profile):
+                s = (r1 - r0) / (z1 - z0)  # dr/dz of this piece
+                k = r0 - s * z0 + s * oz  # the piece's radius at the ray's origin height
+                a = d[:, 0] ** 2 + d[:, 1] ** 2 - (s * d[:, 2]) ** 2
+                b = 2.0 * (ox * d[:, 0] + oy * d[:, 1] - s * d[:, 2] * k)
+                c = ox**2 + oy**2 - k * k
+                root = np.sqrt(np.where(b * b - 4.0 * a * c >= 0.0, b * b - 4.0 * a * c, np.nan))
+                for t in ((-b - root) / (2.0 * a), (-b + root) / (2.0 * a)):
+                    z = oz + t * d[:, 2]
+                    ok = (t > _EPS_T_MM) & (z >= z0) & (z <= z1) & (k + s * t * d[:, 2] >= 0.0)
+                    closer = ok & (t < best)
+                    best = np.where(closer, t, best)
+                    hx, hy = ox + t * d[:, 0], oy + t * d[:, 1]
+                    wall = np.stack([hx, hy, -s * (k + s * t * d[:, 2])], axis=1)
+                    normal = np.where(closer[:, None], wall, normal)
+            for zc, rc, up in ((*self.profile[0], -1.0), (*self.profile[-1], 1.0)):
+                t = (zc - oz) / d[:, 2]
+                px, py = ox + t * d[:, 0], oy + t * d[:, 1]
+                closer = (t > _EPS_T_MM) & (px * px + py * py <= rc * rc) & (t < best)
+                best = np.where(closer, t, best)
+                normal = np.where(closer[:, None], np.array([0.0, 0.0, up]), normal)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        return best, normal
+
+    def section_outline(self, z_mm: float) -> list[np.ndarray]:
+        """Return the circle at height ``z_mm`` as one CCW polygon, or [] above or below."""
+        r = self.radius_at(z_mm)
+        if not r > 0.0:
+            return []
+        phi = np.linspace(0.0, 2.0 * np.pi, OUTLINE_VERTICES, endpoint=False)
+        return [np.stack([self.x_mm + r * np.cos(phi), self.y_mm + r * np.sin(phi)], axis=1)]
+
+
+def grooved_cylinder(
+    diameter_mm: float,
+    height_mm: float,
+    x: float,
+    y: float,
+    z: float,
+    grooves_mm: tuple[float, ...],
+    depth_mm: float,
+) -> Revolved:
+    """Return an upright cylinder (base centre ``(x, y, z)``) with 90 degree V-grooves.
+
+    Each groove is centred at a height in ``grooves_mm`` (object frame), ``depth_mm`` deep
+    and twice as wide: its flanks are 45 degree cones.
+    """
+    r = diameter_mm / 2.0
+    profile = [(z, r)]
+    for g in sorted(grooves_mm):
+        profile += [(g - depth_mm, r), (g, r - depth_mm), (g + depth_mm, r)]
+    profile.append((z + height_mm, r))
+    return Revolved(tuple(profile), x, y, name="grooved cylinder")
 
 
 def sphere(diameter_mm: float, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> Ellipsoid:

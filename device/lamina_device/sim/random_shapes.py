@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from lamina_device.sim.axes import SIM_LIFT_TRAVEL_MM
-from lamina_device.sim.objects import TriangleMesh
+from lamina_device.sim.objects import TriangleMesh, tilt_matrix
 
 __all__ = ["SCALES", "RandomShape", "ShapeFeatures", "parse_random_spec", "random_shape"]
 
@@ -249,11 +249,9 @@ def _reach_mm(part: _Part) -> float:
 
 
 def _rotation(tilt_deg: float, tilt_dir_rad: float, yaw_rad: float) -> np.ndarray:
-    """Return the 3x3 rotation: tilt about a horizontal axis, then yaw about z."""
-    ax = np.array([math.cos(tilt_dir_rad), math.sin(tilt_dir_rad), 0.0])
-    t = math.radians(tilt_deg)
-    k = np.array([[0.0, -ax[2], ax[1]], [ax[2], 0.0, -ax[0]], [-ax[1], ax[0], 0.0]])
-    tilt = np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+    """Return the 3x3 rotation: tilt about the horizontal axis at ``tilt_dir_rad``, then yaw."""
+    # Turning about the axis at azimuth d leans +z towards d - 90 degrees.
+    tilt = tilt_matrix(tilt_deg, math.degrees(tilt_dir_rad) - 90.0)
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return yaw @ tilt
@@ -474,7 +472,10 @@ def parse_random_spec(body: str, form: str) -> RandomShape:
         if not eq or not value:
             raise ValueError(f"random: {part!r} is not key=value; expected e.g. {form}")
         if key not in ("seed", "scale"):
-            raise ValueError(f"random: unknown key {key!r}; accepted: scale, seed (e.g. {form})")
+            raise ValueError(
+                f"random: unknown key {key!r}; accepted: scale, seed and the placement keys "
+                f"x, y, z, yaw, tilt, tilt_dir (e.g. {form})"
+            )
         if key in fields:
             raise ValueError(f"random: key {key!r} given twice; expected e.g. {form}")
         fields[key] = value

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from lamina_device.sim.objects import SceneObject, cylinder, section_edges
+from lamina_device.sim.objects import SceneObject, cylinder, grooved_cylinder, section_edges
 from lamina_device.sim.rig import Rig
 from lamina_device.sim.texture import Textured
 from lamina_shared.presets import NOISE_PRESETS, make_preset
@@ -404,7 +404,12 @@ class SimScene:
         self.obj = obj
         self.seed = seed
         ox, oy = rig.cylinder_offset_mm
-        self.cylinder: SceneObject = cylinder(rig.cylinder_diameter_mm, 40.0, ox, oy, -5.0)
+        d, h = rig.cylinder_diameter_mm, rig.cylinder_height_mm
+        self.cylinder: SceneObject = (
+            grooved_cylinder(d, h, ox, oy, -5.0, rig.cylinder_grooves_mm, rig.groove_depth_mm)
+            if rig.cylinder_grooves_mm
+            else cylinder(d, h, ox, oy, -5.0)
+        )
         w, h = rig.image_size
         self._shape = (h, w)
         self._centre, dirs = rig.pixel_rays()

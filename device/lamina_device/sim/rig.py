@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lamina_shared.presets import RIG_PRESETS, make_preset
-from lamina_shared.types import BoardSpec
+from lamina_shared.types import BoardSpec, LiftReference
 
 __all__ = ["RIG_PRESETS", "Rig"]
 
@@ -40,6 +40,12 @@ class Rig:
     board: BoardSpec = BoardSpec((13, 11), 2.0, (-12.0, -10.0))  # noqa: RUF009 (frozen)
     cylinder_diameter_mm: float = 19.05
     cylinder_offset_mm: tuple[float, float] = (1.5, -0.8)
+    cylinder_height_mm: float = 40.0
+    """The calibration cylinder stands on its base 5 mm below the first section."""
+    cylinder_grooves_mm: tuple[float, ...] = ()
+    """Heights of the centres of the cylinder's two V-grooves, the lift's length standard
+    (:class:`~lamina_shared.types.LiftReference`); none: the lift is trusted."""
+    groove_depth_mm: float = 5.0
     # Radial lens distortion, the division model the host calibration fits (Fitzgibbon):
     # a pixel at distorted offset d from the image centre sees the undistorted pinhole
     # pixel centre + d / (1 + k (|d| / R)^2), R the half diagonal. 0 is a pinhole; k < 0
@@ -64,7 +70,22 @@ class Rig:
             board=BoardSpec((13, 9), 12.0, (-72.0, -48.0)),
             cylinder_diameter_mm=60.0,
             cylinder_offset_mm=(10.0, -6.0),
+            # A 185 mm pipe with two grooves 140 mm apart: the lift's length standard.
+            cylinder_height_mm=185.0,
+            cylinder_grooves_mm=(25.0, 165.0),
         )
+
+    def lift_reference(self) -> LiftReference | None:
+        """Return the lift reference the cylinder's grooves give (None without grooves).
+
+        The lift sections meet the middle of each groove's lower flank, half its depth
+        below the groove's centre (a 90 degree V: the flank is as tall as it is deep).
+        """
+        if len(self.cylinder_grooves_mm) != 2:
+            return None
+        low, high = sorted(self.cylinder_grooves_mm)
+        half = self.groove_depth_mm / 2.0
+        return LiftReference((low - half, high - half), high - low, 1.0, self.groove_depth_mm)
 
     @classmethod
     def preset(cls, name: str) -> Rig:

@@ -673,6 +673,7 @@ def csv_fields(unit: str) -> tuple[str, ...]:
         f"range_from_{unit}", f"range_to_{unit}", "volume_ml", "compared_volume_ml",
         "difference_ml", "difference_percent", "change_ml", "change_percent",
         "excess_ml", "excess_percent", "rvc_percent", "source", "note", "flags",
+        "axis", "axis_tilt_deg",
     )  # fmt: skip
 
 
@@ -686,7 +687,8 @@ def csv_text(data: ReportData) -> str:
     ``row`` says what a row is: ``level`` (one level and the segment above it), ``total``
     (the whole measured range), ``compared`` (over the range both compared scans
     measured), ``rvc`` (this scan's RVC since the first visit with both limbs) or
-    ``visit`` (the subject's trend, over the range every visit measured).
+    ``visit`` (the subject's trend, over the range every visit measured). Level and total
+    rows name the axis the distances were measured along (``axis``, ``axis_tilt_deg``).
     """
     unit, scale = data.unit, LENGTH_UNITS[data.unit]
     out = io.StringIO()
@@ -708,9 +710,12 @@ def csv_text(data: ReportData) -> str:
     def length(value: float | None) -> str:
         return _num(None if value is None else value / scale, 4)
 
+    m = data.measurement
+    along = {"axis": m.axis.method, "axis_tilt_deg": _num(m.axis.tilt_deg, 2)}
     for row in table_rows(data):
         writer.writerow(
             who
+            | along
             | {
                 "row": "level",
                 f"from_landmark_{unit}": length(row.offset_mm),
@@ -731,9 +736,8 @@ def csv_text(data: ReportData) -> str:
                 "flags": "; ".join(row.flags),
             }
         )
-    m = data.measurement
     lo, hi = m.offset_range_mm
-    writer.writerow(who | {"row": "total", f"range_from_{unit}": length(lo),
+    writer.writerow(who | along | {"row": "total", f"range_from_{unit}": length(lo),
                            f"range_to_{unit}": length(hi), "volume_ml": _num(m.volume_mm3 / 1e3),
                            "note": "; ".join(m.notes)})  # fmt: skip
     c = data.comparison

@@ -1,4 +1,4 @@
-"""Grid calibration: chessboard corners and the image-to-laser-plane map.
+"""Grid calibration: chessboard corners and the image-to-laser-plane map; the lift's scale.
 
 Three estimators of the plane homography are selectable (``CALIBRATION_METHODS``):
 
@@ -18,6 +18,10 @@ Three estimators of the plane homography are selectable (``CALIBRATION_METHODS``
 
 The thesis' recommendation of at least 20 control points (section 4.6) becomes a warning.
 
+The lift's scale (:func:`calibrate_lift`) comes from two grooves a certified distance apart
+on the calibration cylinder (:class:`~lamina_shared.types.LiftReference`): every section
+height is multiplied by it, so the lift is calibrated, not trusted.
+
 Conventions: image points are ``(u, v)`` = (column, row) with pixel centres at integer
 coordinates (OpenCV's corner convention, checked against rendered boards in the tests);
 world points are millimetres in the laser plane (capture spec).
@@ -26,6 +30,8 @@ world points are millimetres in the laser plane (capture spec).
 from __future__ import annotations
 
 import itertools
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,7 +41,7 @@ from scipy.optimize import least_squares
 from scipy.stats import f as f_distribution
 
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import BoardSpec
+from lamina_shared.types import BoardSpec, LiftReference
 
 MIN_CORNERS_THESIS = 20
 """Thesis 4.6: use at least 20 control point pairs for the DLT."""
@@ -725,3 +731,147 @@ def calibrate_grid(
         reprojection_rms_px=float(np.sqrt(np.mean(reproj**2))),
         distortion=test,
     )
+
+
+LIFT_WARNING_PERCENT = 1.0
+"""A lift scale error beyond this is unusual for a leadscrew (a belt slipping, a wrong
+pitch in the configuration, or the wrong reference): the report says so."""
+
+LIFT_REFUSAL_PERCENT = 5.0
+"""Beyond this the reference must be wrong: the scale is not applied, the lift is trusted."""
+
+FLANK_MARGIN = 0.2
+"""The sheet must meet a groove's flank between this share of its depth from either end:
+the flank is straight there, not rounded by the sheet's thickness at the groove's edge or
+bottom (on the limb rig's 5 mm groove, 1 mm: twice the sheet's sigma)."""
+
+
+@dataclass(frozen=True)
+class LiftCalibration:
+    """The lift's scale, measured on the calibration cylinder's two grooves.
+
+    ``heights_mm`` are the commanded heights of the two reference sections, ``radii_mm`` the
+    radii measured there on each groove's lower flank (object frame, after the cylinder's
+    correction factor), ``rms_mm`` the circle fits' residuals and ``points`` their point
+    counts. The lift really travels ``scale`` mm for each commanded mm; ``applied`` says
+    whether every section height was multiplied by it (else the lift is trusted and
+    ``warnings`` say why).
+    """
+
+    reference: LiftReference
+    heights_mm: tuple[float, float]
+    radii_mm: tuple[float, float]
+    rms_mm: tuple[float, float]
+    points: tuple[int, int]
+    scale: float
+    applied: bool
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def error_percent(self) -> float:
+        """Return how far the lift runs long (positive) or short, in % of the commanded."""
+        return 100.0 * (self.scale - 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form (``report.json`` ``lift``)."""
+        return {
+            "calibrated": True,
+            "applied": self.applied,
+            "scale": _finite_or_none(self.scale),
+            "error_percent": _finite_or_none(self.error_percent),
+            "reference": self.reference.to_dict(),
+            "heights_mm": list(self.heights_mm),
+            "radii_mm": [_finite_or_none(r) for r in self.radii_mm],
+            "rms_mm": [_finite_or_none(r) for r in self.rms_mm],
+            "points": list(self.points),
+            "warnings": list(self.warnings),
+        }
+
+
+def _finite_or_none(value: float) -> float | None:
+    """Return ``value``, or None where it is not finite (JSON has no NaN)."""
+    return value if math.isfinite(value) else None
+
+
+CircleFit = Callable[[np.ndarray], tuple[float, float]]
+"""Fits a circle to (N, 2) points: returns its radius and the points' RMS distance from it
+(``lamina_host.reconstruct.axis.fit_circle``, which the pipeline passes in)."""
+
+
+def calibrate_lift(
+    marks: list[list[np.ndarray]],
+    reference: LiftReference,
+    cylinder_radius_mm: float,
+    fit_circle: CircleFit,
+) -> LiftCalibration:
+    """Measure the lift's scale from the two grooves of the calibration cylinder.
+
+    At each mark the sheet meets a groove's lower flank, a cone losing ``flank_slope`` mm
+    of radius per mm of height, so the radius measured there places the sheet on the
+    groove: at commanded heights c1 and c2 the sheet is really ``spacing + (r1 - r2) /
+    flank_slope`` apart, and the lift's scale is that over ``c2 - c1``. The grooves are cut
+    alike, so whatever biases a radius on a flank (the sheet's thickness, the stripe's
+    centre on an inclined surface, the cylinder's own diameter) biases both alike and
+    cancels; each section's views go round the turn, so a cylinder standing slightly off
+    upright gives each flank's mean height.
+
+    Args:
+        marks: for each of ``reference.marks_mm``, its views' arcs as (N, 2) object-frame
+            points in mm (the turntable axis at the origin, scale corrected).
+        reference: the marks' commanded heights, spacing and flank.
+        cylinder_radius_mm: the cylinder's radius (where each flank begins).
+        fit_circle: the circle fit (radius, RMS residual) of a flank's points.
+
+    Returns:
+        The calibration; ``applied`` False (and a warning) when the data cannot give it.
+
+    Raises:
+        CalibrationError: not one list of arcs per mark.
+    """
+    if len(marks) != 2:
+        raise CalibrationError(f"the lift reference has two marks, not {len(marks)} arc lists")
+    radii, rms, counts, warnings = [], [], [], []
+    for height, arcs in zip(reference.marks_mm, marks, strict=True):
+        points = np.vstack([a for a in arcs if len(a)]) if any(len(a) for a in arcs) else None
+        seen = sum(1 for a in arcs if len(a))
+        if points is None or seen < 2 or len(points) < 10:
+            warnings.append(
+                f"the lift reference section at {height:g} mm shows the stripe in {seen} view(s): "
+                "the lift is not calibrated (is the calibration cylinder the grooved one?)"
+            )
+            radii.append(math.nan)
+            rms.append(math.nan)
+            counts.append(0 if points is None else len(points))
+            continue
+        radius, residual = fit_circle(points)
+        radii.append(radius)
+        rms.append(residual)
+        counts.append(len(points))
+        lo = cylinder_radius_mm - reference.depth_mm * (1.0 - FLANK_MARGIN)
+        hi = cylinder_radius_mm - reference.depth_mm * FLANK_MARGIN
+        if not lo <= radius <= hi:
+            warnings.append(
+                f"the lift reference section at {height:g} mm met the cylinder at radius "
+                f"{radius:.2f} mm, off the straight middle of its groove's flank ({lo:.2f} to "
+                f"{hi:.2f} mm): the lift is not calibrated; check the marks' heights in the "
+                "device configuration ([cylinder] marks_mm) against the cylinder"
+            )
+    (c1, c2), (r1, r2) = reference.marks_mm, radii
+    scale = (reference.spacing_mm + (r1 - r2) / reference.flank_slope) / (c2 - c1)
+    applied = not warnings and math.isfinite(scale)
+    if applied and abs(scale - 1.0) * 100.0 > LIFT_REFUSAL_PERCENT:
+        applied = False
+        warnings.append(
+            f"the lift reference gives a lift scale error of {100 * (scale - 1):+.2f} %, beyond "
+            f"{LIFT_REFUSAL_PERCENT:g} %: the reference must be wrong, so the lift is trusted; "
+            "check the marks' spacing and heights in the device configuration"
+        )
+    elif applied and abs(scale - 1.0) * 100.0 > LIFT_WARNING_PERCENT:
+        warnings.append(
+            f"the lift runs {100 * (scale - 1):+.2f} % off its commanded travel (corrected): "
+            "check the lift's leadscrew pitch and microstepping in the device configuration"
+        )
+    return LiftCalibration(
+        reference, (c1, c2), (r1, r2), (rms[0], rms[1]), (counts[0], counts[1]),
+        float(scale), applied, tuple(warnings),
+    )  # fmt: skip

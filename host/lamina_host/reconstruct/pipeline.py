@@ -30,13 +30,21 @@ from lamina_host.reconstruct.assembly import (
     trim,
     trim_problem,
 )
-from lamina_host.reconstruct.axis import AXIS_METHODS, AxisCalibration, find_axis, find_axis_joint
+from lamina_host.reconstruct.axis import (
+    AXIS_METHODS,
+    AxisCalibration,
+    find_axis,
+    find_axis_joint,
+    fit_circle,
+)
 from lamina_host.reconstruct.calibration import (
     CALIBRATION_METHODS,
     DISTORTION_MODES,
     CalibrationError,
     GridCalibration,
+    LiftCalibration,
     calibrate_grid,
+    calibrate_lift,
 )
 from lamina_host.reconstruct.coverage import (
     CONTINUOUS_STEP_MM,
@@ -75,7 +83,7 @@ from lamina_host.reconstruct.precision import section_precision_mm, views_disagr
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import BoardSpec, Segment
+from lamina_shared.types import BoardSpec, LiftReference, Segment
 
 MIN_SEGMENT_POINTS = 10
 """Segments with fewer points than this after trimming carry no usable outline."""
@@ -381,6 +389,13 @@ class Reconstruction:
     vertex_colours: np.ndarray | None = None
     failed: list[FailedSection] = field(default_factory=list)
     """Outlines that could not be processed (not in ``sections``, not meshed)."""
+    lift: LiftCalibration | None = None
+    """The lift's scale from the calibration cylinder's grooves (None: no lift reference)."""
+
+    @property
+    def lift_scale(self) -> float:
+        """Return the factor every section height was multiplied by (1: the lift trusted)."""
+        return self.lift.scale if self.lift is not None and self.lift.applied else 1.0
 
 
 class Timer:
@@ -1269,11 +1284,14 @@ def process_segments(
     options: ProcessOptions,
     timer: Timer,
     rules: OutlierRules | None = None,
+    lift_scale: float = 1.0,
 ) -> tuple[list[Section], list[str], Rejected, list[FailedSection]]:
     """Assemble the object's segments, reject outliers, fit the outlines, close the gaps.
 
     Each section is processed on its own (:func:`process_section`): one that fails is
-    returned among the failed outlines with its reason, and the others go on.
+    returned among the failed outlines with its reason, and the others go on. Each
+    section's height is its commanded lift height times ``lift_scale`` (the calibrated
+    lift, :func:`lift_calibration`).
 
     Raises:
         CalibrationError: no view shows the stripe, or no section gave an outline.
@@ -1296,7 +1314,7 @@ def process_segments(
     sections: list[Section] = []
     failed: list[FailedSection] = []
     for k in sorted(by_section):
-        outcome = process_section(k, heights[k], by_section[k], options, rules, timer)
+        outcome = process_section(k, heights[k] * lift_scale, by_section[k], options, rules, timer)
         rejected.add(outcome.rejected)
         sections += outcome.sections
         failed += outcome.failed
@@ -1327,6 +1345,42 @@ def process_segments(
     return sections, warnings, rejected, failed
 
 
+def lift_sections(
+    cylinder: list[Segment], reference: LiftReference | None
+) -> tuple[list[Segment], list[list[Segment]]]:
+    """Split the cylinder's views: those for the axis, and those at each lift mark."""
+    if reference is None:
+        return cylinder, []
+    marks: list[list[Segment]] = [[] for _ in reference.marks_mm]
+    axis_views: list[Segment] = []
+    for segment in cylinder:
+        at = [k for k, z in enumerate(reference.marks_mm) if abs(segment.z_mm - z) <= 1e-6]
+        (marks[at[0]] if at else axis_views).append(segment)
+    return axis_views, marks
+
+
+def lift_calibration(
+    marks: list[list[Segment]],
+    reference: LiftReference,
+    grid: GridCalibration,
+    axis: AxisCalibration,
+    trim_fraction: float,
+) -> LiftCalibration:
+    """Measure the lift's scale on the cylinder's grooves (:func:`calibrate_lift`)."""
+
+    def local(s: Segment) -> np.ndarray:
+        angle = axis.true_angle_deg(s.angle_deg)
+        points = world_points(s, grid, trim_fraction)
+        return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
+
+    def circle(points: np.ndarray) -> tuple[float, float]:
+        fitted = fit_circle(points)
+        return fitted.r, fitted.rms_mm
+
+    arcs = [[local(s) for s in views] for views in marks]
+    return calibrate_lift(arcs, reference, axis.actual_diameter_mm / 2.0, circle)
+
+
 def reconstruct(
     grid_image: np.ndarray,
     board: BoardSpec,
@@ -1334,8 +1388,13 @@ def reconstruct(
     cylinder_mm: float,
     segments: list[Segment],
     options: ProcessOptions | None = None,
+    lift_reference: LiftReference | None = None,
 ) -> Reconstruction:
     """Run every stage from the raw calibration data and segments to the mesh.
+
+    With a ``lift_reference`` the cylinder's views at its marks calibrate the lift
+    (:func:`lift_calibration`) and the others the axis; every section height is then
+    the commanded one times the lift's scale.
 
     Raises:
         CalibrationError: the board or the cylinder could not be used.
@@ -1350,17 +1409,24 @@ def reconstruct(
     with timer.stage("calibrate_grid"):
         distortion = options.distortion if options.calibration == "ml" else "off"
         grid = calibrate_grid(grid_image, board, options.calibration, distortion)
+    axis_views, marks = lift_sections(cylinder, lift_reference)
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
-            cylinder, grid, cylinder_mm, options.trim_fraction, options.axis,
+            axis_views, grid, cylinder_mm, options.trim_fraction, options.axis,
             options.angle_correction, options.per_view_angles,
         )  # fmt: skip
+    lift = None
+    if lift_reference is not None:
+        with timer.stage("calibrate_lift"):
+            lift = lift_calibration(marks, lift_reference, grid, axis, options.trim_fraction)
+    scale = lift.scale if lift is not None and lift.applied else 1.0
     radius = options.working_radius_mm or camera_disc_mm(grid, grid_image.shape, axis)
     rules = OutlierRules(working_radius_mm=radius)
     sections, warnings, rejected, failed = process_segments(
-        grid, axis, segments, options, timer, rules
+        grid, axis, segments, options, timer, rules, scale
     )
-    warnings = [*grid.warnings, *axis.warnings, *warnings]
+    lift_warnings = list(lift.warnings) if lift is not None else []
+    warnings = [*grid.warnings, *axis.warnings, *lift_warnings, *warnings]
     with timer.stage("mesh"):
         vertices, faces, mesh_warnings = safe_mesh(sections, options)
         topo = MeshTopology.of(vertices, faces)
@@ -1371,5 +1437,5 @@ def reconstruct(
     colour = vertex_colours(vertices, points, colours) if len(points) and len(vertices) else None
     return Reconstruction(
         grid, axis, sections, vertices, faces, topo, timer.seconds, warnings, options, rejected,
-        colour, failed,
+        colour, failed, lift,
     )  # fmt: skip

@@ -35,7 +35,9 @@ side ``none`` (nothing else changes, so nothing is lost) until set with
 :meth:`Library.set_side`. Schema 5 lets a scan be marked as a test (a calibration check, a
 phantom, a trial run under a subject's code: :meth:`Library.set_test`), so it stays in the
 library but out of the subject's trend and comparisons; older libraries are migrated on
-opening with no scan marked.
+opening with no scan marked. Schema 6 keeps each calibration's lift reference (the
+calibration cylinder's two grooves, from which the lift's scale is measured); calibrations
+recorded before it have none, and their scans' heights stay as the lift commanded them.
 """
 
 from __future__ import annotations
@@ -68,9 +70,9 @@ from lamina_host.store.files import (
 from lamina_host.store.subjects import check_subject
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.scoped import Scoped
-from lamina_shared.types import BoardSpec, ScanPlan, Segment
+from lamina_shared.types import BoardSpec, LiftReference, ScanPlan, Segment
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 SIDES = ("none", "left", "right")
 """The limb side a scan records; ``none`` for anything that is not one of a pair."""
 BUSY_TIMEOUT_S = 30.0
@@ -102,7 +104,8 @@ CREATE TABLE IF NOT EXISTS calibrations (
     created TEXT NOT NULL,
     board TEXT NOT NULL,
     grid_png BLOB NOT NULL,
-    cylinder_mm REAL
+    cylinder_mm REAL,
+    lift_reference TEXT
 );
 CREATE TABLE IF NOT EXISTS segments (
     scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
@@ -208,6 +211,8 @@ class Calibration:
     grid_image: np.ndarray
     board: BoardSpec
     cylinder_mm: float | None
+    lift_reference: LiftReference | None = None
+    """The cylinder's marks that calibrate the lift (None: the lift is trusted)."""
 
 
 @dataclass(frozen=True)
@@ -227,6 +232,7 @@ class ScanInputs:
     segments: list[Segment]
     options: dict[str, Any]
     device: dict[str, Any]
+    lift_reference: LiftReference | None = None
 
 
 def check_side(side: str) -> str:
@@ -458,6 +464,8 @@ class Library(Scoped):
                 self._migrate_side()
             if 1 <= version <= 4:
                 self._migrate_test()
+            if 1 <= version <= 5:
+                self._migrate_lift_reference()
             for statement in _SCHEMA.split(";"):
                 if statement.strip():
                     db.execute(statement)
@@ -512,6 +520,14 @@ class Library(Scoped):
         self._db.execute(
             "ALTER TABLE scans ADD COLUMN test INTEGER NOT NULL DEFAULT 0 CHECK (test IN (0, 1))"
         )
+
+    def _migrate_lift_reference(self) -> None:
+        """Add the calibrations' lift reference (none for scans recorded before it)."""
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(calibrations)")}
+        # No table yet (schema 1): the schema below makes it whole. A library marked older
+        # than it is may have the column already.
+        if columns and "lift_reference" not in columns:
+            self._db.execute("ALTER TABLE calibrations ADD COLUMN lift_reference TEXT")
 
     def leave(self) -> None:
         """Close the file at the end of a ``with`` block."""
@@ -755,18 +771,22 @@ class Library(Scoped):
         board: BoardSpec,
         cylinder_mm: float | None,
         identity: dict[str, Any] | None = None,
+        lift_reference: LiftReference | None = None,
     ) -> None:
-        """Store the calibration board image and geometry the scan uses (under its identity)."""
+        """Store the calibration board image and geometry the scan uses (under its identity),
+        with the calibration cylinder's lift reference when the device has one."""
         self.check_identity(scan_id, identity)
         ok, png = cv2.imencode(".png", grid_image)
         if not ok:
             raise StoreError("the calibration image could not be encoded")
+        reference = json.dumps(lift_reference.to_dict()) if lift_reference else None
         with self._write():
             self._db.execute(
                 "INSERT OR REPLACE INTO calibrations (scan_id, created, board, grid_png, "
-                "cylinder_mm) VALUES (?, ?, ?, ?, ?)",
-                (scan_id, _now(), json.dumps(board.to_dict()), png.tobytes(), cylinder_mm),
-            )
+                "cylinder_mm, lift_reference) VALUES (?, ?, ?, ?, ?, ?)",
+                (scan_id, _now(), json.dumps(board.to_dict()), png.tobytes(), cylinder_mm,
+                 reference),
+            )  # fmt: skip
 
     def calibration(self, scan_id: int) -> Calibration | None:
         """Return the scan's calibration data, or None if it has none yet."""
@@ -777,7 +797,12 @@ class Library(Scoped):
         if image is None:
             raise StoreError(f"the calibration image of scan {scan_id} is damaged")
         board = BoardSpec.from_dict(json.loads(row["board"]))
-        return Calibration(image, board, row["cylinder_mm"])
+        reference = row["lift_reference"]
+        try:
+            lift = LiftReference.from_dict(json.loads(reference)) if reference else None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StoreError(f"the lift reference of scan {scan_id} is damaged ({exc})") from None
+        return Calibration(image, board, row["cylinder_mm"], lift)
 
     def inputs(self, scan_id: int) -> ScanInputs:
         """Return what reprocessing scan ``scan_id`` needs.
@@ -804,6 +829,7 @@ class Library(Scoped):
             self.segments(scan_id, "object"),
             dict(report.get("options", {})),
             dict(record.device),
+            calibration.lift_reference,
         )
 
     def save_result(self, scan_id: int, report: dict[str, Any], files: dict[str, Path]) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.reconstruct.axis import AxisCalibration
-from lamina_host.reconstruct.calibration import GridCalibration
+from lamina_host.reconstruct.calibration import GridCalibration, LiftCalibration
 from lamina_host.reconstruct.coverage import Coverage
 from lamina_host.reconstruct.efd import EllipticFourier
 from lamina_host.reconstruct.expect import Expectation
@@ -251,6 +251,15 @@ class Accuracy:
         return entry
 
 
+NO_LIFT_REFERENCE: dict[str, Any] = {
+    "calibrated": False,
+    "applied": False,
+    "scale": 1.0,
+    "note": "the device has no lift reference: section heights are the commanded lift heights",
+}
+"""``report.json``'s ``lift`` for a scan whose lift was trusted, not calibrated."""
+
+
 @dataclass(frozen=True)
 class ScanReport:
     """The result of processing one scan, as ``report.json`` records it (:meth:`to_json`)."""
@@ -271,6 +280,8 @@ class ScanReport:
     """Only for a scan of a known shape (``expect``)."""
     subject_id: str
     volume_mm3: float
+    lift: LiftCalibration | None = None
+    """The lift's scale from the cylinder's grooves (None: no lift reference)."""
 
     @property
     def correction_factor(self) -> float:
@@ -284,6 +295,7 @@ class ScanReport:
             "options": self.options.to_dict(),
             "calibration": self.calibration.to_dict(),
             "axis": self.axis.to_dict(),
+            "lift": self.lift.to_dict() if self.lift is not None else dict(NO_LIFT_REFERENCE),
             "correction_factor": self.correction_factor,
             "sections": [entry.to_json() for entry in self.sections],
             "outliers": self.outliers.to_dict(),
@@ -350,6 +362,7 @@ def build_report(
         accuracy=_accuracy(result, expect),
         subject_id=subject_id,
         volume_mm3=volume_mm3,
+        lift=result.lift,
     )
 
 

@@ -24,6 +24,7 @@ from lamina_host.reconstruct.pipeline import (
     assemble,
     calibrate_axis,
     camera_disc_mm,
+    lift_sections,
 )
 from lamina_host.store.library import SIDES, Library, check_side
 from lamina_host.store.subjects import check_subject
@@ -44,7 +45,7 @@ from lamina_host.workflow.library_access import LibraryAccess
 from lamina_host.workflow.results import ScanData
 from lamina_shared.errors import InputError
 from lamina_shared.ops import ExtractChanges
-from lamina_shared.types import SCAN_MODES, BoardSpec, ScanPlan, Segment
+from lamina_shared.types import SCAN_MODES, BoardSpec, LiftReference, ScanPlan, Segment
 
 TRIM_FRACTION = ProcessOptions().trim_fraction
 """The trim of the axis shown during calibration and of the live section plot."""
@@ -176,8 +177,9 @@ class Acquisition:
         """
         data, grid = self.data, self.grid
         if self.axis is None and grid is not None and data.cylinder and data.cylinder_mm:
+            axis_views, _ = lift_sections(data.cylinder, data.lift_reference)
             with suppress(CalibrationError):
-                self.axis = calibrate_axis(data.cylinder, grid, data.cylinder_mm, TRIM_FRACTION)
+                self.axis = calibrate_axis(axis_views, grid, data.cylinder_mm, TRIM_FRACTION)
         return self.axis
 
     def _accepted_grid(self) -> GridCalibration:
@@ -213,7 +215,8 @@ class Acquisition:
             )
         self.cylinder_plan, self.cylinder_held = plan, held
         self.data.cylinder, self.data.cylinder_mm = cylinder, diameter
-        self.axis = calibrate_axis(cylinder, grid, diameter, TRIM_FRACTION)
+        axis_views, _ = lift_sections(cylinder, self._lift_reference())
+        self.axis = calibrate_axis(axis_views, grid, diameter, TRIM_FRACTION)
         return self.axis
 
     def fetch_calibration(self, cylinder_mm: float | None = None) -> ScanData:
@@ -227,10 +230,13 @@ class Acquisition:
         if library.calibration(scan_id) is None:
             image, board = self.grab_grid()
             diameter = self._cylinder_mm(cylinder_mm)
-            library.save_calibration(scan_id, image, board, diameter, self.identity)
+            library.save_calibration(
+                scan_id, image, board, diameter, self.identity, self._lift_reference()
+            )
         calibration = library.calibration(scan_id)
         assert calibration is not None
         self.data.grid_image, self.data.board = calibration.grid_image, calibration.board
+        self.data.lift_reference = calibration.lift_reference
         diameter = calibration.cylinder_mm
         if diameter is None:
             diameter = self._cylinder_mm(cylinder_mm)
@@ -240,6 +246,10 @@ class Acquisition:
             )
         self.data.cylinder_mm = diameter
         return self.data
+
+    def _lift_reference(self) -> LiftReference | None:
+        """Return the connected device's lift reference (None: it has none, or is unknown)."""
+        return self.device.info.lift_reference if self.device.info else None
 
     def _cylinder_mm(self, given: float | None) -> float | None:
         """Return the calibration cylinder's diameter: the one given, else the device's."""
@@ -287,7 +297,10 @@ class Acquisition:
             request.subject, plans, dict(request.options), data.device, identity, request.side
         )
         if data.grid_image is not None and data.board is not None:
-            library.save_calibration(scan_id, data.grid_image, data.board, diameter, identity)
+            data.lift_reference = self._lift_reference()
+            library.save_calibration(
+                scan_id, data.grid_image, data.board, diameter, identity, data.lift_reference
+            )
         for seq, segment in self.cylinder_held.items():
             library.add_segment(scan_id, seq, segment, identity)
         self.scan_id, self.identity, self.device.extract = scan_id, identity, request.extract
@@ -342,6 +355,7 @@ class Acquisition:
             record.subject,
             {k: str(v) for k, v in record.device.items()},
             self.plan is not None and len(self.held) == len(self.plan.views),
+            calibration.lift_reference if calibration else None,
         )
         return self.data
 

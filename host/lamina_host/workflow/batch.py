@@ -108,7 +108,7 @@ class ClinicalMeasure:
 
 
 LEVEL_COLUMNS = ("offset_mm", "z_mm", "circumference_mm", "area_mm2", "segment_volume_ml",
-                 "segment_frustum_ml", "source")  # fmt: skip
+                 "segment_frustum_ml", "source", "axis", "axis_tilt_deg")  # fmt: skip
 """The columns of a clinical table row (``LimbMeasurement.table``) the batch keeps."""
 
 
@@ -122,6 +122,7 @@ def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reco
         inputs.cylinder_mm,
         inputs.segments,
         chosen,
+        inputs.lift_reference,
     )
 
 

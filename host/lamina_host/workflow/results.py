@@ -14,13 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from lamina_host.reconstruct.calibration import DistortionTest
+from lamina_host.reconstruct.calibration import DistortionTest, LiftCalibration
 from lamina_host.reconstruct.measure import perimeter, polygon_area
 from lamina_host.reconstruct.pipeline import Reconstruction, Section
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.outputs import MeshEntry, ScanReport
 from lamina_shared.messages import Welcome
-from lamina_shared.types import BoardSpec, Segment
+from lamina_shared.types import BoardSpec, LiftReference, Segment
 
 
 def device_summary(info: Welcome | None) -> dict[str, str]:
@@ -52,6 +52,19 @@ def mesh_summary(mesh: MeshEntry) -> str:
     return f"{mesh.kind}, {size}"
 
 
+def lift_summary(lift: LiftCalibration | None) -> str:
+    """Return one line on how the section heights were found: the lift calibrated or trusted."""
+    if lift is None:
+        return "trusted (the device has no lift reference): heights as commanded"
+    if not lift.applied:
+        return "trusted: its calibration failed (see the warnings)"
+    low, high = lift.reference.marks_mm
+    return (
+        f"scale {lift.scale:.5f} ({lift.error_percent:+.3f} %) from the cylinder's grooves at "
+        f"{low:g} and {high:g} mm, applied to every section height"
+    )
+
+
 def distortion_summary(test: DistortionTest | None) -> str | None:
     """Return one line on a calibration's lens distortion test (None without one)."""
     if test is None:
@@ -78,6 +91,8 @@ class ScanData:
     subject_id: str = ""
     device: dict[str, str] = field(default_factory=dict)
     complete: bool = False
+    lift_reference: LiftReference | None = None
+    """The calibration cylinder's marks that calibrate the lift (None: trusted)."""
 
 
 @dataclass(frozen=True)
