@@ -79,7 +79,7 @@ from lamina_host.reconstruct.mesh import (
     screened_poisson,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
-from lamina_host.reconstruct.precision import section_precision_mm, views_disagreement_mm
+from lamina_host.reconstruct.precision import disagreement_of, pair_differences, precision_of
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
@@ -661,10 +661,11 @@ def fit_section(
         else OutlineStatus.OPEN
     )
     estimated = coverage.unseen(contour)
+    pairs = pair_differences(parts, blend.frame)  # once, for precision and disagreement
     return Section(
         index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
-        precision_mm=section_precision_mm(parts, blend.frame),
-        views_apart_mm=views_disagreement_mm(parts, blend.frame),
+        precision_mm=precision_of(pairs),
+        views_apart_mm=disagreement_of(pairs),
     )  # fmt: skip
 
 

@@ -62,10 +62,10 @@ def pair_differences(
         return []
     frame = frame or OutlineFrame(np.concatenate(usable).mean(axis=0))
     local = [_local_sorted(v, frame) for v in usable]
+    spacings = [float(np.median(np.diff(a))) if len(a) > 2 else math.inf for a, _ in local]
     differences = []
     for m, (angle_m, radius_m) in enumerate(local):
-        for angle_n, radius_n in local[m + 1 :]:
-            spacing = float(np.median(np.diff(angle_n))) if len(angle_n) > 2 else math.inf
+        for (angle_n, radius_n), spacing in zip(local[m + 1 :], spacings[m + 1 :], strict=True):
             # Shift view m's positions into view n's turn so the wrap hides no cover.
             shifted = angle_n[0] + np.mod(angle_m - angle_n[0], 2 * math.pi)
             inside = shifted <= angle_n[-1]
@@ -94,7 +94,12 @@ def section_precision_mm(
         The robust sigma of one point, from :func:`overlap_differences`; None when fewer
         than :data:`MIN_OVERLAP_POINTS` points overlap.
     """
-    d = overlap_differences(views, frame)
+    return precision_of(pair_differences(views, frame))
+
+
+def precision_of(pairs: list[np.ndarray]) -> float | None:
+    """Return :func:`section_precision_mm` from the pairs of :func:`pair_differences`."""
+    d = np.concatenate(pairs) if pairs else np.zeros(0)
     if d.size < MIN_OVERLAP_POINTS:
         return None
     spread = _MAD_SIGMAS * float(np.median(np.abs(d - np.median(d))))
@@ -123,13 +128,28 @@ def views_disagreement_mm(views: list[np.ndarray], frame: OutlineFrame | None = 
     Returns:
         The largest such offset of any pair (0.0 where none stands out).
     """
-    largest = 0.0
-    for d in pair_differences(views, frame):
-        if d.size < MIN_OVERLAP_POINTS:
-            continue
-        centre = float(np.median(d))
-        spread = _MAD_SIGMAS * float(np.median(np.abs(d - centre)))
-        # The median's standard error is about 1.25 sigma / sqrt(n) for Gaussian noise.
-        if abs(centre) > _MOTION_SIGMAS * 1.25 * spread / math.sqrt(d.size):
-            largest = max(largest, abs(centre))
-    return largest
+    return disagreement_of(pair_differences(views, frame))
+
+
+def disagreement_of(pairs: list[np.ndarray]) -> float:
+    """Return :func:`views_disagreement_mm` from the pairs of :func:`pair_differences`."""
+    pairs = [d for d in pairs if d.size >= MIN_OVERLAP_POINTS]
+    if not pairs:
+        return 0.0
+    sizes = np.array([d.size for d in pairs])
+    group = np.repeat(np.arange(len(pairs)), sizes)
+    values = np.concatenate(pairs)
+    centre = _group_medians(values, group, sizes)
+    spread = _MAD_SIGMAS * _group_medians(np.abs(values - centre[group]), group, sizes)
+    # The median's standard error is about 1.25 sigma / sqrt(n) for Gaussian noise.
+    moved = np.abs(centre) > _MOTION_SIGMAS * 1.25 * spread / np.sqrt(sizes)
+    return float(np.abs(centre[moved]).max()) if moved.any() else 0.0
+
+
+def _group_medians(values: np.ndarray, group: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Return the median of each group of ``values`` (``group`` ascending, ``sizes`` each)."""
+    ordered = values[np.lexsort((values, group))]
+    start = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+    low = ordered[start + (sizes - 1) // 2]
+    high = ordered[start + sizes // 2]
+    return 0.5 * (low + high)
