@@ -66,6 +66,11 @@ def pair_differences(
     differences = []
     for m, (angle_m, radius_m) in enumerate(local):
         for (angle_n, radius_n), spacing in zip(local[m + 1 :], spacings[m + 1 :], strict=True):
+            # Most pairs of a many-view section lie apart: view m's positions, from its
+            # first, reach into view n's turn neither at once nor by wrapping round.
+            start = (angle_m[0] - angle_n[0]) % (2 * math.pi)
+            if start > angle_n[-1] - angle_n[0] and start + angle_m[-1] - angle_m[0] < 2 * math.pi:
+                continue
             # Shift view m's positions into view n's turn so the wrap hides no cover.
             shifted = angle_n[0] + np.mod(angle_m - angle_n[0], 2 * math.pi)
             inside = shifted <= angle_n[-1]
