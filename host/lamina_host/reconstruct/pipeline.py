@@ -640,9 +640,7 @@ def fit_section(
     """
     blend = blend_overlaps(parts)
     raw = blend.points
-    # A polar blend turns about the points' mean, which an arc seen from one side pulls
-    # towards itself: its coverage and bridges turn about the outline's own centre.
-    coverage = measure_coverage(raw, None if blend.frame.polar else blend.frame, parts)
+    coverage = measure_coverage(raw, blend.frame, parts)
     gap = coverage.largest_gap_deg
     limit = options.max_bridge_deg
     # A gap of a mostly measured outline is bridged from its own sides (an EFD closing it
