@@ -636,20 +636,28 @@ class EfdStack:
 
     def section(self, z_mm: float) -> EllipticFourier:
         """Return the EFD interpolated at height ``z_mm`` (clamped to the scanned range)."""
-        z = float(np.clip(z_mm, self.z_mm[0], self.z_mm[-1]))
+        return self.sections(np.array([z_mm]))[0]
+
+    def sections(self, z_mm: np.ndarray) -> list[EllipticFourier]:
+        """Return the EFDs interpolated at each of the heights ``z_mm`` (clamped to the
+        scanned range), the interpolant built once for all of them."""
+        z = np.clip(np.asarray(z_mm, dtype=float).reshape(-1), self.z_mm[0], self.z_mm[-1])
         flat = np.concatenate([self.dc, self.coeffs.reshape(len(self.z_mm), -1)], axis=1)
         smooth = self.kind == "smooth" and len(self.z_mm) >= SMOOTH_MIN_SECTIONS
         if len(self.z_mm) == 1:
-            row = flat[0]
+            rows = np.repeat(flat[:1], len(z), axis=0)
         elif smooth:
-            row = make_smoothing_spline(self.z_mm, flat, axis=0)(z)
+            rows = make_smoothing_spline(self.z_mm, flat, axis=0)(z)
         elif self.kind == "pchip":
-            row = PchipInterpolator(self.z_mm, flat, axis=0)(z)
+            rows = PchipInterpolator(self.z_mm, flat, axis=0)(z)
         else:  # linear, and "smooth" with too few sections to choose a smoothing weight
-            k = int(np.clip(np.searchsorted(self.z_mm, z) - 1, 0, len(self.z_mm) - 2))
-            w = (z - self.z_mm[k]) / (self.z_mm[k + 1] - self.z_mm[k])
-            row = (1.0 - w) * flat[k] + w * flat[k + 1]
-        return EllipticFourier(float(row[0]), float(row[1]), row[2:].reshape(-1, 4).copy())
+            k = np.clip(np.searchsorted(self.z_mm, z) - 1, 0, len(self.z_mm) - 2)
+            w = ((z - self.z_mm[k]) / (self.z_mm[k + 1] - self.z_mm[k]))[:, None]
+            rows = (1.0 - w) * flat[k] + w * flat[k + 1]
+        return [
+            EllipticFourier(float(row[0]), float(row[1]), row[2:].reshape(-1, 4).copy())
+            for row in rows
+        ]
 
     def sample(self, n_points: int, z_mm: np.ndarray | None = None) -> np.ndarray:
         """Return (len(z), n_points, 2) contours at the same parameter values.
@@ -659,7 +667,9 @@ class EfdStack:
             z_mm: heights (default: the scanned sections' own heights).
         """
         heights = self.z_mm if z_mm is None else np.asarray(z_mm, dtype=float)
-        return np.stack([self.section(z).evaluate(n_points) for z in heights])
+        if len(heights) == 0:
+            return np.zeros((0, n_points, 2))
+        return np.stack([e.evaluate(n_points) for e in self.sections(heights)])
 
     def ring_heights(
         self, sag_mm: float = RING_SAG_MM, probe_points: int = 64

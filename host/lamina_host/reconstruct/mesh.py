@@ -361,10 +361,7 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool | 
     n_faces = len(tris)
     # Each face's three edges (corner k to corner k+1), as sorted vertex pairs.
     half = np.stack([tris, np.roll(tris, -1, axis=1)], axis=2).reshape(-1, 2)
-    edges, edge_of, uses = np.unique(
-        np.sort(half, axis=1), axis=0, return_inverse=True, return_counts=True
-    )
-    edge_of = edge_of.reshape(-1)
+    edges, edge_of, uses = _unique_pairs(np.sort(half, axis=1))
     face_of = np.repeat(np.arange(n_faces), 3)
     components = _components(n_faces + len(edges), face_of, n_faces + edge_of, n_faces)
     boundary = edges[uses == 1]
@@ -414,8 +411,23 @@ def _non_manifold_vertices(
     b = np.concatenate([node_from, node_to])
     graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_corners + 2 * len(edges),) * 2)
     labels = connected_components(graph, directed=False)[1][:n_corners]
-    fans = np.unique(np.stack([tris.reshape(-1), labels], axis=1), axis=0)[:, 0]
+    fans = _unique_pairs(np.stack([tris.reshape(-1), labels], axis=1))[0][:, 0]
     return int((np.bincount(fans) > 1).sum())
+
+
+def _unique_pairs(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return ``np.unique(pairs, axis=0)`` with the inverse and the counts, for (N, 2)
+    pairs of non-negative integers.
+
+    Each pair is one integer key (``first * base + second``): a 1-D unique is many times
+    faster than the row-wise one, which sorts the rows as opaque records.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    base = int(pairs[:, 1].max()) + 1 if len(pairs) else 1
+    keys, inverse, counts = np.unique(
+        pairs[:, 0] * base + pairs[:, 1], return_inverse=True, return_counts=True
+    )
+    return np.stack([keys // base, keys % base], axis=1), inverse.reshape(-1), counts
 
 
 def save_ply(
