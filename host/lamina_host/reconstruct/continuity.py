@@ -42,8 +42,10 @@ radius in proportion to the spacing squared over its size. 0.4 leaves 1.0 mm at 
 spacing on a 40 mm radius (the random limb-scale shapes leant 3 degrees or less: 2 % of
 sections beyond it) and 0.04 mm at the default 2 mm spacing."""
 MAX_SLOPE = 0.5
-"""Outlines where the radius changes faster than this per mm of height (the surface
-leaning more than about 27 degrees from upright: a dome, a tip, a rounded end) are not
+"""Outlines where the radius or the centre changes faster than this per mm of height
+(the surface leaning more than about 27 degrees from upright on some side: a dome, a
+tip, a rounded end, upright or leant; a limb leant 3 degrees moves its centre 0.05 mm
+per mm) are not
 judged: a section's size there follows its height (a lift error) more than its outline,
 and the surface is seen at a grazing angle."""
 NOISE_SIGMAS = 4.0
@@ -139,10 +141,17 @@ def section_jumps(chain: Sequence[OutlineShape]) -> list[SectionJump]:
         dz_below, dz_above = here.z_mm - below.z_mm, above.z_mm - here.z_mm
         if dz_below <= 0.0 or dz_above <= 0.0 or here.radius_mm <= 0.0:
             continue
-        if abs(above.radius_mm - below.radius_mm) > MAX_SLOPE * (dz_below + dz_above):
+        if _leaning(below, above, MAX_SLOPE * (dz_below + dz_above)):
             continue
         jumps.append(_jump(below, here, above, dz_below, dz_above))
     return jumps
+
+
+def _leaning(below: OutlineShape, above: OutlineShape, limit_mm: float) -> bool:
+    """Return whether the radius or the centre changes by more than ``limit_mm`` from
+    ``below`` to ``above`` (a rounded end, upright or leant: one side flattens)."""
+    shift = math.dist(below.centre_mm, above.centre_mm)
+    return abs(above.radius_mm - below.radius_mm) > limit_mm or shift > limit_mm
 
 
 def _jump(
