@@ -43,7 +43,7 @@ radius in proportion to the spacing squared over its size. 0.4 leaves 1.0 mm at 
 spacing on a 40 mm radius and 0.04 mm at the default 2 mm spacing. At 10 mm spacing the
 phantoms' own curvature reaches 0.53 mm (arm) and 1.17 mm (the stump near its rounded
 end: 0.84 of its limit); of the random limb-scale shapes leant 3 degrees or less, 8 of
-363 sections (6 of 65 shapes) pass the limit, as 21 of 553 of all of them (tilts to 20
+363 sections (6 of 65 shapes) pass the limit, as 18 of 547 of all of them (tilts to 20
 degrees, shells, thin parts): at that spacing a jump must be large to be told from
 shape."""
 MAX_SLOPE = 0.5
