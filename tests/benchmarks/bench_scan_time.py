@@ -74,8 +74,9 @@ OBJECTS = (
 """The phantoms compared (``bench_limb``'s set): name, object, sections."""
 QUICK_OBJECTS = (("arm", "arm:scale=5", 3),)
 """The quick set: the arm's first three sections (``bench_limb``'s quick arm)."""
-SWAY_SECTIONS, QUICK_SWAY_SECTIONS = 3, 2
-"""Sections of the arm scanned with each sway: the first three (quick: two) of the plan."""
+SWAY_SECTIONS = QUICK_SWAY_SECTIONS = 3
+"""Sections of the arm scanned with each sway: the first three of the plan (the fewest
+with an inner section, which the check of consecutive sections needs)."""
 SWAYS = (
     ("patient", "patient"),
     ("strong", "drift=3,breath=1.5,hz=0.3"),
@@ -87,6 +88,8 @@ FULL = os.environ.get("LAMINA_SCAN_TIME_FULL", "") not in ("", "0")
 """``LAMINA_SCAN_TIME_FULL=1``: ``make bench`` runs the full study, not the quick set."""
 MOTION_WARNING = "overlapping views stand"
 """What the report's motion warning says (``store/outputs.py``)."""
+JUMP_WARNING = "off the line of the sections below and above"
+"""What the report's warning of a section off its neighbours says (``store/outputs.py``)."""
 
 
 def _processing_s() -> float:
@@ -161,7 +164,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     from lamina_device.timing import estimate_scan_time
     from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, reconstruct
     from lamina_host.reconstruct.precision import views_disagreement_mm
-    from lamina_host.store.outputs import build_report, write_outputs
+    from lamina_host.store.outputs import build_report, outline_jumps, write_outputs
     from lamina_shared.types import ScanPlan
     from tests.helpers.campaign import _unwatched
 
@@ -169,11 +172,17 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     hardware = _unwatched(open_sim(spec, 0, NOISE, RIG, sway=sway))
     clock = hardware.turntable.clock
     segments: list[Any] = []
+    arrived_s: list[float] = []  # each segment's arrival on the clock: where the sway was
+
+    def keep(segment: Any) -> None:
+        segments.append(segment)
+        arrived_s.append(clock.now_s)
+
     wall = time.perf_counter()
     try:
         hardware.lift.move_to(plan.views[0].z_mm)  # homing and the first move: not the wait
         start_s = clock.now_s
-        acquire(hardware, "object", plan, segments.append)
+        acquire(hardware, "object", plan, keep)
         # The wait: from the first move to the last view's last frame (the table then
         # slows down and the lift goes home, the patient free to move).
         scan_s = hardware.camera.last_frame_s - start_s
@@ -196,6 +205,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
         write_outputs(Path(tmp), recon, report)
         figures = measure(spec, json.loads((Path(tmp) / "report.json").read_text()), PITCH_MM)
     warnings = [w for w in report.warnings if MOTION_WARNING in w]
+    jumps = outline_jumps(recon.sections)
     by_section, _, _ = assemble(segments, recon.grid, recon.axis, recon.options.trim_fraction)
     apart = {k: round(views_disagreement_mm(v), 3) for k, v in sorted(by_section.items())}
     return {
@@ -212,6 +222,39 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
         "circumference_errors_mm": [round(level["error_mm"], 4) for level in figures["levels"]],
         "motion_warnings": warnings,
         "views_apart_mm": apart,
+        "jump_warnings": [w for w in report.warnings if JUMP_WARNING in w],
+        "jumps_mm": {j.index: round(j.jump_mm, 3) for j in jumps if j.part == 0},
+        "jump_limits_mm": {j.index: round(j.limit_mm, 3) for j in jumps if j.part == 0},
+        **_sway_truth(hardware, segments, arrived_s, sway),
+    }
+
+
+def _sway_truth(
+    hardware: Any, segments: list[Any], arrived_s: list[float], sway: str
+) -> dict[str, Any]:
+    """Return where the sway had the limb at each section (the mean over its views), its
+    part along the camera's line of sight (which grows or shrinks a continuous section),
+    and each inner section's true offset from the line of its neighbours (both figures)."""
+    from lamina_device.sim.sway import parse_sway
+
+    motion = parse_sway(sway)
+    camera = np.asarray(hardware.camera.scene.rig.camera_centre_mm, dtype=float)[:2]
+    toward = camera / np.linalg.norm(camera)  # from the axis to the camera, horizontal
+    times: dict[int, list[float]] = {}
+    for segment, t_s in zip(segments, arrived_s, strict=True):
+        times.setdefault(segment.section, []).append(t_s)
+    moved = {k: np.mean([motion.offset_mm(t) for t in ts], axis=0) for k, ts in times.items()}
+    keys = sorted(moved)
+    shift: dict[int, float] = {}
+    size: dict[int, float] = {}
+    for below, here, above in zip(keys, keys[1:], keys[2:], strict=False):
+        off = moved[here] - 0.5 * (moved[below] + moved[above])
+        shift[here], size[here] = round(float(np.linalg.norm(off)), 3), round(off @ toward, 3)
+    return {
+        "moved_mm": {k: [round(float(v), 3) for v in moved[k]] for k in keys},
+        "toward_camera_mm": {k: round(float(moved[k] @ toward), 3) for k in keys},
+        "true_jumps_mm": shift,
+        "true_size_jumps_mm": size,
     }
 
 
@@ -301,7 +344,8 @@ def report(results: dict[str, Any]) -> list[str]:
         )
     lines.append(
         "  phantom   mode         sway      scan s (model)   vol %   vol-lift %  max |dC| mm  "
-        "warned  views apart mm (per section, beyond noise)"
+        "warned  views apart mm (per section, beyond noise)  jumped  "
+        "section: jump mm (limit; true shift, its part toward the camera)"
     )
     for row in results.get("accuracy", []) + results.get("sway", []):
         lines.append(
@@ -311,6 +355,13 @@ def report(results: dict[str, Any]) -> list[str]:
             f"{row['volume_error_without_lift_percent']:+9.3f}  "
             f"{row['max_abs_circumference_error_mm']:11.3f}  {len(row['motion_warnings']):>6}  "
             + " ".join(f"{v:.2f}" for v in row["views_apart_mm"].values())
+            + f"  {len(row.get('jump_warnings', [])):>6}  "
+            + " ".join(
+                f"{k}: {v:.2f} ({row['jump_limits_mm'][k]:.2f}; "
+                f"{row.get('true_jumps_mm', {}).get(k, 0.0):.2f}, "
+                f"{row.get('true_size_jumps_mm', {}).get(k, 0.0):+.2f})"
+                for k, v in row.get("jumps_mm", {}).items()
+            )
         )
     comparison = results.get("comparison") or {}
     for entry in comparison.get("per_phantom", []):

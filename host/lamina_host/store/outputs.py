@@ -16,6 +16,7 @@ import numpy as np
 
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import GridCalibration, LiftCalibration
+from lamina_host.reconstruct.continuity import SectionJump, outline_shape, section_jumps
 from lamina_host.reconstruct.coverage import Coverage
 from lamina_host.reconstruct.efd import EllipticFourier
 from lamina_host.reconstruct.expect import Expectation
@@ -34,6 +35,7 @@ from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
     Section,
+    chain_outlines,
     coloured_cloud,
     stack,
 )
@@ -358,7 +360,11 @@ def build_report(
         point_counts=counts,
         mesh=mesh,
         timings_s={**acquisition_s, **result.timings_s},
-        warnings=(*result.warnings, *_motion_warnings(result.sections)),
+        warnings=(
+            *result.warnings,
+            *_motion_warnings(result.sections),
+            *_jump_warnings(outline_jumps(result.sections)),
+        ),
         accuracy=_accuracy(result, expect),
         subject_id=subject_id,
         volume_mm3=volume_mm3,
@@ -394,6 +400,42 @@ def _motion_warnings(sections: list[Section]) -> list[str]:
         "supported and still"
         for s in sorted(sections, key=lambda s: (s.index, s.part))
         if s.views_apart_mm > MOTION_WARN_MM
+    ]
+
+
+def outline_jumps(sections: list[Section]) -> list[SectionJump]:
+    """Return how far each measured outline stands off the line of its neighbours.
+
+    Outlines are followed up the scan (``chain_outlines``); only those closed from their
+    own data (measured, or bridged across small gaps) are judged or judge: one filled
+    from its neighbours would agree with them by construction.
+    """
+    jumps = []
+    for chain in chain_outlines(sections):
+        shapes = [
+            outline_shape(s.index, s.part, s.z_mm, s.contour, s.precision_mm, len(s.raw))
+            for s in chain
+            if s.status in (OutlineStatus.MEASURED, OutlineStatus.BRIDGED)
+        ]
+        jumps += section_jumps([shape for shape in shapes if shape is not None])
+    return sorted(jumps, key=lambda j: (j.index, j.part))
+
+
+def _jump_warnings(jumps: list[SectionJump]) -> list[str]:
+    """Return a warning for each outline standing off the line of its neighbours."""
+    return [
+        f"section {j.index}"
+        + (f" outline {j.part}" if j.part else "")
+        + f": it stands {j.jump_mm:.2f} mm off the line of the sections below and above it "
+        + (
+            f"(its size {j.size_mm:+.2f} mm in radius"
+            if abs(j.size_mm) >= j.centre_mm
+            else f"(its centre {j.centre_mm:.2f} mm aside"
+        )
+        + "), more than a limb's shape changes: the subject may have moved between "
+        "sections; scan again with the limb supported and still"
+        for j in jumps
+        if j.flagged
     ]
 
 
