@@ -153,7 +153,12 @@ def disagreement_of(pairs: list[np.ndarray]) -> float:
 
 def _group_medians(values: np.ndarray, group: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """Return the median of each group of ``values`` (``group`` ascending, ``sizes`` each)."""
-    ordered = values[np.lexsort((values, group))]
+    # One float sort of the values lifted by their group (each group's band above the one
+    # below it) is several times faster than a lexsort; taking the lift off again leaves
+    # a rounding error of about 1e-16 of the largest lifted value (1e-13 mm here).
+    low_value = float(values.min()) if values.size else 0.0
+    band = float(np.ptp(values)) + 1.0 if values.size else 1.0
+    ordered = np.sort(group * band + (values - low_value)) - group * band + low_value
     start = np.concatenate(([0], np.cumsum(sizes)[:-1]))
     low = ordered[start + (sizes - 1) // 2]
     high = ordered[start + sizes // 2]
