@@ -189,13 +189,15 @@ def blend_overlaps(segments: list[np.ndarray], link_mm: float = 3.0) -> Blend:
     frame = OutlineFrame(np.concatenate(segs).mean(axis=0))
     polar = [frame.to_local(s) for s in segs]
     local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
-    if _folds(local):
+    overlaps = _overlap_differences(local)
+    if _folds(local, overlaps[0]):
         frame = outline_frame(np.concatenate(segs), link_mm)
         if not frame.polar:
             polar = [frame.to_local(s) for s in segs]
             local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
+            overlaps = _overlap_differences(local)
     ang, rad = _overlap_means(polar, [r[:, None] for _, r in polar])
-    noise, pairs = overlap_noise(local)
+    noise, pairs = overlap_noise(*overlaps)
     return Blend(
         frame.to_xy(ang, rad[:, 0]),
         frame,
@@ -206,11 +208,12 @@ def blend_overlaps(segments: list[np.ndarray], link_mm: float = 3.0) -> Blend:
     )
 
 
-def _folds(local: list[tuple[np.ndarray, np.ndarray]]) -> bool:
+def _folds(local: list[tuple[np.ndarray, np.ndarray]], d: np.ndarray) -> bool:
     """Return whether polar coordinates fail an outline (:func:`blend_overlaps`).
 
     Args:
         local: each view's run means (unwrapped angles along its stripe, radii).
+        d: their radius differences where they overlap (:func:`_overlap_differences`).
     """
     for ang, rad in local:
         if len(ang) > 2:
@@ -221,7 +224,6 @@ def _folds(local: list[tuple[np.ndarray, np.ndarray]]) -> bool:
             steep = d_rad > STEEP_RATIO * rad[1:] * np.abs(np.diff(ang))
             if float(d_rad[steep].sum()) > STEEP_MM:
                 return True
-    d, _ = _overlap_differences(local)
     return len(d) >= MIN_NOISE_PAIRS and float(np.mean(np.abs(d) > FOLD_MM)) > FOLD_SHARE
 
 
@@ -284,7 +286,7 @@ def average_overlaps(segments: list[np.ndarray]) -> np.ndarray:
     return blend_overlaps(segments).points
 
 
-def overlap_noise(polar: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float | None, int]:
+def overlap_noise(d: np.ndarray, f: np.ndarray) -> tuple[float | None, int]:
     """Return the measured points' RMS noise in mm from where views overlap, and the pairs.
 
     Where segment m covers a point of another segment, both saw the same surface: the
@@ -295,10 +297,13 @@ def overlap_noise(polar: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float | N
     calibration or turntable angle, a seam) counts as noise: the EFD must not follow it.
     The largest 1 % of differences are left out (a stray point the rejection let by).
 
+    Args:
+        d: the radius differences where segments overlap (:func:`_overlap_differences`).
+        f: the variance factor ``1 + t^2 + (1 - t)^2`` of each.
+
     Returns:
         (noise in mm, number of pairs); noise None with fewer than ``MIN_NOISE_PAIRS``.
     """
-    d, f = _overlap_differences(polar)
     if len(d) < MIN_NOISE_PAIRS:
         return None, len(d)
     keep = np.abs(d) <= np.quantile(np.abs(d), 0.99)

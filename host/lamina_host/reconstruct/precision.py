@@ -56,33 +56,37 @@ def overlap_differences(views: list[np.ndarray], frame: OutlineFrame | None = No
 def pair_differences(
     views: list[np.ndarray], frame: OutlineFrame | None = None
 ) -> list[np.ndarray]:
-    """Return :func:`overlap_differences` pair by pair (pairs without overlap left out)."""
+    """Return :func:`overlap_differences` pair by pair (pairs without overlap left out).
+
+    Each later view is compared with all the earlier ones at once (their points laid one
+    after the other), then the differences are parted by the earlier view: pairs come
+    out grouped by their later view.
+    """
     usable = [v for v in views if len(v) >= 2]
     if len(usable) < 2:
         return []
     frame = frame or OutlineFrame(np.concatenate(usable).mean(axis=0))
     local = [_local_sorted(v, frame) for v in usable]
-    spacings = [float(np.median(np.diff(a))) if len(a) > 2 else math.inf for a, _ in local]
-    differences = []
-    for m, (angle_m, radius_m) in enumerate(local):
-        for (angle_n, radius_n), spacing in zip(local[m + 1 :], spacings[m + 1 :], strict=True):
-            # Most pairs of a many-view section lie apart: view m's positions, from its
-            # first, reach into view n's turn neither at once nor by wrapping round.
-            start = (angle_m[0] - angle_n[0]) % (2 * math.pi)
-            if start > angle_n[-1] - angle_n[0] and start + angle_m[-1] - angle_m[0] < 2 * math.pi:
-                continue
-            # Shift view m's positions into view n's turn so the wrap hides no cover.
-            shifted = angle_n[0] + np.mod(angle_m - angle_n[0], 2 * math.pi)
-            inside = shifted <= angle_n[-1]
-            if not inside.any():
-                continue
-            at = np.searchsorted(angle_n, shifted[inside]).clip(1, len(angle_n) - 1)
-            gap = angle_n[at] - angle_n[at - 1]
-            whole = gap <= _MAX_GAP_SPACINGS * max(spacing, 1e-12)
-            other = np.interp(shifted[inside], angle_n, radius_n)
-            difference = (radius_m[inside] - other)[whole]
-            if difference.size:
-                differences.append(difference)
+    angles = np.concatenate([a for a, _ in local])
+    radii = np.concatenate([r for _, r in local])
+    owner = np.repeat(np.arange(len(local)), [len(a) for a, _ in local])
+    ends = np.cumsum([len(a) for a, _ in local])
+    differences: list[np.ndarray] = []
+    for n in range(1, len(local)):
+        angle_n, radius_n = local[n]
+        spacing = float(np.median(np.diff(angle_n))) if len(angle_n) > 2 else math.inf
+        # The earlier views' positions shifted into view n's turn, so the wrap hides no cover.
+        shifted = angle_n[0] + np.mod(angles[: ends[n - 1]] - angle_n[0], 2 * math.pi)
+        inside = np.flatnonzero(shifted <= angle_n[-1])
+        if not inside.size:
+            continue
+        x = shifted[inside]
+        at = np.minimum(np.maximum(np.searchsorted(angle_n, x), 1), len(angle_n) - 1)
+        whole = angle_n[at] - angle_n[at - 1] <= _MAX_GAP_SPACINGS * max(spacing, 1e-12)
+        difference = (radii[inside] - np.interp(x, angle_n, radius_n))[whole]
+        by = owner[inside][whole]
+        cuts = np.flatnonzero(np.diff(by)) + 1
+        differences += np.split(difference, cuts) if difference.size else []
     return differences
 
 
