@@ -314,13 +314,16 @@ def _overlap_differences(
     polar: list[tuple[np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return :func:`overlap_noise`'s radius differences where segments overlap and the
-    variance factor ``1 + t^2 + (1 - t)^2`` of each."""
+    variance factor ``1 + t^2 + (1 - t)^2`` of each.
+
+    Args:
+        polar: each segment's angles, unwrapped along it (:func:`run_means`), and radii.
+    """
     diffs, factors = [], []
     ang_all = np.concatenate([a for a, _ in polar])
     rad_all = np.concatenate([r for _, r in polar])
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
-    for m, (ang_m, rad_m) in enumerate(polar):
-        xp = unwrap_angles(ang_m)
+    for m, (xp, rad_m) in enumerate(polar):
         order = np.argsort(xp, kind="stable")
         xp, fp = xp[order], rad_m[order]
         if len(xp) < 2 or xp[-1] <= xp[0]:
@@ -419,10 +422,11 @@ def _overlap_means(
         lo, hi = xp[0], xp[-1]
         # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
         shifted = lo + np.mod(ang - lo, TWO_PI)
-        covered = (shifted <= hi) & (owner != m)
-        w = blend_weight((shifted[covered] - lo) / (hi - lo))
+        covered = np.flatnonzero((shifted <= hi) & (owner != m))
+        x = shifted[covered]
+        w = blend_weight((x - lo) / (hi - lo))
         for d in range(total.shape[1]):
-            total[covered, d] += w * np.interp(shifted[covered], xp, fp[:, d])
+            total[covered, d] += w * np.interp(x, xp, fp[:, d])
         weight[covered] += w
     mean = total / weight[:, None]
     order = np.argsort(ang, kind="stable")
