@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -107,6 +108,19 @@ def test_degenerate_input_gives_no_jump():
     assert outline_shape(0, 0, 0.0, np.zeros((0, 2))) is None
     same_height = [OutlineShape(k, 0, 0.0, (0.0, 0.0), 10.0, 0.0) for k in range(3)]
     assert section_jumps(same_height) == []
+
+
+def test_a_flat_outline_in_the_stack_is_passed_over_not_raised():
+    """A section whose stripe was seen edge-on (its contour encloses no area) neither
+    breaks the chains nor is judged; its neighbours still are."""
+    sections = limb(5)
+    flat = np.column_stack([np.linspace(-30.0, 30.0, 360), np.zeros(360)])
+    sections[2] = replace(sections[2], contour=flat, raw=flat)
+    jumps = outline_jumps(sections)
+    assert [j.index for j in jumps] == [1, 3]
+    sections = limb(7)
+    sections[0] = replace(sections[0], contour=flat, raw=flat)
+    assert [j.index for j in outline_jumps(sections)] == [2, 3, 4, 5]
 
 
 def test_the_noise_of_a_poor_outline_raises_its_limit():

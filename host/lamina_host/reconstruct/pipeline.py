@@ -890,11 +890,11 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
     for index in sorted(by_index, key=lambda k: by_index[k][0].z_mm):
         still_open = []
         for s in by_index[index]:
-            c = centroid(s.contour)
+            c = _chain_centre(s.contour)
             reach = float(np.linalg.norm(s.contour - c, axis=1).mean())
             best, best_d = None, reach
             for chain in open_chains:
-                d = float(np.linalg.norm(centroid(chain[-1].contour) - c))
+                d = float(np.linalg.norm(_chain_centre(chain[-1].contour) - c))
                 if d < best_d and chain not in still_open:
                     best, best_d = chain, d
             if best is None:
@@ -905,6 +905,15 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
             still_open.append(best)
         open_chains = still_open
     return chains
+
+
+def _chain_centre(contour: np.ndarray) -> np.ndarray:
+    """Return an outline's area centroid, or its samples' mean where it encloses no area
+    (a flat outline: a stripe seen edge-on still belongs to a chain)."""
+    try:
+        return centroid(contour)
+    except CalibrationError:
+        return np.asarray(contour, dtype=float).reshape(-1, 2).mean(axis=0)
 
 
 MIN_SEEN_RUN = 3
