@@ -65,8 +65,6 @@ from lamina_host.reconstruct.pipeline import (
     fill_gaps,
     process_section,
     process_segments,
-    processing_threads,
-    reconstruct,
     safe_mesh,
 )
 from lamina_host.reconstruct.status import OutlineStatus
@@ -545,26 +543,6 @@ def test_processing_takes_any_degraded_views(
     assert [p for p in not_finite(report) if p != ".axis.view_offset_sd_deg"] == []
     rows = section_rows(result)
     assert len(rows) == len(sections) + len(failed)
-
-
-def test_processing_in_one_thread_or_several_gives_the_same_scan(
-    scanned_library: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The threads (stripe fit, grid beside it) change when work is done, never what it
-    gives; ``OMP_NUM_THREADS`` bounds them."""
-    with Library(scanned_library) as library:
-        inputs = library.inputs(1)
-    results = []
-    for threads in ("1", "3"):
-        monkeypatch.setenv("OMP_NUM_THREADS", threads)
-        assert processing_threads() == min(int(threads), len(os.sched_getaffinity(0)))
-        args = (inputs.grid_image, inputs.board, inputs.cylinder, inputs.cylinder_mm)
-        results.append(reconstruct(*args, inputs.segments))
-    one, several = results
-    assert len(one.sections) == len(several.sections) > 0
-    for a, b in zip(one.sections, several.sections, strict=True):
-        np.testing.assert_array_equal(a.contour, b.contour)
-    np.testing.assert_array_equal(one.vertices, several.vertices)
 
 
 def test_an_object_larger_than_the_view_is_named_so(

@@ -13,7 +13,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
@@ -1356,15 +1356,9 @@ def process_segments(
 
 
 def processing_threads() -> int:
-    """Return how many threads processing may use: the cores this process may run on, at
-    most ``MAX_PROCESSING_THREADS`` (a Raspberry Pi's four), and no more than
-    ``OMP_NUM_THREADS`` where it is set (the numerical libraries' limit: a box that keeps
-    cores for its device program and terminal sets it, and processing keeps to it too)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    limit = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if limit.isdigit() and int(limit) > 0:
-        cores = min(cores or 1, int(limit))
-    return max(1, min(cores or 1, MAX_PROCESSING_THREADS))
+    """Return how many threads processing may use: the processor's cores, at most
+    ``MAX_PROCESSING_THREADS`` (a Raspberry Pi's four)."""
+    return max(1, min(os.cpu_count() or 1, MAX_PROCESSING_THREADS))
 
 
 MAX_PROCESSING_THREADS = 4
@@ -1436,13 +1430,13 @@ def reconstruct(
             return calibrate_grid(grid_image, board, options.calibration, distortion)
 
     # The board's corners are found (OpenCV, without the GIL) while the stripes are fitted.
-    with ThreadPoolExecutor(1, "lamina-grid") if threads > 1 else nullcontext() as pool:
-        grid_done = pool.submit(grid_job) if pool is not None else None
+    with ThreadPoolExecutor(1, "lamina-grid") as pool:
+        grid_done = pool.submit(grid_job)
         if options.refine_stripes:
             with timer.stage("refine_stripes"):
                 refined = refined_segments([*cylinder, *segments], threads)
                 cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
-        grid = grid_done.result() if grid_done is not None else grid_job()
+        grid = grid_done.result()
     axis_views, marks = lift_sections(cylinder, lift_reference)
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
