@@ -43,7 +43,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cache
 
@@ -384,7 +383,6 @@ def refine_many(
     max_row_jump_px: float = DEFAULT_ROW_JUMP_PX,
     half_width_px: int | None = None,
     correct_pull: bool = True,
-    workers: int = 1,
 ) -> list[np.ndarray]:
     """Return every stripe's centre rows fitted along its chains, many stripes at once.
 
@@ -401,7 +399,6 @@ def refine_many(
         half_width_px: a fixed window of that many points either side (0 returns the
             rows), or None to adapt it.
         correct_pull: take off the centre of gravity's pull on curves (:func:`curve_pull`).
-        workers: threads fitting groups of stripes side by side (the result is the same).
 
     Returns:
         Per stripe, the fitted rows (float64), one per point; chains of one or two points
@@ -411,24 +408,17 @@ def refine_many(
     if half_width_px == 0:
         return [np.asarray(rows, np.float64).copy() for _, rows, _ in stripes]
     levels = HALF_WIDTHS_PX if half_width_px is None else (int(half_width_px),)
-    groups: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[]]
+    out: list[np.ndarray] = []
+    group: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     points = 0
     # Groups of stripes small enough for the processor's cache, whole stripes each.
-    for stripe in stripes:
-        if points >= _GROUP_POINTS:
-            groups.append([])
-            points = 0
-        groups[-1].append(stripe)
+    for k, stripe in enumerate(stripes):
+        group.append(stripe)
         points += len(stripe[0])
-
-    def refine(group: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[np.ndarray]:
-        return _refine_group(group, max_row_jump_px, levels, correct_pull)
-
-    if workers <= 1 or len(groups) == 1:
-        return [rows for group in groups for rows in refine(group)]
-    # The groups' arrays are long enough that numpy works on them without the GIL.
-    with ThreadPoolExecutor(min(workers, len(groups)), "lamina-refine") as pool:
-        return [rows for fitted in pool.map(refine, groups) for rows in fitted]
+        if points >= _GROUP_POINTS or k == len(stripes) - 1:
+            out += _refine_group(group, max_row_jump_px, levels, correct_pull)
+            group, points = [], 0
+    return out
 
 
 def _refine_group(
@@ -557,13 +547,13 @@ def refine_rows(
     return refine_many([(cols, rows, width)], max_row_jump_px, half_width_px, correct_pull)[0]
 
 
-def refined_rows(segments: Sequence[Segment], workers: int = 1) -> list[np.ndarray]:
+def refined_rows(segments: Sequence[Segment]) -> list[np.ndarray]:
     """Return every segment's rows fitted along its chains, in the segment's own order.
 
     The host's half of the stripe extraction: the device sends each column's centre,
-    this fits them along the stripe (:func:`refine_many`, adaptive window, in
-    ``workers`` threads) with the device's default chain rule, all segments at once. A
-    segment without one point per column keeps its rows.
+    this fits them along the stripe (:func:`refine_many`, adaptive window) with the
+    device's default chain rule, all segments at once. A segment without one point
+    per column keeps its rows.
     """
     out = [np.asarray(segment.rows, np.float64).copy() for segment in segments]
     stripes, fitted_to = [], []
@@ -577,16 +567,16 @@ def refined_rows(segments: Sequence[Segment], workers: int = 1) -> list[np.ndarr
                 continue  # not one point per column: left as it is
         stripes.append((segment.cols[order], segment.rows[order], segment.width[order]))
         fitted_to.append((k, order))
-    for (k, order), rows in zip(fitted_to, refine_many(stripes, workers=workers), strict=True):
+    for (k, order), rows in zip(fitted_to, refine_many(stripes), strict=True):
         out[k][order] = rows
     return out
 
 
-def refined_segments(segments: Sequence[Segment], workers: int = 1) -> list[Segment]:
+def refined_segments(segments: Sequence[Segment]) -> list[Segment]:
     """Return the segments with their rows fitted along their chains (:func:`refined_rows`)."""
     return [
         dataclasses.replace(segment, rows=rows.astype(np.float32))
-        for segment, rows in zip(segments, refined_rows(segments, workers), strict=True)
+        for segment, rows in zip(segments, refined_rows(segments), strict=True)
     ]
 
 

@@ -157,11 +157,6 @@ def test_many_stripes_at_once_equal_each_alone():
     together = refine_many(stripes)
     for stripe, fitted in zip(stripes, together, strict=True):  # rows are summed in 2**-16 px
         np.testing.assert_allclose(fitted, refine_rows(*stripe), atol=1e-4)
-    # Groups fitted in threads side by side give the same rows, in the same order.
-    threaded = refine_many(stripes, workers=3)
-    assert len(threaded) == len(together)
-    for a, b in zip(together, threaded, strict=True):
-        np.testing.assert_array_equal(a, b)
 
 
 def test_a_segment_is_fitted_in_its_own_point_order():

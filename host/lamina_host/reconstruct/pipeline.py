@@ -9,10 +9,8 @@ method and Lamina's default side by side; ``ProcessOptions.thesis()`` runs the t
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -1355,16 +1353,6 @@ def process_segments(
     return sections, warnings, rejected, failed
 
 
-def processing_threads() -> int:
-    """Return how many threads processing may use: the processor's cores, at most
-    ``MAX_PROCESSING_THREADS`` (a Raspberry Pi's four)."""
-    return max(1, min(os.cpu_count() or 1, MAX_PROCESSING_THREADS))
-
-
-MAX_PROCESSING_THREADS = 4
-"""Threads for the stages that run side by side (stripe fitting, grid calibration)."""
-
-
 def lift_sections(
     cylinder: list[Segment], reference: LiftReference | None
 ) -> tuple[list[Segment], list[list[Segment]]]:
@@ -1422,21 +1410,13 @@ def reconstruct(
     options = options or ProcessOptions()
     options.check()
     timer = Timer()
-    threads = processing_threads()
-    distortion = options.distortion if options.calibration == "ml" else "off"
-
-    def grid_job() -> GridCalibration:
-        with timer.stage("calibrate_grid"):
-            return calibrate_grid(grid_image, board, options.calibration, distortion)
-
-    # The board's corners are found (OpenCV, without the GIL) while the stripes are fitted.
-    with ThreadPoolExecutor(1, "lamina-grid") as pool:
-        grid_done = pool.submit(grid_job)
-        if options.refine_stripes:
-            with timer.stage("refine_stripes"):
-                refined = refined_segments([*cylinder, *segments], threads)
-                cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
-        grid = grid_done.result()
+    if options.refine_stripes:
+        with timer.stage("refine_stripes"):
+            refined = refined_segments([*cylinder, *segments])
+            cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
+    with timer.stage("calibrate_grid"):
+        distortion = options.distortion if options.calibration == "ml" else "off"
+        grid = calibrate_grid(grid_image, board, options.calibration, distortion)
     axis_views, marks = lift_sections(cylinder, lift_reference)
     with timer.stage("calibrate_axis"):
         axis = calibrate_axis(
