@@ -141,9 +141,13 @@ def unwrap_angles(angle_rad: np.ndarray) -> np.ndarray:
     a = np.asarray(angle_rad, dtype=float)
     if len(a) < 2:
         return a.copy()
-    step = np.diff(a)
-    step -= TWO_PI * np.round(step / TWO_PI)
-    return np.concatenate([a[:1], a[0] + np.cumsum(step)])
+    step = a[1:] - a[:-1]
+    step -= TWO_PI * np.rint(step / TWO_PI)
+    out = np.empty_like(a)
+    out[0] = a[0]
+    np.cumsum(step, out=out[1:])
+    out[1:] += a[0]
+    return out
 
 
 def outline_frame(points: np.ndarray, link_mm: float) -> OutlineFrame:
