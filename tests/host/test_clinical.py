@@ -272,6 +272,19 @@ def test_centreline_axis_measures_perpendicular_to_a_tilted_limb() -> None:
     assert m.volume_mm3 == pytest.approx(np.pi * r * r * 200.0 / math.cos(tilt), rel=1e-4)
 
 
+def test_a_flat_section_leaves_the_centre_line_fit_standing() -> None:
+    """A closed outline without area (seen edge-on) is placed at its mean: the fit of the
+    centre line neither raises nor loses the tilt the other sections give."""
+    tilt = math.radians(5.0)
+    zs = np.arange(0.0, 100.1, 10.0)
+    sections = [ellipse_section(z, 40.0, 40.0, (z * math.tan(tilt), 0.0)) for z in zs]
+    t = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    flat = np.column_stack([50.0 * math.tan(tilt) + 40.0 * np.cos(t), np.zeros(720)])
+    sections[5] = LimbSection(50.0, efd_fit(flat, 20), "measured")
+    axis = fit_axis(sections, "centreline")
+    assert axis.tilt_deg == pytest.approx(5.0, abs=0.05)
+
+
 def test_comparison_flags_follow_the_thresholds() -> None:
     """Left against right limb: circumference and volume differences cross the thresholds."""
     right = measure_limb(cone(40.0, 50.0, 300.0, 10.0))

@@ -8,6 +8,7 @@ import pytest
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.measure import (
     centroid,
+    centroid_or_mean,
     perimeter,
     polygon_area,
     radial_error_table,
@@ -35,6 +36,17 @@ def test_polygon_measures() -> None:
     assert np.allclose(centroid(dense), [2.0, 2.0])
     with pytest.raises(CalibrationError):
         centroid(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]))
+
+
+def test_a_flat_outline_is_placed_at_its_mean() -> None:
+    """An outline without area has no centroid, but still a place (chains, centre lines)."""
+    flat = np.column_stack([np.linspace(-3.0, 5.0, 9), np.full(9, 2.0)])
+    with pytest.raises(CalibrationError):
+        centroid(flat)
+    np.testing.assert_allclose(centroid_or_mean(flat), [1.0, 2.0])
+    phi = np.linspace(0.0, 2.0 * np.pi, 7, endpoint=False)
+    lopsided = np.column_stack([1.0 + np.cos(phi) ** 3, -2.0 + np.sin(phi)])
+    np.testing.assert_array_equal(centroid_or_mean(lopsided), centroid(lopsided))
 
 
 def test_radial_error_perfect_circles() -> None:

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.reconstruct.efd import CLINICAL_INTERPOLATION, EfdStack, EllipticFourier, efd_area
-from lamina_host.reconstruct.measure import centroid
+from lamina_host.reconstruct.measure import centroid_or_mean
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.errors import InputError
 
@@ -314,7 +314,9 @@ def _centre_line(closed: Sequence[LimbSection]) -> tuple[LimbAxis, float]:
     """Return the centre line through the outlines' centroids and its tilt's standard error
     in degrees (NaN from two heights: no scatter to judge it by)."""
     z = np.array([s.z_mm for s in closed])
-    c = np.array([centroid(s.efd.evaluate(OUTLINE_SAMPLES)) for s in closed if s.efd is not None])
+    c = np.array(
+        [centroid_or_mean(s.efd.evaluate(OUTLINE_SAMPLES)) for s in closed if s.efd is not None]
+    )
     design = np.column_stack([np.ones_like(z), z])
     (x0, ax), *_ = np.linalg.lstsq(design, c[:, 0], rcond=None)
     (y0, ay), *_ = np.linalg.lstsq(design, c[:, 1], rcond=None)

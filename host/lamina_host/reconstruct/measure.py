@@ -104,6 +104,18 @@ class RadialErrorTable:
         }
 
 
+def centroid_or_mean(contour: np.ndarray) -> np.ndarray:
+    """Return a contour's area centroid, or its samples' mean where it encloses no area.
+
+    For where an outline only has to be placed (chaining outlines up a scan, a limb's
+    centre line): a flat outline (a stripe seen edge-on) still has a place.
+    """
+    try:
+        return centroid(contour)
+    except CalibrationError:
+        return np.asarray(contour, dtype=float).reshape(-1, 2).mean(axis=0)
+
+
 def _radial_rms(points: np.ndarray, centre: np.ndarray, z_mm: float, radius: RadiusModel) -> float:
     rel = points - centre
     error = np.hypot(rel[:, 0], rel[:, 1]) - radius(np.arctan2(rel[:, 1], rel[:, 0]), z_mm)

@@ -67,7 +67,7 @@ from lamina_host.reconstruct.efd import (
     harmonics_problem,
     nyquist_max,
 )
-from lamina_host.reconstruct.measure import centroid, perimeter, signed_area
+from lamina_host.reconstruct.measure import centroid_or_mean, perimeter, signed_area
 from lamina_host.reconstruct.mesh import (
     MESH_METHODS,
     MeshlabMissing,
@@ -888,11 +888,11 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
     for index in sorted(by_index, key=lambda k: by_index[k][0].z_mm):
         still_open = []
         for s in by_index[index]:
-            c = _chain_centre(s.contour)
+            c = centroid_or_mean(s.contour)
             reach = float(np.linalg.norm(s.contour - c, axis=1).mean())
             best, best_d = None, reach
             for chain in open_chains:
-                d = float(np.linalg.norm(_chain_centre(chain[-1].contour) - c))
+                d = float(np.linalg.norm(centroid_or_mean(chain[-1].contour) - c))
                 if d < best_d and chain not in still_open:
                     best, best_d = chain, d
             if best is None:
@@ -903,15 +903,6 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
             still_open.append(best)
         open_chains = still_open
     return chains
-
-
-def _chain_centre(contour: np.ndarray) -> np.ndarray:
-    """Return an outline's area centroid, or its samples' mean where it encloses no area
-    (a flat outline: a stripe seen edge-on still belongs to a chain)."""
-    try:
-        return centroid(contour)
-    except CalibrationError:
-        return np.asarray(contour, dtype=float).reshape(-1, 2).mean(axis=0)
 
 
 MIN_SEEN_RUN = 3
