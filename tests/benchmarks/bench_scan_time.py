@@ -162,9 +162,10 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     from lamina_device.acquisition import acquire
     from lamina_device.sim import open_sim
     from lamina_device.timing import estimate_scan_time
+    from lamina_host.reconstruct.continuity import outline_jumps
     from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, reconstruct
     from lamina_host.reconstruct.precision import views_disagreement_mm
-    from lamina_host.store.outputs import build_report, outline_jumps, write_outputs
+    from lamina_host.store.outputs import build_report, write_outputs
     from lamina_shared.types import ScanPlan
     from tests.helpers.campaign import _unwatched
 

@@ -13,13 +13,14 @@ from hypothesis import strategies as st
 from lamina_host.reconstruct.continuity import (
     JUMP_WARN_MM,
     OutlineShape,
+    outline_jumps,
     outline_shape,
     section_jumps,
 )
 from lamina_host.reconstruct.efd import efd_fit
 from lamina_host.reconstruct.pipeline import Section
 from lamina_host.reconstruct.status import OutlineStatus
-from lamina_host.store.outputs import _jump_warnings, outline_jumps
+from lamina_host.store.outputs import _jump_warnings
 
 PITCH_MM = 10.0
 

@@ -9,7 +9,7 @@ part of the motion along the camera's line of sight (each view sees the side fac
 camera). The overlapping views cannot show that (:mod:`.precision`); its neighbours can.
 
 For every outline with a measured outline below and above it (one vertical chain of
-outlines, ``pipeline.chain_outlines``), its area centroid and its equivalent radius
+outlines, :func:`~lamina_host.reconstruct.pipeline.chain_outlines`), its area centroid and its equivalent radius
 (that of the circle of its area) are compared with the values interpolated linearly in
 z from the two neighbours (a second difference). The limit a jump must pass is
 :data:`JUMP_WARN_MM` plus an allowance for the shape's own curvature, which grows with
@@ -28,6 +28,8 @@ import numpy as np
 
 from lamina_host.reconstruct.calibration import CalibrationError
 from lamina_host.reconstruct.measure import centroid, polygon_area
+from lamina_host.reconstruct.pipeline import Section, chain_outlines
+from lamina_host.reconstruct.status import OutlineStatus
 
 JUMP_WARN_MM = 0.5
 """A section whose centre or equivalent radius stands further than this (beyond the
@@ -178,3 +180,21 @@ def _jump(
         size_mm=here.radius_mm - radius,
         limit_mm=JUMP_WARN_MM + curvature + NOISE_SIGMAS * error,
     )
+
+
+def outline_jumps(sections: list[Section]) -> list[SectionJump]:
+    """Return how far each measured outline stands off the line of its neighbours.
+
+    Outlines are followed up the scan (``chain_outlines``); only those closed from their
+    own data (measured, or bridged across small gaps) are judged or judge: one filled
+    from its neighbours would agree with them by construction.
+    """
+    jumps = []
+    for chain in chain_outlines(sections):
+        shapes = [
+            outline_shape(s.index, s.part, s.z_mm, s.contour, s.precision_mm, len(s.raw))
+            for s in chain
+            if s.status in (OutlineStatus.MEASURED, OutlineStatus.BRIDGED)
+        ]
+        jumps += section_jumps([shape for shape in shapes if shape is not None])
+    return sorted(jumps, key=lambda j: (j.index, j.part))

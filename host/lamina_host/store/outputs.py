@@ -16,7 +16,7 @@ import numpy as np
 
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import GridCalibration, LiftCalibration
-from lamina_host.reconstruct.continuity import SectionJump, outline_shape, section_jumps
+from lamina_host.reconstruct.continuity import SectionJump, outline_jumps
 from lamina_host.reconstruct.coverage import Coverage
 from lamina_host.reconstruct.efd import EllipticFourier
 from lamina_host.reconstruct.expect import Expectation
@@ -35,7 +35,6 @@ from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
     Section,
-    chain_outlines,
     coloured_cloud,
     stack,
 )
@@ -390,11 +389,15 @@ def _accuracy(result: Reconstruction, expect: Expectation | None) -> Accuracy | 
     return Accuracy(expect.spec, table, sphere)
 
 
+def _outline_name(index: int, part: int) -> str:
+    """Return how a warning names an outline: its section, and its part after the first."""
+    return f"section {index}" + (f" outline {part}" if part else "")
+
+
 def _motion_warnings(sections: list[Section]) -> list[str]:
     """Return a warning for each outline whose overlapping views show the subject moving."""
     return [
-        f"section {s.index}"
-        + (f" outline {s.part}" if s.part else "")
+        _outline_name(s.index, s.part)
         + f": its overlapping views stand {s.views_apart_mm:.2f} mm apart, beyond their "
         "noise: the subject may have moved during the scan; scan again with the limb "
         "supported and still"
@@ -403,29 +406,10 @@ def _motion_warnings(sections: list[Section]) -> list[str]:
     ]
 
 
-def outline_jumps(sections: list[Section]) -> list[SectionJump]:
-    """Return how far each measured outline stands off the line of its neighbours.
-
-    Outlines are followed up the scan (``chain_outlines``); only those closed from their
-    own data (measured, or bridged across small gaps) are judged or judge: one filled
-    from its neighbours would agree with them by construction.
-    """
-    jumps = []
-    for chain in chain_outlines(sections):
-        shapes = [
-            outline_shape(s.index, s.part, s.z_mm, s.contour, s.precision_mm, len(s.raw))
-            for s in chain
-            if s.status in (OutlineStatus.MEASURED, OutlineStatus.BRIDGED)
-        ]
-        jumps += section_jumps([shape for shape in shapes if shape is not None])
-    return sorted(jumps, key=lambda j: (j.index, j.part))
-
-
 def _jump_warnings(jumps: list[SectionJump]) -> list[str]:
     """Return a warning for each outline standing off the line of its neighbours."""
     return [
-        f"section {j.index}"
-        + (f" outline {j.part}" if j.part else "")
+        _outline_name(j.index, j.part)
         + f": it stands {j.jump_mm:.2f} mm off the line of the sections below and above it "
         + (
             f"(its size {j.size_mm:+.2f} mm in radius"
