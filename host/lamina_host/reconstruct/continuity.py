@@ -9,11 +9,11 @@ part of the motion along the camera's line of sight (each view sees the side fac
 camera). The overlapping views cannot show that (:mod:`.precision`); its neighbours can.
 
 For every outline with a measured outline below and above it (one vertical chain of
-outlines, :func:`~lamina_host.reconstruct.pipeline.chain_outlines`), its area centroid and its equivalent radius
-(that of the circle of its area) are compared with the values interpolated linearly in
-z from the two neighbours (a second difference). The limit a jump must pass is
-:data:`JUMP_WARN_MM` plus an allowance for the shape's own curvature, which grows with
-the square of the section spacing and shrinks with the outline's size
+outlines, :func:`~lamina_host.reconstruct.pipeline.chain_outlines`), its area centroid and
+its equivalent radius (that of the circle of its area) are compared with the values
+interpolated linearly in z from the two neighbours (a second difference). The limit a
+jump must pass is :data:`JUMP_WARN_MM` plus an allowance for the shape's own curvature,
+which grows with the square of the section spacing and shrinks with the outline's size
 (:data:`CURVATURE_ALLOWANCE`), plus :data:`NOISE_SIGMAS` standard errors of the figures
 from each outline's measured precision.
 """
