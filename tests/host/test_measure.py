@@ -74,6 +74,15 @@ def test_radial_error_shifted_centres() -> None:
     assert table.to_dict()["rows"][3]["section"] == 3
 
 
+def test_radial_error_table_takes_a_flat_section() -> None:
+    """A flat outline (no area) gets a row about its points' mean, not an exception."""
+    flat = np.column_stack([np.linspace(-R, R, 50), np.zeros(50)])
+    table = radial_error_table({0: circle((0.0, 0.0)), 1: flat}, {0: 0.0, 1: 2.0}, R)
+    assert table.rows[0].rms_own_mm == pytest.approx(0.0, abs=1e-9)
+    # Points spread evenly over [-R, R] about 0: radial error |x| - R, RMS R / sqrt(3).
+    assert table.rows[1].rms_own_mm == pytest.approx(R / np.sqrt(3.0), rel=0.05)
+
+
 def test_radial_error_needs_heights() -> None:
     """A section without a height raises CalibrationError."""
     with pytest.raises(CalibrationError, match="z_mm"):

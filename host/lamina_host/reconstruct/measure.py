@@ -155,7 +155,8 @@ def radial_error_table(
     )
     sections = sorted(contours)
     pts = [np.asarray(contours[s], dtype=float) for s in sections]
-    centres = np.array([centroid(p) for p in pts])
+    # A flat outline (a stripe seen edge-on) still gets a row, about its points' mean.
+    centres = np.array([centroid_or_mean(p) for p in pts])
     mean_centre = centres.mean(axis=0)
     rows = []
     for s, p, c in zip(sections, pts, centres, strict=True):
