@@ -175,6 +175,7 @@ def _check_scan(scale: str, seed: int) -> None:
     result = scan_seed(seed, SMALL[scale])
     where = f"seed {seed} scale {scale} ({result.features})"
     assert not result.crashed, f"{where}: {result.failure_kind}: {result.error} [{result.trace}]"
+    assert not result.internal_errors, f"{where}: caught {result.internal_errors}"
     if result.stage:  # an honest one-line refusal (LaminaError): nothing more to check
         assert result.error and "\n" not in result.error
         return

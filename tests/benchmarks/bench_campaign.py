@@ -149,7 +149,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             statuses[k] = statuses.get(k, 0) + v
 
     def badness(r: dict[str, Any]) -> tuple[int, float, float]:
-        crashed = bool(r["stage"]) and not r["refusal"]
+        crashed = (bool(r["stage"]) and not r["refusal"]) or bool(r["internal_errors"])
         cov_r = r["coverage"] if math.isfinite(r["coverage"]) else 0.0
         dist_r = r["mean_distance_mm"] if math.isfinite(r["mean_distance_mm"]) else math.inf
         return (0 if crashed else 1 if r["stage"] else 2, cov_r, -dist_r)
@@ -159,6 +159,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "seeds": len(rows),
         "finished": len(finished),
         "tracebacks": sum(1 for r in rows if r["stage"] and not r["refusal"]),
+        "caught_internal_errors": sum(len(r["internal_errors"]) for r in rows),
         "refusals": sum(1 for r in rows if r["stage"] and r["refusal"]),
         "mean_distance_mm": {"median": _pct(dist, 50), "p95": _pct(dist, 95), "n": len(dist)},
         "coverage": {"median": _pct(cov, 50), "p5": _pct(cov, 5), "n": len(cov)},
@@ -174,6 +175,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 "seed": r["seed"],
                 "features": r["features"],
                 "failure": f"{r['error_type']}@{r['stage']}: {r['error']}" if r["stage"] else "",
+                "internal_errors": r["internal_errors"],
                 "trace": r["trace"],
                 "coverage": r["coverage"],
                 "mean_distance_mm": r["mean_distance_mm"],
@@ -228,7 +230,8 @@ def report(results: dict[str, Any]) -> list[str]:
         lines += [
             head,
             f"    finished {s['finished']}, one-line refusals {s['refusals']}, "
-            f"tracebacks {s['tracebacks']}",
+            f"tracebacks {s['tracebacks']}, outlines or meshes failed by a caught internal "
+            f"error {s['caught_internal_errors']}",
             f"    mean distance mm: median {_f(d['median'], '.4f')}, "
             f"p95 {_f(d['p95'], '.4f')} (n={d['n']})",
             f"    coverage within 0.25 mm: median {_f(c['median'], '.3f')}, "

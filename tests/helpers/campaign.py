@@ -95,6 +95,9 @@ class SeedResult:
     statuses: dict[str, int] = field(default_factory=dict)
     outlines: list[OutlineCheck] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    internal_errors: list[str] = field(default_factory=list)
+    """Reasons of outlines failed by a bug, not by Lamina's own refusal: each is a
+    traceback the product caught (the outline marked failed, the rest processed)."""
     wall_s: float = 0.0
 
     @property
@@ -194,6 +197,11 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
             segments,
             ProcessOptions(),
         )
+        # Outlines and meshes the product caught failing by a bug: tracebacks all the same.
+        caught = [f.reason for f in recon.failed] + [
+            w for w in recon.warnings if w.startswith("the ") and "could not be built" in w
+        ]
+        result.internal_errors = [c for c in caught if "internal error (" in c]
         stage = "report"
         report = build_report(recon, {"kind": "sim"}, segments, None, {})
         with tempfile.TemporaryDirectory() as tmp:

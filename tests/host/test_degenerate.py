@@ -276,8 +276,25 @@ def test_gap_bridges_and_fills_take_any_outline(points: np.ndarray, fill: np.nda
     if len(points):
         bridged = bridge_gaps(points, frame)
         assert len(bridged) >= len(points) and finite(bridged)
+        # A bridge never flies off: its offsets stay near the measured ones.
+        seen, out = frame.to_local(points)[1], frame.to_local(bridged)[1]
+        if finite(seen):
+            reach = max(float(np.ptp(seen)), 1.0) + 1e-9 * (1.0 + np.abs(seen).max())
+            assert np.all(out >= seen.min() - reach) and np.all(out <= seen.max() + reach)
     moved = match_sides(points, fill, frame)
     assert moved.shape == fill.reshape(-1, 2).shape and finite(moved)
+
+
+def test_a_bridge_from_points_bunched_at_one_angle_stays_near_them() -> None:
+    """Sides whose points share one angle carry no slope (random limb shape 11's blob:
+    slopes of 1e12 mm/rad put bridge points 1e11 mm away and failed its outline)."""
+    angles = np.repeat([0.0, 0.6, 1.4, 3.0], 4) + np.tile([0.0, 1e-13, 2e-13, 3e-13], 4)
+    radii = 0.3 + 0.1 * np.arange(len(angles)) / len(angles)
+    points = np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
+    frame = OutlineFrame(np.zeros(2))
+    bridged = bridge_gaps(points, frame)
+    assert len(bridged) > len(points)
+    assert np.hypot(*bridged.T).max() < 0.5 and np.hypot(*bridged.T).min() > 0.2
 
 
 @FAST

@@ -203,6 +203,15 @@ and slope (a parabola fitted to them)."""
 BRIDGE_STEP_DEG = 0.5
 """Angular spacing of the samples of a bridge."""
 
+BRIDGE_SLOPE_SPAN_DEG = 1.0
+"""A side whose points span less angle than this gives the bridge its value, not a slope:
+points bunched at one angle (a small blob, views repeating one point) carry no slope,
+and a fit to them returned slopes of 1e12 mm per radian (a random limb-scale shape)."""
+
+BRIDGE_REACH_MM = 1.0
+"""A bridge's offset stays within the measured offsets' range widened by that range (at
+least this): a safeguard, as wide as a bridge between sane sides ever swings."""
+
 
 def _side(ang: np.ndarray, rad: np.ndarray) -> tuple[float, float]:
     """Return the value and slope at angle 0 of a parabola fitted to (ang, rad).
@@ -210,7 +219,7 @@ def _side(ang: np.ndarray, rad: np.ndarray) -> tuple[float, float]:
     A parabola, not a line: a line's slope is that of the window's middle, which on a
     curved outline tilts the bridge (0.2 mm over 20 degrees of a 30 x 22 mm ellipse).
     """
-    if len(ang) < 2 or np.ptp(ang) <= 0:
+    if len(ang) < 2 or np.ptp(ang) < np.deg2rad(BRIDGE_SLOPE_SPAN_DEG):
         return float(np.mean(rad)), 0.0
     # Least squares on angles scaled to about 1 (a Vandermonde of raw radians is badly
     # conditioned); the rank it finds is what the points can carry.
@@ -247,6 +256,7 @@ def bridge_gaps(points: np.ndarray, frame: OutlineFrame) -> np.ndarray:
         return pts
     step = np.diff(np.append(ang, ang[0] + 2.0 * np.pi))
     side = np.deg2rad(BRIDGE_SIDE_DEG)
+    reach = max(float(np.ptp(rad)), BRIDGE_REACH_MM)
     extra = []
     for k in np.flatnonzero(step > np.deg2rad(BRIDGE_MIN_GAP_DEG)):
         start, width = ang[k], step[k]
@@ -256,12 +266,15 @@ def bridge_gaps(points: np.ndarray, frame: OutlineFrame) -> np.ndarray:
         rel_r = np.mod(ang - start, 2.0 * np.pi)
         right = (rel_r >= width - 1e-12) & (rel_r <= width + side)
         r0, s0 = _side(rel[left], rad[left])
-        r1, s1 = _side(rel_r[right] - width, rad[right])
+        # All points at one angle leave one gap of a whole turn, its right side empty.
+        r1, s1 = _side(rel_r[right] - width, rad[right]) if right.any() else (r0, s0)
         n = max(2, int(np.ceil(np.rad2deg(width) / BRIDGE_STEP_DEG)))
         t = np.arange(1, n) / n
         h00, h10 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t
         h01, h11 = -2 * t**3 + 3 * t**2, t**3 - t**2
         r = h00 * r0 + h10 * width * s0 + h01 * r1 + h11 * width * s1
+        # A bridge is a guess: it must not go much further out or in than what was seen.
+        r = np.clip(r, rad.min() - reach, rad.max() + reach)
         a = start + t * width
         extra.append(np.stack([a, r], axis=1))
     if not extra:
