@@ -34,6 +34,7 @@ from lamina_host.reconstruct.outliers import (
     angular_extent_deg,
     clean_section,
     cluster_support,
+    confirmed_by_other_views,
 )
 from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
@@ -199,6 +200,31 @@ def test_an_outline_needs_points_views_size_and_angle() -> None:
         "blob, 2 views": False,
     }  # fmt: skip
     assert angular_extent_deg(clusters["arc, 2 views"][0]) == pytest.approx(70.0, abs=20.0)
+
+
+def test_a_shallow_arc_two_views_agree_on_is_an_outline() -> None:
+    """A 20-degree arc of a 60 mm outline (a wide object's side) two views see along the
+    same stretch is surface, whatever its angle; seen by the two views end to end (not
+    confirmed), or as a short stroke, the angle rule still decides."""
+    rules = OutlierRules()
+    a, b, c = (0.0, 0.0), (0.0, 200.0), (200.0, 0.0)  # three outlines far apart
+    clusters = {
+        "shallow arc, overlapping views": [arc(a, 60.0, 0, 20, 200), arc(a, 60.0, 2, 22, 200)],
+        "shallow arc, views end to end": [arc(b, 60.0, 0, 10, 100), arc(b, 60.0, 11, 21, 100)],
+        "short stroke, overlapping views": [arc(c, 60.0, 0, 3, 40), arc(c, 60.0, 0.2, 3.2, 40)],
+    }  # fmt: skip
+    points = np.concatenate([p for pieces in clusters.values() for p in pieces])
+    views = np.concatenate([np.full(len(p), v) for pieces in clusters.values()
+                            for v, p in enumerate(pieces)])  # fmt: skip
+    labels = np.repeat(np.arange(3), [sum(len(p) for p in c) for c in clusters.values()])
+    confirmed = confirmed_by_other_views(points, views, rules.consensus_mm)
+    good = cluster_support(points, views, labels, 3, rules, confirmed)
+    assert dict(zip(clusters, good.tolist(), strict=True)) == {
+        "shallow arc, overlapping views": True, "shallow arc, views end to end": False,
+        "short stroke, overlapping views": False,
+    }  # fmt: skip
+    # Without the views' agreement the angle rule alone rejects the shallow arc.
+    assert not cluster_support(points, views, labels, 3, rules)[0]
 
 
 # --- coverage ---------------------------------------------------------------------------
