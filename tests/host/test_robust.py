@@ -202,6 +202,22 @@ def test_an_outline_needs_points_views_size_and_angle() -> None:
     assert angular_extent_deg(clusters["arc, 2 views"][0]) == pytest.approx(70.0, abs=20.0)
 
 
+def test_a_wide_objects_partly_confirmed_stretches_are_kept_a_crossing_stroke_is_not() -> None:
+    """Beyond the working radius, two views of a wide object overlap over a third of their
+    stretches (fewer views see it there): all kept; a reflection stroke crossing them at
+    one place is not surface."""
+    rules = OutlierRules(working_radius_mm=20.0)
+    view0 = arc((0.0, 0.0), 25.0, 0, 40, 200)
+    view1 = arc((0.0, 0.0), 25.0, 28, 70, 210)
+    r = np.linspace(21.0, 35.0, 140)
+    stroke = np.column_stack([r * np.cos(np.deg2rad(20.0)), r * np.sin(np.deg2rad(20.0))])
+    outlines, rejected = clean_section([view0, view1, stroke], 2.0, rules)
+    kept = np.concatenate([p for o in outlines for p in o])
+    assert len(kept) == len(view0) + len(view1)
+    assert distance_to(kept, circle((0.0, 0.0), 25.0)).max() < 0.05  # the polygon's chords
+    assert rejected.outside_volume == len(stroke)
+
+
 def test_a_shallow_arc_two_views_agree_on_is_an_outline() -> None:
     """A 20-degree arc of a 60 mm outline (a wide object's side) two views see along the
     same stretch is surface, whatever its angle; seen by the two views end to end (not
