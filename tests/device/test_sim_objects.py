@@ -167,7 +167,7 @@ def test_a_mesh_reaching_behind_the_camera_casts_as_brute_force_does():
     faces behind it are culled or boxed, never tested against every pixel; the hits are
     those of testing every ray against every face."""
     from lamina_device.sim import Rig
-    from lamina_device.sim.objects import TriangleMesh
+    from lamina_device.sim.objects import TriangleMesh, _Nearest
 
     centre, dirs = Rig().pixel_rays()
     rays = dirs.reshape(-1, 3)[::211]
@@ -180,11 +180,10 @@ def test_a_mesh_reaching_behind_the_camera_casts_as_brute_force_does():
              for k in range(40)]  # fmt: skip
     tube = TriangleMesh.from_triangles(vertices[np.array(faces)])
     t, _ = tube.raycast(centre, rays)
-    best_t = np.full(len(rays), np.inf)
-    best_f = np.full(len(rays), -1)
+    brute = _Nearest(len(rays))
     origins = np.repeat(centre[None], len(rays), axis=0)
-    TriangleMesh._cast_brute(origins, rays, tube.triangles, np.arange(len(tube.triangles)),
-                             best_t, best_f)  # fmt: skip
+    TriangleMesh._cast_brute(origins, rays, tube.triangles, np.arange(len(tube.triangles)), brute)
+    best_t = brute.t
     assert np.isfinite(best_t).sum() > 100  # the tube surrounds the camera: most rays hit
     np.testing.assert_array_equal(np.isfinite(t), np.isfinite(best_t))
     np.testing.assert_allclose(t[np.isfinite(t)], best_t[np.isfinite(best_t)], atol=1e-9)
