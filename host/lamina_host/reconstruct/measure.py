@@ -143,7 +143,7 @@ def radial_error_table(
         RadialErrorTable with rows in ascending section order.
 
     Raises:
-        CalibrationError: no contours, or a section without a height.
+        CalibrationError: no contours, a section without a height or without points.
     """
     if not contours:
         raise CalibrationError("no sections to measure; the scan produced no contours")
@@ -154,7 +154,10 @@ def radial_error_table(
         radius_mm if callable(radius_mm) else (lambda phi, z: np.full(len(phi), radius_mm))
     )
     sections = sorted(contours)
-    pts = [np.asarray(contours[s], dtype=float) for s in sections]
+    pts = [np.asarray(contours[s], dtype=float).reshape(-1, 2) for s in sections]
+    empty = [s for s, p in zip(sections, pts, strict=True) if len(p) == 0]
+    if empty:
+        raise CalibrationError(f"sections {empty} have no contour points; nothing to measure")
     # A flat outline (a stripe seen edge-on) still gets a row, about its points' mean.
     centres = np.array([centroid_or_mean(p) for p in pts])
     mean_centre = centres.mean(axis=0)
