@@ -60,8 +60,10 @@ from lamina_host.reconstruct.outline_frame import OutlineFrame, outline_frame, r
 from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
+    Section,
     Timer,
     calibrate_axis,
+    chain_outlines,
     fill_gaps,
     process_section,
     process_segments,
@@ -295,6 +297,26 @@ def test_a_bridge_from_points_bunched_at_one_angle_stays_near_them() -> None:
     bridged = bridge_gaps(points, frame)
     assert len(bridged) > len(points)
     assert np.hypot(*bridged.T).max() < 0.5 and np.hypot(*bridged.T).min() > 0.2
+
+
+def test_two_legs_of_equal_fortune_chain_apart() -> None:
+    """Outlines are chained by identity (random limb shape 61: a third outline beside a
+    taken chain compared two chains whose first outlines had equal segment counts, and
+    their point arrays of unequal length: a traceback at the end of processing)."""
+
+    def ring(index: int, x_mm: float, radius_mm: float, samples: int, part: int) -> Section:
+        phi = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
+        xy = np.column_stack([x_mm + radius_mm * np.cos(phi), radius_mm * np.sin(phi)])
+        return Section(index, 12.0 * index, 6, xy, efd_fit(xy, 4), xy, part=part)
+
+    below = [ring(0, -60.0, 20.0, 729, 0), ring(0, 60.0, 20.0, 299, 1)]
+    above = [ring(1, -60.0, 20.0, 838, 0), ring(1, 60.0, 20.0, 143, 1), ring(1, 62.0, 3.0, 77, 2)]
+    chains = chain_outlines(below + above)
+    assert [[(s.index, s.part) for s in c] for c in chains] == [
+        [(0, 0), (1, 0)],
+        [(0, 1), (1, 1)],
+        [(1, 2)],
+    ]
 
 
 @FAST

@@ -283,7 +283,7 @@ GAP_FILL_SAMPLES = 720
 """Samples of the neighbours' interpolated contour offered to fill a gap."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Section:
     """One outline of a planar section: measured points, EFD contour and how it was closed.
 
@@ -368,7 +368,7 @@ def failure_reason(exc: Exception) -> str:
     return f"internal error ({type(exc).__name__}: {exc}); please report it"
 
 
-@dataclass
+@dataclass(eq=False)
 class Reconstruction:
     """Everything the processing produced, ready to be written and reported.
 
@@ -701,7 +701,7 @@ def fit_groups(
     return sections
 
 
-@dataclass
+@dataclass(eq=False)
 class SectionOutcome:
     """What processing one section gave: its fitted outlines, the ones that failed, and
     the points outlier rejection removed."""
@@ -886,14 +886,16 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
         by_index.setdefault(s.index, []).append(s)
     open_chains: list[list[Section]] = []
     for index in sorted(by_index, key=lambda k: by_index[k][0].z_mm):
-        still_open = []
+        still_open: list[list[Section]] = []
         for s in by_index[index]:
             c = centroid_or_mean(s.contour)
             reach = float(np.linalg.norm(s.contour - c, axis=1).mean())
             best, best_d = None, reach
             for chain in open_chains:
                 d = float(np.linalg.norm(centroid_or_mean(chain[-1].contour) - c))
-                if d < best_d and chain not in still_open:
+                # By identity: two chains may hold equal-looking outlines.
+                taken = any(chain is other for other in still_open)
+                if d < best_d and not taken:
                     best, best_d = chain, d
             if best is None:
                 best = [s]

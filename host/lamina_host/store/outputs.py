@@ -130,7 +130,7 @@ class OutlineEntry:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FailedEntry:
     """The report's entry of an outline that could not be processed."""
 
