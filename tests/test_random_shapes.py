@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -25,7 +26,7 @@ from lamina_device.sim.axes import Mechanics
 from lamina_device.sim.objects import TriangleMesh
 from lamina_device.sim.random_shapes import RandomShape, random_shape
 from lamina_device.sim.truth import lit_and_seen_points
-from tests.helpers.campaign import CampaignPlan, scan_seed
+from tests.helpers.campaign import CampaignPlan, scan_seed, shape_group
 
 EXAMPLES = int(os.environ.get("LAMINA_CAMPAIGN_EXAMPLES", "3"))
 
@@ -94,6 +95,20 @@ def test_the_seeds_cover_every_feature_the_issue_asks_for():
     assert any(f and f.tilt_deg > 5 for f in feats)
     assert any(f and f.offset_mm > 1 for f in feats)
     assert any(f and f.relief_mm >= 0.1 and 3.0 <= f.relief_wavelength_mm <= 30.0 for f in feats)
+
+
+def test_shapes_are_grouped_by_what_the_sheet_can_resolve():
+    """Relief of 3 mm wavelength is finer than the limb rig's 0.5 mm sheet resolves (its
+    stripe averages 42 % of it away up the object) but not the thesis rig's 0.16 mm;
+    wide outranks relief; a designed shape is smooth."""
+    feats = next(s.features for s in _thesis_shapes() if s.features and not s.features.wide)
+    relief = replace(feats, relief_mm=0.66, relief_wavelength_mm=3.0)
+    assert shape_group(relief, Rig.preset("limb").laser_sigma_mm) == "fine relief"
+    assert shape_group(relief, Rig.preset("thesis").laser_sigma_mm) == "relief"
+    assert shape_group(replace(relief, relief_wavelength_mm=7.0), 0.5) == "relief"
+    assert shape_group(replace(relief, wide=True), 0.5) == "wide"
+    assert shape_group(replace(relief, relief_mm=0.0), 0.5) == "smooth"
+    assert shape_group(None, 0.5) == "smooth"
 
 
 def test_sections_have_the_promised_outlines():

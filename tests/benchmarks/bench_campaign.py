@@ -16,7 +16,9 @@ judged against the simulator's truth with ``lamina_device.sim.truth``:
   section's outlines closed (both stacks over the true section heights: the lift's
   scale error left out);
 - failures by kind (exception type and stage); a ``LaminaError`` is an honest one-line
-  refusal, anything else a traceback the user would see.
+  refusal, anything else a traceback the user would see;
+- the same figures per kind of shape (``SHAPE_GROUPS``: smooth, relief, relief finer
+  than the laser sheet resolves, wider than the view).
 
 Seeds run in parallel processes (2 by default), each exception caught per seed. The
 plans are small (2 sections x 6 views) to keep the time down: ``LAMINA_CAMPAIGN_SEEDS``
@@ -43,7 +45,7 @@ import numpy as np
 if __package__ in (None, ""):  # run on its own: find the shared test builders
     sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
-from tests.helpers.campaign import CampaignPlan, SeedResult, scan_seed
+from tests.helpers.campaign import SHAPE_GROUPS, CampaignPlan, SeedResult, scan_seed
 
 PLANS = {
     "thesis": CampaignPlan("thesis", sections=2, pitch_mm=2.5, views=6),
@@ -132,12 +134,28 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(finite, q)) if finite else math.nan
 
 
-def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Return the distribution figures of one scale's per-seed results."""
-    finished = [r for r in rows if not r["stage"]]
+def figures(finished: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return the distance, coverage and volume distributions of finished seeds."""
     dist = [r["mean_distance_mm"] for r in finished]
     cov = [r["coverage"] for r in finished if r["lit_points"]]
     vol = [abs(r["volume_error_percent"]) for r in finished]
+    return {
+        "mean_distance_mm": {"median": _pct(dist, 50), "p95": _pct(dist, 95), "n": len(dist)},
+        "coverage": {"median": _pct(cov, 50), "p5": _pct(cov, 5), "n": len(cov)},
+        "volume_abs_error_percent": {
+            "median": _pct(vol, 50),
+            "p95": _pct(vol, 95),
+            "n": sum(1 for v in vol if math.isfinite(v)),
+        },
+    }
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return the distribution figures of one scale's per-seed results, overall and per
+    kind of shape (``SHAPE_GROUPS``: a target such as "limbs with skin relief" is read
+    off its group, and relief finer than the sheet kept apart from what software can do).
+    """
+    finished = [r for r in rows if not r["stage"]]
     kinds: dict[str, int] = {}
     for r in rows:
         if r["stage"]:
@@ -161,12 +179,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "tracebacks": sum(1 for r in rows if r["stage"] and not r["refusal"]),
         "caught_internal_errors": sum(len(r["internal_errors"]) for r in rows),
         "refusals": sum(1 for r in rows if r["stage"] and r["refusal"]),
-        "mean_distance_mm": {"median": _pct(dist, 50), "p95": _pct(dist, 95), "n": len(dist)},
-        "coverage": {"median": _pct(cov, 50), "p5": _pct(cov, 5), "n": len(cov)},
-        "volume_abs_error_percent": {
-            "median": _pct(vol, 50),
-            "p95": _pct(vol, 95),
-            "n": sum(1 for v in vol if math.isfinite(v)),
+        **figures(finished),
+        "by_group": {
+            g: figures([r for r in finished if r.get("group") == g])
+            for g in SHAPE_GROUPS
+            if any(r.get("group") == g for r in finished)
         },
         "failures": kinds,
         "statuses": statuses,
@@ -241,6 +258,14 @@ def report(results: dict[str, Any]) -> list[str]:
             "    outline statuses: "
             + ", ".join(f"{k} {n}" for k, n in sorted(s["statuses"].items())),
         ]
+        for group, g in s["by_group"].items():
+            gd, gc, gv = g["mean_distance_mm"], g["coverage"], g["volume_abs_error_percent"]
+            lines.append(
+                f"    {group} (n={gd['n']}): distance median {_f(gd['median'], '.4f')}, "
+                f"p95 {_f(gd['p95'], '.4f')}; coverage median {_f(gc['median'], '.3f')}, "
+                f"p5 {_f(gc['p5'], '.3f')}; |volume| % median {_f(gv['median'], '.3f')} "
+                f"(n={gv['n']})"
+            )
         for kind, n in sorted(s["failures"].items(), key=lambda kv: -kv[1]):
             lines.append(f"    failure {kind}: {n}")
         for crash in s["crashes"][:10]:

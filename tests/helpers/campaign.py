@@ -27,7 +27,7 @@ from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
-from lamina_device.sim.random_shapes import RandomShape, random_shape
+from lamina_device.sim.random_shapes import RandomShape, ShapeFeatures, random_shape
 from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accuracy
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
@@ -36,6 +36,37 @@ from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
 
 NOISE = "harsh"
+
+FINE_RELIEF_SIGMAS = 13.7
+"""Relief of a wavelength under this many laser-sheet sigmas is finer than the sheet
+resolves: a Gaussian sheet of sigma s passes exp(-2 pi^2 s^2 / L^2) of a relief of
+wavelength L running up the object, under 90 % below 13.7 s (6.9 mm for the limb rig's
+0.5 mm sheet, 2.2 mm for the thesis rig's 0.16 mm). The stripe then lies on the sheet's
+average of the surface, not on the surface at its centre, whatever the software does."""
+
+SHAPE_GROUPS = ("smooth", "relief", "fine relief", "wide")
+"""The kinds of shape the campaign's figures are also given for (``shape_group``)."""
+
+
+def shape_group(features: ShapeFeatures | None, sheet_sigma_mm: float) -> str:
+    """Return which of ``SHAPE_GROUPS`` a random shape belongs to (the first that fits).
+
+    Args:
+        features: the shape's features (None: a designed shape, taken as smooth).
+        sheet_sigma_mm: the rig's laser-sheet sigma (``Rig.laser_sigma_mm``).
+
+    Returns:
+        "wide" (parts beyond what every view sees), "fine relief" (relief finer than the
+        sheet resolves, ``FINE_RELIEF_SIGMAS``), "relief" or "smooth".
+    """
+    if features is None:
+        return "smooth"
+    if features.wide:
+        return "wide"
+    if not features.relief_mm:
+        return "smooth"
+    fine = features.relief_wavelength_mm < FINE_RELIEF_SIGMAS * sheet_sigma_mm
+    return "fine relief" if fine else "relief"
 
 
 @dataclass(frozen=True)
@@ -82,6 +113,7 @@ class SeedResult:
     seed: int
     scale: str
     features: str = ""
+    group: str = ""  # one of SHAPE_GROUPS
     closed_shape: bool = False
     stage: str = ""  # where it failed; empty when it finished
     error_type: str = ""  # exception class; "LaminaError" subclasses are honest refusals
@@ -174,6 +206,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
     stage = "generate"
     try:
         shape = random_shape(seed, plan.scale)
+        result.group = shape_group(shape.features, plan.rig().laser_sigma_mm)
         if shape.features is not None:
             result.features = shape.features.summary()
             result.closed_shape = shape.features.closed
