@@ -38,6 +38,22 @@ def test_noise_alone_stands_out_nowhere_and_a_shifted_view_does():
     assert views_disagreement_mm([]) == 0.0 and views_disagreement_mm(arc_views()[:1]) == 0.0
 
 
+def test_a_pair_laid_against_another_stretch_of_surface_shows_no_motion():
+    """A view whose stripe runs off along another branch (a bent outline, a thin part's
+    far face) differs from its neighbours by a ramp, not an offset: it is no motion (a
+    still bent random limb shape reported its views 30 mm apart); a shifted view still is."""
+    views = arc_views()
+    phi = np.radians(np.linspace(45 * 5 - 50, 45 * 5 + 50, 200))
+    r = 10.0 + np.linspace(0.0, 30.0, phi.size)  # from the circle out along another branch
+    views[5] = np.column_stack([r * np.cos(phi), r * np.sin(phi)])
+    assert views_disagreement_mm(views) < 0.02
+    shifted = arc_views((0.3, 0.3))
+    shifted[5] = views[5]
+    assert views_disagreement_mm(shifted) == pytest.approx(
+        views_disagreement_mm(arc_views((0.3, 0.3))), abs=0.01
+    )
+
+
 @pytest.fixture(scope="module")
 def calibration():
     """The board and the calibration cylinder, taken once with nothing moving."""
