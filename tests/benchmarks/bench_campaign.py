@@ -181,9 +181,9 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "refusals": sum(1 for r in rows if r["stage"] and r["refusal"]),
         **figures(finished),
         "by_group": {
-            g: figures([r for r in finished if r.get("group") == g])
+            g: figures(rows_g)
             for g in SHAPE_GROUPS
-            if any(r.get("group") == g for r in finished)
+            if (rows_g := [r for r in finished if r.get("group") == g])
         },
         "failures": kinds,
         "statuses": statuses,

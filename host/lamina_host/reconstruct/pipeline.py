@@ -893,9 +893,7 @@ def chain_outlines(sections: list[Section]) -> list[list[Section]]:
             best, best_d = None, reach
             for chain in open_chains:
                 d = float(np.linalg.norm(centroid_or_mean(chain[-1].contour) - c))
-                # By identity: two chains may hold equal-looking outlines.
-                taken = any(chain is other for other in still_open)
-                if d < best_d and not taken:
+                if d < best_d and chain not in still_open:  # Sections compare by identity
                     best, best_d = chain, d
             if best is None:
                 best = [s]
