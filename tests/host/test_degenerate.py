@@ -52,6 +52,7 @@ from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area, r
 from lamina_host.reconstruct.mesh import contour_normals, topology, triangulate_polygon, tube_mesh
 from lamina_host.reconstruct.outliers import (
     OutlierRules,
+    Rejected,
     angular_extent_deg,
     clean_section,
     confirmed_along,
@@ -62,9 +63,11 @@ from lamina_host.reconstruct.pipeline import (
     Reconstruction,
     Section,
     Timer,
+    assemble,
     calibrate_axis,
     chain_outlines,
     fill_gaps,
+    kept_little_warning,
     process_section,
     process_segments,
     safe_mesh,
@@ -606,3 +609,66 @@ def test_an_object_larger_than_the_view_is_named_so(
     message = str(refused.value)
     assert "further than 2.0 mm from the turntable axis" in message
     assert "larger than this rig's field of view" in message and "\n" not in message
+
+
+def test_a_section_the_outlier_tests_empty_is_failed_and_a_scan_that_kept_little_says_so(
+    calibrated: tuple[ScanInputs, GridCalibration, AxisCalibration],
+) -> None:
+    """Views that barely overlap beyond the disc: the sections left with no outline are
+    failed with their reason (they used to vanish unsaid), and one line says how little of
+    the stripe was kept and what to do."""
+    inputs, grid, axis = calibrated
+    # Three views 120 degrees apart confirm nothing beyond a 2 mm disc; a fourth view in
+    # section 0 alone overlaps one of them there.
+    segments = [
+        s for s in inputs.segments
+        if s.angle_deg in (0.0, 120.0, 240.0) or (s.angle_deg == 60.0 and s.section == 0)
+    ]  # fmt: skip
+    rules = OutlierRules(working_radius_mm=2.0)
+    sections, warnings, rejected, failed = process_segments(
+        grid, axis, segments, ProcessOptions(), Timer(), rules
+    )
+    assert {s.index for s in sections} == {0}
+    by_section, _, _ = assemble(segments, grid, axis, ProcessOptions().trim_fraction)
+    assert [(f.index, f.part, f.points) for f in failed] == [
+        (k, 0, sum(len(p) for p in by_section[k])) for k in (1, 2, 3)
+    ]
+    for f in failed:
+        assert f.reason.startswith(f"{f.points} of its {f.points} stripe points were left out")
+        assert "more views per section" in f.reason and "\n" not in f.reason
+    assert any(w.startswith("outline(s) 1.0, 2.0, 3.0 could not be processed") for w in warnings)
+    total = sum(len(p) for parts in by_section.values() for p in parts)
+    kept = total - rejected.points
+    assert kept < total / 2
+    [line] = [w for w in warnings if w.startswith("only ")]
+    assert line.startswith(f"only {kept} of {total} stripe points")
+    # The whole scan, all views: everything kept, nothing failed, no such line.
+    sections, warnings, rejected, failed = process_segments(
+        grid, axis, inputs.segments, ProcessOptions(), Timer(), OutlierRules()
+    )
+    assert len(sections) == 4 and not failed and rejected.points == 0
+    assert not [w for w in warnings if w.startswith("only ")]
+
+
+@pytest.mark.parametrize(
+    ("total", "rejected", "expected"),
+    [
+        # Random limb-scale star 87 (280 mm across, 6 views): 109 of 3,545 points kept.
+        (3545, Rejected(outside_volume=1336, view_consensus=8, unsupported_clusters=2092),
+         "only 109 of 3545 stripe points (3 %) were kept as surface: 3428 were seen by one"),
+        (100, Rejected(outside_volume=51), "only 49 of 100 stripe points (49 %)"),
+        (100, Rejected(outside_volume=50), None),  # half kept
+        (100, Rejected(view_consensus=60, outside_volume=20), None),  # mostly contradicted
+        (0, Rejected(), None),
+    ],
+)  # fmt: skip
+def test_the_kept_little_line_names_the_share_kept(
+    total: int, rejected: Rejected, expected: str | None
+) -> None:
+    """The line comes when less than half of the stripe was kept and most of the rest was
+    seen by one view alone; contradicted points (reflections) are their own line's."""
+    line = kept_little_warning(total, rejected)
+    if expected is None:
+        assert line is None
+    else:
+        assert line is not None and line.startswith(expected)

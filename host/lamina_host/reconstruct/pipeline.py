@@ -746,7 +746,32 @@ def process_section(
                 outcome.sections.append(fit_section(index, z_mm, outline, options, part))
         except Exception as exc:
             outcome.failed.append(FailedSection(index, z_mm, part, points, failure_reason(exc)))
+    seen = int(sum(len(p) for p in pieces))
+    if seen and not outcome.sections and not outcome.failed:
+        reason = all_left_out(seen, outcome.rejected)
+        outcome.failed.append(FailedSection(index, z_mm, 0, seen, reason))
     return outcome
+
+
+def all_left_out(seen: int, rejected: Rejected) -> str:
+    """Return the reason of a section the outlier tests left no outline of.
+
+    Such a section has nothing to fit; without its own status it would vanish from the
+    result unsaid (a limb-scale object wider than the view lost whole sections so).
+
+    Args:
+        seen: the section's stripe points before the tests.
+        rejected: what the tests removed from it.
+    """
+    lone = rejected.outside_volume + rejected.unsupported_clusters
+    rest = "" if rejected.points >= seen else ", and the rest are too few for an outline"
+    return (
+        f"{rejected.points} of its {seen} stripe points were left out as outliers "
+        f"({lone} seen by one view alone with no second view to confirm them, "
+        f"{rejected.view_consensus} contradicted by other views, "
+        f"{rejected.spikes + rejected.short_runs} stray){rest}: scan again with the object "
+        "centred and more views per section"
+    )
 
 
 def failure_warning(failed: list[FailedSection]) -> list[str]:
@@ -1244,6 +1269,45 @@ def beyond_view_warning(
     )
 
 
+KEPT_LITTLE_SHARE = 0.5
+"""Below this share of its stripe points kept as surface, a scan is told what it lost."""
+
+
+def kept_little_warning(total_points: int, rejected: Rejected) -> str | None:
+    """Return the line saying most of what the camera saw was left out, or None.
+
+    The outlier tests keep a stretch of stripe where a second view confirms it or where
+    it continues one that is confirmed. Where the views barely overlap (an object wider
+    than the view, standing off the axis, or deep folds each view sees alone), most of
+    the stripe is a stretch one view saw: nothing contradicts it, nothing confirms it,
+    and it is left out. A result built from the rest is honest but small (a random
+    limb-scale star 280 mm across kept 109 of 3,545 points); the user must be told why
+    and what to do, not only given open outlines.
+
+    Args:
+        total_points: the scan's stripe points before the outlier tests.
+        rejected: what the tests removed.
+
+    Returns:
+        One line when less than :data:`KEPT_LITTLE_SHARE` of the points were kept and most
+        of those left out were seen by one view alone.
+    """
+    if total_points <= 0 or rejected.points <= (1.0 - KEPT_LITTLE_SHARE) * total_points:
+        return None
+    unchecked = rejected.outside_volume + rejected.unsupported_clusters
+    if 2 * unchecked <= rejected.points:
+        return None  # mostly contradicted by other views: reflections, said by its own line
+    kept = total_points - rejected.points
+    return (
+        f"only {kept} of {total_points} stripe points ({100.0 * kept / total_points:.0f} %) "
+        f"were kept as surface: {unchecked} were seen by one view alone, with no second "
+        "view to confirm them (beyond the disc every view sees, or in stretches no other "
+        "view overlapped), and were left out, so the result shows only a part of what the "
+        "camera saw; centre the object on the turntable and scan again with more views per "
+        "section, so that neighbouring views overlap"
+    )
+
+
 def rejection_warning(rejected: Rejected) -> str:
     """Return one line saying how many points the outlier tests removed and why."""
     return (
@@ -1321,8 +1385,10 @@ def process_segments(
         warnings.append(rejection_warning(rejected))
     if line := beyond_view_warning(by_section, rules, rejected):
         warnings.append(line)
+    total = sum(len(p) for parts in by_section.values() for p in parts)
+    if sections and (line := kept_little_warning(total, rejected)):
+        warnings.append(line)
     if not sections:
-        total = sum(len(p) for parts in by_section.values() for p in parts)
         if rules.working_radius_mm is not None and rejected.outside_volume * 2 > total:
             raise CalibrationError(
                 f"{rejected.outside_volume} of {total} stripe points lie further than "
