@@ -52,19 +52,26 @@ def test_camera_runs_at_fixed_exposure_and_gain_confirmed_from_metadata(pi_camer
 def test_frames_match_the_laser_state_and_straddling_frames_are_dropped(pi_camera, pi_kit):
     camera, laser, fake = pi_camera
     hardware = type("Rig", (), {"laser": laser, "camera": camera})()
-    before = len(fake.frames)
-    on, off = capture_pair(hardware)
-    assert on.shape == off.shape == (240, 320) and on.dtype == np.uint8
-    # Off frame: no stripe at all; on frame: every stripe row fully lit (no partial exposure).
-    assert np.all(off == pi_kit.BACKGROUND)
     profile = np.round(pi_kit.STRIPE * np.array([0.3, 0.8, 1.0, 0.8, 0.3])).astype(int)
-    np.testing.assert_array_equal(band(on)[:, 0], pi_kit.BACKGROUND + profile)
-    handed_out = fake.frames[before:]
-    straddling = [f for f in handed_out if f.lit_max > 0.0 and f.lit_min < 1.0]
-    assert straddling, "the fake sensor must have exposed a frame across the switch-on"
-    assert camera.frames_dropped >= len(straddling)
+    straddled = pairs = 0
+    # A frame straddles the switch-on only if it is read out before its buffer is reused:
+    # a busy machine may pause this thread for longer than the buffers last, so a pair
+    # may see none. Each pair must be clean; one of a few must have dropped a straddler.
+    while not straddled and pairs < 5:
+        pairs += 1
+        before, dropped = len(fake.frames), camera.frames_dropped
+        on, off = capture_pair(hardware)
+        assert on.shape == off.shape == (240, 320) and on.dtype == np.uint8
+        # Off frame: no stripe at all; on frame: every stripe row fully lit.
+        assert np.all(off == pi_kit.BACKGROUND)
+        np.testing.assert_array_equal(band(on)[:, 0], pi_kit.BACKGROUND + profile)
+        handed_out = fake.frames[before:]
+        straddling = [f for f in handed_out if f.lit_max > 0.0 and f.lit_min < 1.0]
+        assert camera.frames_dropped - dropped >= len(straddling)
+        straddled += len(straddling)
+    assert straddled, "the fake sensor must have exposed a frame across the switch-on"
     assert all(f.released for f in fake.frames)
-    assert laser.mock_pin_history() == [False, True, False]
+    assert laser.mock_pin_history() == [False] + [True, False] * pairs
 
 
 @pytest.mark.wall_clock
