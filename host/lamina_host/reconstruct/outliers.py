@@ -157,6 +157,12 @@ class Rejected:
             + self.short_runs
         )
 
+    @property
+    def one_view(self) -> int:
+        """Return the points removed for want of a second view: beyond the working radius
+        unconfirmed, or in clusters too small or seen by too few views."""
+        return self.outside_volume + self.unsupported_clusters
+
     def add(self, other: Rejected) -> None:
         """Add another count to this one."""
         for name in self.__dataclass_fields__:

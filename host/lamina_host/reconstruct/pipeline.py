@@ -729,12 +729,12 @@ def process_section(
     """
     timer = timer or Timer()
     outcome = SectionOutcome()
+    seen = int(sum(len(p) for p in pieces))
     try:
         with timer.stage("reject"):
             groups, outcome.rejected = outline_groups(pieces, options, rules)
     except Exception as exc:  # any failure here is this section's, not the scan's
-        points = int(sum(len(p) for p in pieces))
-        outcome.failed.append(FailedSection(index, z_mm, 0, points, failure_reason(exc)))
+        outcome.failed.append(FailedSection(index, z_mm, 0, seen, failure_reason(exc)))
         return outcome
     for outline in groups:
         points = int(sum(len(p) for p in outline))
@@ -746,7 +746,6 @@ def process_section(
                 outcome.sections.append(fit_section(index, z_mm, outline, options, part))
         except Exception as exc:
             outcome.failed.append(FailedSection(index, z_mm, part, points, failure_reason(exc)))
-    seen = int(sum(len(p) for p in pieces))
     if seen and not outcome.sections and not outcome.failed:
         reason = all_left_out(seen, outcome.rejected)
         outcome.failed.append(FailedSection(index, z_mm, 0, seen, reason))
@@ -763,11 +762,10 @@ def all_left_out(seen: int, rejected: Rejected) -> str:
         seen: the section's stripe points before the tests.
         rejected: what the tests removed from it.
     """
-    lone = rejected.outside_volume + rejected.unsupported_clusters
     rest = "" if rejected.points >= seen else ", and the rest are too few for an outline"
     return (
         f"{rejected.points} of its {seen} stripe points were left out as outliers "
-        f"({lone} seen by one view alone with no second view to confirm them, "
+        f"({rejected.one_view} seen by one view alone with no second view to confirm them, "
         f"{rejected.view_consensus} contradicted by other views, "
         f"{rejected.spikes + rejected.short_runs} stray){rest}: scan again with the object "
         "centred and more views per section"
@@ -1294,13 +1292,12 @@ def kept_little_warning(total_points: int, rejected: Rejected) -> str | None:
     """
     if total_points <= 0 or rejected.points <= (1.0 - KEPT_LITTLE_SHARE) * total_points:
         return None
-    unchecked = rejected.outside_volume + rejected.unsupported_clusters
-    if 2 * unchecked <= rejected.points:
+    if 2 * rejected.one_view <= rejected.points:
         return None  # mostly contradicted by other views: reflections, said by its own line
     kept = total_points - rejected.points
     return (
         f"only {kept} of {total_points} stripe points ({100.0 * kept / total_points:.0f} %) "
-        f"were kept as surface: {unchecked} were seen by one view alone, with no second "
+        f"were kept as surface: {rejected.one_view} were seen by one view alone, with no second "
         "view to confirm them (beyond the disc every view sees, or in stretches no other "
         "view overlapped), and were left out, so the result shows only a part of what the "
         "camera saw; centre the object on the turntable and scan again with more views per "
