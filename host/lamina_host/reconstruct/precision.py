@@ -177,8 +177,9 @@ def disagreement_of(pairs: list[np.ndarray]) -> float:
     moved = coherent & (np.abs(centre) > _MOTION_SIGMAS * 1.25 * spread / np.sqrt(sizes))
     # A subject who moves between two views stands apart in at least two pairs: round a
     # closed outline the views before and after the move meet at two places. A lone
-    # offset pair is the shape's (a thin part's edge, a shell's far face): 43 of the 48
-    # outlines of 30 still limb shapes that the largest offset warned of had one alone.
+    # offset pair is the shape's (a thin part's edge, a shell's far face): of the 48
+    # outlines of 30 still limb shapes the largest offset warned of, 43 had one pair
+    # alone beyond the warning's 0.15 mm.
     offsets = np.sort(np.abs(centre[moved]))
     return float(offsets[-2]) if offsets.size >= 2 else 0.0
 
