@@ -124,12 +124,12 @@ def precision_of(pairs: list[np.ndarray]) -> float | None:
 
 
 MOTION_WARN_MM = 0.15
-"""Two overlapping views whose outlines stand further apart than this (and beyond their
-noise) are taken to show the subject moving between them: on the thesis rig a scan's
-own mechanics and calibration leave less (the cylinder 0.04 mm; 30 still random shapes
-on the harsh preset under 0.12 mm, a shell 0.21), a breath or a shift of weight more.
-On the limb rig (harsh, 8 views, 10 mm pitch) the second largest pair offset
-(:func:`disagreement_of`) of 30 still random shapes passes it on 5 outlines of 5 shapes
+"""Overlapping views whose outlines stand further apart than this, beyond their noise and
+in two pairs of views or more (:func:`disagreement_of`), are taken to show the subject
+moving between them: on the thesis rig a scan's own mechanics and calibration leave less
+(the cylinder 0.04 mm; 30 still random shapes on the harsh preset under 0.12 mm, a shell
+0.21), a breath or a shift of weight more. On the limb rig (harsh, 8 views, 10 mm pitch)
+the second largest pair offset of 30 still random shapes passes it on 5 outlines of 5 shapes
 (0.17-0.41 mm; the largest offset had warned 48 outlines of 20 shapes), while every
 section of the arm under the patient sway and the strong sway, either mode, stays above
 it (0.19-2.95 mm): continuous sway's smeared views disagree little more than that."""
