@@ -75,25 +75,33 @@ def clean(tmp_path_factory) -> Stored:
 
 @pytest.mark.parametrize("error_rate", [1e-4, 1e-3])
 def test_faulty_line_with_three_cuts_stores_exactly_the_clean_scan(clean, tmp_path, error_rate):
-    faults = LineFaults(
-        error_rate=error_rate,
-        delay_rate=0.02,
-        delay_s=0.02,
-        cut_after_bytes=(50_000, 175_000, 190_000),
-        cut_s=1.0,
-        seed=7,
-    )
-    with Library(tmp_path / "library.sqlite") as library:
-        scan_id = scan_into_library(library, tmp_path, faults)
-        got = stored(library, scan_id)
-        # Primary keys make a doubled segment impossible; count what the table holds too.
-        assert library.missing(scan_id, "object") == []
-    assert faults.counts["cuts"] == 3
-    assert faults.counts["flipped"] > 0 and faults.counts["dropped"] > 0
-    assert faults.counts["duplicated"] > 0
-    assert np.array_equal(got.grid, clean.grid)
-    assert identical(got.cylinder, clean.cylinder)
-    assert identical(got.segments, clean.segments)
+    kinds = ("flipped", "dropped", "duplicated")
+    # Which bytes meet a fault depends on how the line's reads split them in time (bytes
+    # lost in a cut draw nothing), so at 1e-4 a run may see no byte of one kind: such a
+    # run is checked all the same, and the line is tried again with the next seed.
+    for seed in (7, 8, 9):
+        faults = LineFaults(
+            error_rate=error_rate,
+            delay_rate=0.02,
+            delay_s=0.02,
+            cut_after_bytes=(50_000, 175_000, 190_000),
+            cut_s=1.0,
+            seed=seed,
+        )
+        folder = tmp_path / f"seed{seed}"
+        folder.mkdir()
+        with Library(folder / "library.sqlite") as library:
+            scan_id = scan_into_library(library, folder, faults)
+            got = stored(library, scan_id)
+            # Primary keys make a doubled segment impossible; count what the table holds too.
+            assert library.missing(scan_id, "object") == []
+        assert faults.counts["cuts"] == 3
+        assert np.array_equal(got.grid, clean.grid)
+        assert identical(got.cylinder, clean.cylinder)
+        assert identical(got.segments, clean.segments)
+        if all(faults.counts[k] > 0 for k in kinds):
+            break
+    assert all(faults.counts[k] > 0 for k in kinds), faults.counts
 
 
 def test_three_byte_errors_in_a_thousand_and_three_2s_cuts_store_exactly_the_clean_scan(
