@@ -127,6 +127,24 @@ class Screen:
                 continue
         raise AssertionError(f"{label} never showed {value!r}:\n{self.text()}")
 
+    def type_path(self, placeholder: str, path: str) -> None:
+        """Tap the empty field showing ``placeholder`` and type ``path`` into it. The path's
+        letters are keys the screen binds (m, p, e): they are typed only once the field shows
+        the leading ``/`` (unbound), so a tap delivered late cannot send them to the screen."""
+        assert path.startswith("/"), path
+        for _ in range(3):
+            self.tap(placeholder)
+            time.sleep(TAP_SETTLE_S)
+            self.press("/")
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline and placeholder in self.text():
+                time.sleep(0.1)
+            if placeholder not in self.text():
+                self.page.keyboard.type(path[1:])
+                self.wait_for(path[-20:], timeout_s=10.0)
+                return
+        raise AssertionError(f"the field {placeholder!r} never took the focus:\n{self.text()}")
+
     def tap_until(self, text: str, shown: str, row: str | None = None) -> str:
         """Tap ``text`` until ``shown`` appears (a tap on a redrawing line may be lost)."""
         for _ in range(3):
@@ -225,9 +243,7 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.press("Enter")
             clinical = screen.wait_for("excess over other limb")
             screen.tap_until("Close", "Export to")  # the footer's Escape
-            screen.tap("a new folder")
-            time.sleep(TAP_SETTLE_S)
-            page.keyboard.type(str(out))
+            screen.type_path("a new folder", str(out))
             screen.tap("Export", row="Export to")
             screen.wait_for("exported to", timeout_s=120)
         finally:
