@@ -127,21 +127,24 @@ class Screen:
                 continue
         raise AssertionError(f"{label} never showed {value!r}:\n{self.text()}")
 
-    def type_path(self, placeholder: str, path: str) -> None:
-        """Tap the empty field showing ``placeholder`` and type ``path`` into it. The path's
-        letters are keys the screen binds (m, p, e): they are typed only once the field shows
-        the leading ``/`` (unbound), so a tap delivered late cannot send them to the screen."""
-        assert path.startswith("/"), path
+    def type_fresh(self, placeholder: str, value: str) -> None:
+        """Tap the empty field showing ``placeholder`` and type ``value`` into it.
+
+        The rest of ``value`` is typed only once the field shows its first character (which
+        must be a key the screen does not bind): the letters of a path are keys a screen
+        binds (the Results screen's m, p, e), and a tap delivered late on a loaded machine
+        would send them to the screen."""
         for _ in range(3):
-            self.tap(placeholder)
-            time.sleep(TAP_SETTLE_S)
-            self.press("/")
+            if placeholder in self.text():
+                self.tap(placeholder)
+                time.sleep(TAP_SETTLE_S)
+            self.press("End", *["Backspace"] * len(value), value[0])
             deadline = time.monotonic() + 5.0
             while time.monotonic() < deadline and placeholder in self.text():
                 time.sleep(0.1)
             if placeholder not in self.text():
-                self.page.keyboard.type(path[1:])
-                self.wait_for(path[-20:], timeout_s=10.0)
+                self.page.keyboard.type(value[1:])
+                self.wait_for(value[-20:], timeout_s=10.0)
                 return
         raise AssertionError(f"the field {placeholder!r} never took the focus:\n{self.text()}")
 
@@ -213,9 +216,7 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.wait_for("PASS: correction within 5% of 1")
             screen.tap("F5 Scan")
             screen.wait_for("Subject")
-            screen.tap("e.g. P-0042")  # the field: a tablet's keyboard comes up
-            time.sleep(TAP_SETTLE_S)
-            page.keyboard.type("P-0077")
+            screen.type_fresh("e.g. P-0042", "P-0077")  # a tablet's keyboard comes up
             for field, value in zip(("Sections", "Pitch mm", "Views"), CLINIC_PLAN, strict=True):
                 screen.type_into(field, value, row="Sections")
             side = screen.tap("none: not a limb")
@@ -243,7 +244,7 @@ def test_a_tablet_scans_by_touch_with_nothing_fetched_from_outside(
             screen.press("Enter")
             clinical = screen.wait_for("excess over other limb")
             screen.tap_until("Close", "Export to")  # the footer's Escape
-            screen.type_path("a new folder", str(out))
+            screen.type_fresh("a new folder", str(out))
             screen.tap("Export", row="Export to")
             screen.wait_for("exported to", timeout_s=120)
         finally:
