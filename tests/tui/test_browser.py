@@ -130,23 +130,49 @@ class Screen:
     def type_fresh(self, placeholder: str, value: str) -> None:
         """Tap the empty field showing ``placeholder`` and type ``value`` into it.
 
-        The rest of ``value`` is typed only once the field shows its first character (which
-        must be a key the screen does not bind): the letters of a path are keys a screen
-        binds (the Results screen's m, p, e), and a tap delivered late on a loaded machine
-        would send them to the screen."""
+        The rest of ``value`` is typed only once the field itself shows its first character
+        (which must be a key the screen does not bind), read twice where the placeholder
+        began: the letters of a path are keys a screen binds (the Results screen's m, p, e),
+        and a tap delivered late on a loaded machine would send them to the screen. A value
+        that does not appear whole (keys lost in the browser) is cleared and typed again."""
+        y, x = self.find(placeholder)
         for _ in range(3):
             if placeholder in self.text():
                 self.tap(placeholder)
                 time.sleep(TAP_SETTLE_S)
-            self.press("End", *["Backspace"] * len(value), value[0])
-            deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline and placeholder in self.text():
-                time.sleep(0.1)
-            if placeholder not in self.text():
-                self.page.keyboard.type(value[1:])
+            self.press("End", *["Backspace"] * (len(value) + 2), value[0])
+            if not self.field_starts_with(y, x, value[0], placeholder):
+                continue
+            self.page.keyboard.type(value[1:])
+            try:
                 self.wait_for(value[-20:], timeout_s=10.0)
                 return
-        raise AssertionError(f"the field {placeholder!r} never took the focus:\n{self.text()}")
+            except AssertionError:
+                continue
+        raise AssertionError(f"the field {placeholder!r} never took {value!r}:\n{self.text()}")
+
+    def find(self, text: str) -> tuple[int, int]:
+        """Return the line and column where ``text`` first shows on the screen."""
+        for y, line in enumerate(self.text().splitlines()):
+            if text in line:
+                return y, line.index(text)
+        raise AssertionError(f"{text!r} is not on the screen:\n{self.text()}")
+
+    def field_starts_with(self, y: int, x: int, key: str, placeholder: str) -> bool:
+        """Whether the field at line ``y``, column ``x`` shows ``key`` where its placeholder
+        was, on two reads 0.2 s apart (one read may catch a line the terminal is redrawing);
+        wait up to 5 s for it."""
+        seen = 0
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            lines = self.text().splitlines()
+            line = lines[y] if y < len(lines) else ""
+            shown = placeholder not in line and line[x : x + 1] == key
+            seen = seen + 1 if shown else 0
+            if seen == 2:
+                return True
+            time.sleep(0.2)
+        return False
 
     def tap_until(self, text: str, shown: str, row: str | None = None) -> str:
         """Tap ``text`` until ``shown`` appears (a tap on a redrawing line may be lost)."""
