@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_host.link.client import DeviceClient
 from lamina_host.link.connect import open_device
 from lamina_host.store.library import Library
@@ -69,7 +70,7 @@ def clean(tmp_path_factory) -> Stored:
     with Library(tmp / "library.sqlite") as library:
         scan_id = scan_into_library(library, tmp, None)
         result = stored(library, scan_id)
-    assert len(result.segments) == 32 and len(result.cylinder) == 8
+    assert len(result.segments) == 32 and len(result.cylinder) == len(DEFAULT_CYLINDER_PLAN.views)
     return result
 
 

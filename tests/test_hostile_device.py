@@ -583,6 +583,13 @@ def _record(capsys: pytest.CaptureFixture[str], out: Path, *args: str) -> tuple[
                 "cylinder --cylinder-views: 400 is outside 1..360",
             ],
         ),
+        (
+            ["--cylinder-sections", "0", "--cylinder-pitch", "-1"],
+            [
+                "cylinder --cylinder-sections: 0 is outside",
+                "cylinder --cylinder-pitch: -1.0 is outside",
+            ],
+        ),
     ],
 )
 def test_record_refuses_plans_beyond_the_limits_up_front(capsys, tmp_path, args, expected):
@@ -623,11 +630,13 @@ def test_record_refuses_an_occupied_folder_and_deletes_nothing(capsys, tmp_path)
 
 def test_record_reports_progress_per_section(capsys, tmp_path):
     status, lines = _record(
-        capsys, tmp_path / "capture", "--sections", "3", "--views", "2", "--cylinder-views", "2"
-    )
+        capsys, tmp_path / "capture", "--sections", "3", "--views", "2", "--cylinder-views", "2",
+        "--cylinder-sections", "2",
+    )  # fmt: skip
     assert status == 0
     assert lines == [
-        "recording cylinder: section 0 done, 2/2 views",
+        "recording cylinder: section 0 done, 2/4 views",
+        "recording cylinder: section 1 done, 4/4 views",
         "recording object: section 0 done, 2/6 views",
         "recording object: section 1 done, 4/6 views",
         "recording object: section 2 done, 6/6 views",

@@ -38,6 +38,7 @@ from lamina_host.link.connect import open_device
 from lamina_host.link.errors import DeviceError
 from lamina_host.link.identity import identity_difference, legacy_identity, scan_identity
 from lamina_host.link.spawn import PtyBridge
+from lamina_host.store.files import json_text
 from lamina_host.store.library import Library, StoreError
 from lamina_host.store.outputs import load_segments
 from lamina_host.ui.tui.adapter import UserError, parse_plan
@@ -389,24 +390,21 @@ def test_plan_beyond_the_devices_view_limit_creates_no_scan(capsys, tmp_path):
 @pytest.mark.parametrize(
     ("plan", "limit"),
     [
-        (ScanPlan.regular(2, 2.0, 8), "max_views"),
-        (ScanPlan.regular(4, 2.0, 3), "max_sections"),
+        (ScanPlan.regular(4, 2.0, 7), "max_views"),
+        (ScanPlan.regular(5, 2.0, 3), "max_sections"),
         (ScanPlan.regular(1, 2.0, 9), "max_views_per_section"),
     ],
 )
 def test_every_advertised_limit_is_checked_before_the_scan_exists(tmp_path, plan, limit):
+    # The limits hold the simulator's cylinder plan (3 heights of 8 views), not the object's.
+    limits = DeviceLimits(max_views=24, max_sections=4, max_views_per_section=8)
     with (
-        served(
-            DeviceServer,
-            ServerSettings(
-                limits=DeviceLimits(max_views=12, max_sections=3, max_views_per_section=8)
-            ),
-        ) as client,
+        served(DeviceServer, ServerSettings(limits=limits)) as client,
         Library(tmp_path / "library.sqlite") as library,
     ):
         job = ScanJob(DeviceTarget("sim"), library=library)
         job.attach_for_testing(client)
-        with pytest.raises(InputError, match=limit):
+        with pytest.raises(InputError, match=rf"the object plan .*\({limit}\)"):
             job.acquisition.create(ScanRequest("P-01", plan))
         assert library.scans() == []
 
@@ -930,11 +928,16 @@ def test_resuming_a_tui_scan_without_an_output_folder_is_one_line(capsys, partia
 
 
 def test_reports_are_strict_json(processed, capsys, tmp_path):
-    """view_offset_sd_deg was written NaN, which strict parsers reject."""
+    """view_offset_sd_deg was written NaN, which strict parsers reject. With the cylinder at
+    three heights each view's angle is measured three times, so it is a number here; a
+    calibration at one height has none, written null."""
     report = strict_json((processed / "out" / "report.json").read_text())
-    assert report["axis"]["view_offset_sd_deg"] is None
+    sd_deg = report["axis"]["view_offset_sd_deg"]
+    assert isinstance(sd_deg, float) and 0.0 < sd_deg < 0.5
     exported = tmp_path / "report.json"
     status, _, err = run(capsys, "export", "1", "-o", str(exported),
                          "--library", str(processed / "library.sqlite"))  # fmt: skip
     assert status == 0, err
-    assert strict_json(exported.read_text())["axis"]["view_offset_sd_deg"] is None
+    assert strict_json(exported.read_text())["axis"] == report["axis"]
+    one_height = {"axis": {**report["axis"], "view_offset_sd_deg": float("nan")}}
+    assert strict_json(json_text(one_height))["axis"]["view_offset_sd_deg"] is None

@@ -31,6 +31,7 @@ import pytest
 import serial
 
 from lamina_device.motion import StepperLift
+from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.specs import MAX_OBJECT_MM, parse_object
 from lamina_host import cli
 from lamina_host.link import client as link
@@ -523,7 +524,8 @@ def test_a_full_disk_names_what_filled_and_how_to_finish(capsys, monkeypatch, tm
                                                           names):  # fmt: skip
     """The first error was replaced in a finally by cylinder-segments.npz, or 'restore it'."""
     path, out = tmp_path / "library.sqlite", tmp_path / "out"
-    _fill_disk_after(monkeypatch, 10**9 if full == "outputs" else 10, outputs=True)
+    cylinder_views = len(DEFAULT_CYLINDER_PLAN.views)
+    _fill_disk_after(monkeypatch, 10**9 if full == "outputs" else cylinder_views + 2, outputs=True)
     argv = ["scan", "--device", "sim", "--object", OBJECT, "--library", str(path), "-o", str(out)]
     line = lamina_line(*run(capsys, *argv, "--sections", "1", "--views", "4")[::2])
     assert names in line and "disk is full" in line, line
@@ -531,7 +533,7 @@ def test_a_full_disk_names_what_filled_and_how_to_finish(capsys, monkeypatch, tm
     monkeypatch.undo()
     with Library(path) as library:
         assert library.scans()[0].id == 1
-    assert held_segments(path) == (4 if full == "outputs" else 10 - 8)  # 8 cylinder views
+    assert held_segments(path) == (4 if full == "outputs" else 2)  # the cylinder's, then 2
 
 
 def test_the_terminal_ui_says_a_full_disk_is_full_not_damaged():

@@ -118,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--pitch", type=float, default=2.0, help="section pitch in mm")
     record.add_argument("--views", type=int, default=8, help="views per section")
     record.add_argument("--cylinder-views", type=int, default=8)
+    record.add_argument(
+        "--cylinder-sections", type=int, default=3, help="heights the cylinder is scanned at"
+    )
+    record.add_argument(
+        "--cylinder-pitch", type=float, default=3.0, help="mm between the cylinder's heights"
+    )
     check = sub.add_parser("check-config", help="validate a TOML configuration file")
     check.add_argument("file", type=Path, help="the configuration file")
     return parser
@@ -180,20 +186,24 @@ def record_plans(args: argparse.Namespace, limits: DeviceLimits) -> tuple[ScanPl
     """Return the object and cylinder plans ``record`` asks for; ArgsError if beyond limits."""
     problems = Problems()
     plans = []
-    for name, sections, views, option in (
-        ("object", args.sections, args.views, "--views"),
-        ("cylinder", 1, args.cylinder_views, "--cylinder-views"),
+    for name, sections, pitch_mm, views, flags in (
+        ("object", args.sections, args.pitch, args.views, ("--sections", "--pitch", "--views")),
+        (
+            "cylinder",
+            args.cylinder_sections,
+            args.cylinder_pitch,
+            args.cylinder_views,
+            ("--cylinder-sections", "--cylinder-pitch", "--cylinder-views"),
+        ),
     ):
-        regular = {"sections": sections, "pitch_mm": args.pitch, "views": views}
+        regular = {"sections": sections, "pitch_mm": pitch_mm, "views": views}
         found = Problems()
         plans.append(check_plan({"regular": regular}, limits, found))
-        options = {"sections": "--sections", "pitch_mm": "--pitch", "views": option}
+        options = dict(zip(("sections", "pitch_mm", "views"), flags, strict=True))
         for text in found.items:
             for key, flag in options.items():
                 text = text.replace(f"plan.regular.{key}", flag)
-            text = f"{name} {text.replace('plan.regular', 'plan')}"
-            if text.partition(" ")[2] not in [p.partition(" ")[2] for p in problems.items]:
-                problems.add(text)  # the pitch is shared: say its problem once
+            problems.add(f"{name} {text.replace('plan.regular', 'plan')}")
     if problems.items or plans[0] is None or plans[1] is None:
         raise ArgsError("record", problems.items)
     return plans[0], plans[1]

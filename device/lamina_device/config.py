@@ -176,6 +176,9 @@ class PlanConfig:
     pitch_mm: float = _spec(0.01, 100.0)
     views: int = _spec(1, 360)
     cylinder_views: int = _spec(1, 360)
+    # Older files scanned the cylinder at one height: they keep doing so.
+    cylinder_sections: int = _spec(1, 100, default=1)
+    cylinder_pitch_mm: float = _spec(0.01, 100.0, default=3.0)
 
 
 @dataclass(frozen=True)
@@ -402,8 +405,11 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
         problems.append("[turntable] continuous_speed_deg_s must not be below start_speed_deg_s")
     plan = config.plan
     found = Problems()
-    for sections, views in ((plan.sections, plan.views), (1, plan.cylinder_views)):
-        regular = {"sections": sections, "pitch_mm": plan.pitch_mm, "views": views}
+    for sections, pitch_mm, views in (
+        (plan.sections, plan.pitch_mm, plan.views),
+        (plan.cylinder_sections, plan.cylinder_pitch_mm, plan.cylinder_views),
+    ):
+        regular = {"sections": sections, "pitch_mm": pitch_mm, "views": views}
         check_plan({"regular": regular}, DeviceLimits(), found)
     # The device's limits hold for its default scans too (the WELCOME advertises both).
     problems.extend(

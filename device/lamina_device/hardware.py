@@ -149,7 +149,9 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         raise
     board = config.board
     plan = config.plan
-    cylinder_plan = ScanPlan.regular(1, plan.pitch_mm, plan.cylinder_views)
+    cylinder_plan = ScanPlan.regular(
+        plan.cylinder_sections, plan.cylinder_pitch_mm, plan.cylinder_views
+    )
     reference = config.lift_reference
     hardware = Hardware(
         "pi",

@@ -199,6 +199,35 @@ def test_a_scan_on_the_pi_backends(pi_kit, fake_picamera2, tmp_path):
     assert factory.pin(pi_kit.config.laser.pin).state is False
 
 
+@pytest.mark.parametrize(("sections", "heights_mm"), [(3, [0.0, 3.0, 6.0]), (1, [0.0])])
+def test_the_box_scans_the_cylinder_at_the_configured_heights(
+    pi_kit, fake_picamera2, tmp_path, sections, heights_mm
+):
+    """The packaged configuration scans the cylinder at three heights 3 mm apart (a steadier
+    turntable axis); a box's file from before the key keeps its one height."""
+    from dataclasses import replace
+
+    factory = MockFactory()
+    pi_hardware(pi_kit, fake_picamera2, factory)
+    plan = replace(pi_kit.config.plan, cylinder_sections=sections)
+    path = tmp_path / "box.toml"
+    text = pi_kit.toml(replace(pi_kit.config, plan=plan))
+    if sections == 1:  # an older file: the keys are absent
+        text = "\n".join(
+            line
+            for line in text.splitlines()
+            if "cylinder_s" not in line and "cylinder_p" not in line
+        )
+    path.write_text(text)
+    hardware = open_hardware("pi", config_path=path, pin_factory=factory)
+    try:
+        views = hardware.default_plans["cylinder"].views
+        assert sorted({view.z_mm for view in views}) == heights_mm
+        assert len(views) == 4 * len(heights_mm)
+    finally:
+        hardware.close()
+
+
 def test_record_on_pi_hardware(pi_kit, fake_picamera2, global_mock_factory, tmp_path):
     carriage = pi_hardware(pi_kit, fake_picamera2, global_mock_factory)
     config = tmp_path / "box.toml"
@@ -211,7 +240,12 @@ def test_record_on_pi_hardware(pi_kit, fake_picamera2, global_mock_factory, tmp_
     assert status == 0
     capture = load_capture(out)
     assert capture.image_size == (320, 240)
-    assert len(capture.views("object")) == 8 and len(capture.views("cylinder")) == 4
+    assert len(capture.views("object")) == 8
+    cylinder = capture.views("cylinder")  # 4 views at each of the default 3 heights
+    assert sorted({(view.spec.section, view.spec.z_mm) for view in cylinder}) == [
+        (0, 0.0), (1, 3.0), (2, 6.0)
+    ]  # fmt: skip
+    assert len(cylinder) == 12
     assert capture.grid_image is not None
     assert carriage.position_steps == 0
     assert global_mock_factory.pin(pi_kit.config.laser.pin).state is False

@@ -58,19 +58,32 @@ def boundary_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 # --- phantoms --------------------------------------------------------------------------
 
 
+ALONG_MM = 1.5
+"""A phantom stroke may cross another view's (two reflections meet at a point or two) but
+not run along it: at most a quarter of its samples lie within this of one, in the object's
+frame. A reflection follows the light, not the turning object, so two views' reflections do
+not run along each other; two random strokes that did (within the 1 mm consensus over most
+of their 4 mm) would be two views agreeing on a stretch, which is what a surface is."""
+
+
 def with_phantoms(
     segment: Segment, rig: Rig, rng: np.random.Generator, centre_world: np.ndarray,
-    reach_mm: float, noise_share: float = 0.03,
+    reach_mm: float, noise_share: float = 0.03, taken: list[np.ndarray] | None = None,
 ) -> Segment:  # fmt: skip
     """Return the segment with a phantom stroke 10-30 mm beyond the object and noise columns.
 
     The stroke (a reflection: 4 mm long, 40 samples) lies 10-30 mm outside the object's
-    ``reach_mm`` from ``centre_world``, somewhere the camera sees; where it shares columns
-    with the stripe it wins, as a peak-picking stripe finder would let it. A share of the
-    remaining columns get a random row (noise columns).
+    ``reach_mm`` from ``centre_world``, somewhere the camera sees, not along any stroke in
+    ``taken`` (``ALONG_MM``; the object-frame strokes of the section's earlier views, to
+    which this one's is appended); where it shares columns with the stripe it wins, as a
+    peak-picking stripe finder would let it. A share of the remaining columns get a random
+    row (noise columns).
     """
     rows = dict(zip(segment.cols.tolist(), segment.rows.tolist(), strict=True))
+    taken = [] if taken is None else taken
     w, h = rig.image_size
+    th = np.radians(segment.angle_deg)
+    to_object = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
     for _ in range(100):
         direction = rng.uniform(0.0, 2.0 * np.pi)
         dist = reach_mm + rng.uniform(10.0, 30.0)
@@ -78,9 +91,13 @@ def with_phantoms(
         along = rng.uniform(0.0, np.pi)
         s = np.linspace(-2.0, 2.0, 40)[:, None] * np.array([np.cos(along), np.sin(along)])
         uv = rig.project(np.column_stack([mid + s, np.zeros(40)]))
-        if np.all((uv[:, 0] >= 0) & (uv[:, 0] < w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < h - 1)):
+        stroke = (mid + s - np.asarray(rig.axis_xy_mm)) @ to_object.T
+        apart = all(_share_along(stroke, other) <= 0.25 for other in taken)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < h - 1)
+        if apart and np.all(inside):
             for u, v in uv:
                 rows[round(u)] = v
+            taken.append(stroke)
             break
     cols = np.array(sorted(rows))
     row = np.array([rows[c] for c in cols])
@@ -92,13 +109,21 @@ def with_phantoms(
                    confidence=np.zeros(n, np.uint8))  # fmt: skip
 
 
+def _share_along(stroke: np.ndarray, other: np.ndarray) -> float:
+    """Return the share of ``stroke``'s samples within ``ALONG_MM`` of ``other``'s."""
+    gaps = np.hypot(*(stroke[:, None, :] - other[None, :, :]).transpose(2, 0, 1))
+    return float((gaps.min(axis=1) < ALONG_MM).mean())
+
+
 def haunted(scan: dict, rig: Rig, centre_obj: tuple[float, float], reach_mm: float) -> list:
     """Return the scan's object segments, each with a phantom stroke and noise columns."""
     rng = np.random.default_rng(7)
     out = []
+    taken: dict[int, list[np.ndarray]] = {}
     for s in scan["segments"]:
         centre_world = rig.object_to_world(np.array([centre_obj]), s.angle_deg, 0.0)[0, :2]
-        out.append(with_phantoms(s, rig, rng, centre_world, reach_mm))
+        strokes = taken.setdefault(s.section, [])
+        out.append(with_phantoms(s, rig, rng, centre_world, reach_mm, taken=strokes))
     return out
 
 

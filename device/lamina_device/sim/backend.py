@@ -33,7 +33,10 @@ __all__ = [
 
 DEFAULT_OBJECT = "cylinder:d=19.05"
 DEFAULT_PLAN = ScanPlan.regular(sections=4, pitch_mm=2.0, views=8)
-DEFAULT_CYLINDER_PLAN = ScanPlan.regular(sections=1, pitch_mm=2.0, views=8)
+# Three heights of the cylinder, not one: each height's arcs give the turntable axis with
+# their own noise, and the axis's error along the camera's line of sight grows or shrinks
+# every outline of a scan (eight seeds: spread 0.012 mm from one height, 0.005 mm from three).
+DEFAULT_CYLINDER_PLAN = ScanPlan.regular(sections=3, pitch_mm=3.0, views=8)
 
 
 def sim_source(
