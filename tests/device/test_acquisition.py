@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -205,8 +206,6 @@ def test_the_box_scans_the_cylinder_at_the_configured_heights(
 ):
     """The packaged configuration scans the cylinder at three heights 3 mm apart (a steadier
     turntable axis); a box's file from before the key keeps its one height."""
-    from dataclasses import replace
-
     factory = MockFactory()
     pi_hardware(pi_kit, fake_picamera2, factory)
     plan = replace(pi_kit.config.plan, cylinder_sections=sections)

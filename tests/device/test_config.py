@@ -26,6 +26,8 @@ def test_packaged_default_loads_with_the_documented_values():
     assert (config.camera.width, config.camera.height) == (1536, 864)
     assert config.safety.laser_max_on_s == 2.0
     assert config.board.inner_corners == (13, 11) and config.board.origin_mm == (-12.0, -10.0)
+    # The cylinder at three heights 3 mm apart: a steadier turntable axis (calibration-cylinder.md).
+    assert (config.plan.cylinder_sections, config.plan.cylinder_pitch_mm) == (3, 3.0)
 
 
 def test_every_problem_is_listed_at_once():
@@ -133,12 +135,15 @@ def test_every_extraction_problem_is_listed():
 
 
 def test_keys_added_later_may_be_left_out_and_keep_the_older_behaviour():
-    """A box's configuration from before continuous scans stays valid: stop-and-go only."""
+    """A box's configuration from before continuous scans and the three-height cylinder stays
+    valid: stop-and-go only, the cylinder at one height."""
     data = default_data()
     del data["turntable"]["continuous_speed_deg_s"]
     del data["camera"]["readout_us"]
+    del data["plan"]["cylinder_sections"], data["plan"]["cylinder_pitch_mm"]
     config = parse_config(data)
     assert config.turntable.continuous_speed_deg_s == 0.0
+    assert config.plan.cylinder_sections == 1  # the cylinder at one height, as before
     assert config.camera.readout_s == config.camera.frame_duration_us * 1e-6
 
 
