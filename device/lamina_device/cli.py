@@ -23,11 +23,13 @@ from lamina_device import __version__
 from lamina_device.acquisition import acquire, grab_grid
 from lamina_device.backends import open_hardware
 from lamina_device.config import check_config
+from lamina_device.extract import run_opencv_inline
 from lamina_device.hardware import Hardware
 from lamina_device.listen import ListeningPort, open_listener
 from lamina_device.safety import LaserShutdown
 from lamina_device.server import DeviceServer, PortLost
 from lamina_shared.capture import CaptureError, CaptureWriter
+from lamina_shared.device_specs import SIM
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.link import Channel
@@ -332,6 +334,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LaminaError as exc:
         print(f"lamina-device: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if hardware.kind != SIM:
+        run_opencv_inline()  # a camera's or a replay's frames: extraction is all OpenCV does
     try:
         # From here SIGTERM, SIGINT and exit switch the laser off before anything else.
         with LaserShutdown(hardware.laser):

@@ -21,7 +21,6 @@ output is biased toward the top of runs an even number of pixels thick (figs. 5.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import numpy as np
@@ -174,18 +173,21 @@ def case_table() -> dict[str, Any]:
 
 
 def method_times(rounds: int = 3) -> dict[str, dict[str, float]]:
-    """Return each method's time per 640x480 frame (ms) and its ratio to one subtraction."""
+    """Return each method's time per 640x480 frame (ms) and its ratio to one subtraction.
+
+    The device's methods run OpenCV inline, as on the box; the Horus-style one with
+    OpenCV's threads.
+    """
     import subpixel_cases as cases
     from bench_extraction import stripe_pair as timing_pair
-    from timing import best_time_s
+    from timing import timed_with_subtraction
 
     on, off = timing_pair(640, 480)
     times = {}
     for name, method in cases.METHODS.items():
-        subtract_s = run_s = math.inf
-        for _ in range(rounds):
-            subtract_s = min(subtract_s, best_time_s(lambda: np.subtract(on, off, dtype=np.int16)))
-            run_s = min(run_s, best_time_s(lambda m=method: m(on, off)))
+        run_s, subtract_s = timed_with_subtraction(
+            lambda m=method: m(on, off), on, off, rounds, inline=name != "Horus-style"
+        )
         times[name] = {"ms": 1e3 * run_s, "x_subtraction": run_s / subtract_s}
     return times
 

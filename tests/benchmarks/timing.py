@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from lamina_device.extract import run_opencv_inline
 
 
 def best_time_s(run: Callable[[], object], repeats: int = 7, batch_s: float = 0.02) -> float:
@@ -24,3 +30,25 @@ def best_time_s(run: Callable[[], object], repeats: int = 7, batch_s: float = 0.
             run()
         times.append((time.perf_counter() - start) / number)
     return min(times)
+
+
+def timed_with_subtraction(
+    run: Callable[[], object], on: np.ndarray, off: np.ndarray, rounds: int, inline: bool = True
+) -> tuple[float, float]:
+    """Return the best time of ``run`` and of one subtraction, timed in turn ``rounds`` times.
+
+    Timed in turn, the two meet the same state of a shared machine, so their ratio
+    compares like with like. ``inline`` runs OpenCV on the calling thread, as the device
+    program does on the box (:func:`run_opencv_inline`); otherwise with OpenCV's own
+    threads, as Horus runs.
+    """
+    subtract_s = run_s = math.inf
+    try:
+        if inline:
+            run_opencv_inline()
+        for _ in range(rounds):
+            subtract_s = min(subtract_s, best_time_s(lambda: np.subtract(on, off, dtype=np.int16)))
+            run_s = min(run_s, best_time_s(run))
+    finally:
+        cv2.setNumThreads(-1)  # back to OpenCV's default for whatever runs next
+    return run_s, subtract_s

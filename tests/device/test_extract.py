@@ -419,3 +419,39 @@ def test_otsu_level_needs_only_the_counts_above_its_floor():
     total = float(image.sum())
     assert otsu_level(full, image.size, total, 20) == otsu_level(bright_only, image.size, total, 20)
     assert otsu_level(full, image.size, total) == otsu_threshold(image) == reference_otsu(image)
+
+
+def test_opencv_inline_gives_the_same_points_on_the_calling_thread():
+    import cv2
+
+    from lamina_device.extract import run_opencv_inline
+
+    on, off = stripe_frames(100.0 + 20.0 * np.sin(np.arange(640) / 40.0), height=480, noise=3.0)
+    threaded = extract(on, off)
+    try:
+        run_opencv_inline()
+        assert cv2.getNumThreads() == 1
+        inline = extract(on, off)
+    finally:
+        cv2.setNumThreads(-1)
+    assert inline.cols.size > 600
+    for name in ("cols", "rows", "peak", "width", "flags", "confidence"):
+        assert np.array_equal(getattr(inline, name), getattr(threaded, name)), name
+
+
+def test_the_device_program_runs_opencv_inline_for_a_replay_not_for_the_simulator(
+    monkeypatch, capsys, tmp_path
+):
+    import lamina_device.cli as cli
+
+    calls: list[str] = []
+    monkeypatch.setattr(cli, "run_opencv_inline", lambda: calls.append("inline"))
+    capture = tmp_path / "capture"
+    small = ["--sections", "1", "--views", "2", "--cylinder-views", "2"]
+    record = ["record", "--noise", "none", *small]
+    assert cli.main([*record, "--hardware", "sim", "--out", str(capture)]) == 0
+    assert calls == []  # the simulator blurs its frames with OpenCV's threads
+    again = tmp_path / "again"
+    assert cli.main([*record, "--hardware", f"replay:{capture}", "--out", str(again)]) == 0
+    assert calls == ["inline"]
+    assert "Traceback" not in capsys.readouterr().err
