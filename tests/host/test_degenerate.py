@@ -500,6 +500,26 @@ def test_section_processing_takes_any_sections(
     assert len(faces) or warnings
 
 
+def test_open_outlines_too_little_seen_to_mesh_are_named() -> None:
+    """Found by the long fuzz: two sections of three points each gave no face, and no line."""
+    pieces = [
+        np.array([[20.09224667, -18.80633559]]),
+        np.array([[-5.76250145, 18.86815642], [0.1667333, 14.95503038]]),
+    ]
+    options = ProcessOptions(harmonic_rule="nyquist", reject_outliers=False)
+    rules = OutlierRules(working_radius_mm=None)
+    fitted = [
+        s for k in (0, 1) for s in process_section(k, 2.0 * k, pieces, options, rules).sections
+    ]
+    assert [(s.index, s.closed) for s in fitted] == [(0, False), (1, False)]
+    vertices, faces, warnings = safe_mesh(fitted, ProcessOptions(mesh="contours"))
+    assert len(faces) == 0 and len(vertices) == 0
+    assert warnings == [
+        "outline(s) 0.0 to 1.0: too little of them was seen, or not at the same angles from "
+        "one section to the next, to mesh a surface between them; scan more views there"
+    ]
+
+
 # -- the whole processing of a real scan's views, degraded ----------------------------
 
 DEGRADE = ("keep", "keep", "empty", "one", "few", "flat", "border", "doubled", "reversed")

@@ -1109,18 +1109,33 @@ def mesh_contours(
     surface. An outline in a chain of its own (seen in one section only,
     :func:`lone_outlines`) is a curve with no surface: not meshed.
     """
-    verts, faces, offset = [], [], 0
+    vertices, faces, _ = _contour_mesh(sections, points, interpolation)
+    return vertices, faces
+
+
+def _contour_mesh(
+    sections: list[Section], points: int, interpolation: str
+) -> tuple[np.ndarray, np.ndarray, list[list[Section]]]:
+    """Return :func:`mesh_contours`'s mesh and the chains of outlines that gave no face.
+
+    A chain of open outlines gives no face when what was seen of them is too narrow to
+    mesh, or does not overlap in angle from one section to the next.
+    """
+    verts, faces, bare, offset = [], [], [], 0
     for chain in chain_outlines(sections):
         if len(chain) < 2:
             continue
         rings, heights, seen = chain_rings(chain, points, interpolation)
         v, f = open_tube_mesh(rings, heights, seen)
+        if not len(f):
+            bare.append(chain)
+            continue
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)
     if not faces:
-        return np.empty((0, 3)), np.empty((0, 3), np.int64)
-    return np.vstack(verts), np.vstack(faces)
+        return np.empty((0, 3)), np.empty((0, 3), np.int64), bare
+    return np.vstack(verts), np.vstack(faces), bare
 
 
 def lone_outlines(sections: list[Section]) -> list[Section]:
@@ -1153,7 +1168,20 @@ def build_mesh(
             f"outline(s) {lone} continue no outline of a neighbouring section: a curve "
             "without surface, not meshed; scan more sections there"
         ]  # fmt: skip
-        return (*mesh_contours(sections, options.outline_points, options.interpolation), warnings)
+        vertices, faces, bare = _contour_mesh(
+            sections, options.outline_points, options.interpolation
+        )
+        if bare:
+            names = ", ".join(
+                f"{chain[0].index}.{chain[0].part} to {chain[-1].index}.{chain[-1].part}"
+                for chain in bare
+            )
+            warnings.append(
+                f"outline(s) {names}: too little of them was seen, or not at the same angles "
+                "from one section to the next, to mesh a surface between them; scan more "
+                "views there"
+            )
+        return vertices, faces, warnings
     closed = [s for s in sections if s.closed]
     warnings = []
     if len(closed) < len(sections):
