@@ -463,7 +463,7 @@ def test_csv_by_suffix_matches_the_measurement(library_path: Path, tmp_path: Pat
     ("argv", "message"),
     [
         (["report", "9"], "no scan 9"),
-        (["report", "4"], "has not been processed"),
+        (["report", "4"], "scan 4 has no result yet"),
         (["report", "1", "--landmark", "400"], "outside the measured range"),
         (["report", "1", "--landmark", "elbow"], "landmark 'elbow'"),
         (["report", "1", "--spacing-mm", "0"], "--spacing-mm"),

@@ -162,6 +162,18 @@ def test_cli_lists_and_refuses_with_one_line(tmp_path):
     assert refused.stderr.strip().splitlines() == [
         "lamina: scan 1 has no result yet: finish it with lamina scan --resume 1"
     ]
+    with Library(path) as library:
+        library.set_status(1, "acquired")  # every view in, its processing failed
+    for argv in (
+        ["export", "1", "-o", str(tmp_path / "x.stl")],
+        ["report", "1", "-o", str(tmp_path / "r.pdf")],
+    ):
+        refused = lamina(*argv, "--library", str(path))
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr
+        assert refused.stderr.strip().splitlines() == [
+            "lamina: scan 1 has no result yet: its views are all in; process it again with "
+            "lamina process 1 [options] (or p on the terminal UI's Library screen)"
+        ], argv
 
 
 def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):

@@ -149,6 +149,8 @@ async def test_ui_errors_name_no_command_line_option(tmp_path: Path) -> None:
     for line in (
         "the device does not know its calibration cylinder: pass --cylinder-mm",
         "scan 3 has no result yet: finish it with lamina scan --resume 3",
+        "scan 3 has no result yet: its views are all in; process it again with lamina process "
+        "3 [options] (or p on the terminal UI's Library screen)",
         "x; scan 3 is kept in the library: process it again with lamina process 3 [options] "
         "(or p on the terminal UI's Library screen)",
     ):

@@ -39,7 +39,7 @@ from lamina_host.clinical.measures import (
     trend,
 )
 from lamina_host.reconstruct.status import OutlineStatus
-from lamina_host.store.library import Library, ScanRecord
+from lamina_host.store.library import Library, ScanRecord, no_result_line
 from lamina_shared.errors import printable
 
 REPORT_SUFFIXES = (".pdf", ".png")
@@ -202,12 +202,10 @@ def measure_stored(library: Library, scan_id: int, request: MeasureRequest) -> L
         StoreError: no such scan.
         ClinicalError: the scan is not processed, or cannot be measured as asked.
     """
-    library.scan(scan_id)
+    scan = library.scan(scan_id)
     stored = library.result(scan_id)
     if stored is None:
-        raise ClinicalError(
-            f"scan {scan_id} has not been processed: finish it with lamina scan --resume {scan_id}"
-        )
+        raise ClinicalError(no_result_line(scan))
     return measure_limb(
         sections_from_report(stored, scan_id), request.spacing_mm, request.landmark, request.axis
     )

@@ -235,6 +235,20 @@ class ScanInputs:
     lift_reference: LiftReference | None = None
 
 
+def no_result_line(scan: ScanRecord) -> str:
+    """Return the line saying ``scan`` has no result yet, and what gives it one.
+
+    A scan still acquiring is finished by resuming it; one whose views are all in (its
+    processing failed, or never ran) is processed again: resuming it would do no more.
+    """
+    if scan.status == "acquired":
+        return (
+            f"scan {scan.id} has no result yet: its views are all in; process it again with "
+            f"lamina process {scan.id} [options] (or p on the terminal UI's Library screen)"
+        )
+    return f"scan {scan.id} has no result yet: finish it with lamina scan --resume {scan.id}"
+
+
 def check_side(side: str) -> str:
     """Return ``side`` if it is one of :data:`SIDES`, else raise StoreError (one line)."""
     if side not in SIDES:
@@ -864,11 +878,9 @@ class Library(Scoped):
         Raises:
             StoreError: the scan has no result, or its result has no mesh.
         """
-        self.scan(scan_id)
+        scan = self.scan(scan_id)
         if self.result(scan_id) is None:
-            raise StoreError(
-                f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
-            )
+            raise StoreError(no_result_line(scan))
         mesh = self._result_file(scan_id, "mesh.ply")
         if mesh is None:
             raise StoreError(f"scan {scan_id} produced no mesh to export")
@@ -885,12 +897,10 @@ class Library(Scoped):
         if suffix not in EXPORT_FORMATS:
             raise unknown_format(path, EXPORT_FORMATS)
         check_new_file(path)
-        self.scan(scan_id)
+        scan = self.scan(scan_id)
         report = self.result(scan_id)
         if report is None:
-            raise StoreError(
-                f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
-            )
+            raise StoreError(no_result_line(scan))
         if suffix == ".json":
             data = json_text(report).encode()  # strict JSON, also of a report stored with NaN
         else:

@@ -28,6 +28,7 @@ from lamina_host.store.library import (
     Library,
     StoreError,
     check_new_file,
+    no_result_line,
     unknown_format,
 )
 from lamina_host.store.outputs import MeshEntry
@@ -122,11 +123,9 @@ def dicom_export(
 
 def record_export(library: Library, scan_id: int) -> bytes:
     """Return the scan's compact record, reprocessed from its segments and calibration."""
-    library.scan(scan_id)
+    scan = library.scan(scan_id)
     if library.result(scan_id) is None:
-        raise StoreError(
-            f"scan {scan_id} has no result yet: finish it with lamina scan --resume {scan_id}"
-        )
+        raise StoreError(no_result_line(scan))
     inputs = library.inputs(scan_id)
     result = reprocess(inputs)
     return record_bytes(result, scan_id, inputs.subject, inputs.created, library.scan(scan_id).side)
