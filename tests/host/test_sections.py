@@ -194,3 +194,54 @@ def test_a_scan_keeps_its_mostly_measured_section_its_own() -> None:
         assert distance_to(middle.contour, truth).max() < 0.05
         assert middle.estimated.any() and not middle.estimated.all()
         assert measure_coverage(middle.raw).fraction == pytest.approx(middle.coverage.fraction)
+
+
+def _captured_outline(name: str) -> tuple[float, list[np.ndarray]]:
+    """Return the height and per-view points of an outline captured from a random shape.
+
+    ``curled_outlines.json`` holds the views, in mm, the pipeline handed ``fit_section``
+    for two outlines of the random-shape campaign (``tests.helpers.campaign``, small
+    plans) whose contours claimed measured stretches 2.6 and 3.4 mm off the true surface.
+    """
+    import json
+    from pathlib import Path
+
+    data = json.loads(
+        (Path(__file__).resolve().parent / "data" / "curled_outlines.json").read_text()
+    )
+    outline = data[name]
+    return float(outline["z_mm"]), [np.asarray(v, dtype=float) for v in outline["views"]]
+
+
+def test_a_curled_outline_is_taken_about_a_centre_its_branches_do_not_share():
+    """Random thesis shape 18190: the circle fitted to a curled outline centred next to its
+    inner branch, about which the two branches' angles interleave; sorted by them for the
+    bridge, the points zigzagged (a path 448 mm long round a 64 mm outline) and the EFD
+    drew spokes 3.8 mm long that were taken for measured surface."""
+    from scipy.spatial import cKDTree
+
+    z_mm, views = _captured_outline("thesis_18190_section0")
+    section = fit_section(0, z_mm, views, ProcessOptions())
+    contour = section.contour
+    own_path_mm = np.hypot(*np.diff(section.raw, axis=0).T).sum()
+    contour_mm = np.hypot(*np.diff(np.vstack([contour, contour[:1]]), axis=0).T).sum()
+    assert contour_mm < 1.2 * own_path_mm  # 296 mm of spokes before, 59 now
+    off_mm, _ = cKDTree(section.raw).query(contour[~section.estimated])
+    assert off_mm.max() < 0.3
+
+
+def test_a_closing_curve_alongside_a_measured_stretch_is_estimated():
+    """Random limb shape 308: a bent strip's outline closes by running back 1-4 mm beside
+    its own measured face, in bins that face covers; those samples claimed measured."""
+    from scipy.spatial import cKDTree
+
+    from lamina_host.reconstruct.coverage import MEASURED_REACH_MM
+
+    z_mm, views = _captured_outline("limb_308_section0_part1")
+    section = fit_section(0, z_mm, views, ProcessOptions())
+    assert section.coverage is not None
+    off_mm, _ = cKDTree(section.raw).query(section.contour)
+    beside = ~section.coverage.unseen(section.contour) & (off_mm > 2.0)
+    assert beside.sum() > 50  # the case is here: covered bins, far from every point
+    assert section.estimated[beside].all()
+    assert off_mm[~section.estimated].max() <= MEASURED_REACH_MM

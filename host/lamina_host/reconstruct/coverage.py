@@ -109,11 +109,39 @@ class Coverage:
         }
 
 
+MEASURED_REACH_MM = 1.0
+"""A contour sample further than this from every measured point is estimated, whatever
+its bin says: a curve closing an outline may pass alongside a measured stretch it is
+not (the way back across a bent strip's other face). One view's points along a stripe
+lie at most ``CONTINUOUS_STEP_MM`` apart where they count as seeing the surface."""
+
+
+def estimated_samples(coverage: Coverage, contour: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Return True for the contour samples no measurement backs (flagged estimated).
+
+    Args:
+        coverage: the outline's coverage (its unseen gaps and measured offsets per bin).
+        contour: (K, 2) contour samples in mm.
+        points: (N, 2) the outline's measured points in mm.
+    """
+    from scipy.spatial import cKDTree  # deferred: keeps the module's import light
+
+    estimated = coverage.unseen(contour)
+    claimed = np.flatnonzero(~estimated)
+    if len(claimed) and len(points):
+        reach, _ = cKDTree(points).query(contour[claimed], distance_upper_bound=MEASURED_REACH_MM)
+        estimated[claimed[~np.isfinite(reach)]] = True
+    return estimated
+
+
 def outline_centre(points: np.ndarray) -> np.ndarray:
     """Return the centre about which an outline's coverage is measured (module docstring).
 
     The Taubin circle centre, unless the points are (nearly) collinear or that centre lies
-    outside the points' bounding box, where the mean of the points is used instead.
+    outside the points' bounding box, or the points taken in angle about it zigzag
+    across the outline where about their mean they do not (``ORDER_SLACK``): an outline
+    curling in on itself can draw the circle's centre next to its inner branch, about
+    which the angles of the two branches interleave. The mean is used instead.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     mean = pts.mean(axis=0)
@@ -125,7 +153,21 @@ def outline_centre(points: np.ndarray) -> np.ndarray:
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     if not np.isfinite(centre).all() or np.any(centre < lo) or np.any(centre > hi):
         return mean
+    if _angular_path_mm(pts, centre) > ORDER_SLACK * _angular_path_mm(pts, mean):
+        return mean
     return centre
+
+
+ORDER_SLACK = 1.5
+"""How much longer the path through an outline's points in angle order about the circle's
+centre may be than about their mean before the mean is the better centre."""
+
+
+def _angular_path_mm(points: np.ndarray, centre: np.ndarray) -> float:
+    """Return the length of the path through ``points`` in angle order about ``centre``."""
+    d = points - centre
+    ordered = points[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
+    return float(np.hypot(*np.diff(ordered, axis=0).T).sum())
 
 
 CONTINUOUS_STEP_MM = 0.75

@@ -51,6 +51,7 @@ from lamina_host.reconstruct.coverage import (
     MEASURED_TOLERANCE_MM,
     Coverage,
     bridge_gaps,
+    estimated_samples,
     match_sides,
     measure_coverage,
 )
@@ -658,7 +659,7 @@ def fit_section(
         if limit is None or own
         else OutlineStatus.OPEN
     )
-    estimated = coverage.unseen(contour)
+    estimated = estimated_samples(coverage, contour, raw)
     pairs = pair_differences(parts, blend.frame)  # once, for precision and disagreement
     return Section(
         index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
@@ -826,7 +827,7 @@ def fill_gap(section: Section, neighbours: list[Section], options: ProcessOption
     # The order the outline's own points chose (the filled curve adds no detail to judge).
     efd = fit_outline(merged, replace(options, harmonics=options.harmonics or section.harmonics))
     contour = contour_samples(efd, options)
-    estimated = section.coverage.unseen(contour)
+    estimated = estimated_samples(section.coverage, contour, section.raw)
     return replace(
         section, efd=efd, contour=contour, status=OutlineStatus.INTERPOLATED, estimated=estimated
     )
