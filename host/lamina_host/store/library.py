@@ -881,6 +881,10 @@ class Library(Scoped):
         scan = self.scan(scan_id)
         if self.result(scan_id) is None:
             raise StoreError(no_result_line(scan))
+        return self._stored_mesh(scan_id)
+
+    def _stored_mesh(self, scan_id: int) -> bytes:
+        """Return the mesh of a scan known to have a result (StoreError: it made none)."""
         mesh = self._result_file(scan_id, "mesh.ply")
         if mesh is None:
             raise StoreError(f"scan {scan_id} produced no mesh to export")
@@ -904,7 +908,7 @@ class Library(Scoped):
         if suffix == ".json":
             data = json_text(report).encode()  # strict JSON, also of a report stored with NaN
         else:
-            data = _convert_mesh(self.result_mesh(scan_id), suffix)
+            data = _convert_mesh(self._stored_mesh(scan_id), suffix)
         return self.write_export(scan_id, path, data)
 
     def write_export(self, scan_id: int, path: Path, data: bytes) -> Path:

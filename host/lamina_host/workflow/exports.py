@@ -128,4 +128,4 @@ def record_export(library: Library, scan_id: int) -> bytes:
         raise StoreError(no_result_line(scan))
     inputs = library.inputs(scan_id)
     result = reprocess(inputs)
-    return record_bytes(result, scan_id, inputs.subject, inputs.created, library.scan(scan_id).side)
+    return record_bytes(result, scan_id, inputs.subject, inputs.created, scan.side)
