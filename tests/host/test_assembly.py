@@ -113,6 +113,29 @@ def test_average_overlaps_two_arcs_blend_without_a_step() -> None:
     )
 
 
+def test_views_of_two_surfaces_at_one_angle_are_not_averaged() -> None:
+    """A blended point stays on the surface its view saw, not midway to another one.
+
+    Three views of one outline the rejection kept together: a long arc about the origin,
+    and a small ring off to one side seen by two views, its near half by one and its far
+    half by the other. About the points' mean, both halves of the ring lie at the same
+    angles, 4 mm apart in radius; averaged, they drew a chord through the ring's inside
+    (a random two-part section kept such a chord as measured points 1.5 mm off).
+    """
+    t = np.linspace(np.deg2rad(100.0), np.deg2rad(260.0), 160)
+    arc = 12.0 * np.column_stack([np.cos(t), np.sin(t)])
+    ring_centre = np.array([12.0, 0.0])
+    near_t = np.linspace(np.pi / 2, 3 * np.pi / 2, 60)  # the half facing the origin
+    far_t = near_t + np.pi
+    near = ring_centre + 2.0 * np.column_stack([np.cos(near_t), np.sin(near_t)])
+    far = ring_centre + 2.0 * np.column_stack([np.cos(far_t), np.sin(far_t)])
+    blended = average_overlaps([arc, near, far])
+    on_arc = np.abs(np.hypot(blended[:, 0], blended[:, 1]) - 12.0)
+    on_ring = np.abs(np.linalg.norm(blended - ring_centre, axis=1) - 2.0)
+    assert len(blended) == len(arc) + len(near) + len(far)
+    assert np.max(np.minimum(on_arc, on_ring)) < 0.05
+
+
 def test_split_outlines_separates_two_legs() -> None:
     """Two circles 6 mm apart split into two outlines; each piece keeps its own segment."""
     t = np.deg2rad(np.linspace(-80.0, 80.0, 200))

@@ -403,26 +403,35 @@ def _overlap_means(
     angle lies along the segment; the point's own value is weighted the same way. Angles
     are unwrapped along each segment so segments crossing +-pi and segments running
     clockwise are handled; the result is sorted by angle.
+
+    A segment whose radius at the point's angle stands more than ``FOLD_MM`` from the
+    point's own saw another surface there (the far side of a bend, a second outline the
+    rejection joined to this one) and contributes nothing: the mean of two surfaces lies
+    on neither, and would be kept as a measured point (a random two-part section was
+    blended into a chord 1.5 mm inside its outline so).
     """
     tables, own_weight = [], []
-    for (ang_m, _), val in zip(polar, values, strict=True):
+    for (ang_m, rad_m), val in zip(polar, values, strict=True):
         unwrapped = unwrap_angles(ang_m)
         order = np.argsort(unwrapped, kind="stable")
-        tables.append((unwrapped[order], val[order]))
+        tables.append((unwrapped[order], rad_m[order], val[order]))
         lo, hi = unwrapped[order[0]], unwrapped[order[-1]]
         span = hi - lo if hi > lo else 1.0
         own_weight.append(blend_weight((unwrapped - lo) / span))
     ang = np.concatenate([a for a, _ in polar])
+    rad = np.concatenate([r for _, r in polar])
     weight = np.concatenate(own_weight)
     total = np.concatenate(values).astype(float) * weight[:, None]
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
-    for m, (xp, fp) in enumerate(tables):
+    for m, (xp, rp, fp) in enumerate(tables):
         if len(xp) < 2:
             continue
         lo, hi = xp[0], xp[-1]
         # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
         shifted = lo + np.mod(ang - lo, TWO_PI)
         covered = np.flatnonzero((shifted <= hi) & (owner != m))
+        same = np.abs(np.interp(shifted[covered], xp, rp) - rad[covered]) <= FOLD_MM
+        covered = covered[same]
         x = shifted[covered]
         w = blend_weight((x - lo) / (hi - lo))
         for d in range(total.shape[1]):
