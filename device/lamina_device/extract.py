@@ -89,6 +89,8 @@ _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the
 # allows for two of those, else an underestimated frame lets several times the rate in.
 _NOISE_MARGIN = 1.06
 _IQR_SIGMAS = 1.3489795003921634  # 2 Phi^-1(3/4): a Gaussian's interquartile range in sigmas
+# Float32 sums of up to this many 8-bit levels times their row offsets stay below 2**24.
+_EXACT_SPAN_PX = 256
 
 
 @dataclass(frozen=True)
@@ -459,7 +461,7 @@ class _Bright:
             padded[:, :width] = image
             image = padded
         all_words = image.reshape(-1).view(np.uint64)
-        words = np.flatnonzero((image > level).reshape(-1).view(np.uint64) != 0)
+        words = ((image > level).reshape(-1).view(np.uint64) != 0).nonzero()[0]
         return cls(height, image.shape[1], words, all_words[words].view(np.uint8))
 
     def above(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -734,52 +736,127 @@ def _single_run_centres(
     gaps and ``margin_px`` pixels either side are weighed from one window per column.
     The results equal the general path's (runs, choice, :func:`_margin_centres`).
     """
-    col, row, _ = bright.above(threshold)
+    col, row = bright.above(threshold)[:2]
     if col.size == 0:
         return _empty_points()
-    height, width = diff.shape
     count = np.bincount(col, minlength=bright.width)
-    cols = np.flatnonzero(count)
+    cols = count.nonzero()[0]
     count = count[cols]
-    # Of n distinct whole rows, only consecutive ones have the variance (n**2 - 1) / 12;
-    # their first is then their mean less (n - 1) / 2. Sums of squares stay exact.
-    total = np.bincount(col, row, bright.width)[cols]
-    spread = np.bincount(col, row * row, bright.width)[cols] * count - total * total
+    # Were a column's n rows consecutive, the first would be their mean less (n - 1) / 2:
+    # one sum, no ordering; the window then shows whether the n rows from there are bright.
+    top = (np.bincount(col, row, bright.width)[cols] / count - (count - 1) / 2).astype(np.int64)
     length = count
-    if np.array_equal(spread, count * count * (count * count - 1) / 12):
-        top = (total / count - (count - 1) / 2).astype(np.int64)
-    else:
-        top = np.full(bright.width, height, np.int64)
-        np.minimum.at(top, col, row)
-        bottom = np.full(bright.width, -1, np.int64)
-        np.maximum.at(bottom, col, row)
-        top = top[cols]
-        length = bottom[cols] - top + 1
+    longest = int(count.max())
+    windows = None
+    # Rows come in ascending order and every column's first (as computed, even for
+    # rows that are not consecutive) lies between their ends: the windows then fit.
+    if int(row[0]) >= margin_px and int(row[-1]) + longest + margin_px <= diff.shape[0]:
+        windows = _windows(diff, cols, top - margin_px, longest, length, margin_px)
+    if windows is None or not _runs_bright(*windows, margin_px, threshold, col.size):
+        top, length = _column_bounds(col, row, cols, bright.width, diff.shape[0])
         if int((length - count).max()) > bridge_px:
             return None  # some column holds two runs: they must be told apart
-    # (rows, N): the window of every column from ``start``, padded to the longest with
-    # zero weight; whole numbers below 2**24, so float32 sums are exact.
-    span = int(length.max()) + 2 * margin_px
-    start = top - margin_px
-    offsets = np.arange(span)[:, None]
+        longest = int(length.max())
+        windows = _clipped_windows(diff, cols, top - margin_px, longest, length, margin_px)
+    levels, inside = windows
+    weights = levels * inside
+    weight, moment = _window_sums(weights.astype(np.float32))
+    centre = (top - margin_px) + moment / weight
+    peak = levels.max(axis=0)  # the run's: every other pixel of the window is darker
+    flags = (peak >= _FULL_SCALE).view(np.uint8) * np.uint8(FLAG_SATURATED)
+    if longest > _FULL_SCALE:
+        length = np.minimum(length, _FULL_SCALE)
+    return StripePoints(
+        cols.astype(np.uint16), centre.astype(np.float32), peak, length.astype(np.uint8), flags
+    )
+
+
+def _window_sums(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return each window's (column's) sum of weights and of weight times row offset, float32.
+
+    The weights are whole levels, so up to :data:`_EXACT_SPAN_PX` rows the sums are
+    exact whatever the order, and one product gives both; longer windows are summed as
+    ever, rounding the same way.
+    """
+    span = weights.shape[0]
+    if span <= _EXACT_SPAN_PX:
+        return _sum_and_moment(span) @ weights
+    return weights.sum(axis=0), np.arange(span, dtype=np.float32) @ weights
+
+
+@cache
+def _sum_and_moment(span: int) -> np.ndarray:
+    """Return the (2, span) float32 rows 1 and 0..span-1 (read-only, shared)."""
+    rows = np.stack([np.ones(span, np.float32), np.arange(span, dtype=np.float32)])
+    rows.flags.writeable = False
+    return rows
+
+
+def _column_bounds(
+    col: np.ndarray, row: np.ndarray, cols: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the first bright row of each of ``cols`` and the rows from there to its last."""
+    top = np.full(width, height, np.int64)
+    np.minimum.at(top, col, row)
+    bottom = np.full(width, -1, np.int64)
+    np.maximum.at(bottom, col, row)
+    top = top[cols]
+    return top, bottom[cols] - top + 1
+
+
+def _windows(
+    diff: np.ndarray,
+    cols: np.ndarray,
+    start: np.ndarray,
+    longest: int,
+    length: np.ndarray,
+    margin_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return each column's run and margins as (rows, N) levels and where they lie inside.
+
+    The window of a column starts at row ``start``, inside the frame; all are padded to
+    the ``longest`` run, the padding marked outside.
+    """
+    width = diff.shape[1]
+    span = longest + 2 * margin_px
     flat = start * width
     flat += cols
-    flat = flat + offsets * width
-    outside = offsets >= length + 2 * margin_px
-    if int(start.min()) < 0 or int(start.max()) + span > height:  # past the frame's edge
-        rows = start + offsets
-        outside |= (rows < 0) | (rows >= height)
-        flat = np.clip(rows, 0, height - 1) * width + cols
-    levels = diff.reshape(-1)[flat]
-    levels[outside] = 0
-    weights = levels.astype(np.float32)
-    centre = start + (np.arange(span, dtype=np.float32) @ weights) / weights.sum(axis=0)
-    peak = levels.max(axis=0)
-    flags = (peak >= _FULL_SCALE).view(np.uint8) * np.uint8(FLAG_SATURATED)
-    return StripePoints(
-        cols.astype(np.uint16), centre.astype(np.float32), peak,
-        np.minimum(length, _FULL_SCALE).astype(np.uint8), flags,
-    )  # fmt: skip
+    flat = flat + np.arange(0, span * width, width)[:, None]
+    # 16-bit offsets (no frame is taller: DeviceLimits) compare several times faster.
+    offsets = np.arange(span, dtype=np.uint16)[:, None]
+    inside = offsets < np.add(length, 2 * margin_px, dtype=np.uint16, casting="unsafe")
+    return diff.reshape(-1)[flat], inside
+
+
+def _clipped_windows(
+    diff: np.ndarray,
+    cols: np.ndarray,
+    start: np.ndarray,
+    longest: int,
+    length: np.ndarray,
+    margin_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return :func:`_windows` for windows that may cross the frame's edge (outside there)."""
+    height, width = diff.shape
+    offsets = np.arange(longest + 2 * margin_px)[:, None]
+    rows = start + offsets
+    inside = (offsets < length + 2 * margin_px) & (rows >= 0) & (rows < height)
+    flat = np.clip(rows, 0, height - 1) * width + cols
+    return diff.reshape(-1)[flat], inside
+
+
+def _runs_bright(
+    levels: np.ndarray, inside: np.ndarray, margin_px: int, threshold: float, bright: int
+) -> bool:
+    """Return whether every window's run rows hold all of the ``bright`` pixels found.
+
+    A column's run fills its window less ``margin_px`` rows either side: in the padded
+    layout, where the window ``2 margin_px`` rows further down is still inside.
+    """
+    span = levels.shape[0]
+    run = levels[margin_px : span - margin_px] > math.floor(threshold)
+    run &= inside[2 * margin_px :]
+    return np.count_nonzero(run) == bright
 
 
 def _margin_centres(
@@ -1000,21 +1077,19 @@ def _trust(
         return points
     # One noise for the view: one confidence scale on the wire, a few bytes a segment.
     confidence = confidence_bytes(points.peak, noise_dn)
-    fits = None
-    if settings.min_width_px > 1:
-        fits = points.width >= settings.min_width_px
-    if settings.max_width_px < _FULL_SCALE:
-        fits = _both(fits, points.width <= settings.max_width_px)
     index: np.ndarray | slice = slice(None)
-    if fits is not None and not fits.all():
+    cols, rows, width, peak = points.cols, points.rows, points.width, points.peak
+    if _misfits(width, settings):
+        # Widths are 1..255, so an unset limit (1 or 255) passes every run.
+        fits = (width >= settings.min_width_px) & (width <= settings.max_width_px)
         index = np.flatnonzero(fits)
-    cols, rows, width, peak = (
-        a[index] for a in (points.cols, points.rows, points.width, points.peak)
-    )
-    strong = None
-    if settings.noise_gate:
+        cols, rows, width, peak = (a[index] for a in (cols, rows, width, peak))
+    strong = None  # every point is strong, as without the gate
+    if settings.noise_gate and peak.size:
         k = gate_sigmas(shape[1], shape[0], settings.min_chain_px, settings.false_points_per_frame)
-        strong = peak >= noise_dn * k * _NOISE_MARGIN
+        gate = noise_dn * k * _NOISE_MARGIN
+        if int(peak.min()) < gate:  # the usual frame's points all clear it: no mask
+            strong = peak >= gate
     chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
     if cols.size and (chained or strong is not None):
         starts = chain_starts(cols, rows, width, settings.max_row_jump_px)
@@ -1059,9 +1134,11 @@ def _kept_chains(
     return np.flatnonzero(np.repeat(keep_chain, chain_length))
 
 
-def _both(first: np.ndarray | None, second: np.ndarray) -> np.ndarray:
-    """Return ``first & second``, or ``second`` when there is no first condition yet."""
-    return second if first is None else first & second
+def _misfits(width: np.ndarray, settings: ExtractSettings) -> bool:
+    """Return whether any run is narrower or wider than a laser profile can be."""
+    return (settings.min_width_px > 1 and int(width.min()) < settings.min_width_px) or (
+        settings.max_width_px < _FULL_SCALE and int(width.max()) > settings.max_width_px
+    )
 
 
 @cache
