@@ -27,6 +27,7 @@ from lamina_host.reconstruct.assembly import (
     average_overlaps,
     blend_overlaps,
     join_arcs,
+    separate_bodies,
     split_outlines,
     to_object_frame,
     trim,
@@ -271,6 +272,21 @@ def test_join_arcs_takes_any_outlines(groups: list[list[np.ndarray]]) -> None:
     joined = join_arcs(outlines)
     assert sum(len(p) for o in joined for p in o) == sum(len(p) for o in outlines for p in o)
     assert len(joined) <= len(outlines)
+
+
+@FAST
+@given(sections())
+def test_separate_bodies_takes_any_outline(pieces: list[np.ndarray]) -> None:
+    """Split or not, every point is handed on once, and an outline stays whole or splits."""
+    bodies = separate_bodies(pieces, 2.0)
+    assert len(bodies) >= 1
+    kept = [p for b in bodies for p in b]
+    assert sum(len(p) for p in kept) == sum(len(p) for p in pieces)
+    if kept and sum(len(p) for p in kept):
+        assert np.array_equal(
+            np.unique(np.concatenate(kept), axis=0),
+            np.unique(np.concatenate([np.reshape(p, (-1, 2)) for p in pieces]), axis=0),
+        )
 
 
 @FAST

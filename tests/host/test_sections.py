@@ -17,7 +17,7 @@ from lamina_device.sim import Mechanics, Rig
 from lamina_host.reconstruct.coverage import bridge_gaps, measure_coverage
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.outliers import OutlierRules, clean_section, thin_part
-from lamina_host.reconstruct.pipeline import ProcessOptions, fit_section
+from lamina_host.reconstruct.pipeline import ProcessOptions, fit_section, process_section
 from tests.helpers.scans import distance_to, run, synthetic_scan
 
 # A limb-like section at the thesis rig's scale: oval, with skin relief of 0.08 and
@@ -196,12 +196,13 @@ def test_a_scan_keeps_its_mostly_measured_section_its_own() -> None:
         assert measure_coverage(middle.raw).fraction == pytest.approx(middle.coverage.fraction)
 
 
-def _captured_outline(name: str) -> tuple[float, list[np.ndarray]]:
-    """Return the height and per-view points of an outline captured from a random shape.
+def _captured(name: str) -> dict:
+    """Return one entry of ``curled_outlines.json``: views captured from random shapes.
 
-    ``curled_outlines.json`` holds the views, in mm, the pipeline handed ``fit_section``
-    for two outlines of the random-shape campaign (``tests.helpers.campaign``, small
-    plans) whose contours claimed measured stretches 2.6 and 3.4 mm off the true surface.
+    The file holds the views, in mm, the pipeline handed ``fit_section`` for two outlines
+    of the random-shape campaign (``tests.helpers.campaign``, small plans) whose contours
+    claimed measured stretches 2.6 and 3.4 mm off the true surface, and the views of a
+    whole section (``thesis_857833_section0``) as ``process_section`` received them.
     """
     import json
     from pathlib import Path
@@ -209,8 +210,37 @@ def _captured_outline(name: str) -> tuple[float, list[np.ndarray]]:
     data = json.loads(
         (Path(__file__).resolve().parent / "data" / "curled_outlines.json").read_text()
     )
-    outline = data[name]
+    return data[name]
+
+
+def _captured_outline(name: str) -> tuple[float, list[np.ndarray]]:
+    """Return the height and per-view points of an outline captured from a random shape."""
+    outline = _captured(name)
     return float(outline["z_mm"]), [np.asarray(v, dtype=float) for v in outline["views"]]
+
+
+def test_two_bodies_one_stripe_links_are_fitted_apart_and_not_averaged():
+    """Random thesis shape 857833, section 0: three bodies side by side. One view's stripe
+    steps under 5 mm from the middle body's top onto the right body, so the outlier tests
+    kept the right body as the middle one's continuation: one outline of two bodies. About
+    its mean, the right body's near and far sides lie at the same angles, and the blend
+    averaged them into a chord 1.5 mm inside it, kept as measured points; the EFD through
+    both bodies looped between them. Each body is now an outline of its own, and a view
+    blends only with views that saw the same surface."""
+    from scipy.spatial import cKDTree
+
+    captured = _captured("thesis_857833_section0")
+    views = [np.asarray(v, dtype=float) for v in captured["views"]]
+    rules = OutlierRules(working_radius_mm=captured["working_radius_mm"])
+    outcome = process_section(0, captured["z_mm"], views, ProcessOptions(), rules)
+    assert not outcome.failed
+    seen = cKDTree(np.concatenate(views))
+    assert len(outcome.sections) >= 3  # the left, middle and right bodies
+    for section in outcome.sections:
+        # Every blended point stays on the surface some view saw (noise ~0.05 mm).
+        assert seen.query(section.raw)[0].max() < 0.2, section.part
+        off_mm, _ = cKDTree(section.raw).query(section.measured_contour)
+        assert np.percentile(off_mm, 95) < 0.3, section.part
 
 
 def test_a_curled_outline_is_taken_about_a_centre_its_branches_do_not_share():

@@ -186,26 +186,54 @@ def blend_overlaps(segments: list[np.ndarray], link_mm: float = 3.0) -> Blend:
     segs = [s for s in segs if len(s) > 0]
     if not segs:
         raise CalibrationError("the section has no stripe points; check the scan views")
-    frame = OutlineFrame(np.concatenate(segs).mean(axis=0))
-    polar = [frame.to_local(s) for s in segs]
-    local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
-    overlaps = _overlap_differences(local)
-    if _folds(local, overlaps[0]):
-        frame = outline_frame(np.concatenate(segs), link_mm)
-        if not frame.polar:
-            polar = [frame.to_local(s) for s in segs]
-            local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
-            overlaps = _overlap_differences(local)
+    coords = _frame_coordinates(segs, link_mm)
+    polar, local = coords.polar, coords.local
     ang, rad = _overlap_means(polar, [r[:, None] for _, r in polar])
-    noise, pairs = overlap_noise(*overlaps)
+    noise, pairs = overlap_noise(*coords.overlaps)
     return Blend(
-        frame.to_xy(ang, rad[:, 0]),
-        frame,
+        coords.frame.to_xy(ang, rad[:, 0]),
+        coords.frame,
         np.concatenate([a for a, _ in local]),
         np.concatenate([r for _, r in local]),
         noise,
         pairs,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _FrameCoordinates:
+    """An outline's frame and its views' coordinates in it (:func:`_frame_coordinates`).
+
+    ``fits`` is False when polar coordinates fold and no reference curve could be drawn
+    either: the polar frame is kept, but no one frame orders the points.
+    """
+
+    frame: OutlineFrame
+    polar: list[tuple[np.ndarray, np.ndarray]]
+    local: list[tuple[np.ndarray, np.ndarray]]
+    overlaps: tuple[np.ndarray, np.ndarray]
+    fits: bool
+
+
+def _frame_coordinates(segs: list[np.ndarray], link_mm: float) -> _FrameCoordinates:
+    """Choose an outline's frame (polar, else a reference curve) and place its views in it.
+
+    Args:
+        segs: the outline's non-empty (K, 2) pieces in mm, each ordered along its stripe.
+        link_mm: the widest step between points of one outline (for the reference curve).
+    """
+    frame = OutlineFrame(np.concatenate(segs).mean(axis=0))
+    polar = [frame.to_local(s) for s in segs]
+    local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
+    overlaps = _overlap_differences(local)
+    if not _folds(local, overlaps[0]):
+        return _FrameCoordinates(frame, polar, local, overlaps, True)
+    curve = outline_frame(np.concatenate(segs), link_mm)
+    if curve.polar:
+        return _FrameCoordinates(frame, polar, local, overlaps, False)
+    polar = [curve.to_local(s) for s in segs]
+    local = [run_means(a, r, RESOLUTION_RAD) for a, r in polar]
+    return _FrameCoordinates(curve, polar, local, _overlap_differences(local), True)
 
 
 def _folds(local: list[tuple[np.ndarray, np.ndarray]], d: np.ndarray) -> bool:
@@ -527,6 +555,35 @@ def join_arcs(outlines: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
         groups[i] = groups[i] + groups[j]
         del groups[j]
     return sorted(groups, key=lambda g: -sum(len(p) for p in g))
+
+
+def separate_bodies(
+    outline: list[np.ndarray], gap_mm: float, link_mm: float = 3.0
+) -> list[list[np.ndarray]]:
+    """Split an outline into its separate clusters when no one frame can order them.
+
+    The outlier tests keep a cluster that continues an outline along its view's stripe as
+    part of that outline (the far side of a part, an occlusion edge). Where the cluster
+    is another body (a second ring beside the first, its stripe a step away), the two
+    fold in polar coordinates and no reference curve links them: one EFD through both
+    zigzags between them. Each cluster is then an outline of its own.
+
+    Args:
+        outline: one outline's pieces (runs of one view's stripe, in stripe order).
+        gap_mm: the outline gap of :func:`split_outlines`.
+        link_mm: the widest step between points of one outline (as :func:`blend_overlaps`).
+
+    Returns:
+        ``[outline]`` unchanged, or its clusters, most points first.
+    """
+    segs = [np.asarray(p, dtype=float).reshape(-1, 2) for p in outline]
+    segs = [p for p in segs if len(p)]
+    if not segs:
+        return [outline]
+    clusters = split_outlines(segs, gap_mm, min_points=1)
+    if len(clusters) < 2 or _frame_coordinates(segs, link_mm).fits:
+        return [outline]
+    return clusters
 
 
 def _arc_circle(points: np.ndarray) -> float | None:

@@ -25,6 +25,7 @@ from lamina_host.reconstruct.assembly import (
     average_overlap_colours,
     blend_overlaps,
     join_arcs,
+    separate_bodies,
     split_outlines,
     to_object_frame,
     trim,
@@ -674,14 +675,16 @@ def outline_groups(
     """Return a section's outlines (each a list of per-view pieces) and what was rejected.
 
     With ``reject_outliers`` the outliers go first and only well-supported outlines stay
-    (:mod:`.outliers`); they are fitted apart if ``split_gap_mm`` is set, together
-    otherwise. Without it, the section splits at ``split_gap_mm`` (thesis 9.2) or stays
+    (:mod:`.outliers`), arcs of one outline are joined and an outline of several bodies
+    that no frame orders is split (:func:`.assembly.separate_bodies`); they are fitted
+    apart if ``split_gap_mm`` is set, together otherwise. Without it, the section splits at ``split_gap_mm`` (thesis 9.2) or stays
     one outline (thesis).
     """
     if options.reject_outliers:
         gap = options.split_gap_mm or DEFAULT_SPLIT_GAP_MM
         outlines, rejected = clean_section(parts, gap, rules)
-        outlines = join_arcs(outlines)
+        bodies = [body for o in join_arcs(outlines) for body in separate_bodies(o, gap)]
+        outlines = sorted(bodies, key=lambda o: -sum(len(p) for p in o))  # part 0: the most
         if options.split_gap_mm is None and outlines:
             outlines = [[piece for outline in outlines for piece in outline]]
         return outlines, rejected
