@@ -677,8 +677,8 @@ def outline_groups(
     With ``reject_outliers`` the outliers go first and only well-supported outlines stay
     (:mod:`.outliers`), arcs of one outline are joined and an outline of several bodies
     that no frame orders is split (:func:`.assembly.separate_bodies`); they are fitted
-    apart if ``split_gap_mm`` is set, together otherwise. Without it, the section splits at ``split_gap_mm`` (thesis 9.2) or stays
-    one outline (thesis).
+    apart if ``split_gap_mm`` is set, together otherwise. Without it, the section splits
+    at ``split_gap_mm`` (thesis 9.2) or stays one outline (thesis).
     """
     if options.reject_outliers:
         gap = options.split_gap_mm or DEFAULT_SPLIT_GAP_MM
