@@ -63,7 +63,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_shared.centreline import DEFAULT_ROW_JUMP_PX, chain_starts
+from lamina_shared.centreline import DEFAULT_ROW_JUMP_PX, chain_starts, one_chain
 from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
@@ -91,6 +91,10 @@ _NOISE_MARGIN = 1.06
 _IQR_SIGMAS = 1.3489795003921634  # 2 Phi^-1(3/4): a Gaussian's interquartile range in sigmas
 # Float32 sums of up to this many 8-bit levels times their row offsets stay below 2**24.
 _EXACT_SPAN_PX = 256
+_SATURATED_FLAGS = np.where(np.arange(256) >= _FULL_SCALE, FLAG_SATURATED, 0).astype(np.uint8)
+_SATURATED_FLAGS.flags.writeable = False  # the flags of an 8-bit peak, by level
+_ONE_CHAIN = np.zeros(1, np.intp)  # chain_starts of a view whose points form one chain
+_ONE_CHAIN.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -262,12 +266,30 @@ class StripePoints:
         if len({a.size for a in arrays}) > 1:
             raise ValueError("stripe point arrays differ in length")
 
+    @classmethod
+    def of(cls, *arrays: np.ndarray) -> StripePoints:
+        """Return the points of arrays known to be alike in length, flags given.
+
+        For the extraction's own results (``cols`` .. ``flags``, optionally
+        ``confidence``): the checks of a caller's arrays cost as much again as the
+        construction, a few microseconds a view.
+        """
+        points = object.__new__(cls)
+        for name, array in zip(_POINT_FIELDS, arrays, strict=False):
+            object.__setattr__(points, name, array)
+        if len(arrays) < len(_POINT_FIELDS):
+            object.__setattr__(points, "confidence", np.zeros(arrays[0].size, np.uint8))
+        return points
+
     def subset(self, keep: np.ndarray) -> StripePoints:
         """Return the points selected by ``keep`` (a mask or indices)."""
         return StripePoints(
             self.cols[keep], self.rows[keep], self.peak[keep], self.width[keep],
             self.flags[keep], self.confidence[keep],
         )  # fmt: skip
+
+
+_POINT_FIELDS = ("cols", "rows", "peak", "width", "flags", "confidence")
 
 
 def _iqr_sigma(counts: np.ndarray) -> float:
@@ -278,10 +300,10 @@ def _iqr_sigma(counts: np.ndarray) -> float:
     over ``[v - 0.5, v + 0.5)``, so the quartiles move smoothly rather than by whole
     steps, as a few DN of noise need.
     """
-    cdf = np.cumsum(counts)
+    cdf = counts.cumsum()
     targets = (0.25 * float(cdf[-1]), 0.75 * float(cdf[-1]))
     quartiles = []
-    for target, index in zip(targets, np.searchsorted(cdf, targets).tolist(), strict=True):
+    for target, index in zip(targets, cdf.searchsorted(targets).tolist(), strict=True):
         below = float(cdf[index - 1]) if index else 0.0
         quartiles.append(index - 0.5 + (target - below) / max(float(counts[index]), 1.0))
     return max((quartiles[1] - quartiles[0]) / _IQR_SIGMAS, _MIN_NOISE_DN)
@@ -420,14 +442,14 @@ def otsu_level(hist: np.ndarray, pixels: int, total: float, floor: int = 0) -> i
         return floor
     # One cumulative sum carries both the count (real) and the sum (imaginary) of the
     # pixels at or above each level, top down: the bright class of the level below.
-    bright = np.cumsum(hist[:floor:-1] * _count_and_level(hist.size)[: hist.size - 1 - floor])
+    bright = (hist[:floor:-1] * _count_and_level(hist.size)[: hist.size - 1 - floor]).cumsum()
     bright = bright[::-1]
     count = bright.real
     excess = count * (total / pixels) - bright.imag  # n1 * mean - s1
     # n0 * n1 * (mean0 - mean1)**2 is pixels**2 * excess**2 / (n0 * n1); 0/0 only where
     # one class is empty, which separates nothing.
     between = excess * excess / np.maximum(count * (pixels - count), 1.0)
-    return floor + int(np.argmax(between))
+    return floor + int(between.argmax())
 
 
 def otsu_threshold(image: np.ndarray) -> float:
@@ -466,7 +488,7 @@ class _Bright:
 
     def above(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return the pixels above ``level`` in row-major order: column, row and word index."""
-        chosen = np.flatnonzero(self.pixels > math.floor(level))
+        chosen = (self.pixels > math.floor(level)).nonzero()[0]
         word = chosen >> 3
         word_row, word_col = np.divmod(self.words, self.width // 8)
         word_col <<= 3
@@ -741,32 +763,37 @@ def _single_run_centres(
         return _empty_points()
     count = np.bincount(col, minlength=bright.width)
     cols = count.nonzero()[0]
-    count = count[cols]
-    # Were a column's n rows consecutive, the first would be their mean less (n - 1) / 2:
-    # one sum, no ordering; the window then shows whether the n rows from there are bright.
-    top = (np.bincount(col, row, bright.width)[cols] / count - (count - 1) / 2).astype(np.int64)
+    # A bright row of each column, no ordering: where indices repeat, one assignment
+    # wins. Pixels come row by row, so reversed that is the first one in practice; if
+    # it is not, or the rows are not consecutive, the window below misses bright pixels
+    # and the exact bounds are taken instead.
+    top = np.empty(bright.width, np.int64)
+    top[col[::-1]] = row[::-1]
+    if cols.size < count.size:  # the usual stripe crosses every column: no gathers
+        count, top = count[cols], top[cols]
     length = count
     longest = int(count.max())
     windows = None
-    # Rows come in ascending order and every column's first (as computed, even for
-    # rows that are not consecutive) lies between their ends: the windows then fit.
+    # Rows come in ascending order and every column's top lies between their ends: the
+    # windows then fit.
+    start = top - margin_px  # each window's first row
     if int(row[0]) >= margin_px and int(row[-1]) + longest + margin_px <= diff.shape[0]:
-        windows = _windows(diff, cols, top - margin_px, longest, length, margin_px)
+        windows = _windows(diff, cols, start, longest, length, margin_px)
     if windows is None or not _runs_bright(*windows, margin_px, threshold, col.size):
         top, length = _column_bounds(col, row, cols, bright.width, diff.shape[0])
         if int((length - count).max()) > bridge_px:
             return None  # some column holds two runs: they must be told apart
         longest = int(length.max())
-        windows = _clipped_windows(diff, cols, top - margin_px, longest, length, margin_px)
+        start = top - margin_px
+        windows = _clipped_windows(diff, cols, start, longest, length, margin_px)
     levels, inside = windows
-    weights = levels * inside
-    weight, moment = _window_sums(weights.astype(np.float32))
-    centre = (top - margin_px) + moment / weight
+    weight, moment = _window_sums(np.multiply(levels, inside, dtype=np.float32))
+    centre = start + moment / weight
     peak = levels.max(axis=0)  # the run's: every other pixel of the window is darker
-    flags = (peak >= _FULL_SCALE).view(np.uint8) * np.uint8(FLAG_SATURATED)
+    flags = _SATURATED_FLAGS[peak]
     if longest > _FULL_SCALE:
         length = np.minimum(length, _FULL_SCALE)
-    return StripePoints(
+    return StripePoints.of(
         cols.astype(np.uint16), centre.astype(np.float32), peak, length.astype(np.uint8), flags
     )
 
@@ -821,11 +848,24 @@ def _windows(
     span = longest + 2 * margin_px
     flat = start * width
     flat += cols
-    flat = flat + np.arange(0, span * width, width)[:, None]
-    # 16-bit offsets (no frame is taller: DeviceLimits) compare several times faster.
-    offsets = np.arange(span, dtype=np.uint16)[:, None]
+    row_offsets, offsets = _window_offsets(span, width)
+    flat = flat + row_offsets
     inside = offsets < np.add(length, 2 * margin_px, dtype=np.uint16, casting="unsafe")
     return diff.reshape(-1)[flat], inside
+
+
+@cache
+def _window_offsets(span: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return a window's (span, 1) offsets in the flat frame and in rows (read-only, shared).
+
+    The rows are 16-bit (no frame is taller: DeviceLimits), which compare several
+    times faster.
+    """
+    flat = np.arange(0, span * width, width)[:, None]
+    rows = np.arange(span, dtype=np.uint16)[:, None]
+    flat.flags.writeable = False
+    rows.flags.writeable = False
+    return flat, rows
 
 
 def _clipped_windows(
@@ -1092,7 +1132,13 @@ def _trust(
             strong = peak >= gate
     chained = settings.min_chain_px > 1 or settings.smooth_sigma_px > 0
     if cols.size and (chained or strong is not None):
-        starts = chain_starts(cols, rows, width, settings.max_row_jump_px)
+        # A view of one run per column is usually one chain, which a cheaper test
+        # shows; with several runs (reflections) chain_starts decides alone.
+        one_run = not int(np.bitwise_or.reduce(points.flags)) & FLAG_SEVERAL_RUNS
+        if one_run and one_chain(cols, rows, width, settings.max_row_jump_px):
+            starts = _ONE_CHAIN
+        else:
+            starts = chain_starts(cols, rows, width, settings.max_row_jump_px)
         kept = _kept_chains(starts, strong, cols.size, settings.min_chain_px)
         if kept is not None:
             index = kept if isinstance(index, slice) else index[kept]
@@ -1102,7 +1148,7 @@ def _trust(
             chain = np.zeros(cols.size, np.intp)
             chain[starts[1:]] = 1
             rows = _smoothed(cols, rows, np.cumsum(chain), settings.smooth_sigma_px)
-    return StripePoints(
+    return StripePoints.of(
         cols, rows, points.peak[index], width, points.flags[index], confidence[index]
     )
 

@@ -118,6 +118,33 @@ def chain_starts(
     return np.concatenate(([0], starts))
 
 
+def one_chain(
+    cols: np.ndarray, rows: np.ndarray, width: np.ndarray, max_row_jump_px: float
+) -> bool:
+    """Return True only if :func:`chain_starts` would return ``[0]`` (one chain).
+
+    A cheaper test for the usual view, one stripe through every column: with no column
+    skipped, if the largest step between neighbouring centres is within the reach of the
+    narrowest run, no pair breaks. It rounds as :func:`chain_starts` does (float32), and
+    the reach it tests is the least of the pairs' (rounding keeps the order), so True is
+    exact; False says only that :func:`chain_starts` must decide (a gap, or a NaN row).
+
+    Args:
+        cols: the points' columns, strictly increasing (at least one point).
+        rows: their centre rows.
+        width: their run lengths in rows.
+        max_row_jump_px: the largest gap between two runs of one chain.
+    """
+    if int(cols[-1]) - int(cols[0]) != cols.size - 1:
+        return False  # a column skipped: the gap rule applies
+    if cols.size == 1:
+        return True
+    step = np.subtract(rows[1:], rows[:-1], dtype=np.float32)
+    twice_apart = 2 * max(float(step.max()), -float(step.min()))  # exact: float32 doubled
+    least_reach = np.float32(2 * int(width.min())) + np.float32(2 * max_row_jump_px - 2)
+    return twice_apart <= float(least_reach)
+
+
 @cache
 def _interior_moments(half_width: int) -> tuple[float, float]:
     """Return ``sum (d/h)**2`` and ``sum (d/h)**4`` over a full window of ``h`` either side."""
