@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lamina_shared.centreline import (
     HALF_WIDTHS_PX,
     chain_starts,
     circle_bias_factor,
     curve_pull,
+    one_chain,
     refine_many,
     refine_rows,
     refined_rows,
@@ -216,3 +219,33 @@ def test_a_stripe_end_bending_away_keeps_its_points():
     noisy = truth + rng.normal(0.0, 0.1, cols.size)
     fitted = refine_rows(cols, noisy, np.full(cols.size, 4, np.uint8), correct_pull=False)
     assert np.max(np.abs(fitted - truth)) < 0.5
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 60),
+    skip=st.booleans(),
+    jump=st.sampled_from([0.5, 1.0, 2.5, 4.0]),
+)
+def test_one_chain_says_yes_only_where_chain_starts_finds_one_chain(seed, n, skip, jump):
+    """The device's quick test never joins what the chain rule breaks: steps at and
+    around the reach (ties in float32), columns skipped or not."""
+    rng = np.random.default_rng(seed)
+    cols = np.cumsum(rng.integers(1, 4 if skip else 2, n)).astype(np.uint16)
+    width = rng.integers(1, 6, n).astype(np.uint8)
+    steps = rng.choice([0.0, 0.5, 1.0, jump, jump + 1.0, jump + 2.0, rng.uniform(0, 8)], n)
+    rows = (100.0 + np.cumsum(steps * rng.choice([-1, 1], n))).astype(np.float32)
+    if one_chain(cols, rows, width, jump):
+        assert chain_starts(cols, rows, width, jump).tolist() == [0]
+
+
+def test_one_chain_says_yes_for_a_stripe_through_every_column():
+    """The usual view, which the quick test is for: no gap, small steps, one chain."""
+    cols = np.arange(640, dtype=np.uint16)
+    rows = (240.0 + 30.0 * np.sin(cols / 50.0)).astype(np.float32)
+    width = np.full(640, 3, np.uint8)
+    assert one_chain(cols, rows, width, 4.0)
+    assert not one_chain(np.delete(cols, 300), np.delete(rows, 300), width[1:], 4.0)
+    rows[320:] += 9.0  # a jump beyond 3 + 3 + 2 * 4 - 2 = 12 half-rows
+    assert not one_chain(cols, rows, width, 4.0)

@@ -212,6 +212,15 @@ def test_any_confidence_bytes_round_trip(n):
     assert decode(encode_segment(1, 2, segment)).body.segment.same_as(segment)
 
 
+@pytest.mark.parametrize("noise_dn", [1e-4, 0.37, 1.0, 2.9, 6.3, 17.0, 255.0, 1e6])
+def test_confidence_of_8_bit_peaks_is_the_same_by_table(noise_dn):
+    """The device's 8-bit peaks are looked up in a table: the bytes of the general path."""
+    peak = np.arange(256, dtype=np.uint8)
+    assert np.array_equal(
+        confidence_bytes(peak, noise_dn), confidence_bytes(peak.astype(np.int64), noise_dn)
+    )
+
+
 def test_confidence_of_one_noise_costs_a_few_bytes_a_segment():
     segment = make_segment(640)
     plain = len(encode_segment(1, 0, segment))
