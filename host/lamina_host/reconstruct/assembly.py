@@ -605,8 +605,8 @@ def _zigzags(segs: list[np.ndarray]) -> bool:
         segs: the outline's non-empty (K, 2) pieces, each ordered along its stripe.
     """
     points = np.concatenate(segs)
-    d = points - points.mean(axis=0)
-    in_angle = points[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
+    angle, _ = _polar(points, points.mean(axis=0))
+    in_angle = points[np.argsort(angle, kind="stable")]
     path_mm = float(np.hypot(*np.diff(in_angle, axis=0).T).sum())
     own_mm = sum(float(np.hypot(*np.diff(s, axis=0).T).sum()) for s in segs)
     return path_mm > BODIES_PATH_RATIO * own_mm
