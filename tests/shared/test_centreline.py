@@ -84,6 +84,28 @@ def test_fit_removes_scatter_without_pulling_a_curve(radius_px):
     assert after < (0.6 if radius_px < 30 else 0.3) * before
 
 
+@pytest.mark.parametrize("radius_px", [40.0, 80.0, 150.0])
+def test_on_a_noisy_curve_the_window_weighs_bias_against_noise(radius_px):
+    # A window that keeps the bias near zero on a curve keeps noise far larger than the
+    # bias it avoids; the adaptive window should do about as well as the best fixed one.
+    cols = np.arange(int(100 - 0.8 * radius_px), int(100 + 0.8 * radius_px) + 1)
+    truth = 300.0 - np.sqrt(radius_px**2 - (cols - 100.0) ** 2)
+    width = np.full(cols.size, 4)
+    rng = np.random.default_rng(7)
+    noisy = [truth + rng.normal(0.0, 0.3, truth.size) for _ in range(20)]
+
+    def rms(half_width_px):
+        errors = [
+            refine_rows(cols, rows, width, half_width_px=half_width_px, correct_pull=False) - truth
+            for rows in noisy
+        ]
+        return np.sqrt(np.mean(np.concatenate([e[5:-5] for e in errors]) ** 2))
+
+    best_fixed = min(rms(h) for h in HALF_WIDTHS_PX)
+    # Before the bias was weighed against the noise: 1.33x and 1.28x at r = 40 and 80.
+    assert rms(None) < 1.15 * best_fixed
+
+
 def test_the_window_adapts_its_reach_to_the_curvature():
     # The bias a window leaves on a circle bounds the curvature it may be used on.
     factors = [circle_bias_factor(h) for h in HALF_WIDTHS_PX]
