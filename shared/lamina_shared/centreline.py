@@ -91,7 +91,9 @@ _MIN_ROW_SIGMA_PX = 0.08  # the least row noise assumed: a cleaner stripe (a noi
 # render) would otherwise keep every few-column wobble of its centre of gravity as relief
 _ICI_SIGMAS = 2.5  # the half-width of each fit's confidence interval, in its sigmas
 # (a stripe's speckle is correlated along it, so a stricter test of the fits' differences
-# stops the window on noise: measured 0.82-0.97x Horus-style instead of 0.70-0.80x)
+# stops the window on noise: measured 0.82-0.97x Horus-style instead of 0.70-0.80x with
+# the 0.004 px bias bound; with BIAS_PER_NOISE, 2.0 kept more of the relief bench's folds
+# but gave 0.72x on the harsh frames, 2.5 gives 0.68x)
 _ROW_UNITS = 65536  # rows are summed in these fractions of a pixel
 _PILOT_ALONE_POINTS = 4096  # more points than this: the pilot's fit first, alone
 _GROUP_POINTS = 32768  # points fitted together: their sums stay in the processor's cache
