@@ -179,6 +179,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "tracebacks": sum(1 for r in rows if r["stage"] and not r["refusal"]),
         "caught_internal_errors": sum(len(r["internal_errors"]) for r in rows),
         "refusals": sum(1 for r in rows if r["stage"] and r["refusal"]),
+        "motion_warned": [
+            {"seed": r["seed"], "outlines": r["motion_warnings"]}
+            for r in finished
+            if r.get("motion_warnings")
+        ],
         **figures(finished),
         "by_group": {
             g: figures(rows_g)
@@ -229,6 +234,16 @@ def _f(value: float, spec: str) -> str:
     return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
+def _motion_line(summary: dict[str, Any]) -> str:
+    """Return how many still shapes the report warned of as moved (issue 22: none should be)."""
+    warned = summary["motion_warned"]
+    outlines = [f"seed {w['seed']} " + "; ".join(w["outlines"]) for w in warned]
+    listed = ", ".join(outlines[:6]) + (", ..." if len(outlines) > 6 else "")
+    return f"    still shapes warned of motion: {len(warned)} of {summary['finished']}" + (
+        f" ({listed})" if outlines else ""
+    )
+
+
 def report(results: dict[str, Any]) -> list[str]:
     """Return the table lines of both scales."""
     lines = []
@@ -257,6 +272,7 @@ def report(results: dict[str, Any]) -> list[str]:
             f"median {_f(v['median'], '.3f')}, p95 {_f(v['p95'], '.3f')} (n={v['n']})",
             "    outline statuses: "
             + ", ".join(f"{k} {n}" for k, n in sorted(s["statuses"].items())),
+            _motion_line(s),
         ]
         for group, g in s["by_group"].items():
             gd, gc, gv = g["mean_distance_mm"], g["coverage"], g["volume_abs_error_percent"]

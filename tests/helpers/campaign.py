@@ -29,8 +29,10 @@ from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
 from lamina_device.sim.random_shapes import RandomShape, ShapeFeatures, random_shape
 from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accuracy
+from lamina_host.reconstruct.continuity import outline_jumps
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.reconstruct.precision import MOTION_WARN_MM
 from lamina_host.store.outputs import build_report, measured_cloud, write_outputs
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
@@ -130,6 +132,9 @@ class SeedResult:
     internal_errors: list[str] = field(default_factory=list)
     """Reasons of outlines failed by a bug, not by Lamina's own refusal: each is a
     traceback the product caught (the outline marked failed, the rest processed)."""
+    motion_warnings: list[str] = field(default_factory=list)
+    """The outlines the report warns of as if the subject had moved (its views apart, or
+    standing off its neighbours' line): the shapes hold still, so each is a false alarm."""
     wall_s: float = 0.0
 
     @property
@@ -247,11 +252,35 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
     return result
 
 
+def motion_warnings(recon: Reconstruction) -> list[str]:
+    """Return the outlines a scan's report warns of as moved, each with its figure.
+
+    Args:
+        recon: the processed scan.
+
+    Returns:
+        ``"S.P views X mm apart"`` for each outline whose views stand apart beyond the
+        warning, and ``"S.P Y mm off its neighbours"`` for each flagged section jump.
+    """
+    apart = [
+        f"{s.index}.{s.part} views {s.views_apart_mm:.2f} mm apart"
+        for s in recon.sections
+        if s.views_apart_mm > MOTION_WARN_MM
+    ]
+    jumps = [
+        f"{j.index}.{j.part} {j.jump_mm:.2f} mm off its neighbours"
+        for j in outline_jumps(recon.sections)
+        if j.flagged
+    ]
+    return apart + jumps
+
+
 def _measure(
     result: SeedResult, shape: RandomShape, recon: Reconstruction, plan: CampaignPlan
 ) -> None:
     """Fill in the figures of a finished scan against the truth."""
     result.warnings = list(recon.warnings)
+    result.motion_warnings = motion_warnings(recon)
     for s in recon.sections:
         result.statuses[s.status] = result.statuses.get(s.status, 0) + 1
     rig = plan.rig()
