@@ -665,7 +665,7 @@ def fit_section(
     return Section(
         index, z_mm, len(parts), raw, efd, contour, part, coverage, status, estimated,
         precision_mm=precision_of(pairs),
-        views_apart_mm=disagreement_of(pairs),
+        views_apart_mm=disagreement_of(pairs, parts, blend.frame),
     )  # fmt: skip
 
 
