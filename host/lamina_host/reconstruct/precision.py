@@ -196,7 +196,7 @@ section of the arm under the patient sway and the strong sway, either mode, stay
 it (0.19-2.95 mm): continuous sway's smeared views disagree little more than that. What
 the turntable's own angle error can make of a pair (:data:`TURN_TOLERANCE_DEG`) is taken
 off each offset first: of the campaign's 30 still limb shapes (2 sections, 6 views) it
-left 1 warned of 7, with every swaying section still warned."""
+left 2 warned of 7, with every swaying section still warned."""
 
 _MOTION_SIGMAS = 4.0  # an offset counts only beyond this many standard errors
 _COHERENT_SPREADS = 4.0
