@@ -182,7 +182,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "motion_warned": [
             {"seed": r["seed"], "outlines": r["motion_warnings"]}
             for r in finished
-            if r.get("motion_warnings")
+            if r["motion_warnings"]
         ],
         **figures(finished),
         "by_group": {

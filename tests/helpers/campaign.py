@@ -32,7 +32,6 @@ from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accur
 from lamina_host.reconstruct.continuity import outline_jumps
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
-from lamina_host.reconstruct.precision import MOTION_WARN_MM
 from lamina_host.store.outputs import build_report, measured_cloud, write_outputs
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
@@ -265,7 +264,7 @@ def motion_warnings(recon: Reconstruction) -> list[str]:
     apart = [
         f"{s.index}.{s.part} views {s.views_apart_mm:.2f} mm apart"
         for s in recon.sections
-        if s.views_apart_mm > MOTION_WARN_MM
+        if s.views_moved
     ]
     jumps = [
         f"{j.index}.{j.part} {j.jump_mm:.2f} mm off its neighbours"

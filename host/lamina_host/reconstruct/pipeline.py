@@ -81,7 +81,12 @@ from lamina_host.reconstruct.mesh import (
     screened_poisson,
 )
 from lamina_host.reconstruct.outliers import MIN_RUN_POINTS, OutlierRules, Rejected, clean_section
-from lamina_host.reconstruct.precision import disagreement_of, pair_differences, precision_of
+from lamina_host.reconstruct.precision import (
+    MOTION_WARN_MM,
+    disagreement_of,
+    pair_differences,
+    precision_of,
+)
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
@@ -314,6 +319,11 @@ class Section:
     """The per-point precision from where the views overlap (``precision``); None: no overlap."""
     views_apart_mm: float = 0.0
     """How far apart the overlapping views stand beyond their noise (``precision``)."""
+
+    @property
+    def views_moved(self) -> bool:
+        """Return whether the views stand apart beyond ``MOTION_WARN_MM``: the subject moved."""
+        return self.views_apart_mm > MOTION_WARN_MM
 
     @property
     def harmonics(self) -> int:

@@ -107,7 +107,8 @@ def pair_differences(
     turned = local
     if turn_deg:
         c, s = math.cos(math.radians(turn_deg)), math.sin(math.radians(turn_deg))
-        turned = [_local_sorted(v @ np.array([[c, s], [-s, c]]), frame) for v in usable]
+        rotation = np.array([[c, s], [-s, c]])  # rows times it: turned counter-clockwise
+        turned = [_local_sorted(v @ rotation, frame) for v in usable]
     return [
         ViewPair(d, k, n)
         for n in range(1, len(local))

@@ -38,7 +38,6 @@ from lamina_host.reconstruct.pipeline import (
     coloured_cloud,
     stack,
 )
-from lamina_host.reconstruct.precision import MOTION_WARN_MM
 from lamina_host.reconstruct.status import OutlineStatus
 from lamina_host.store.files import json_text, replace_file
 from lamina_shared.types import Segment
@@ -402,7 +401,7 @@ def _motion_warnings(sections: list[Section]) -> list[str]:
         "noise: the subject may have moved during the scan; scan again with the limb "
         "supported and still"
         for s in sorted(sections, key=lambda s: (s.index, s.part))
-        if s.views_apart_mm > MOTION_WARN_MM
+        if s.views_moved
     ]
 
 
