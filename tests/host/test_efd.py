@@ -9,15 +9,18 @@ import pytest
 from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
     EfdStack,
+    MeasuredPoints,
     align,
     choose_harmonics,
     efd_area,
     efd_fit,
+    harmonics_residual,
     harmonics_thesis,
     nyquist_max,
     shift_start,
 )
 from lamina_host.reconstruct.measure import signed_area
+from lamina_host.reconstruct.outline_frame import OutlineFrame
 from tests.helpers.shapes import regular_polygon
 
 R = 9.525
@@ -133,6 +136,43 @@ def test_harmonic_rules_selectable_and_noise_rule_finds_the_shape() -> None:
     assert np.sqrt(np.mean(nearest_mm(fit, blob(20000)) ** 2)) < 0.03
     with pytest.raises(ValueError, match="unknown harmonic rule"):
         choose_harmonics(circle, "magic")
+
+
+def limb_radius_mm(angle_rad: np.ndarray, relief_mm: float) -> np.ndarray:
+    """A 45 mm limb outline, slightly oval, with skin relief at 54 waves round (5.2 mm)."""
+    return 45.0 + 2.0 * np.cos(2 * angle_rad) + relief_mm * np.cos(54 * angle_rad)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize(
+    ("blend_relief_mm", "points_relief_mm", "keeps_relief"),
+    [(0.12, 0.12, True), (0.0, 0.0, False), (0.12, 0.0, False)],
+)
+def test_the_residual_rule_keeps_relief_each_points_noise_hides(
+    seed: int, blend_relief_mm: float, points_relief_mm: float, keeps_relief: bool
+) -> None:
+    """Relief below each point's noise, where the overlaps' noise estimate sits above the
+    residual's floor (as on a limb), is kept: the residual reaches that estimate at the
+    oval's order, but the relief stands out of the blend's spectrum and the points confirm
+    it. Without relief, or with a peak in the blend that the points do not share (a seam),
+    the order stays at the oval's."""
+    rng = np.random.default_rng(seed)
+    sigma_mm = 0.15
+    t = np.linspace(-np.pi, np.pi, 2600, endpoint=False)
+    r = limb_radius_mm(t, blend_relief_mm) + rng.normal(0.0, 0.03, t.size)
+    blend = np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
+    angle = rng.uniform(-np.pi, np.pi, 600)
+    radius = limb_radius_mm(angle, points_relief_mm) + rng.normal(0.0, sigma_mm, angle.size)
+    measured = MeasuredPoints(OutlineFrame(np.zeros(2)), angle, radius, 1.2 * sigma_mm)
+    order = harmonics_residual(blend, measured)
+    fit = efd_fit(blend, order, "smoothed").evaluate(4000)
+    truth = limb_radius_mm(np.arctan2(fit[:, 1], fit[:, 0]), blend_relief_mm)
+    rms_mm = float(np.sqrt(np.mean((np.hypot(fit[:, 0], fit[:, 1]) - truth) ** 2)))
+    print(f"order {order}, {rms_mm:.4f} mm RMS from the blend's truth")
+    if keeps_relief:
+        assert 54 <= order <= 64 and rms_mm < 0.015  # 0.085 mm with the relief cut
+    else:
+        assert order <= 4
 
 
 def test_shift_start_and_align_keep_the_curve() -> None:
