@@ -363,12 +363,15 @@ def _standing_harmonics(pts: np.ndarray, factor: float, parameter: str) -> np.nd
         return np.zeros(0, dtype=int)
     power = _spectrum(pts, 2 * top + 8, parameter)
     n = np.arange(1, top + 1)
-    # The median of power[k : 2k + 8] for every k at once: rows padded with NaN.
+    # The median of power[k : 2k + 8] for every k at once: rows padded with +inf, which
+    # sorts last, so row k's median sits at the middle of its first k + 8 (a sort is
+    # several times faster than a NaN-aware median here).
     cols = np.arange(2 * top + 8)
     idx = np.minimum(n[:, None] + cols[None, :], len(power) - 1)
-    windows = np.where(cols[None, :] < (n + 8)[:, None], power[idx], np.nan)
-    floor = np.nanmedian(windows, axis=1) / _CHI2_4_MEDIAN
-    return n[power[:top] > factor * floor]
+    windows = np.sort(np.where(cols[None, :] < (n + 8)[:, None], power[idx], np.inf), axis=1)
+    size = n + 8
+    median = 0.5 * (windows[n - 1, (size - 1) // 2] + windows[n - 1, size // 2])
+    return n[power[:top] > factor * median / _CHI2_4_MEDIAN]
 
 
 RESIDUAL_MARGIN = 0.0
