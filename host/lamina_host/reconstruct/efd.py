@@ -337,10 +337,15 @@ def harmonics_noise(contour: np.ndarray, parameter: str = "smoothed") -> int:
     """
     pts = _clean_closed(contour)
     cap = nyquist_max(len(pts))
-    if min(len(pts) // 16, MAX_TESTED_HARMONICS) < 2:
+    if _spectral_top(len(pts)) < 2:
         return max(1, cap)
     signal = _standing_harmonics(pts, NOISE_POWER_FACTOR, parameter)
     return int(max(1, min(cap, signal[-1] if len(signal) else 1)))
+
+
+def _spectral_top(n_points: int) -> int:
+    """Return the highest harmonic the spectral tests look at for this many points."""
+    return min(n_points // 16, MAX_TESTED_HARMONICS)
 
 
 def _standing_harmonics(pts: np.ndarray, factor: float, parameter: str) -> np.ndarray:
@@ -358,7 +363,7 @@ def _standing_harmonics(pts: np.ndarray, factor: float, parameter: str) -> np.nd
     Returns:
         The harmonic numbers, ascending; empty when fewer than 2 can be tested.
     """
-    top = min(len(pts) // 16, MAX_TESTED_HARMONICS)
+    top = _spectral_top(len(pts))
     if top < 2:
         return np.zeros(0, dtype=int)
     power = _spectrum(pts, 2 * top + 8, parameter)
@@ -502,7 +507,7 @@ def harmonics_residual(
     # Relief smaller than each point's noise hides in the residual but stands out of the
     # blend's spectrum as a narrow peak, since the blend averages the views.
     peaks = _standing_harmonics(pts, RELIEF_POWER_FACTOR, parameter)
-    for peak in peaks[(peaks > order) & (peaks <= top)][::-1]:
+    for peak in peaks[peaks > order][::-1]:  # within top: the spectral top is the lower
         # The measured points, not only the blend, must lose what the peak adds.
         if gain(order, int(peak)) > PLATEAU_GAIN * noise**2:
             return int(peak)
