@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lamina_host.reconstruct.precision import overlap_differences, section_precision_mm
+from lamina_host.reconstruct.precision import (
+    overlap_differences,
+    pair_differences,
+    section_precision_mm,
+)
 
 
 def circle_views(noise_mm: float, views: int = 6, seed: int = 0, radius_mm: float = 20.0):
@@ -67,3 +71,19 @@ def test_precision_along_a_reference_curve_for_a_folded_outline():
     frame = outline_frame(np.concatenate(views), link_mm=2.0)
     assert not frame.polar, "the test shape should need a reference curve"
     assert section_precision_mm(views, frame) == pytest.approx(0.03, rel=0.25)
+
+
+def test_comparing_some_pairs_gives_those_pairs_as_every_pair_does():
+    views = circle_views(0.05, views=8, seed=4)
+    views[3] = views[3] + np.array([0.3, 0.1])  # a moved view: its pairs stand out
+    for turn_deg in (0.0, 0.2):
+        every = {
+            (p.earlier, p.later): p.differences_mm for p in pair_differences(views, None, turn_deg)
+        }
+        asked = {(2, 3), (3, 4), (0, 7), (1, 6)}  # (1, 6) do not overlap
+        some = pair_differences(views, None, turn_deg, only=asked)
+        assert (
+            {(p.earlier, p.later) for p in some} == asked & every.keys() == {(2, 3), (3, 4), (0, 7)}
+        )
+        for p in some:
+            np.testing.assert_array_equal(p.differences_mm, every[(p.earlier, p.later)])

@@ -82,19 +82,25 @@ def overlap_differences(views: list[np.ndarray], frame: OutlineFrame | None = No
 
 
 def pair_differences(
-    views: list[np.ndarray], frame: OutlineFrame | None = None, turn_deg: float = 0.0
+    views: list[np.ndarray],
+    frame: OutlineFrame | None = None,
+    turn_deg: float = 0.0,
+    only: set[tuple[int, int]] | None = None,
 ) -> list[ViewPair]:
     """Return :func:`overlap_differences` pair by pair (pairs without overlap left out).
 
     Each later view is compared with all the earlier ones at once (their points laid one
-    after the other), then the differences are parted by the earlier view: pairs come
-    out grouped by their later view.
+    after the other, once for every later view), then the differences are parted by the
+    earlier view: pairs come out grouped by their later view.
 
     Args:
         views: each view's (K, 2) object-frame points of one outline, in mm.
         frame: the outline's frame; None: polar about the views' centroid.
         turn_deg: the earlier view of every pair turned by this about the turntable
             axis (the object frame's origin) first: what an angle error makes of a pair.
+        only: the ``(earlier, later)`` pairs to compare (places among the views with two
+            points or more); None: every pair. A pair's differences do not depend on
+            which others are compared.
 
     Returns:
         One :class:`ViewPair` per pair of views that overlap.
@@ -103,50 +109,82 @@ def pair_differences(
     if len(usable) < 2:
         return []
     frame = frame or OutlineFrame(np.concatenate(usable).mean(axis=0))
-    local = [_local_sorted(v, frame) for v in usable]
-    turned = local
+    wanted = only if only is not None else {(k, n) for n in range(len(usable)) for k in range(n)}
+    later = sorted({n for _, n in wanted})
+    earlier = sorted({k for k, _ in wanted})
+    local = {n: _local_sorted(usable[n], frame) for n in later}
+    turned = {k: local[k] for k in earlier if k in local and not turn_deg}
     if turn_deg:
         c, s = math.cos(math.radians(turn_deg)), math.sin(math.radians(turn_deg))
         rotation = np.array([[c, s], [-s, c]])  # rows times it: turned counter-clockwise
-        turned = [_local_sorted(v @ rotation, frame) for v in usable]
-    return [
-        ViewPair(d, k, n)
-        for n in range(1, len(local))
-        for k, d in _against_view(turned[:n], local[n])
-    ]
+    for k in earlier:
+        if k not in turned:
+            turned[k] = _local_sorted(usable[k] @ rotation if turn_deg else usable[k], frame)
+    # The earlier views laid out once, in order: view n's predecessors are a prefix.
+    laid = _Laid.of([(k, turned[k]) for k in earlier])
+    pairs = []
+    for n in later:
+        ks = [k for k in earlier if k < n and (k, n) in wanted]
+        pieces = _against_view(laid.before(n), local[n])
+        pairs += [ViewPair(d, k, n) for k, d in pieces if k in ks]
+    return pairs
+
+
+@dataclass(frozen=True)
+class _Laid:
+    """Views' positions and offsets along the outline laid one after the other."""
+
+    angles: np.ndarray
+    offsets: np.ndarray
+    owner: np.ndarray
+
+    @classmethod
+    def of(cls, views: list[tuple[int, tuple[np.ndarray, np.ndarray]]]) -> _Laid:
+        """Lay out ``(view, (positions, offsets))`` in ascending view order."""
+        if not views:
+            return cls(np.zeros(0), np.zeros(0), np.zeros(0, int))
+        return cls(
+            np.concatenate([a for _, (a, _) in views]),
+            np.concatenate([r for _, (_, r) in views]),
+            np.repeat([k for k, _ in views], [len(a) for _, (a, _) in views]),
+        )
+
+    def before(self, n: int) -> _Laid:
+        """Return the points of the views before view ``n``."""
+        end = int(np.searchsorted(self.owner, n))
+        return _Laid(self.angles[:end], self.offsets[:end], self.owner[:end])
 
 
 def _against_view(
-    earlier: list[tuple[np.ndarray, np.ndarray]], later: tuple[np.ndarray, np.ndarray]
+    earlier: _Laid, later: tuple[np.ndarray, np.ndarray]
 ) -> list[tuple[int, np.ndarray]]:
     """Return the differences of the ``earlier`` views to the ``later`` one, by view.
 
     Args:
-        earlier: each earlier view's positions and offsets along the outline
-            (``_local_sorted``).
+        earlier: the earlier views' positions and offsets along the outline
+            (``_local_sorted``), laid out.
         later: the later view's.
 
     Returns:
         ``(earlier view, differences)`` for each earlier view with points inside the
         later view's cover, where the later view has no gap about them.
     """
-    angles = np.concatenate([a for a, _ in earlier])
-    radii = np.concatenate([r for _, r in earlier])
-    owner = np.repeat(np.arange(len(earlier)), [len(a) for a, _ in earlier])
     angle_n, radius_n = later
+    if not earlier.angles.size:
+        return []
     spacing = _median(angle_n[1:] - angle_n[:-1]) if len(angle_n) > 2 else math.inf
     # The earlier views' positions shifted into view n's turn, so the wrap hides no cover.
-    shifted = angle_n[0] + np.mod(angles - angle_n[0], 2 * math.pi)
+    shifted = angle_n[0] + np.mod(earlier.angles - angle_n[0], 2 * math.pi)
     inside = np.flatnonzero(shifted <= angle_n[-1])
     if not inside.size:
         return []
     x = shifted[inside]
     at = np.minimum(np.maximum(np.searchsorted(angle_n, x), 1), len(angle_n) - 1)
     whole = angle_n[at] - angle_n[at - 1] <= _MAX_GAP_SPACINGS * max(spacing, 1e-12)
-    difference = (radii[inside] - np.interp(x, angle_n, radius_n))[whole]
+    difference = (earlier.offsets[inside] - np.interp(x, angle_n, radius_n))[whole]
     if not difference.size:
         return []
-    by = owner[inside][whole]
+    by = earlier.owner[inside][whole]
     cuts = np.flatnonzero(np.diff(by)) + 1
     first = by[np.concatenate(([0], cuts))].tolist()
     return list(zip(first, np.split(difference, cuts), strict=True))
@@ -256,9 +294,10 @@ def disagreement_of(
     # The median's standard error is about 1.25 sigma / sqrt(n) for Gaussian noise.
     noise = _MOTION_SIGMAS * 1.25 * spread / np.sqrt(sizes)
     beyond = np.abs(centre)
-    if views is not None and np.count_nonzero(coherent & (beyond > noise)) >= 2:
-        beyond = beyond - _turn_allowances(pairs, centre, views, frame)
     moved = coherent & (beyond > noise)
+    if views is not None and np.count_nonzero(moved) >= 2:
+        beyond = beyond - _turn_allowances(pairs, centre, moved, views, frame)
+        moved = coherent & (beyond > noise)
     # A subject who moves between two views stands apart in at least two pairs: round a
     # closed outline the views before and after the move meet at two places. A lone
     # offset pair is the shape's (a thin part's edge, a shell's far face): of the 48
@@ -271,19 +310,23 @@ def disagreement_of(
 def _turn_allowances(
     pairs: list[ViewPair],
     centre: np.ndarray,
+    standing: np.ndarray,
     views: list[np.ndarray],
     frame: OutlineFrame | None,
 ) -> np.ndarray:
-    """Return how far each pair's median moves with its earlier view turned (mm).
+    """Return how far each standing pair's median moves with its earlier view turned (mm).
 
     A gear's angle error turns one view against another by a tenth of a degree or two;
     where an outline runs slantwise to its frame that shifts a pair as a move would
     (on the limb rig, 4 of 6 still random shapes warned of motion went with the gear
-    error). Taken only where a warning is in question: it compares the views again.
+    error). Taken only where a warning is in question, and only for the pairs that
+    stand out (``standing``; the others get 0, an allowance could not make them count):
+    it compares those views again.
     """
+    asked = {(p.earlier, p.later) for p, up in zip(pairs, standing, strict=True) if up}
     turned = {
         (p.earlier, p.later): _median(p.differences_mm)
-        for p in pair_differences(views, frame, TURN_TOLERANCE_DEG)
+        for p in pair_differences(views, frame, TURN_TOLERANCE_DEG, only=asked)
     }
     return np.array(
         [
