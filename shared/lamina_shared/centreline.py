@@ -97,6 +97,7 @@ _ICI_SIGMAS = 2.5  # the half-width of each fit's confidence interval, in its si
 _ROW_UNITS = 65536  # rows are summed in these fractions of a pixel
 _PILOT_ALONE_POINTS = 4096  # more points than this: the pilot's fit first, alone
 _GROUP_POINTS = 32768  # points fitted together: their sums stay in the processor's cache
+_PARTITION_POINTS = 32  # stripes this long on average: each stripe's median by selection
 
 
 def chain_starts(
@@ -185,7 +186,7 @@ class _Layout:
     ``x`` is each point's column less its chain's first column; ``first``/``last`` the
     index of its chain's first and last point; ``base_row`` its chain's first row;
     ``step`` is True where a point follows the previous one of its chain in the next
-    column.
+    column; ``before``/``after`` how many points of its chain precede and follow it.
     """
 
     x: np.ndarray
@@ -195,6 +196,8 @@ class _Layout:
     rows: np.ndarray
     index: np.ndarray
     step: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
 
     @classmethod
     def of(cls, cols: np.ndarray, rows: np.ndarray, starts: np.ndarray) -> _Layout:
@@ -208,7 +211,7 @@ class _Layout:
         step = np.zeros(n, bool)
         step[1:] = np.diff(x) == 1
         step[starts] = False
-        return cls(x, first, last, rows[first], rows, index, step)
+        return cls(x, first, last, rows[first], rows, index, step, index - first, last - index)
 
 
 class _Sums:
@@ -228,13 +231,13 @@ class _Sums:
             powers.append(powers[-1] * x)
         weighted = [powers[k] * y for k in range(3)]
         # Wrap-around in int64 is harmless: window sums are differences, exact mod 2**64.
-        self.u = [np.concatenate(([0], np.cumsum(p))) for p in powers]
-        self.y = [np.concatenate(([0], np.cumsum(p))) for p in weighted]
-        # The y sums again, the first and last held over the widest reach either side, so
+        self.u = [_running(p, 0) for p in powers]
+        # The y sums with their first and last held over the widest reach either side, so
         # every point's full window is one slice less another.
         pad = max(HALF_WIDTHS_PX) + 1
         self.pad = pad
-        self.padded_y = [_held(p, pad) for p in self.y]
+        self.padded_y = [_running(p, pad) for p in weighted]
+        self.y = [p[pad : p.size - pad] for p in self.padded_y]
         index = layout.index
         # Runs of consecutive used points: a run starts where a point does not follow on.
         follows = layout.step.copy()
@@ -251,12 +254,12 @@ class _Sums:
         return [p[hi] - p[lo] for p in prefix]
 
 
-def _held(values: np.ndarray, pad: int) -> np.ndarray:
-    """Return ``values`` with its first and last held over ``pad`` more places either side."""
-    out = np.empty(values.size + 2 * pad, values.dtype)
-    out[:pad] = values[0]
-    out[pad:-pad] = values
-    out[-pad:] = values[-1]
+def _running(values: np.ndarray, pad: int) -> np.ndarray:
+    """Return the running sums of ``values`` from 0, the first and last held ``pad`` more places."""
+    out = np.empty(values.size + 1 + 2 * pad, values.dtype)
+    out[: pad + 1] = 0
+    np.cumsum(values, out=out[pad + 1 : out.size - pad])
+    out[out.size - pad :] = out[out.size - pad - 1]
     return out
 
 
@@ -504,16 +507,18 @@ def _refine_group(
     fits = np.ones(cols.size, bool)
     agree = np.ones(cols.size, bool)
     lower, upper = np.full(cols.size, -np.inf), np.full(cols.size, np.inf)
+    interval, bias_noise = _ICI_SIGMAS * sigma, BIAS_PER_NOISE * noise
     for level in levels:
         value, level_slope, level_bend = by_width[level]
         # Intersection of confidence intervals (Katkovnik's rule): a wider fit is taken
         # only while every narrower one's interval still meets its own.
         spread = np.sqrt(_value_variance(layout, level))
-        reach = _ICI_SIGMAS * sigma * spread
-        lower, upper = np.maximum(lower, value - reach), np.minimum(upper, value + reach)
+        reach = interval * spread
+        np.maximum(lower, value - reach, out=lower)
+        np.minimum(upper, value + reach, out=upper)
         agree &= lower <= upper
         # A bias under half the value's own noise costs less than the noise it removes.
-        allowed = np.maximum(MAX_FIT_BIAS_PX, BIAS_PER_NOISE * noise * spread)
+        allowed = np.maximum(MAX_FIT_BIAS_PX, bias_noise * spread)
         passes = circle_bias_factor(level) * np.abs(level_bend) ** 3 <= allowed
         fits = (passes if level < _TRUSTED_HALF_WIDTH else fits & passes) & agree
         best = value if level == levels[0] else np.where(fits, value, best)
@@ -532,12 +537,11 @@ def _value_variance(layout: _Layout, h: int) -> np.ndarray:
     point (it is somewhat noisier, so its interval is narrower than it should be: it
     widens the window less readily, never more).
     """
-    lo = np.maximum(layout.index - h, layout.first)
-    hi = np.minimum(layout.index + h, layout.last) + 1
     s2, s4 = _interior_moments(h)
     full = 2 * h + 1
     centre = s4 / (full * s4 - s2 * s2)
-    return centre * full / np.maximum(hi - lo, 1)
+    count = np.minimum(layout.before, h) + np.minimum(layout.after, h) + 1
+    return (centre * full) / count
 
 
 def _stripe_sigma(
@@ -545,11 +549,19 @@ def _stripe_sigma(
 ) -> np.ndarray:
     """Return each point's stripe's row noise (one point's sigma) from a narrow fit's residuals."""
     residual = np.abs(layout.rows - fitted)
-    order = np.lexsort((residual, stripe))  # by stripe, each stripe's residuals ascending
     count = np.bincount(stripe, minlength=stripes)
     start = np.concatenate(([0], np.cumsum(count)[:-1]))
-    middle = residual[order][np.minimum(start + count // 2, max(residual.size - 1, 0))]
-    median = np.where(count > 0, middle, 0.0)
+    median = np.zeros(stripes)
+    if stripes * _PARTITION_POINTS <= residual.size:
+        # Each stripe's points lie together: a selection per stripe is exact and several
+        # times faster than sorting them all, unless the stripes are many and short.
+        for k in np.flatnonzero(count):
+            part = residual[start[k] : start[k] + count[k]]
+            median[k] = np.partition(part, count[k] // 2)[count[k] // 2]
+    else:
+        order = np.lexsort((residual, stripe))  # by stripe, each stripe's residuals ascending
+        middle = residual[order][np.minimum(start + count // 2, max(residual.size - 1, 0))]
+        median = np.where(count > 0, middle, 0.0)
     # A residual keeps 1 - (the centre's weight) of the point's variance.
     s2, s4 = _interior_moments(h)
     keep = 1.0 - s4 / ((2 * h + 1) * s4 - s2 * s2)

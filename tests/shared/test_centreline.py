@@ -9,6 +9,8 @@ from hypothesis import strategies as st
 
 from lamina_shared.centreline import (
     HALF_WIDTHS_PX,
+    _Layout,
+    _stripe_sigma,
     chain_starts,
     circle_bias_factor,
     curve_pull,
@@ -271,3 +273,21 @@ def test_one_chain_says_yes_for_a_stripe_through_every_column():
     assert not one_chain(np.delete(cols, 300), np.delete(rows, 300), width[1:], 4.0)
     rows[320:] += 9.0  # a jump beyond 3 + 3 + 2 * 4 - 2 = 12 half-rows
     assert not one_chain(cols, rows, width, 4.0)
+
+
+@pytest.mark.parametrize("length", [3, 700])  # many short stripes, a few long ones
+def test_each_stripe_noise_is_its_own_residuals_middle(length):
+    rng = np.random.default_rng(length)
+    sizes = rng.integers(length, 2 * length, 40)
+    stripe = np.repeat(np.arange(sizes.size), sizes)
+    cols = np.concatenate([np.arange(n) for n in sizes])
+    rows = rng.normal(0.0, 1.0, cols.size) * (1.0 + stripe)  # each stripe its own noise
+    starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+    sigma = _stripe_sigma(
+        _Layout.of(cols, rows, starts), stripe, sizes.size, np.zeros(cols.size), 3
+    )
+    # The residuals' middle (the upper one of an even count) times one constant.
+    middle = np.array(
+        [np.sort(np.abs(rows[a : a + n]))[n // 2] for a, n in zip(starts, sizes, strict=True)]
+    )
+    np.testing.assert_allclose(sigma, (middle * sigma[0] / middle[0])[stripe], rtol=1e-12)
