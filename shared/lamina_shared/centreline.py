@@ -97,7 +97,6 @@ _ICI_SIGMAS = 2.5  # the half-width of each fit's confidence interval, in its si
 _ROW_UNITS = 65536  # rows are summed in these fractions of a pixel
 _PILOT_ALONE_POINTS = 4096  # more points than this: the pilot's fit first, alone
 _GROUP_POINTS = 32768  # points fitted together: their sums stay in the processor's cache
-_PARTITION_POINTS = 32  # stripes this long on average: each stripe's median by selection
 
 
 def chain_starts(
@@ -551,17 +550,15 @@ def _stripe_sigma(
     residual = np.abs(layout.rows - fitted)
     count = np.bincount(stripe, minlength=stripes)
     start = np.concatenate(([0], np.cumsum(count)[:-1]))
-    median = np.zeros(stripes)
-    if stripes * _PARTITION_POINTS <= residual.size:
-        # Each stripe's points lie together: a selection per stripe is exact and several
-        # times faster than sorting them all, unless the stripes are many and short.
-        for k in np.flatnonzero(count):
-            part = residual[start[k] : start[k] + count[k]]
-            median[k] = np.partition(part, count[k] // 2)[count[k] // 2]
-    else:
-        order = np.lexsort((residual, stripe))  # by stripe, each stripe's residuals ascending
-        middle = residual[order][np.minimum(start + count // 2, max(residual.size - 1, 0))]
-        median = np.where(count > 0, middle, 0.0)
+    # By stripe, each stripe's residuals ascending: one sort of the residuals lifted by
+    # their stripe (each stripe's band above the one below) is several times faster than
+    # a lexsort, and one call, which a loop of selections per stripe was not (it kept the
+    # terminal UI's thread waiting 35-40 ms at a time). The medians are picked from the
+    # residuals themselves.
+    band = float(residual.max()) + 1.0 if residual.size else 1.0
+    order = np.argsort(residual + stripe * band)
+    middle = residual[order][np.minimum(start + count // 2, max(residual.size - 1, 0))]
+    median = np.where(count > 0, middle, 0.0)
     # A residual keeps 1 - (the centre's weight) of the point's variance.
     s2, s4 = _interior_moments(h)
     keep = 1.0 - s4 / ((2 * h + 1) * s4 - s2 * s2)

@@ -275,7 +275,7 @@ def test_one_chain_says_yes_for_a_stripe_through_every_column():
     assert not one_chain(cols, rows, width, 4.0)
 
 
-@pytest.mark.parametrize("length", [3, 700])  # many short stripes, a few long ones
+@pytest.mark.parametrize("length", [3, 700])  # many short stripes, or a few long ones
 def test_each_stripe_noise_is_its_own_residuals_middle(length):
     rng = np.random.default_rng(length)
     sizes = rng.integers(length, 2 * length, 40)
