@@ -569,8 +569,8 @@ def _stripe_sigma(
 def _local_mean(layout: _Layout, values: np.ndarray) -> np.ndarray:
     """Return each point's mean of ``values`` over its chain within the pilot's window."""
     h = HALF_WIDTHS_PX[_PILOT]
-    lo = np.maximum(layout.index - h, layout.first)
-    hi = np.minimum(layout.index + h, layout.last) + 1
+    lo = layout.index - np.minimum(layout.before, h)
+    hi = layout.index + np.minimum(layout.after, h) + 1
     running = np.concatenate(([0.0], np.cumsum(values)))
     return (running[hi] - running[lo]) / (hi - lo)
 

@@ -112,22 +112,20 @@ def pair_differences(
     wanted = only if only is not None else {(k, n) for n in range(len(usable)) for k in range(n)}
     later = sorted({n for _, n in wanted})
     earlier = sorted({k for k, _ in wanted})
-    local = {n: _local_sorted(usable[n], frame) for n in later}
-    turned = {k: local[k] for k in earlier if k in local and not turn_deg}
+    local = {n: _local_sorted(usable[n], frame) for n in {*later, *(() if turn_deg else earlier)}}
+    turned = local
     if turn_deg:
         c, s = math.cos(math.radians(turn_deg)), math.sin(math.radians(turn_deg))
         rotation = np.array([[c, s], [-s, c]])  # rows times it: turned counter-clockwise
-    for k in earlier:
-        if k not in turned:
-            turned[k] = _local_sorted(usable[k] @ rotation if turn_deg else usable[k], frame)
+        turned = {k: _local_sorted(usable[k] @ rotation, frame) for k in earlier}
     # The earlier views laid out once, in order: view n's predecessors are a prefix.
     laid = _Laid.of([(k, turned[k]) for k in earlier])
-    pairs = []
-    for n in later:
-        ks = [k for k in earlier if k < n and (k, n) in wanted]
-        pieces = _against_view(laid.before(n), local[n])
-        pairs += [ViewPair(d, k, n) for k, d in pieces if k in ks]
-    return pairs
+    return [
+        ViewPair(d, k, n)
+        for n in later
+        for k, d in _against_view(laid.before(n), local[n])
+        if (k, n) in wanted
+    ]
 
 
 @dataclass(frozen=True)
