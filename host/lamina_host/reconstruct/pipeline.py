@@ -88,6 +88,7 @@ from lamina_host.reconstruct.precision import (
     precision_of,
 )
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
+from lamina_host.reconstruct.workers import map_in_workers, workers_for
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, LiftReference, Segment
@@ -424,6 +425,11 @@ class Timer:
             yield
         finally:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+
+    def add(self, seconds: dict[str, float]) -> None:
+        """Add another timer's stage times (a worker process's) to these."""
+        for name, spent in seconds.items():
+            self.seconds[name] = self.seconds.get(name, 0.0) + spent
 
 
 def world_points(segment: Segment, grid: GridCalibration, trim_fraction: float) -> np.ndarray:
@@ -764,6 +770,29 @@ def process_section(
         reason = all_left_out(seen, outcome.rejected)
         outcome.failed.append(FailedSection(index, z_mm, 0, seen, reason))
     return outcome
+
+
+@dataclass(frozen=True)
+class SectionTask:
+    """One section's input to :func:`process_section`, as sent to a worker process."""
+
+    index: int
+    z_mm: float
+    pieces: list[np.ndarray]
+    options: ProcessOptions
+    rules: OutlierRules
+
+
+def process_task(task: SectionTask) -> tuple[SectionOutcome, dict[str, float]]:
+    """Process one section (:func:`process_section`); return its outcome and stage times.
+
+    Module-level and never raising, so :func:`map_in_workers` can run it in a worker.
+    """
+    timer = Timer()
+    outcome = process_section(
+        task.index, task.z_mm, task.pieces, task.options, task.rules, timer
+    )  # fmt: skip
+    return outcome, timer.seconds
 
 
 def all_left_out(seen: int, rejected: Rejected) -> str:
@@ -1387,13 +1416,17 @@ def process_segments(
     timer: Timer,
     rules: OutlierRules | None = None,
     lift_scale: float = 1.0,
+    workers: int | None = None,
 ) -> tuple[list[Section], list[str], Rejected, list[FailedSection]]:
     """Assemble the object's segments, reject outliers, fit the outlines, close the gaps.
 
     Each section is processed on its own (:func:`process_section`): one that fails is
     returned among the failed outlines with its reason, and the others go on. Each
     section's height is its commanded lift height times ``lift_scale`` (the calibrated
-    lift, :func:`lift_calibration`).
+    lift, :func:`lift_calibration`). Sections are shared among ``workers`` processes
+    (:func:`workers_for`: None, every core where the scan is large enough), with the
+    same result bit for bit; ``timer``'s "reject" and "fit_efd" then add up the
+    workers' times, so they can exceed the wall time.
 
     Raises:
         CalibrationError: no view shows the stripe, or no section gave an outline.
@@ -1415,8 +1448,13 @@ def process_segments(
     rejected = Rejected()
     sections: list[Section] = []
     failed: list[FailedSection] = []
-    for k in sorted(by_section):
-        outcome = process_section(k, heights[k] * lift_scale, by_section[k], options, rules, timer)
+    tasks = [
+        SectionTask(k, heights[k] * lift_scale, by_section[k], options, rules)
+        for k in sorted(by_section)
+    ]
+    done = map_in_workers(process_task, tasks, workers_for(len(tasks), workers))
+    for outcome, seconds in done:
+        timer.add(seconds)
         rejected.add(outcome.rejected)
         sections += outcome.sections
         failed += outcome.failed
@@ -1493,12 +1531,14 @@ def reconstruct(
     segments: list[Segment],
     options: ProcessOptions | None = None,
     lift_reference: LiftReference | None = None,
+    workers: int | None = None,
 ) -> Reconstruction:
     """Run every stage from the raw calibration data and segments to the mesh.
 
     With a ``lift_reference`` the cylinder's views at its marks calibrate the lift
     (:func:`lift_calibration`) and the others the axis; every section height is then
-    the commanded one times the lift's scale.
+    the commanded one times the lift's scale. ``workers`` processes share the sections
+    (:func:`process_segments`; None: as many as the cores and the scan's size allow).
 
     Raises:
         CalibrationError: the board or the cylinder could not be used.
@@ -1527,7 +1567,7 @@ def reconstruct(
     radius = options.working_radius_mm or camera_disc_mm(grid, grid_image.shape, axis)
     rules = OutlierRules(working_radius_mm=radius)
     sections, warnings, rejected, failed = process_segments(
-        grid, axis, segments, options, timer, rules, scale
+        grid, axis, segments, options, timer, rules, scale, workers
     )
     lift_warnings = list(lift.warnings) if lift is not None else []
     warnings = [*grid.warnings, *axis.warnings, *lift_warnings, *warnings]

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import csv
 import io
-import multiprocessing
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -42,6 +41,7 @@ from lamina_host.clinical.measures import (
 )
 from lamina_host.reconstruct.mesh import signed_volume
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.reconstruct.workers import usable_cores, worker_context
 from lamina_host.store.files import OutputError, write_new_file
 from lamina_host.store.library import Library, ScanInputs, StoreError, check_new_file
 from lamina_shared.errors import LaminaError
@@ -183,13 +183,6 @@ def _inputs(library: Library, scan_id: int) -> ScanInputs | ScanOutcome:
         return ScanOutcome(scan_id, library.scan(scan_id).subject, error=str(exc))
 
 
-def _context() -> multiprocessing.context.BaseContext:
-    """Return how worker processes start: forked where possible, so they inherit the
-    imported pipeline (numpy, scipy, OpenCV, MeshLab) instead of importing it again."""
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-
-
 @contextmanager
 def _scheduler(workers: int, address: str | None) -> Iterator[dict[str, Any]]:
     """Yield the ``dask.compute`` keywords of the chosen scheduler, set up for the batch.
@@ -204,7 +197,7 @@ def _scheduler(workers: int, address: str | None) -> Iterator[dict[str, Any]]:
     if workers == 1:
         yield {"scheduler": "synchronous"}
         return
-    pool: Executor = ProcessPoolExecutor(workers, mp_context=_context())
+    pool: Executor = ProcessPoolExecutor(workers, mp_context=worker_context())
     with pool:
         yield {"scheduler": "processes", "pool": pool, "num_workers": workers}
 
@@ -249,7 +242,7 @@ def run_batch(
         address: a dask.distributed scheduler address; then ``workers`` is ignored.
         options: processing options for every scan (default: each scan's recorded ones).
     """
-    workers = max(1, workers or os.cpu_count() or 1)
+    workers = max(1, workers or usable_cores())
     outcomes: list[ScanOutcome] = []
     with _scheduler(workers, address) as keywords:
         for chunk in _chunks(scan_ids, CHUNK_PER_WORKER * workers):

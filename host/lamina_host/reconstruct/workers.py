@@ -1,0 +1,94 @@
+"""Worker processes: a scan's sections processed on every core, the same result as one.
+
+Each section's outlier rejection and outline fit depend on that section alone, so they
+can run side by side. Threads would not help (the work is many small numpy calls, held
+by the interpreter's lock), so sections go to forked worker processes, which inherit
+the imported pipeline: a freshly spawned one would spend about a second importing
+numpy, SciPy and OpenCV, as long as a whole scan's processing on this host. Where
+``fork`` does not exist, or inside a process that is itself a worker (``lamina batch``
+already keeps every core busy with whole scans), sections are processed one after
+another. Results come back in the order the tasks were given, so the outcome is the
+same bit for bit whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import TypeVar
+
+Task = TypeVar("Task")
+Result = TypeVar("Result")
+
+MIN_TASKS_PER_WORKER = 8
+"""Sections a worker must be given for its start (a fork, ~20-50 ms) to pay for itself:
+one section takes ~15-20 ms to process on a 2-core x86 host, more on a Pi."""
+
+CHUNKS_PER_WORKER = 4
+"""Chunks each worker takes in turn, so one slow chunk (a many-part section) does not
+leave the other workers idle at the end."""
+
+
+def worker_context() -> multiprocessing.context.BaseContext:
+    """Return how worker processes start: forked where possible, so they inherit the
+    imported pipeline (numpy, scipy, OpenCV, MeshLab) instead of importing it again."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+
+
+def usable_cores() -> int:
+    """Return the cores this process may run on (its CPU affinity where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def workers_for(tasks: int, requested: int | None = None) -> int:
+    """Return how many worker processes ``tasks`` section tasks should be shared among.
+
+    Args:
+        tasks: the number of tasks.
+        requested: a worker count asked for (None: every usable core); 1 means none.
+
+    Returns:
+        1 (process here, one after another) without ``fork``, inside a worker process,
+        or with fewer than ``MIN_TASKS_PER_WORKER`` tasks a worker; else at most
+        ``requested`` workers, each given at least ``MIN_TASKS_PER_WORKER`` tasks.
+    """
+    wanted = usable_cores() if requested is None else max(1, requested)
+    nested = multiprocessing.parent_process() is not None
+    if nested or "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    return max(1, min(wanted, tasks // MIN_TASKS_PER_WORKER))
+
+
+def map_in_workers(
+    function: Callable[[Task], Result], tasks: Sequence[Task], workers: int
+) -> list[Result]:
+    """Return ``[function(t) for t in tasks]``, computed by ``workers`` forked processes.
+
+    ``function`` must be a module-level function and never raise (a section's failure is
+    its outcome's, not the scan's). If the pool cannot start or a worker dies (out of
+    memory, killed), the tasks are done again here, one after another: a scan is never
+    lost to the pool.
+
+    Args:
+        function: applied to each task.
+        tasks: picklable task arguments.
+        workers: processes to use; 1 computes here without a pool.
+
+    Returns:
+        The results in the order of ``tasks``.
+    """
+    if workers <= 1 or len(tasks) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return [function(t) for t in tasks]
+    chunk = max(1, len(tasks) // (workers * CHUNKS_PER_WORKER))
+    try:
+        context = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+            return list(pool.map(function, tasks, chunksize=chunk))
+    except (BrokenProcessPool, OSError):
+        return [function(t) for t in tasks]

@@ -1,0 +1,140 @@
+"""Sections shared among worker processes: the same result bit for bit, never a lost scan."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lamina_device.sim import Rig, SimScene
+from lamina_host.reconstruct import workers
+from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.reconstruct.workers import (
+    MIN_TASKS_PER_WORKER,
+    map_in_workers,
+    usable_cores,
+    workers_for,
+)
+from lamina_shared.types import Segment
+from tests.helpers.shapes import circle, view_segment
+
+forks = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="fork and /proc/self are Linux's"
+)
+
+SECTIONS, VIEWS = 20, 8
+
+
+def random_scan(seed: int) -> tuple[Rig, list[Segment], list[Segment]]:
+    """Return a rig, its cylinder's views and a random lobed object's views.
+
+    Each section's outline has its own random lobes; sections 3 and 11 keep one view
+    only (nothing confirms their points: failed outlines), section 7 none at all.
+    """
+    rig = Rig()
+    rng = np.random.default_rng(seed)
+    cyl = circle(rig.cylinder_offset_mm, rig.cylinder_diameter_mm / 2.0)
+    cylinder = [
+        s for v in range(8)
+        if (s := view_segment(rig, "cylinder", 0, v, 0.0, 45.0 * v, 45.0 * v, cyl, rng, 0.3))
+    ]  # fmt: skip
+    phi = np.linspace(0.0, 2.0 * np.pi, 4000, endpoint=False)
+    segments = []
+    for k in range(SECTIONS):
+        lobes = rng.integers(2, 6)
+        radius = 9.0 + rng.uniform(0.3, 1.5) * np.cos(lobes * phi + rng.uniform(0, 2 * np.pi))
+        outline = radius[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        views = {3: 1, 11: 1, 7: 0}.get(k, VIEWS)
+        for v in range(views):
+            angle = 360.0 * v / VIEWS
+            s = view_segment(rig, "object", k, v, 2.0 * k, angle, angle, outline, rng, 0.3)
+            if s is not None:
+                segments.append(s)
+    return rig, cylinder, segments
+
+
+def processed(rig: Rig, cylinder: list[Segment], segments: list[Segment], n: int | None) -> Any:
+    """Return everything a reconstruction with ``n`` workers reports, in comparable form."""
+    grid = SimScene(rig).render("grid", 0.0, 0.0, False)
+    result: Reconstruction = reconstruct(
+        grid, rig.board, cylinder, rig.cylinder_diameter_mm, segments, ProcessOptions(),
+        workers=n,
+    )  # fmt: skip
+    return (
+        [(s.index, s.part, s.status, s.contour.tobytes(), s.measured_contour.tobytes())
+         for s in result.sections],
+        [(f.index, f.part, f.points, f.reason) for f in result.failed],
+        result.rejected, result.warnings, result.vertices.tobytes(), result.faces.tobytes(),
+    )  # fmt: skip
+
+
+@forks
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_workers_give_the_same_scan_bit_for_bit_as_one_process(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Random lobed sections, some failing, processed by 1, 2 and 3 workers: the same
+    outlines, failures, rejections, warnings and mesh, byte for byte."""
+    rig, cylinder, segments = random_scan(seed)
+    pools: list[int] = []
+
+    class CountedPool(ProcessPoolExecutor):
+        def map(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+            done = list(super().map(*args, **kwargs))
+            pools.append(len(done))
+            return iter(done)
+
+    monkeypatch.setattr(workers, "ProcessPoolExecutor", CountedPool)
+    one = processed(rig, cylinder, segments, 1)
+    assert pools == []  # one worker: no pool
+    failed = {f[0] for f in one[1]}
+    assert {3, 11} <= failed and 7 not in {s[0] for s in one[0]}
+    assert len({s[0] for s in one[0]}) == SECTIONS - 3
+    for n in (2, 3):
+        assert processed(rig, cylinder, segments, n) == one
+    # Both runs went through a pool (19 sections with stripes: 2 workers' worth, not 3).
+    assert pools == [SECTIONS - 1, SECTIONS - 1]
+
+
+@forks
+def test_tasks_are_shared_among_other_processes_and_come_back_in_order() -> None:
+    """Each task is read in a worker (its own /proc/self), the results in task order."""
+    tasks = [f"/proc/{name}" for name in ("self", "thread-self")] * 20
+    pids = map_in_workers(os.readlink, tasks, 2)
+    assert len(pids) == len(tasks)
+    assert str(os.getpid()) not in {p.split("/")[0] for p in pids}
+    assert [p.count("/") for p in pids] == [0, 2] * 20  # order kept
+    assert map_in_workers(abs, list(range(-30, 0)), 2) == list(range(30, 0, -1))
+
+
+@forks
+def test_a_worker_shares_nothing_further() -> None:
+    """Inside a worker process (``lamina batch``), sections are processed there."""
+    inside = map_in_workers(functools.partial(workers_for, requested=4), [400] * 16, 2)
+    assert inside == [1] * 16
+    assert workers_for(400, 4) == min(4, 400 // MIN_TASKS_PER_WORKER)
+
+
+def test_few_tasks_or_one_core_use_no_pool() -> None:
+    """A worker is only started for ``MIN_TASKS_PER_WORKER`` tasks of its own."""
+    assert workers_for(2 * MIN_TASKS_PER_WORKER - 1, 2) == 1
+    assert workers_for(2 * MIN_TASKS_PER_WORKER, 2) == 2
+    assert workers_for(100 * MIN_TASKS_PER_WORKER, 1) == 1
+    assert workers_for(0, None) == 1
+    assert workers_for(10_000, None) == min(usable_cores(), 10_000 // MIN_TASKS_PER_WORKER)
+
+
+def test_a_pool_that_cannot_start_costs_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No process can be forked (memory, limits): every task is done here instead."""
+
+    def refused(*_: Any, **__: Any) -> None:
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(workers, "ProcessPoolExecutor", refused)
+    assert map_in_workers(abs, list(range(-30, 0)), 2) == list(range(30, 0, -1))
