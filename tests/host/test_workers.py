@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import multiprocessing
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -138,3 +139,16 @@ def test_a_pool_that_cannot_start_costs_nothing(monkeypatch: pytest.MonkeyPatch)
 
     monkeypatch.setattr(workers, "ProcessPoolExecutor", refused)
     assert map_in_workers(abs, list(range(-30, 0)), 2) == list(range(30, 0, -1))
+
+
+def dies_in_a_worker(value: int) -> int:
+    """Return ``abs(value)`` here; end a worker process abruptly (as the OOM killer would)."""
+    if multiprocessing.parent_process() is not None:
+        os._exit(137)
+    return abs(value)
+
+
+@forks
+def test_a_worker_that_dies_costs_nothing() -> None:
+    """A worker killed mid-scan breaks the pool: every task is done again here."""
+    assert map_in_workers(dies_in_a_worker, list(range(-30, 0)), 2) == list(range(30, 0, -1))
