@@ -8,6 +8,7 @@ import pytest
 
 from lamina_host.reconstruct.efd import (
     HARMONIC_RULES,
+    MAX_TESTED_HARMONICS,
     EfdStack,
     MeasuredPoints,
     align,
@@ -16,6 +17,7 @@ from lamina_host.reconstruct.efd import (
     efd_fit,
     harmonics_residual,
     harmonics_thesis,
+    highest_tested_order,
     nyquist_max,
     shift_start,
 )
@@ -173,6 +175,40 @@ def test_the_residual_rule_keeps_relief_each_points_noise_hides(
         assert 54 <= order <= 64 and rms_mm < 0.015  # 0.085 mm with the relief cut
     else:
         assert order <= 4
+
+
+def wide_radius_mm(angle_rad: np.ndarray, relief_mm: float) -> np.ndarray:
+    """An 85 mm wide outline (534 mm round), oval, with relief at 140 waves round (3.8 mm)."""
+    return 85.0 + 3.0 * np.cos(2 * angle_rad) + relief_mm * np.cos(140 * angle_rad)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("relief_mm", [0.3, 0.0])
+def test_the_residual_rule_looks_past_harmonic_128_round_a_long_outline(
+    seed: int, relief_mm: float
+) -> None:
+    """Skin relief at 3.8 mm round a 534 mm outline is harmonic 140: the rule tests orders
+    to a 2.7 mm wavelength there (197), so it keeps the relief (it stopped at 128 and
+    lost it); without relief the order stays at the oval's."""
+    rng = np.random.default_rng(seed)
+    sigma_mm = 0.1
+    t = np.linspace(-np.pi, np.pi, 3700, endpoint=False)
+    r = wide_radius_mm(t, relief_mm) + rng.normal(0.0, 0.02, t.size)
+    blend = np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
+    assert 197 <= highest_tested_order(blend) <= 215  # 534 mm, and what relief adds to it
+    assert highest_tested_order(blend * (300.0 / 534.0)) == MAX_TESTED_HARMONICS
+    angle = rng.uniform(-np.pi, np.pi, 3000)
+    radius = wide_radius_mm(angle, relief_mm) + rng.normal(0.0, sigma_mm, angle.size)
+    measured = MeasuredPoints(OutlineFrame(np.zeros(2)), angle, radius, sigma_mm)
+    order = harmonics_residual(blend, measured)
+    fit = efd_fit(blend, order, "smoothed").evaluate(8000)
+    truth = wide_radius_mm(np.arctan2(fit[:, 1], fit[:, 0]), relief_mm)
+    rms_mm = float(np.sqrt(np.mean((np.hypot(fit[:, 0], fit[:, 1]) - truth) ** 2)))
+    print(f"order {order}, {rms_mm:.4f} mm RMS from the truth")
+    if relief_mm:
+        assert 140 <= order <= 215 and rms_mm < 0.03  # 0.21 mm with the relief cut
+    else:
+        assert order <= 4 and rms_mm < 0.03
 
 
 def test_shift_start_and_align_keep_the_curve() -> None:

@@ -298,6 +298,12 @@ MAX_TESTED_HARMONICS = 128
 """The noise rule looks no further: harmonic 128 of a 350 mm limb outline has a 2.7 mm
 wavelength, about the section pitch."""
 
+MIN_TESTED_WAVELENGTH_MM = 2.7
+"""The residual rule and its relief peaks look as far as this wavelength round a longer
+outline (past ``MAX_TESTED_HARMONICS``): skin relief at 4 mm round a 530 mm outline (a
+wide random limb shape) lies at harmonic 133, and a rule stopped at 128 kept 66 of its
+harmonics and half its coverage (truth: 200 harmonics, 0.225 -> 0.100 mm)."""
+
 _CHI2_4_MEDIAN = 3.3567
 """Median of a chi-square variable with 4 degrees of freedom."""
 
@@ -343,12 +349,22 @@ def harmonics_noise(contour: np.ndarray, parameter: str = "smoothed") -> int:
     return int(max(1, min(cap, signal[-1] if len(signal) else 1)))
 
 
-def _spectral_top(n_points: int) -> int:
+def _spectral_top(n_points: int, most: int = MAX_TESTED_HARMONICS) -> int:
     """Return the highest harmonic the spectral tests look at for this many points."""
-    return min(n_points // 16, MAX_TESTED_HARMONICS)
+    return min(n_points // 16, most)
 
 
-def _standing_harmonics(pts: np.ndarray, factor: float, parameter: str) -> np.ndarray:
+def highest_tested_order(pts: np.ndarray) -> int:
+    """Return the highest order the residual rule tests on a closed polyline: harmonic
+    ``MAX_TESTED_HARMONICS``, or on a longer outline that of ``MIN_TESTED_WAVELENGTH_MM``."""
+    closed = np.vstack([pts, pts[:1]])
+    perimeter_mm = float(np.sum(np.hypot(*np.diff(closed, axis=0).T)))
+    return max(MAX_TESTED_HARMONICS, int(perimeter_mm / MIN_TESTED_WAVELENGTH_MM))
+
+
+def _standing_harmonics(
+    pts: np.ndarray, factor: float, parameter: str, most: int = MAX_TESTED_HARMONICS
+) -> np.ndarray:
     """Return the harmonics whose power exceeds ``factor`` times the local noise floor.
 
     The floor at harmonic n is the median power of harmonics n+1 .. 2n+8 scaled to sigma^2
@@ -363,7 +379,7 @@ def _standing_harmonics(pts: np.ndarray, factor: float, parameter: str) -> np.nd
     Returns:
         The harmonic numbers, ascending; empty when fewer than 2 can be tested.
     """
-    top = _spectral_top(len(pts))
+    top = _spectral_top(len(pts), most)
     if top < 2:
         return np.zeros(0, dtype=int)
     power = _spectrum(pts, 2 * top + 8, parameter)
@@ -468,7 +484,8 @@ def harmonics_residual(
         At least 1, at most the Nyquist cap.
     """
     pts = _clean_closed(contour)
-    top = max(1, min(nyquist_max(len(pts)), MAX_TESTED_HARMONICS))
+    most = highest_tested_order(pts)
+    top = max(1, min(nyquist_max(len(pts)), most))
     spectrum, length = _truncations(pts, top, parameter)
     noise = measured.noise_mm
     cache: dict[int, float] = {}
@@ -506,7 +523,7 @@ def harmonics_residual(
     order = _first_reached(reached, top)
     # Relief smaller than each point's noise hides in the residual but stands out of the
     # blend's spectrum as a narrow peak, since the blend averages the views.
-    peaks = _standing_harmonics(pts, RELIEF_POWER_FACTOR, parameter)
+    peaks = _standing_harmonics(pts, RELIEF_POWER_FACTOR, parameter, most)
     for peak in peaks[peaks > order][::-1]:  # within top: the spectral top is the lower
         # The measured points, not only the blend, must lose what the peak adds.
         if gain(order, int(peak)) > PLATEAU_GAIN * noise**2:
@@ -547,7 +564,8 @@ the noise rule's factor, above the 20-50 times that noise alone mostly reaches i
 outline's spectrum. Skin relief of 0.6-0.8 mm at 4-5 mm round a 270 mm outline stands
 100-330 times above it at harmonics 52-55; four times the factor kept only the strongest."""
 
-_ORDER_GRID = (1, 2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 112)
+_ORDER_GRID = (1, 2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 112,
+               128, 160, 192, 224, 256, 320, 384)  # fmt: skip
 """Orders tried first, finest where outlines need few; the first reached is refined."""
 
 
