@@ -357,9 +357,9 @@ def _spectral_top(n_points: int, most: int = MAX_TESTED_HARMONICS) -> int:
 def highest_tested_order(pts: np.ndarray) -> int:
     """Return the highest order the residual rule tests on a closed polyline: harmonic
     ``MAX_TESTED_HARMONICS``, or on a longer outline that of ``MIN_TESTED_WAVELENGTH_MM``."""
-    closed = np.vstack([pts, pts[:1]])
-    perimeter_mm = float(np.sum(np.hypot(*np.diff(closed, axis=0).T)))
-    return max(MAX_TESTED_HARMONICS, int(perimeter_mm / MIN_TESTED_WAVELENGTH_MM))
+    if len(pts) < 3:  # nothing to fit past harmonic 1 (and no perimeter to take)
+        return MAX_TESTED_HARMONICS
+    return max(MAX_TESTED_HARMONICS, int(perimeter(pts) / MIN_TESTED_WAVELENGTH_MM))
 
 
 def _standing_harmonics(

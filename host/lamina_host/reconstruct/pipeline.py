@@ -789,9 +789,7 @@ def process_task(task: SectionTask) -> tuple[SectionOutcome, dict[str, float]]:
     Module-level and never raising, so :func:`map_in_workers` can run it in a worker.
     """
     timer = Timer()
-    outcome = process_section(
-        task.index, task.z_mm, task.pieces, task.options, task.rules, timer
-    )  # fmt: skip
+    outcome = process_section(task.index, task.z_mm, task.pieces, task.options, task.rules, timer)
     return outcome, timer.seconds
 
 
