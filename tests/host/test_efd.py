@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pyefd
 import pytest
@@ -140,6 +142,22 @@ def test_harmonic_rules_selectable_and_noise_rule_finds_the_shape() -> None:
         choose_harmonics(circle, "magic")
 
 
+def order_and_error(
+    blend: np.ndarray,
+    measured: MeasuredPoints,
+    true_radius_mm: Callable[[np.ndarray], np.ndarray],
+    samples: int,
+) -> tuple[int, float]:
+    """Return the residual rule's order for ``blend`` and its fit's RMS radial error (mm)
+    from the true star-shaped outline ``true_radius_mm(angle)``."""
+    order = harmonics_residual(blend, measured)
+    fit = efd_fit(blend, order, "smoothed").evaluate(samples)
+    truth = true_radius_mm(np.arctan2(fit[:, 1], fit[:, 0]))
+    rms_mm = float(np.sqrt(np.mean((np.hypot(fit[:, 0], fit[:, 1]) - truth) ** 2)))
+    print(f"order {order}, {rms_mm:.4f} mm RMS from the truth")
+    return order, rms_mm
+
+
 def limb_radius_mm(angle_rad: np.ndarray, relief_mm: float) -> np.ndarray:
     """A 45 mm limb outline, slightly oval, with skin relief at 54 waves round (5.2 mm)."""
     return 45.0 + 2.0 * np.cos(2 * angle_rad) + relief_mm * np.cos(54 * angle_rad)
@@ -166,11 +184,9 @@ def test_the_residual_rule_keeps_relief_each_points_noise_hides(
     angle = rng.uniform(-np.pi, np.pi, 600)
     radius = limb_radius_mm(angle, points_relief_mm) + rng.normal(0.0, sigma_mm, angle.size)
     measured = MeasuredPoints(OutlineFrame(np.zeros(2)), angle, radius, 1.2 * sigma_mm)
-    order = harmonics_residual(blend, measured)
-    fit = efd_fit(blend, order, "smoothed").evaluate(4000)
-    truth = limb_radius_mm(np.arctan2(fit[:, 1], fit[:, 0]), blend_relief_mm)
-    rms_mm = float(np.sqrt(np.mean((np.hypot(fit[:, 0], fit[:, 1]) - truth) ** 2)))
-    print(f"order {order}, {rms_mm:.4f} mm RMS from the blend's truth")
+    order, rms_mm = order_and_error(
+        blend, measured, lambda a: limb_radius_mm(a, blend_relief_mm), 4000
+    )
     if keeps_relief:
         assert 54 <= order <= 64 and rms_mm < 0.015  # 0.085 mm with the relief cut
     else:
@@ -200,11 +216,7 @@ def test_the_residual_rule_looks_past_harmonic_128_round_a_long_outline(
     angle = rng.uniform(-np.pi, np.pi, 3000)
     radius = wide_radius_mm(angle, relief_mm) + rng.normal(0.0, sigma_mm, angle.size)
     measured = MeasuredPoints(OutlineFrame(np.zeros(2)), angle, radius, sigma_mm)
-    order = harmonics_residual(blend, measured)
-    fit = efd_fit(blend, order, "smoothed").evaluate(8000)
-    truth = wide_radius_mm(np.arctan2(fit[:, 1], fit[:, 0]), relief_mm)
-    rms_mm = float(np.sqrt(np.mean((np.hypot(fit[:, 0], fit[:, 1]) - truth) ** 2)))
-    print(f"order {order}, {rms_mm:.4f} mm RMS from the truth")
+    order, rms_mm = order_and_error(blend, measured, lambda a: wide_radius_mm(a, relief_mm), 8000)
     if relief_mm:
         assert 140 <= order <= 215 and rms_mm < 0.03  # 0.21 mm with the relief cut
     else:
