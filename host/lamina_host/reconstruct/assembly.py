@@ -470,8 +470,13 @@ def _overlap_means(
     return ang[order], mean[order]
 
 
+MIN_OUTLINE_POINTS = 30
+"""The fewest points an outline holds: a smaller cluster is stray (:func:`split_outlines`),
+and a part of it no body of its own (:func:`separate_bodies`)."""
+
+
 def split_outlines(
-    segments: list[np.ndarray], gap_mm: float, min_points: int = 30
+    segments: list[np.ndarray], gap_mm: float, min_points: int = MIN_OUTLINE_POINTS
 ) -> list[list[np.ndarray]]:
     """Split a section's segments into separate outlines (fingers, two legs; thesis 9.2).
 
@@ -568,9 +573,11 @@ def separate_bodies(
     fold in polar coordinates, no reference curve links them, and taken in angle about
     their mean the points zigzag from one body to the other (a path more than
     ``BODIES_PATH_RATIO`` times the views' own): one EFD through both loops between
-    them. Each cluster is then an outline of its own. A thin part's near and far sides,
-    which fold and do not link either, are taken round in angle without a zigzag and
-    stay one outline.
+    them. Each cluster is then an outline of its own. Bodies closer than the gap are one
+    cluster, which a reference curve through the passage between them may order: where
+    their points zigzag, the outline is split at half the gap if every part is then a
+    body seen all round. A thin part's near and far sides, which fold and do not link
+    either, are taken round in angle without a zigzag and stay one outline.
 
     Args:
         outline: one outline's pieces (runs of one view's stripe, in stripe order).
@@ -604,14 +611,9 @@ def separate_bodies(
 
 
 def _whole_body(points: np.ndarray) -> bool:
-    """Return whether points are a body seen all round: enough of them, and no arc."""
-    return len(points) >= MIN_BODY_POINTS and angular_extent_deg(points) >= ARC_COVERAGE * 360.0
-
-
-MIN_BODY_POINTS = 30
-"""Points each part of an outline must hold to be fitted as a body of its own when the
-parts lie closer than the outline gap (:func:`separate_bodies`): split_outlines' own
-least outline."""
+    """Return whether points are a body seen all round: an outline's worth, and no arc."""
+    enough = len(points) >= MIN_OUTLINE_POINTS
+    return enough and angular_extent_deg(points) >= ARC_COVERAGE * 360.0
 
 
 BODIES_PATH_RATIO = 2.0
