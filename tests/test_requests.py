@@ -9,13 +9,19 @@ import time
 import numpy as np
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from lamina_device.extract import ExtractSettings
+from lamina_device.extract import ExtractSettings, changed_settings
 from lamina_host import cli
 from lamina_host.link.client import DeviceClient
 from lamina_host.link.errors import RequestRefused, ScanStopped
+from lamina_host.store.library import Library
 from lamina_host.testing import LineFaults
+from lamina_host.workflow.checks import check_extract_limits
+from lamina_shared.errors import InputError
 from lamina_shared.link import Channel
+from lamina_shared.messages import Welcome
 from lamina_shared.ops import ArgsError, ExtractChanges, parse_extract_text
 from lamina_shared.protocol import Kind, encode_json
 from lamina_shared.types import ScanPlan, Segment
@@ -191,3 +197,69 @@ def test_cli_refuses_a_bad_extract_option_in_one_line(capsys, tmp_path):
         "lamina scan: argument --extract: extract: takes no argument 'zz' (see lamina scan --help)"
     ]
     assert not (tmp_path / "x").exists()
+
+
+# Each setting's candidates: in range, at the edges and beyond them (min/max width also
+# against each other).
+_CANDIDATES: dict[str, list[object]] = {
+    "threshold": [None, -4.0, 0.0, 40.0, 254.0, 255.0],
+    "power": [-1.0, 0.0, 0.5, 8.0, 8.5],
+    "min_peak": [0.0, 1.0, 255.0, 256.0],
+    "method": ["cog", "thinning"],
+    "background_opening_px": [-1, 0, 1024, 1025],
+    "false_points_per_frame": [0.0, 1e-12, 0.5, 1.5],
+    "min_chain_px": [0, 1, 1000, 1001],
+    "max_row_jump_px": [-0.5, 0.0, 100.0, 100.5],
+    "min_width_px": [0, 1, 64, 70],
+    "max_width_px": [0, 4, 64, 255, 256],
+    "smooth_sigma_px": [-1.0, 0.0, 50.0, 51.0],
+    "margin_px": [-1, 0, 16, 17],
+    "bridge_px": [-1, 0, 8, 9],
+}
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    configured=st.fixed_dictionaries(
+        {}, optional={k: st.sampled_from(v[1:-1] or v) for k, v in _CANDIDATES.items()}
+    ),
+    changes=st.dictionaries(
+        st.sampled_from(sorted(_CANDIDATES)), st.none(), min_size=1, max_size=4
+    ).flatmap(
+        lambda keys: st.fixed_dictionaries({k: st.sampled_from(_CANDIDATES[k]) for k in keys})
+    ),
+)
+def test_the_host_refuses_exactly_the_extraction_the_device_would(configured, changes):
+    """The host's check before a scan exists and the device's at the scan agree, case by
+    case, on what the device's configured settings with a scan's changes allow."""
+    base, _ = changed_settings(ExtractSettings(), configured)
+    if base is None:  # a configuration the device itself would not start with
+        return
+    device_settings, device_problems = changed_settings(base, changes)
+    welcome = Welcome(protocol=1, extract=ExtractChanges(tuple(dataclasses.asdict(base).items())))
+    wanted = ExtractChanges(tuple(changes.items()))
+    if device_settings is not None:
+        check_extract_limits(wanted, welcome)
+        return
+    with pytest.raises(InputError) as info:
+        check_extract_limits(wanted, welcome)
+    assert all(problem in str(info.value) for problem in device_problems)
+    # A device that reports no settings (an older one) is left to refuse the scan itself.
+    check_extract_limits(wanted, Welcome(protocol=1))
+
+
+@pytest.mark.timeout(120)
+def test_cli_refuses_extraction_beyond_the_device_before_a_scan_exists(capsys, tmp_path):
+    """Ranges are the device's (the kinds pass the option's own check): no scan, no folder."""
+    library = tmp_path / "library.sqlite"
+    out = tmp_path / "x"
+    argv = ["scan", "--device", "sim", "-o", str(out), "--library", str(library)]
+    assert cli.main([*argv, "--extract", "threshold=-4,power=99"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert "threshold -4.0 is not in 0..254" in err[0]
+    assert "power 99.0 is not in (0, 8]" in err[0]
+    assert "no scan was created" in err[0]
+    assert not out.exists()
+    with Library(library) as opened:
+        assert opened.scans() == []

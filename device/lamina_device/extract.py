@@ -64,7 +64,12 @@ import cv2
 import numpy as np
 
 from lamina_shared.centreline import DEFAULT_ROW_JUMP_PX, chain_starts, one_chain
-from lamina_shared.ops import EXTRACT_METHODS, EXTRACT_RUN_CHOICES
+from lamina_shared.ops import (
+    EXTRACT_FULL_SCALE,
+    EXTRACT_METHODS,
+    EXTRACT_RUN_CHOICES,
+    extract_problems,
+)
 from lamina_shared.protocol import confidence_bytes
 from lamina_shared.types import Segment
 
@@ -78,10 +83,7 @@ FLAG_NOT_PEAK_RUN = 2
 FLAG_SATURATED = 4
 """Point flag: the run's peak is at full scale, so its centre may be biased."""
 
-_FULL_SCALE = 255
-_MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
-_MAX_MARGIN_PX = 16  # pixels beyond a run's ends its centre may weigh in
-_MAX_BRIDGE_PX = 8  # rows between two runs of one column that may still join them
+_FULL_SCALE = EXTRACT_FULL_SCALE
 _NOISE_SAMPLES = 2048  # pixels the noise is estimated from, whatever the frame size
 _MIN_NOISE_DN = 0.5  # two 8-bit roundings alone give ~0.4 DN: never trust a quieter estimate
 _PIXEL_SIGMAS = 2.0  # stripe pixels lie above this many noise sigmas (keeps the noise out)
@@ -191,44 +193,12 @@ def changed_settings(
 
 
 def settings_problems(settings: ExtractSettings) -> list[str]:
-    """Return every problem with ``settings`` (empty when they are usable)."""
-    problems = []
-    if settings.threshold is not None and not 0 <= settings.threshold < _FULL_SCALE:
-        problems.append(f"threshold {settings.threshold} is not in 0..254 (or None for Otsu)")
-    if not 0 < settings.power <= 8:
-        problems.append(f"power {settings.power} is not in (0, 8]")
-    if not 1 <= settings.min_peak <= _FULL_SCALE:
-        problems.append(f"min_peak {settings.min_peak} is not in 1..255")
-    if settings.method not in METHODS:
-        problems.append(f"method {settings.method!r} is not one of {', '.join(METHODS)}")
-    if settings.run_choice not in RUN_CHOICES:
-        problems.append(
-            f"run_choice {settings.run_choice!r} is not one of {', '.join(RUN_CHOICES)}"
-        )
-    if not 0 <= settings.background_opening_px <= _MAX_OPENING_PX:
-        problems.append(
-            f"background_opening_px {settings.background_opening_px} is not in 0..{_MAX_OPENING_PX}"
-        )
-    if not 1e-12 <= settings.false_points_per_frame <= 1:
-        problems.append(
-            f"false_points_per_frame {settings.false_points_per_frame} is not in 1e-12..1"
-        )
-    if not 1 <= settings.min_chain_px <= 1000:
-        problems.append(f"min_chain_px {settings.min_chain_px} is not in 1..1000")
-    if not 0 <= settings.max_row_jump_px <= 100:
-        problems.append(f"max_row_jump_px {settings.max_row_jump_px} is not in 0..100")
-    if not 1 <= settings.min_width_px <= settings.max_width_px <= _FULL_SCALE:
-        problems.append(
-            f"min_width_px {settings.min_width_px} and max_width_px {settings.max_width_px}"
-            " do not satisfy 1 <= min_width_px <= max_width_px <= 255"
-        )
-    if not 0 <= settings.smooth_sigma_px <= 50:
-        problems.append(f"smooth_sigma_px {settings.smooth_sigma_px} is not in 0..50")
-    if not 0 <= settings.margin_px <= _MAX_MARGIN_PX:
-        problems.append(f"margin_px {settings.margin_px} is not in 0..{_MAX_MARGIN_PX}")
-    if not 0 <= settings.bridge_px <= _MAX_BRIDGE_PX:
-        problems.append(f"bridge_px {settings.bridge_px} is not in 0..{_MAX_BRIDGE_PX}")
-    return problems
+    """Return every problem with ``settings`` (empty when they are usable).
+
+    The ranges are the wire's own (:func:`lamina_shared.ops.extract_problems`), so a host
+    checks a scan's changes against them before it asks.
+    """
+    return extract_problems(dataclasses.asdict(settings))
 
 
 _DEFAULT = ExtractSettings()

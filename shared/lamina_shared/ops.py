@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -45,8 +45,13 @@ EXTRACT_FIELDS: dict[str, str] = {
     "margin_px": "int",
     "bridge_px": "int",
 }
-"""The wire schema of the device's extraction settings: each field's JSON kind. The
-device checks the ranges (``lamina_device.extract.settings_problems``)."""
+"""The wire schema of the device's extraction settings: each field's JSON kind. Their
+ranges are :func:`extract_problems`'."""
+EXTRACT_FULL_SCALE = 255
+"""An 8-bit frame's full scale: the top of the threshold, peak and run-width ranges."""
+_MAX_OPENING_PX = 1024  # an opening taller than any frame removes nothing more
+_MAX_MARGIN_PX = 16  # pixels beyond a run's ends its centre may weigh in
+_MAX_BRIDGE_PX = 8  # rows between two runs of one column that may still join them
 MAX_SETTING = 1_000_000
 """Largest whole-number extraction setting the schema lets through to the range check."""
 MAX_SHOWN_PROBLEMS = 12
@@ -357,6 +362,57 @@ def parse_extract_text(text: str) -> ExtractChanges:
     if problems.items or changes is None:
         raise ArgsError("extract", problems.items)
     return changes
+
+
+def extract_problems(settings: Mapping[str, Any]) -> list[str]:
+    """Return every value of a whole set of extraction settings that is out of its range.
+
+    The one range check of the extraction: the device applies it to its settings (as
+    configured, or changed for a scan); the host to a device's configured settings (its
+    WELCOME) with a scan's changes, so a scan beyond them is refused before it exists.
+
+    Args:
+        settings: a value for every field of :data:`EXTRACT_FIELDS`, of its kind.
+
+    Returns:
+        One line per problem (empty when the settings are usable).
+    """
+    s, full = settings, EXTRACT_FULL_SCALE
+    problems = []
+    if s["threshold"] is not None and not 0 <= s["threshold"] < full:
+        problems.append(f"threshold {s['threshold']} is not in 0..{full - 1} (or None for Otsu)")
+    if not 0 < s["power"] <= 8:
+        problems.append(f"power {s['power']} is not in (0, 8]")
+    if not 1 <= s["min_peak"] <= full:
+        problems.append(f"min_peak {s['min_peak']} is not in 1..{full}")
+    if s["method"] not in EXTRACT_METHODS:
+        problems.append(f"method {s['method']!r} is not one of {', '.join(EXTRACT_METHODS)}")
+    if s["run_choice"] not in EXTRACT_RUN_CHOICES:
+        choices = ", ".join(EXTRACT_RUN_CHOICES)
+        problems.append(f"run_choice {s['run_choice']!r} is not one of {choices}")
+    ranges = {
+        "background_opening_px": (0, _MAX_OPENING_PX),
+        "false_points_per_frame": (1e-12, 1),
+        "min_chain_px": (1, 1000),
+        "max_row_jump_px": (0, 100),
+    }
+    problems += [
+        f"{key} {s[key]} is not in {low}..{high}"
+        for key, (low, high) in ranges.items()
+        if not low <= s[key] <= high
+    ]
+    if not 1 <= s["min_width_px"] <= s["max_width_px"] <= full:
+        problems.append(
+            f"min_width_px {s['min_width_px']} and max_width_px {s['max_width_px']}"
+            f" do not satisfy 1 <= min_width_px <= max_width_px <= {full}"
+        )
+    more = {"smooth_sigma_px": 50, "margin_px": _MAX_MARGIN_PX, "bridge_px": _MAX_BRIDGE_PX}
+    problems += [
+        f"{key} {s[key]} is not in 0..{high}"
+        for key, high in more.items()
+        if not 0 <= s[key] <= high
+    ]
+    return problems
 
 
 # --- the operations ---------------------------------------------------------------------

@@ -29,6 +29,7 @@ from lamina_host.reconstruct.pipeline import (
 from lamina_host.store.library import SIDES, Library, check_side
 from lamina_host.store.subjects import check_subject
 from lamina_host.workflow.checks import (
+    check_extract_limits,
     check_mode,
     check_object_fits,
     check_plan_limits,
@@ -280,6 +281,7 @@ class Acquisition:
         if request.mode is not None:
             plans["object"] = plans["object"].with_mode(request.mode)
         check_mode(plans["object"], client.info, request.colour)
+        check_extract_limits(request.extract, client.info)
         for target, wanted in plans.items():
             check_plan_limits(target, wanted, limits, axes)
         diameter = request.cylinder_mm

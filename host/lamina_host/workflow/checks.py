@@ -29,7 +29,14 @@ import numpy as np
 from lamina_shared.errors import InputError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.messages import AxesInfo, Welcome
-from lamina_shared.ops import plan_fits
+from lamina_shared.ops import (
+    EXTRACT_FIELDS,
+    ExtractChanges,
+    Problems,
+    check_extract,
+    extract_problems,
+    plan_fits,
+)
 from lamina_shared.types import SCAN_MODES, ScanPlan
 
 SECTIONS_RANGE = (1, 500)
@@ -138,6 +145,36 @@ def check_mode(plan: ScanPlan, info: Welcome | None, colour: bool = False) -> No
         )
     if colour and plan.continuous:
         raise InputError("colour needs a stop-and-go scan: scan without colour or stop-and-go")
+
+
+def check_extract_limits(changes: ExtractChanges | None, info: Welcome | None) -> None:
+    """Refuse extraction changes that take the device's settings out of their ranges.
+
+    The device's configured settings (its WELCOME) with the scan's changes are checked by
+    the device's own rule before the scan exists, so no scan is left half made by a
+    refusal. A device that does not report every setting refuses such a scan itself.
+
+    Args:
+        changes: the scan's changes to the device's extraction (``lamina scan --extract``).
+        info: the connected device's WELCOME.
+
+    Raises:
+        InputError: naming every setting out of range.
+    """
+    if changes is None or info is None or info.extract is None:
+        return
+    configured = check_extract(info.extract.to_wire(), "welcome.extract", Problems())
+    if configured is None:
+        return
+    settings = {**configured.as_dict(), **changes.as_dict()}
+    if set(settings) != set(EXTRACT_FIELDS):
+        return
+    problems = extract_problems(settings)
+    if problems:
+        raise InputError(
+            f"--extract: {'; '.join(problems)} on this device: change the setting (see "
+            "lamina scan --help); no scan was created"
+        )
 
 
 def check_plan_limits(
