@@ -441,6 +441,20 @@ def _stripe_angle(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> 
     return 0.0 if angle >= 360.0 else angle  # a hair below 0 wraps to 360.0 in floats
 
 
+def row_turn_deg(hardware: Hardware) -> float:
+    """Return the table's turn from one image row's exposure to the next's in a continuous
+    scan (degrees): its speed times the rolling shutter's row time.
+
+    :func:`_stripe_angle` gives a view the angle of its stripe's median row; a point
+    ``d`` rows below it was exposed ``d`` times this later. Across a stripe of 200 rows
+    at a turn a second that is 0.7 degrees, 1 mm at 80 mm from the axis: the host turns
+    each point by its own share (the WELCOME's ``row_turn_deg``).
+    """
+    table, camera = hardware.turntable, hardware.camera
+    assert isinstance(table, SpinningTable) and isinstance(camera, TimedCamera)
+    return table.spin_speed_deg_s * camera.frame_timing.row_s
+
+
 def views_in_section(plan: ScanPlan) -> list[int]:
     """Return each view's index within its section: the one place views are numbered."""
     seen: dict[int, int] = {}

@@ -30,6 +30,7 @@ import logging
 from typing import Any
 
 from lamina_device import __version__
+from lamina_device.acquisition import row_turn_deg
 from lamina_device.camera import CameraError, camera_has_colour
 from lamina_device.hardware import Hardware
 from lamina_device.motion import MotionError
@@ -95,6 +96,7 @@ class DeviceServer(DeviceEndpoint):
         ``extract`` is the configured extraction (a scan request may change it).
         """
         hw = self.hardware
+        modes = scan_modes(hw)
         return Welcome(
             protocol=PROTOCOL_VERSION,
             software=f"lamina-device {__version__}",
@@ -111,8 +113,9 @@ class DeviceServer(DeviceEndpoint):
             identity=DeviceIdentity(**hw.identity),
             extract=ExtractChanges(tuple(dataclasses.asdict(hw.extract).items())),
             colour=camera_has_colour(hw.camera),
-            modes=scan_modes(hw),
+            modes=modes,
             lift_reference=hw.lift_reference,
+            row_turn_deg=row_turn_deg(hw) if "continuous" in modes else None,
         )
 
     def _welcome_plans(self) -> dict[str, ScanPlan]:

@@ -352,6 +352,10 @@ class Welcome:
     """The scan modes the device can run (``stop-and-go`` only from a device before them)."""
     lift_reference: LiftReference | None = None
     """The marks on its calibration cylinder that calibrate the lift (None: it has none)."""
+    row_turn_deg: float | None = None
+    """In a continuous scan, the table's turn from one image row's exposure to the next's
+    (degrees: its continuous speed times the rolling shutter's row time); a continuous
+    view's angle is its stripe's median row's. None: a stop-and-go device, or an older one."""
 
     def to_wire(self) -> dict[str, Any]:
         """Return the JSON body the device sends."""
@@ -374,6 +378,7 @@ class Welcome:
             "colour": self.colour,
             "modes": list(self.modes),
             "lift_reference": self.lift_reference.to_dict() if self.lift_reference else None,
+            "row_turn_deg": self.row_turn_deg,
         }
 
     @classmethod
@@ -418,6 +423,7 @@ class Welcome:
             data.get("colour") is True,
             _modes(data.get("modes"), problems),
             _lift_reference(data.get("lift_reference"), problems),
+            _row_turn(data.get("row_turn_deg"), problems),
         )
         if problems.items:
             raise MessageError("WELCOME", problems.items)
@@ -489,6 +495,19 @@ def _operations(value: Any, problems: Problems) -> tuple[str, ...]:
         problems.add("welcome.operations: a list of names is required")
         return ()
     return tuple(items)
+
+
+MAX_ROW_TURN_DEG = 1.0
+"""Largest turn between two rows' exposures a WELCOME may report (a turn a second is
+about 0.003 degrees a row)."""
+
+
+def _row_turn(value: Any, problems: Problems) -> float | None:
+    """Return the continuous scan's turn per image row (None when not reported)."""
+    if value is None:
+        return None
+    where = "welcome.row_turn_deg"
+    return check_number(value, where, -MAX_ROW_TURN_DEG, MAX_ROW_TURN_DEG, problems)
 
 
 def _modes(value: Any, problems: Problems) -> tuple[str, ...]:

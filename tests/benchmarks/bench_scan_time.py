@@ -159,7 +159,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     """Scan one phantom in one mode with one sway; return its errors, time and warnings."""
     from bench_limb import measure
 
-    from lamina_device.acquisition import acquire
+    from lamina_device.acquisition import acquire, row_turn_deg
     from lamina_device.sim import open_sim
     from lamina_device.timing import estimate_scan_time
     from lamina_host.reconstruct.continuity import outline_jumps
@@ -192,6 +192,8 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     wall_s = time.perf_counter() - wall
     print(f"  ({spec} {mode} sway={sway}: {len(plan.views)} views in {wall_s:.0f} s)", flush=True)
     assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
+    # As the product processes it: each continuous point at its own row's angle.
+    row_turn = row_turn_deg(hardware) if plan.continuous else 0.0
     recon = reconstruct(
         calibration.grid_image,
         hardware.board,
@@ -199,6 +201,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
         hardware.cylinder_diameter_mm,
         segments,
         ProcessOptions(),
+        row_turn_deg=row_turn,
     )
     modelled = estimate_scan_time(hardware.timing, plan, exposure_us=hardware.camera.exposure_us)
     report = build_report(recon, {"kind": "sim"}, segments, None, {})
@@ -207,7 +210,8 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
         figures = measure(spec, json.loads((Path(tmp) / "report.json").read_text()), PITCH_MM)
     warnings = [w for w in report.warnings if MOTION_WARNING in w]
     jumps = outline_jumps(recon.sections)
-    by_section, _, _ = assemble(segments, recon.grid, recon.axis, recon.options.trim_fraction)
+    trim = recon.options.trim_fraction
+    by_section, _, _ = assemble(segments, recon.grid, recon.axis, trim, row_turn)
     apart = {k: round(views_disagreement_mm(v), 3) for k, v in sorted(by_section.items())}
     return {
         "spec": spec,

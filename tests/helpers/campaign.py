@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lamina_device.acquisition import acquire, grab_grid
+from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
@@ -220,8 +220,9 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         spec = f"random:seed={seed},scale={plan.scale}"
         hardware = _unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig()))
         segments: list[Segment] = []
+        object_plan = plan.scan_plan()
         try:
-            acquire(hardware, "object", plan.scan_plan(), segments.append)
+            acquire(hardware, "object", object_plan, segments.append)
         finally:
             hardware.close()
         stage = "process"
@@ -233,6 +234,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
             hardware.cylinder_diameter_mm,
             segments,
             ProcessOptions(),
+            row_turn_deg=row_turn_deg(hardware) if object_plan.continuous else 0.0,
         )
         # Outlines and meshes the product caught failing by a bug: tracebacks all the same.
         caught = [f.reason for f in recon.failed] + [

@@ -53,6 +53,7 @@ def _welcome() -> Welcome:
         extract=ExtractChanges((("threshold", None), ("power", 1.0), ("min_chain_px", 8))),
         colour=True,
         modes=SCAN_MODES,
+        row_turn_deg=0.0033,
     )
 
 
@@ -70,6 +71,7 @@ def test_an_older_welcome_reads_with_defaults_and_another_version_for_its_versio
     older = Welcome.from_wire(body)
     assert (older.colour, older.extract, older.identity, older.board) == (False, None, None, None)
     assert older.modes == ("stop-and-go",)  # a device from before scan modes stops at each view
+    assert older.row_turn_deg is None  # nor does it say how its rows were exposed
     assert older.limits == DeviceLimits() and older.software == "?"
     other = Welcome.from_wire({"protocol": 3, "software": "lamina-device 0", "image_size": "x"})
     assert other == Welcome(3, "lamina-device 0")
@@ -250,3 +252,18 @@ def test_scan_modes_a_welcome_offers_are_read_leaving_out_names_this_host_does_n
     body["modes"] = "continuous"
     with pytest.raises(MessageError, match=r"welcome\.modes"):
         Welcome.from_wire(body)
+
+
+@pytest.mark.parametrize(
+    ("value", "problem"),
+    [
+        ("fast", "welcome.row_turn_deg: a number is required, found 'fast'"),
+        (True, "welcome.row_turn_deg: a number is required, found True"),
+        (2.0, "welcome.row_turn_deg: 2.0 is outside -1..1"),
+    ],
+)
+def test_a_row_turn_beyond_any_rolling_shutter_is_refused(value, problem):
+    body = {**_json(_welcome().to_wire()), "row_turn_deg": value}
+    with pytest.raises(MessageError) as info:
+        Welcome.from_wire(body)
+    assert problem in info.value.problems

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 from lamina_shared.device_specs import SIM, replay_folder
 from lamina_shared.errors import printable
 from lamina_shared.messages import Welcome
+from lamina_shared.types import ScanPlan
 
 
 def spawned_source(
@@ -68,6 +70,7 @@ def scan_identity(welcome: Welcome, spawned: str | None = None) -> dict[str, Any
         "image_size": list(welcome.image_size),
         "protocol": welcome.protocol,
         "extract": welcome.extract.to_wire() if welcome.extract is not None else None,
+        "row_turn_deg": welcome.row_turn_deg,
     }
     identity.update({key: _plain(value) for key, value in reported.items() if value is not None})
     setup = {
@@ -81,6 +84,23 @@ def scan_identity(welcome: Welcome, spawned: str | None = None) -> dict[str, Any
     blob = json.dumps(_plain(setup), sort_keys=True).encode()
     identity["calibration"] = hashlib.sha256(blob).hexdigest()[:16]
     return identity
+
+
+def row_turn_deg(identity: Mapping[str, Any] | None, plan: ScanPlan | None) -> float:
+    """Return the turn per image row to give a scan's object points (0.0: none).
+
+    Only a continuous scan's views were exposed row by row while the table turned; the
+    figure is the one its device reported (``row_turn_deg`` of the WELCOME) when the scan
+    began, kept in its identity, so reprocessing it later turns its points the same.
+
+    Args:
+        identity: the scan's identity (:func:`scan_identity`), None if it has none.
+        plan: the scan's object plan, None if unknown.
+    """
+    value = (identity or {}).get("row_turn_deg")
+    if plan is None or not plan.continuous or isinstance(value, bool):
+        return 0.0
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) else 0.0
 
 
 def legacy_identity(device: Mapping[str, Any], spawned: str | None) -> dict[str, Any]:

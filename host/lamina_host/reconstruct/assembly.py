@@ -75,7 +75,7 @@ def trim(points: np.ndarray, fraction: float = THESIS_TRIM_FRACTION) -> np.ndarr
 
 def to_object_frame(
     points_world: np.ndarray,
-    angle_deg: float,
+    angle_deg: float | np.ndarray,
     axis_xy_mm: tuple[float, float],
     correction_factor: float,
 ) -> np.ndarray:
@@ -86,7 +86,8 @@ def to_object_frame(
 
     Args:
         points_world: (N, 2) world points in mm.
-        angle_deg: turntable angle of the view, counter-clockwise seen from above.
+        angle_deg: turntable angle of the view, counter-clockwise seen from above; or
+            (N,) angles, one per point (a continuous view's rows, each exposed at its own).
         axis_xy_mm: turntable axis ``a`` in world mm.
         correction_factor: ``C_f`` from the calibration cylinder.
 
@@ -96,6 +97,9 @@ def to_object_frame(
     p = np.asarray(points_world, dtype=float).reshape(-1, 2) - np.asarray(axis_xy_mm, float)
     th = np.deg2rad(angle_deg)
     c, s = np.cos(th), np.sin(th)
+    if np.ndim(th):
+        x, y = p[:, 0], p[:, 1]
+        return correction_factor * np.stack([x * c + y * s, y * c - x * s], axis=1)
     # Rz(-theta) = [[c, s], [-s, c]]; applied to row vectors as p @ Rz(-theta).T.
     rot_t = np.array([[c, -s], [s, c]])
     return correction_factor * (p @ rot_t)

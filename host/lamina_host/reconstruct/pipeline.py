@@ -476,22 +476,43 @@ def calibrate_axis(
 
 
 def assemble(
-    segments: list[Segment], grid: GridCalibration, axis: AxisCalibration, trim_fraction: float
+    segments: list[Segment],
+    grid: GridCalibration,
+    axis: AxisCalibration,
+    trim_fraction: float,
+    row_turn_deg: float = 0.0,
 ) -> tuple[dict[int, list[np.ndarray]], dict[int, float], int]:
-    """Group object-frame segment points by section; return them, heights, and skips."""
+    """Group object-frame segment points by section; return them, heights, and skips.
+
+    ``row_turn_deg`` (a continuous scan's, :func:`lamina_host.link.identity.row_turn_deg`)
+    gives each point the angle of its own row's exposure; 0.0 gives a view one angle.
+    """
     by_section: dict[int, list[np.ndarray]] = {}
     heights: dict[int, float] = {}
     skipped = 0
     for segment in segments:
-        points = world_points(segment, grid, trim_fraction)
-        if len(points) < MIN_SEGMENT_POINTS:
+        order = trimmed_order(segment, trim_fraction)
+        if len(order) < MIN_SEGMENT_POINTS:
             skipped += 1
             continue
-        angle = axis.true_angle_deg(segment.angle_deg)
+        points = grid.homography.apply(segment.uv[order])
+        angle: float | np.ndarray = axis.true_angle_deg(segment.angle_deg)
+        if row_turn_deg:
+            angle = angle + axis.angle_scale * row_turn_deg * row_offsets(segment, order)
         local = to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
         by_section.setdefault(segment.section, []).append(local)
         heights[segment.section] = segment.z_mm
     return by_section, heights, skipped
+
+
+def row_offsets(segment: Segment, order: np.ndarray) -> np.ndarray:
+    """Return the rows of a segment's points ``order`` less its stripe's median row.
+
+    A continuous view's angle is the table's when its stripe's median row was exposed
+    (the device's ``_stripe_angle``, over every point it sent); each row below it was
+    exposed one row time later.
+    """
+    return segment.rows[order].astype(float) - float(np.median(segment.rows))
 
 
 ColourViews = dict[int, list[tuple[np.ndarray, np.ndarray]]]
@@ -1415,6 +1436,7 @@ def process_segments(
     rules: OutlierRules | None = None,
     lift_scale: float = 1.0,
     workers: int | None = None,
+    row_turn_deg: float = 0.0,
 ) -> tuple[list[Section], list[str], Rejected, list[FailedSection]]:
     """Assemble the object's segments, reject outliers, fit the outlines, close the gaps.
 
@@ -1424,14 +1446,17 @@ def process_segments(
     lift, :func:`lift_calibration`). Sections are shared among ``workers`` processes
     (:func:`workers_for`: None, every core where the scan is large enough), with the
     same result bit for bit; ``timer``'s "reject" and "fit_efd" then add up the
-    workers' times, so they can exceed the wall time.
+    workers' times, so they can exceed the wall time. ``row_turn_deg`` turns each point of
+    a continuous scan by its row's share (:func:`assemble`).
 
     Raises:
         CalibrationError: no view shows the stripe, or no section gave an outline.
     """
     rules = rules or OutlierRules(working_radius_mm=options.working_radius_mm)
     with timer.stage("assemble"):
-        by_section, heights, skipped = assemble(segments, grid, axis, options.trim_fraction)
+        by_section, heights, skipped = assemble(
+            segments, grid, axis, options.trim_fraction, row_turn_deg
+        )
     warnings = []
     if skipped:
         warnings.append(
@@ -1530,6 +1555,7 @@ def reconstruct(
     options: ProcessOptions | None = None,
     lift_reference: LiftReference | None = None,
     workers: int | None = None,
+    row_turn_deg: float = 0.0,
 ) -> Reconstruction:
     """Run every stage from the raw calibration data and segments to the mesh.
 
@@ -1537,6 +1563,7 @@ def reconstruct(
     (:func:`lift_calibration`) and the others the axis; every section height is then
     the commanded one times the lift's scale. ``workers`` processes share the sections
     (:func:`process_segments`; None: as many as the cores and the scan's size allow).
+    ``row_turn_deg`` is a continuous scan's turn per image row (:func:`assemble`).
 
     Raises:
         CalibrationError: the board or the cylinder could not be used.
@@ -1565,7 +1592,7 @@ def reconstruct(
     radius = options.working_radius_mm or camera_disc_mm(grid, grid_image.shape, axis)
     rules = OutlierRules(working_radius_mm=radius)
     sections, warnings, rejected, failed = process_segments(
-        grid, axis, segments, options, timer, rules, scale, workers
+        grid, axis, segments, options, timer, rules, scale, workers, row_turn_deg
     )
     lift_warnings = list(lift.warnings) if lift is not None else []
     warnings = [*grid.warnings, *axis.warnings, *lift_warnings, *warnings]

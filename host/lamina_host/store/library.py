@@ -58,7 +58,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lamina_host.link.identity import identity_difference, legacy_identity, spawned_source
+from lamina_host.link.identity import (
+    identity_difference,
+    legacy_identity,
+    row_turn_deg,
+    spawned_source,
+)
 from lamina_host.reconstruct.mesh import load_coloured_ply, obj_bytes, stl_bytes
 from lamina_host.store.files import (
     OutputError,
@@ -233,6 +238,8 @@ class ScanInputs:
     options: dict[str, Any]
     device: dict[str, Any]
     lift_reference: LiftReference | None = None
+    row_turn_deg: float = 0.0
+    """The table's turn per image row in its object views (0.0 unless continuous)."""
 
 
 def no_result_line(scan: ScanRecord) -> str:
@@ -844,6 +851,7 @@ class Library(Scoped):
             dict(report.get("options", {})),
             dict(record.device),
             calibration.lift_reference,
+            row_turn_deg(record.identity, record.plans.get("object")),
         )
 
     def save_result(self, scan_id: int, report: dict[str, Any], files: dict[str, Path]) -> None:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.link.client import DeviceClient
+from lamina_host.link.identity import row_turn_deg
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
 from lamina_host.reconstruct.pipeline import (
@@ -308,6 +309,7 @@ class Acquisition:
         self.scan_id, self.identity, self.device.extract = scan_id, identity, request.extract
         self.cylinder_plan, self.plan, self.held = plans["cylinder"], plans["object"], {}
         data.subject_id, data.segments, data.complete = request.subject, [], False
+        data.row_turn_deg = row_turn_deg(identity, plans["object"])
         self._forget_results()
         return scan_id
 
@@ -358,6 +360,7 @@ class Acquisition:
             {k: str(v) for k, v in record.device.items()},
             self.plan is not None and len(self.held) == len(self.plan.views),
             calibration.lift_reference if calibration else None,
+            row_turn_deg(record.identity, self.plan),
         )
         return self.data
 

@@ -123,6 +123,7 @@ def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reco
         inputs.segments,
         chosen,
         inputs.lift_reference,
+        row_turn_deg=inputs.row_turn_deg,
     )
 
 

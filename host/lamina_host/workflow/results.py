@@ -93,6 +93,9 @@ class ScanData:
     complete: bool = False
     lift_reference: LiftReference | None = None
     """The calibration cylinder's marks that calibrate the lift (None: trusted)."""
+    row_turn_deg: float = 0.0
+    """The table's turn per image row in the object's views (a continuous scan's rolling
+    shutter, :func:`lamina_host.link.identity.row_turn_deg`; 0.0: stop-and-go)."""
 
 
 @dataclass(frozen=True)
