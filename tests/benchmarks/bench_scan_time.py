@@ -15,8 +15,8 @@ view's mechanics). Rows: the default plan of the configuration, the simulator's 
 **Accuracy.** The same limb phantoms (harsh preset, limb rig: ``bench_limb``'s set,
 ``arm:scale=5`` 8 sections and ``stump:scale=5`` 11 sections at 10 mm, 8 views) are
 scanned in both modes in this process (the simulated device's acquisition, then the host's
-default processing; the calibration board and cylinder are taken once, stop-and-go, as a
-scan takes them) and measured as ``bench_limb`` measures them: volume over the scanned
+default processing, each continuous point at its own row's angle as the product takes it;
+the calibration board and cylinder are taken once, stop-and-go, as a scan takes them) and measured as ``bench_limb`` measures them: volume over the scanned
 range, and the circumference at a level at every section (10 mm apart) against the true
 shape; the modes are compared on each phantom's volume and worst circumference error and
 on the RMS circumference error over all 19 levels. The
