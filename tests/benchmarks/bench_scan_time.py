@@ -16,13 +16,14 @@ view's mechanics). Rows: the default plan of the configuration, the simulator's 
 ``arm:scale=5`` 8 sections and ``stump:scale=5`` 11 sections at 10 mm, 8 views) are
 scanned in both modes in this process (the simulated device's acquisition, then the host's
 default processing, each continuous point at its own row's angle as the product takes it;
-the calibration board and cylinder are taken once, stop-and-go, as a scan takes them) and measured as ``bench_limb`` measures them: volume over the scanned
-range, and the circumference at a level at every section (10 mm apart) against the true
-shape; the modes are compared on each phantom's volume and worst circumference error and
-on the RMS circumference error over all 19 levels. The
-continuous frames are rendered with the rolling shutter, the motion blur over each
-exposure, the table turning between a view's laser-off, laser-on and laser-off frames,
-and the frame timestamps' jitter (``lamina_device.sim.camera``).
+the calibration board and cylinder are taken once, stop-and-go, as a scan takes them)
+and measured as ``bench_limb`` measures them: volume over the scanned range, and the
+circumference at a level at every section (10 mm apart) against the true shape; the
+modes are compared on each phantom's volume and worst circumference error and on the RMS
+circumference error over all 19 levels. The continuous frames are rendered with the
+rolling shutter, the motion blur over each exposure, the table turning between a view's
+laser-off, laser-on and laser-off frames, and the frame timestamps' jitter
+(``lamina_device.sim.camera``).
 
 **Sway.** The arm is scanned again in both modes with the simulated patient's sway
 (``patient``: 1 mm a minute of drift and 0.5 mm breathing at 0.25 Hz; ``strong``: 3 mm a
