@@ -9,15 +9,13 @@ reports the turn per row in its WELCOME; the host turns each point by its own sh
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
-from lamina_device.sim import Rig, open_sim
-from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
+from lamina_device.acquisition import acquire, row_turn_deg
+from lamina_device.sim import open_sim
 from lamina_host import cli
 from lamina_host.link.identity import row_turn_deg as scan_row_turn_deg
 from lamina_host.reconstruct.assembly import to_object_frame
@@ -25,40 +23,33 @@ from lamina_host.reconstruct.axis import fit_circle
 from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, reconstruct
 from lamina_host.store.library import Library
 from lamina_shared.types import ScanPlan
-from tests.helpers.campaign import _unwatched
+from tests.helpers.campaign import CampaignPlan, _calibration, _unwatched
 
 RADIUS_MM = 30.0
 OFF_AXIS = "cylinder:d=60,x=40"
 """A circle 40 mm off the axis: turning a point about the axis moves it off the circle."""
 
 
-def half_limb_rig() -> Rig:
-    """Return the limb rig's camera binned 2x (768 x 432): the same geometry, quicker."""
-    rig = Rig.limb()
-    return replace(rig, image_size=(768, 432), focal_px=rig.focal_px / 2.0)
+HALF_LIMB = CampaignPlan("limb", sections=1, pitch_mm=10.0, views=8, noise="none", resolution=0.5)
+"""The limb rig's camera binned 2x (768 x 432): the same geometry, quicker frames."""
 
 
 @pytest.fixture(scope="module")
 def off_axis_scans():
     """Return calibration data and the off-axis cylinder's section in either mode."""
-    rig = half_limb_rig()
-    hardware = _unwatched(open_sim(None, 0, "none", "limb", rig))
-    cylinder: list = []
-    try:
-        grid = grab_grid(hardware)
-        acquire(hardware, "cylinder", DEFAULT_CYLINDER_PLAN, cylinder.append)
-    finally:
-        hardware.close()
+    rig = HALF_LIMB.rig()
+    taken = _calibration(HALF_LIMB)
     scans = {}
     for mode in ("stop-and-go", "continuous"):
         hardware = _unwatched(open_sim(OFF_AXIS, 0, "none", "limb", rig))
         segments: list = []
         try:
-            acquire(hardware, "object", ScanPlan.regular(1, 10.0, 8, mode), segments.append)
+            acquire(hardware, "object", HALF_LIMB.scan_plan().with_mode(mode), segments.append)
         finally:
             hardware.close()
         scans[mode] = (segments, row_turn_deg(hardware))
-    return grid, hardware.board, cylinder, hardware.cylinder_diameter_mm, scans
+    board, diameter = hardware.board, hardware.cylinder_diameter_mm
+    return taken.grid_image, board, taken.cylinder, diameter, scans
 
 
 def _circle_rms(calibration, segments, turn: float) -> tuple[float, float]:
