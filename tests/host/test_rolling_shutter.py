@@ -17,6 +17,7 @@ import pytest
 from lamina_device.acquisition import acquire, row_turn_deg
 from lamina_device.sim import open_sim
 from lamina_host import cli
+from lamina_host.link.identity import identity_difference
 from lamina_host.link.identity import row_turn_deg as scan_row_turn_deg
 from lamina_host.reconstruct.assembly import to_object_frame
 from lamina_host.reconstruct.axis import fit_circle
@@ -121,3 +122,15 @@ def test_a_stored_continuous_scan_is_processed_again_the_same(tmp_path: Path, ca
     second = json.loads((again / "report.json").read_text())
     assert second["sections"] == first["sections"]
     capsys.readouterr()
+
+
+def test_a_scan_recorded_before_the_figure_resumes_and_one_with_another_does_not():
+    """A half-acquired scan from before the update is finished as it began (no figure,
+    no turn); a scan whose device now turns another amount per row is refused."""
+    before = {"software": "lamina-device 0.1.0", "hardware": "sim", "calibration": "ab"}
+    now = {**before, "row_turn_deg": 0.0033}
+    assert identity_difference(before, now) is None
+    assert scan_row_turn_deg(before, ScanPlan.regular(1, 10.0, 8, "continuous")) == 0.0
+    faster = {**before, "row_turn_deg": 0.0066}
+    assert "row_turn_deg" in (identity_difference(now, faster) or "")
+    assert "row_turn_deg" in (identity_difference(now, before) or "")

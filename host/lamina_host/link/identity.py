@@ -126,13 +126,19 @@ def _shown(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+LATER_KEYS = frozenset({"row_turn_deg"})
+"""Identity keys added after scans were recorded without them: such a scan is compared
+without the key (it is processed as it was recorded, without the figure), so an update
+does not leave a half-acquired scan that no resume can finish."""
+
+
 def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
     """Return what differs between a scan's recorded identity and the current one, or None.
 
     A scan recorded before identities existed (``legacy``) is compared on what it recorded.
     """
     keys = set(recorded) if recorded.get("legacy") else set(recorded) | set(current)
-    keys.discard("legacy")
+    keys -= {"legacy", *(LATER_KEYS - set(recorded))}
     current_plain = _plain(dict(current))
     differs = [k for k in sorted(keys) if recorded.get(k) != current_plain.get(k)]
     if not differs:
