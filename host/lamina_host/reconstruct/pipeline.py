@@ -495,24 +495,34 @@ def assemble(
         if len(order) < MIN_SEGMENT_POINTS:
             skipped += 1
             continue
-        points = grid.homography.apply(segment.uv[order])
-        angle: float | np.ndarray = axis.true_angle_deg(segment.angle_deg)
-        if row_turn_deg:
-            angle = angle + axis.angle_scale * row_turn_deg * row_offsets(segment, order)
-        local = to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
+        local = object_points(segment, order, grid, axis, row_turn_deg)
         by_section.setdefault(segment.section, []).append(local)
         heights[segment.section] = segment.z_mm
     return by_section, heights, skipped
 
 
-def row_offsets(segment: Segment, order: np.ndarray) -> np.ndarray:
-    """Return the rows of a segment's points ``order`` less its stripe's median row.
+def object_points(
+    segment: Segment,
+    order: np.ndarray,
+    grid: GridCalibration,
+    axis: AxisCalibration,
+    row_turn_deg: float = 0.0,
+) -> np.ndarray:
+    """Return a segment's points ``order`` in the object frame, in mm (thesis 6.1-6.2).
 
-    A continuous view's angle is the table's when its stripe's median row was exposed
-    (the device's ``_stripe_angle``, over every point it sent); each row below it was
-    exposed one row time later.
+    The one transform of a view's points: the laser plane's homography, then the turn to
+    the object's frame at the view's true angle. ``row_turn_deg`` (a continuous scan's,
+    :func:`lamina_host.link.identity.row_turn_deg`) adds each point's own row's share:
+    the view's angle is the table's when its stripe's median row was exposed (the
+    device's ``_stripe_angle``, over every point it sent), each row below it one row
+    time later.
     """
-    return segment.rows[order].astype(float) - float(np.median(segment.rows))
+    points = grid.homography.apply(segment.uv[order])
+    angle: float | np.ndarray = axis.true_angle_deg(segment.angle_deg)
+    if row_turn_deg:
+        rows = segment.rows[order].astype(float) - float(np.median(segment.rows))
+        angle = angle + axis.angle_scale * row_turn_deg * rows
+    return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
 
 
 ColourViews = dict[int, list[tuple[np.ndarray, np.ndarray]]]
@@ -536,9 +546,7 @@ def assemble_colours(
         order = trimmed_order(segment, trim_fraction)
         if len(order) < MIN_SEGMENT_POINTS:
             continue
-        points = grid.homography.apply(segment.uv[order])
-        angle = axis.true_angle_deg(segment.angle_deg)
-        local = to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
+        local = object_points(segment, order, grid, axis)
         views.setdefault(segment.section, []).append((local, segment.colour[order]))
     return views
 
@@ -1534,9 +1542,7 @@ def lift_calibration(
     """Measure the lift's scale on the cylinder's grooves (:func:`calibrate_lift`)."""
 
     def local(s: Segment) -> np.ndarray:
-        angle = axis.true_angle_deg(s.angle_deg)
-        points = world_points(s, grid, trim_fraction)
-        return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
+        return object_points(s, trimmed_order(s, trim_fraction), grid, axis)
 
     def circle(points: np.ndarray) -> tuple[float, float]:
         fitted = fit_circle(points)
