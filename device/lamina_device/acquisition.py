@@ -41,7 +41,13 @@ from lamina_device.camera import CameraError, ColourCamera, TimedCamera, TimedFr
 from lamina_device.extract import ExtractSettings, StripePoints, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_device.motion import SpinningTable, move_axes
-from lamina_device.timing import laser_pulse, next_view, view_capture_s
+from lamina_device.timing import (
+    laser_pulse,
+    lit_capture_s,
+    next_turn_start_ns,
+    next_view,
+    view_capture_s,
+)
 from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
 
@@ -345,7 +351,8 @@ def _take_continuous(
     """
     table, camera = hardware.turntable, hardware.camera
     assert isinstance(table, SpinningTable) and isinstance(camera, TimedCamera)
-    lead_s, _ = view_capture_s(camera.frame_timing)
+    next_turn = table.off_frames == "next-turn"
+    lead_s, _ = (lit_capture_s if next_turn else view_capture_s)(camera.frame_timing)
     speed = table.spin_speed_deg_s
     sections: dict[int, list[tuple[ViewSpec, int]]] = {}
     for view, number in zip(plan.views, numbers, strict=True):
@@ -360,17 +367,27 @@ def _take_continuous(
             if hardware.lift.z_mm != z_mm:
                 hardware.lift.move_to(z_mm)
                 hardware.settle_lift()
+            lit_views: list[tuple[ViewSpec, int, TimedFrame]] = []
             while views:
                 if control.paused:
                     table.stop_spin()
                     control.checkpoint()
                     table.spin(speed)
+                    # Laser-on frames waiting for their turn are taken again after a pause.
+                    views += [(view, number) for view, number, _ in lit_views]
+                    lit_views.clear()
                 control.checkpoint()
                 reach = table.angle_at(hardware.clock_ns()) + speed * lead_s
                 k, angle = next_view([view.angle_deg for view, _ in views], reach)
                 view, number = views.pop(k)
                 hardware.sleep_until_ns(table.time_at(angle) - round(lead_s * 1e9))
+                if next_turn:
+                    lit_views.append((view, number, capture_lit(hardware, camera)))
+                    continue
                 lit, off = capture_moving(hardware, camera)
+                yield _Captured(view, number, 0, lit.image, off, None, lit)
+            for view, number, lit in lit_views:
+                off = capture_next_turn(hardware, camera, lit)
                 yield _Captured(view, number, 0, lit.image, off, None, lit)
     finally:
         hardware.laser.off()
@@ -394,6 +411,40 @@ def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame,
         laser.off()
     after = camera.capture_timed()
     return lit, laser_off_reference(before.image, after.image)
+
+
+def capture_lit(hardware: Hardware, camera: TimedCamera) -> TimedFrame:
+    """Capture one laser-on frame; the laser ends off (a next-turn view's first turn)."""
+    laser = hardware.laser
+    try:
+        laser.on()
+        return camera.capture_timed()
+    finally:
+        laser.off()
+
+
+def capture_next_turn(hardware: Hardware, camera: TimedCamera, lit: TimedFrame) -> np.ndarray:
+    """Return the laser-off frame a turn after ``lit``: the table at ``lit``'s angle again.
+
+    The frame is the streamed one that starts nearest a turn after ``lit`` started
+    (:func:`~lamina_device.timing.next_turn_start_ns`); it is waited for from half a
+    period before it is due to arrive, so it is the next to arrive.
+    """
+    table = hardware.turntable
+    assert isinstance(table, SpinningTable)
+    timing = camera.frame_timing
+    middle_ns = lit.row_middle_ns(0.5 * (lit.image.shape[0] - 1))
+    angle = table.angle_at(middle_ns)
+    wait_ns = round((timing.span_s - 0.5 * timing.period_s) * 1e9)
+    turns = 1
+    while True:  # more than one turn only if the first has passed already
+        turn_ns = table.time_at(angle + 360.0 * turns) - middle_ns
+        start_ns = next_turn_start_ns(timing, lit.start_ns, turn_ns)
+        if start_ns + wait_ns >= hardware.clock_ns():
+            break
+        turns += 1
+    hardware.sleep_until_ns(start_ns + wait_ns)
+    return camera.capture_timed().image
 
 
 MOVED_SIGMAS = 3.0

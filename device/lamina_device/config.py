@@ -27,6 +27,9 @@ from lamina_shared.types import LiftReference
 DEFAULT_CONFIG_NAME = "default_config.toml"
 MAX_SPIN_STEP_HZ = 10_000
 """Highest step rate of a continuous turn: lgpio's software PWM runs from 0.1 to 10 kHz."""
+NEXT_TURN_MISMATCH_DEG = 0.05
+"""Most a next-turn laser-off frame may stand from its laser-on frame's angle (the frame
+period must divide the table's turn to within this)."""
 BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
 MICROSTEPS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 
@@ -83,6 +86,10 @@ class DriverConfig:
     settle_s: float = _spec(0.0, 10.0)
 
 
+OFF_FRAMES = ("interleaved", "next-turn")
+"""The ways a continuous view's laser-off frames are taken (``continuous_off_frames``)."""
+
+
 @dataclass(frozen=True)
 class TurntableConfig(DriverConfig):
     """The turntable: ``gear_ratio`` motor turns per table turn."""
@@ -95,6 +102,57 @@ class TurntableConfig(DriverConfig):
     # Continuous scans (issue 22): the table's constant speed through each section, its
     # step pulses timed by the pin factory (lgpio); 0 leaves the box stop-and-go only.
     continuous_speed_deg_s: float = _spec(0.0, 3600.0, default=0.0)
+    # Where a continuous view's laser-off frames come from. "interleaved": the frames just
+    # before and after its laser-on frame (one turn a section; the table has turned 6
+    # degrees each way, so room light on fine relief can pass for stripe). "next-turn":
+    # one frame at the same angle a turn later (a second turn a section, as exact as a
+    # stop-and-go view's pair).
+    continuous_off_frames: str = _spec(choices=OFF_FRAMES, default="interleaved")
+
+
+def pulse_rate(rate_sps: float) -> float:
+    """Return the step rate nearest ``rate_sps`` whose period is a whole microsecond.
+
+    lgpio times pulses in microseconds: a rate of such a period is sent exactly, so the
+    step clock that counts it is exact too.
+    """
+    return 1e6 / max(1, round(1e6 / rate_sps))
+
+
+def continuous_turn_us(table: TurntableConfig) -> float:
+    """Return how long a continuous turn takes at the step rate lgpio sends (microseconds)."""
+    steps = 360.0 * turntable_steps_per_deg(table)
+    return steps / pulse_rate(table.continuous_speed_deg_s * steps / 360.0) * 1e6
+
+
+def next_turn_frame_us(table: TurntableConfig, frame_duration_us: int) -> int:
+    """Return the frame period nearest ``frame_duration_us`` that divides a continuous turn."""
+    turn_us = continuous_turn_us(table)
+    return round(turn_us / max(1, round(turn_us / frame_duration_us)))
+
+
+def next_turn_problem(table: TurntableConfig, camera: CameraConfig) -> str | None:
+    """Return why laser-off frames a turn later would not meet their laser-on frames' angles.
+
+    The camera streams a frame every ``frame_duration_us``; the frame a turn after a
+    laser-on frame sees the same angle only when a turn (at the step rate lgpio sends) is
+    a whole number of frame periods. Returns None when it is, to
+    :data:`NEXT_TURN_MISMATCH_DEG`, else the ``frame_duration_us`` that makes it so
+    (:func:`next_turn_frame_us`).
+    """
+    turn_us = continuous_turn_us(table)
+    frames = turn_us / camera.frame_duration_us
+    whole = max(1, round(frames))
+    mismatch_deg = abs(frames - whole) * 360.0 / frames
+    if mismatch_deg <= NEXT_TURN_MISMATCH_DEG:
+        return None
+    return (
+        f'[turntable] continuous_off_frames "next-turn": a turn of the table takes '
+        f"{turn_us / 1000:.1f} ms, {frames:.2f} frames of {camera.frame_duration_us} us, so a "
+        f"frame a turn later misses the angle by {mismatch_deg:.2f} degrees: set [camera] "
+        f"frame_duration_us = {next_turn_frame_us(table, camera.frame_duration_us)} "
+        f"({whole} frames a turn)"
+    )
 
 
 def turntable_steps_per_deg(config: TurntableConfig) -> float:
@@ -403,6 +461,12 @@ def _consistency_problems(config: DeviceConfig) -> list[str]:
         )
     if 0.0 < table.continuous_speed_deg_s < table.start_speed_deg_s:
         problems.append("[turntable] continuous_speed_deg_s must not be below start_speed_deg_s")
+    if (
+        table.continuous_off_frames == "next-turn"
+        and table.continuous_speed_deg_s > 0.0
+        and (problem := next_turn_problem(table, camera))
+    ):
+        problems.append(problem)
     plan = config.plan
     found = Problems()
     for sections, pitch_mm, views in (

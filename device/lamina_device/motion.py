@@ -25,7 +25,7 @@ import numpy as np
 from gpiozero import DigitalInputDevice, DigitalOutputDevice
 from gpiozero.pins import Factory
 
-from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig
+from lamina_device.config import DriverConfig, LiftConfig, TurntableConfig, pulse_rate
 from lamina_shared.errors import LaminaError
 
 log = logging.getLogger(__name__)
@@ -364,15 +364,6 @@ SPIN_TICK_S = 0.01
 by the pin factory, so a late change only lengthens that rate's share)."""
 
 
-def pulse_rate(rate_sps: float) -> float:
-    """Return the step rate nearest ``rate_sps`` whose period is a whole microsecond.
-
-    lgpio times pulses in microseconds: a rate of such a period is sent exactly, so the
-    step clock that counts it is exact too.
-    """
-    return 1e6 / max(1, round(1e6 / rate_sps))
-
-
 def spin_rates(config: TurntableConfig, speed_deg_s: float) -> tuple[list[float], float]:
     """Return a continuous turn's ramp (a rate per :data:`SPIN_TICK_S`) and its cruise rate.
 
@@ -512,6 +503,11 @@ class SpinningTable(Protocol):
         """Return the configured speed of a continuous turn."""
         ...  # pragma: no cover - protocol
 
+    @property
+    def off_frames(self) -> str:
+        """Return where a continuous view's laser-off frames come from (``OFF_FRAMES``)."""
+        ...  # pragma: no cover - protocol
+
     def spin(self, speed_deg_s: float | None = None) -> None:
         """Ramp up counter-clockwise to ``speed_deg_s`` (default: configured); return at speed."""
         ...  # pragma: no cover - protocol
@@ -585,6 +581,11 @@ class StepperTurntable(ContinuousTurntable):
     def spin_speed_deg_s(self) -> float:
         """Return ``[turntable] continuous_speed_deg_s``."""
         return self.config.continuous_speed_deg_s
+
+    @property
+    def off_frames(self) -> str:
+        """Return ``[turntable] continuous_off_frames``."""
+        return self.config.continuous_off_frames
 
     def spin_problem(self) -> str | None:
         """Return why this table cannot turn continuously, or None when it can."""

@@ -44,6 +44,8 @@ __all__ = [
     "frames_apart",
     "laser_pulse",
     "lift_move_s",
+    "lit_capture_s",
+    "next_turn_start_ns",
     "next_view",
     "spin_up_s",
     "turntable_move_s",
@@ -158,6 +160,33 @@ def view_capture_s(timing: FrameTiming) -> tuple[float, float]:
     return lead_s, first_arrival_s + 2.0 * gap_s
 
 
+def lit_capture_s(timing: FrameTiming) -> tuple[float, float]:
+    """Return a next-turn view's mean lead and duration on its first turn (seconds).
+
+    The laser switches on as the view starts; the first frame to start after the switch
+    (and the laser's latency) is its laser-on frame, on average half a period later. Its
+    laser-off frame is taken a turn later (:func:`next_turn_start_ns`).
+
+    Returns:
+        The time to the middle of the laser-on frame's exposure at its middle row, and to
+        the frame's arrival.
+    """
+    start_s = LASER_LATENCY_NS * 1e-9 + 0.5 * timing.period_s
+    return start_s + 0.5 * (timing.exposure_s + timing.readout_s), start_s + timing.span_s
+
+
+def next_turn_start_ns(timing: FrameTiming, lit_start_ns: int, turn_ns: float) -> int:
+    """Return when the streamed frame a turn after a laser-on frame starts (monotonic ns).
+
+    The sensor streams frames a period apart; of those, the one whose start lies nearest
+    ``turn_ns`` after the laser-on frame's sees the table at the laser-on frame's angle
+    (exactly, when a turn is a whole number of periods: 120 at 120 fps and a turn a
+    second).
+    """
+    period_ns = timing.period_s * 1e9
+    return round(lit_start_ns + round(turn_ns / period_ns) * period_ns)
+
+
 def laser_pulse(timing: FrameTiming) -> float:
     """Return how long the laser stays on for one continuous view (seconds).
 
@@ -197,15 +226,19 @@ def _continuous_time(
     The table ramps up once and turns on at ``continuous_speed_deg_s`` through every
     section; each section waits for its lift move and the lift's settle, then takes its
     views in the order the table reaches them (:func:`next_view`), each one started a lead
-    before its angle comes round. The mechanical minimum: the ramp, the lift moves and
-    settles, each section's turn from its first view to its last, and one view's frames.
+    before its angle comes round; with ``continuous_off_frames = "next-turn"`` a view is
+    sent a turn later, when its laser-off frame has come round. The mechanical minimum:
+    the ramp, the lift moves and settles, each section's turn from its first view to its
+    last (and the turn on, next-turn), and one view's frames.
     """
     table = config.turntable
     speed = table.continuous_speed_deg_s
     if speed <= 0:
         raise ValueError("this configuration turns no continuous scan: continuous_speed_deg_s 0")
     timing = config_frame_timing(config, exposure_us)
-    lead_s, view_s = view_capture_s(timing)
+    next_turn = table.continuous_off_frames == "next-turn"
+    lead_s, view_s = lit_capture_s(timing) if next_turn else view_capture_s(timing)
+    turn_s = 360.0 / speed
     ramp_s, angle = spin_up_s(table, speed)
     now_s = ramp_s
     steps_per_mm = lift_steps_per_mm(config.lift)
@@ -224,6 +257,7 @@ def _continuous_time(
         lift_at = lift_to
         pending = [v.angle_deg for v in views]
         first_s = None
+        lit_done: list[float] = []
         while pending:
             reach = angle + speed * (now_s - ramp_s) + speed * lead_s
             k, target = next_view(pending, reach)
@@ -232,8 +266,12 @@ def _continuous_time(
             now_s = start_s + view_s
             frames_total += view_s
             pending.pop(k)
-            finished_s = now_s
-            worker_free_s = max(worker_free_s, now_s) + processing_s_per_view
+            lit_done.append(now_s)
+        # A next-turn view is sent once its laser-off frame, a turn on, has arrived.
+        for done_s in lit_done:
+            sent_s = done_s + turn_s if next_turn else done_s
+            now_s = finished_s = sent_s
+            worker_free_s = max(worker_free_s, sent_s) + processing_s_per_view
         assert first_s is not None
         turning += now_s - first_s
         minimum += now_s - first_s

@@ -37,6 +37,13 @@ camera's line of sight grows or shrinks the whole section while its views still 
 agree: the bench shows it as a circumference error far above the views' disagreement.
 The 400 mm leg's modelled times in each mode say what the patient holds for the whole leg.
 
+**Laser-off frames a turn later.** The phantoms are smooth; random limb shapes with fine
+skin relief are not (``RELIEF_SEEDS``): each is scanned stop-and-go, continuously with the
+interleaved laser-off frames (the default), and continuously with each view's laser-off
+frame a turn later at the same angle (``continuous_off_frames = "next-turn"``, the frame
+period a turn divides), on the campaign's harsh limb plan (2 sections of 8 views) in two
+worker processes; ``next_turn_rows`` gives each plan's modelled time that way.
+
 **Quick by default.** A continuous frame renders each band of rows at its own pose, three
 frames a view, about 6 s of processor time a view, so ``make bench`` (and
 ``python tests/benchmarks/bench_scan_time.py``) runs the quick set: every plan's modelled
@@ -87,6 +94,15 @@ QUICK_SWAYS = SWAYS[1:]
 """The quick set's sway: the strong one, where the warning is expected."""
 FULL = os.environ.get("LAMINA_SCAN_TIME_FULL", "") not in ("", "0")
 """``LAMINA_SCAN_TIME_FULL=1``: ``make bench`` runs the full study, not the quick set."""
+RELIEF_SEEDS = (97101, 97103, 97104, 97106)
+"""Random limb-scale shapes nobody tuned continuous mode on: two with fine skin relief
+(97101, 97104), two smooth and off the axis (97103, 97106)."""
+RELIEF_WAYS = (
+    ("stop-and-go", "stop-and-go", "interleaved"),
+    ("continuous", "continuous", "interleaved"),
+    ("next-turn", "continuous", "next-turn"),
+)
+"""How each random shape is scanned: name, plan mode, the box's laser-off frames."""
 MOTION_WARNING = "overlapping views stand"
 """What the report's motion warning says (``store/outputs.py``)."""
 JUMP_WARNING = "off the line of the sections below and above"
@@ -116,23 +132,28 @@ def _processing_s() -> float:
     return best
 
 
-def time_rows(processing_s: float) -> list[dict[str, Any]]:
-    """Return one row per plan and mode: the modelled time and the mechanical minimum."""
-    from lamina_device.config import load_config
+def _time_plans(config: Any) -> dict[str, Any]:
+    """Return the timed plans by name: the configured default, the thesis's, a 400 mm leg."""
     from lamina_device.sim.backend import DEFAULT_PLAN
-    from lamina_device.timing import estimate_scan_time
     from lamina_shared.types import ScanPlan
 
-    config = load_config()
-    plans = {
+    return {
         "default (config)": ScanPlan.regular(
             config.plan.sections, config.plan.pitch_mm, config.plan.views
         ),
         "thesis (sim default)": DEFAULT_PLAN,
         "leg 400 mm, 10 mm pitch": ScanPlan.regular(40, 10.0, 8),
     }
+
+
+def time_rows(processing_s: float) -> list[dict[str, Any]]:
+    """Return one row per plan and mode: the modelled time and the mechanical minimum."""
+    from lamina_device.config import load_config
+    from lamina_device.timing import estimate_scan_time
+
+    config = load_config()
     rows = []
-    for name, plan in plans.items():
+    for name, plan in _time_plans(config).items():
         heights = [v.z_mm for v in plan.views]
         for mode in MODES:
             moded = plan.with_mode(mode)
@@ -154,6 +175,67 @@ def time_rows(processing_s: float) -> list[dict[str, Any]]:
                 row["axes_in_turn_s"] = round(in_turn.modelled_s, 3)
             rows.append(row)
     return rows
+
+
+def next_turn_rows(processing_s: float) -> list[dict[str, Any]]:
+    """Return each plan's modelled time continuously with laser-off frames a turn later
+    (``continuous_off_frames = "next-turn"`` and the frame period a turn divides)."""
+    from dataclasses import replace
+
+    from lamina_device.config import load_config, next_turn_frame_us
+    from lamina_device.timing import estimate_scan_time
+
+    config = load_config()
+    table = replace(config.turntable, continuous_off_frames="next-turn")
+    frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
+    camera = replace(config.camera, frame_duration_us=frame_us)
+    config = replace(config, turntable=table, camera=camera)
+    rows = []
+    for row in time_rows(processing_s):
+        if row["mode"] != "continuous":
+            continue
+        plan = _time_plans(config)[row["plan"]].with_mode("continuous")
+        estimate = estimate_scan_time(config, plan, processing_s)
+        rows.append(
+            {
+                "plan": row["plan"],
+                "frame_duration_us": frame_us,
+                "modelled_s": round(estimate.modelled_s, 3),
+                "interleaved_s": row["modelled_s"],
+            }
+        )
+    return rows
+
+
+def relief(workers: int = 2) -> list[dict[str, Any]]:
+    """Scan :data:`RELIEF_SEEDS` each way of :data:`RELIEF_WAYS` (harsh, limb rig, 2 x 8).
+
+    Returns:
+        One row per seed and way: mean surface distance, coverage, motion warnings.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tests.helpers.campaign import CampaignPlan, scan_seed
+
+    jobs = [
+        (seed, name, CampaignPlan(RIG, 2, PITCH_MM, VIEWS, NOISE, mode=mode, off_frames=off))
+        for seed in RELIEF_SEEDS
+        for name, mode, off in RELIEF_WAYS
+    ]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(scan_seed, [j[0] for j in jobs], [j[2] for j in jobs]))
+    return [
+        {
+            "seed": seed,
+            "way": name,
+            "group": r.group,
+            "mean_distance_mm": r.mean_distance_mm,
+            "coverage": r.coverage,
+            "motion_warnings": len(r.motion_warnings),
+            "failure": r.failure_kind,
+        }
+        for (seed, name, _), r in zip(jobs, results, strict=True)
+    ]
 
 
 def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> dict[str, Any]:
@@ -293,6 +375,8 @@ def run(full: bool = FULL) -> dict[str, Any]:
         for mode in MODES
     ]
     results["comparison"] = _comparison(results["accuracy"])
+    results["next_turn_rows"] = next_turn_rows(processing_s)
+    results["relief"] = relief()
     return results
 
 
@@ -388,6 +472,27 @@ def report(results: dict[str, Any]) -> list[str]:
             f"{volume[MODES[0]]:.3f} %, {volume[MODES[1]]:.3f} % (x{comparison['volume_ratio']}); "
             "target <= 1.2"
         )
+    for row in results.get("next_turn_rows", []):
+        lines.append(
+            f"  {row['plan']}: continuous with laser-off frames a turn later "
+            f"({row['frame_duration_us']} us frames) {row['modelled_s']:.1f} s "
+            f"(interleaved {row['interleaved_s']:.1f} s)"
+        )
+    if results.get("relief"):
+        lines.append(
+            "  random limb shapes (harsh, 2 x 8): mean distance mm / coverage / motion-warned "
+            "outlines, per way"
+        )
+    by_seed: dict[str, list[str]] = {}
+    for row in results.get("relief", []):
+        figure = (
+            f"{row['way']} failed ({row['failure']})"
+            if row["mean_distance_mm"] is None
+            else f"{row['way']} {row['mean_distance_mm']:.3f} / {row['coverage']:.3f} / "
+            f"{row['motion_warnings']}"
+        )
+        by_seed.setdefault(f"seed {row['seed']} ({row['group']}):", []).append(figure)
+    lines += [f"    {label} " + ", ".join(figures) for label, figures in by_seed.items()]
     return lines
 
 

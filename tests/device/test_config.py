@@ -158,6 +158,26 @@ def test_a_continuous_speed_beyond_the_pulse_timer_or_a_readout_beyond_the_frame
     assert "readout_us 9000 must fit in frame_duration_us 8333" in text
 
 
+def test_laser_off_frames_a_turn_later_need_a_frame_period_that_divides_the_turn():
+    """The shipped table turns in 6400 steps of 156 us (998.4 ms): at 8333 us a frame a
+    turn later misses the angle by 0.56 degrees, and the message names the period that
+    meets it; with that period the configuration loads."""
+    data = default_data()
+    assert load_config().turntable.continuous_off_frames == "interleaved"
+    data["turntable"]["continuous_off_frames"] = "next-turn"
+    with pytest.raises(ConfigError) as caught:
+        parse_config(data)
+    text = str(caught.value)
+    assert "a turn of the table takes 998.4 ms, 119.81 frames of 8333 us" in text
+    assert "misses the angle by 0.56 degrees" in text
+    assert "set [camera] frame_duration_us = 8320 (120 frames a turn)" in text
+    data["camera"]["frame_duration_us"] = 8320
+    assert parse_config(data).turntable.continuous_off_frames == "next-turn"
+    data["turntable"]["continuous_off_frames"] = "later"
+    with pytest.raises(ConfigError, match="'later' is not one of 'interleaved', 'next-turn'"):
+        parse_config(data)
+
+
 def test_the_lift_reference_is_an_optional_table_checked_whole():
     """``[lift_reference]`` (the calibration cylinder's grooves): left out, none; given, the
     four keys, its marks in order and inside the lift's travel, else one line each."""

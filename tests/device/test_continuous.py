@@ -19,7 +19,9 @@ from lamina_device.acquisition import (
     ScanAborted,
     ScanControl,
     acquire,
+    capture_lit,
     capture_moving,
+    capture_next_turn,
     continuous_problem,
     laser_off_reference,
 )
@@ -43,6 +45,7 @@ from lamina_device.timing import (
     view_capture_s,
 )
 from lamina_shared.types import SCAN_MODES, ScanPlan
+from tests.helpers.campaign import CampaignPlan
 
 
 def tiny_limb_rig() -> Rig:
@@ -156,9 +159,12 @@ def test_a_table_that_cannot_time_its_pulses_refuses_to_turn(pi_kit):
 # --- the loop on the simulator, against the model ---------------------------------------
 
 
-def timed_scan(mode: str, plan: ScanPlan, **options):
-    """Scan ``plan`` in ``mode`` on the tiny simulator; return segments, seconds, hardware."""
+def timed_scan(mode: str, plan: ScanPlan, later_off: bool = False, **options):
+    """Scan ``plan`` in ``mode`` on the tiny simulator (laser-off frames a turn later with
+    ``later_off``); return segments, seconds, the laser pin's history, whether it turns."""
     hardware = tiny_sim(**options)
+    if later_off:
+        next_turn(hardware)
     clock = hardware.turntable.clock
     segments = []
     try:
@@ -403,5 +409,113 @@ def test_a_paused_continuous_scan_stops_the_table_until_resumed():
         acquire(hardware, "object", plan, take, control=control)
         assert len(segments) == 4 and not table.turning
         assert stops == [True, False]  # stopped for the pause, then at the end
+    finally:
+        hardware.close()
+
+
+# --- laser-off frames a turn later (continuous_off_frames = "next-turn") -------------------
+
+
+def next_turn(hardware):
+    """Set ``hardware``'s (simulated) box to take laser-off frames a turn later, with the
+    frame period a turn divides (8320 us: ``test_config``); return it."""
+    return CampaignPlan("limb", 1, 10.0, 8, off_frames="next-turn").box(hardware)
+
+
+RELIEF_SHAPE = "random:seed=97104,scale=limb"
+"""A random limb shape with skin relief of a few millimetres' wavelength."""
+
+
+def _room_light_error(hardware, capture) -> float:
+    """Return how far a view's laser-off reference stands from its laser-on frame's own room
+    light (the same exposure rendered with the laser off), at most over the frame, in DN."""
+    scene = hardware.camera.scene
+    exposures = []
+    render = scene.render_exposure
+
+    def kept(target, z_mm, laser_on, exposure, key, **options):
+        if laser_on:
+            exposures.append((target, z_mm, exposure, key, options))
+        return render(target, z_mm, laser_on, exposure, key, **options)
+
+    scene.render_exposure = kept
+    hardware.place("object")
+    hardware.lift.move_to(10.0)
+    hardware.turntable.spin()
+    try:
+        off = capture()
+    finally:
+        hardware.turntable.stop_spin()
+    target, z_mm, exposure, key, options = exposures[-1]
+    room, _ = render(target, z_mm, False, exposure, key, **options)
+    return float(np.abs(off.astype(float) - room.astype(float)).max())
+
+
+def test_a_next_turn_laser_off_frame_is_the_laser_on_frames_own_room_light():
+    rig = replace(Rig.limb(), image_size=(384, 216), focal_px=Rig.limb().focal_px / 4.0)
+    errors = {}
+    for mode in ("interleaved", "next-turn"):
+        hardware = open_sim(RELIEF_SHAPE, 0, "none", "limb", rig)
+        camera = hardware.camera
+        try:
+            if mode == "next-turn":
+                next_turn(hardware)
+
+                def capture(hardware=hardware, camera=camera):
+                    lit = capture_lit(hardware, camera)
+                    return capture_next_turn(hardware, camera, lit)
+
+            else:
+
+                def capture(hardware=hardware, camera=camera):
+                    return capture_moving(hardware, camera)[1]
+
+            errors[mode] = _room_light_error(hardware, capture)
+        finally:
+            hardware.close()
+    # The table turned 12 degrees between the interleaved off frames: relief passes for light.
+    assert errors["interleaved"] > 20.0
+    assert errors["next-turn"] <= 1.0, errors
+
+
+def test_a_next_turn_scan_pulses_the_laser_once_a_view_and_takes_a_second_turn():
+    """Each view: one laser-on frame on the section's first turn, its laser-off frame on the
+    second; the model's time agrees with the simulator's clock, about a turn a section more."""
+    segments, took_s, laser, spinning = timed_scan("continuous", PLAN, later_off=True)
+    assert sorted((s.section, s.view) for s in segments) == [
+        (k, v) for k in range(2) for v in range(8)
+    ]
+    assert laser == [False, True] * 16 + [False]
+    assert not spinning
+    config = next_turn(tiny_sim()).turntable.clock.config
+    estimate = estimate_scan_time(config, PLAN.with_mode("continuous"))
+    assert took_s == pytest.approx(estimate.modelled_s, rel=0.05)
+    interleaved = estimate_scan_time(load_config(), PLAN.with_mode("continuous"))
+    assert estimate.modelled_s - interleaved.modelled_s == pytest.approx(2 * 0.9984, abs=0.2)
+
+
+def test_a_pause_before_the_second_turn_takes_the_sections_laser_on_frames_again():
+    hardware = next_turn(tiny_sim())
+    control = ScanControl()
+    table = hardware.turntable
+    taken = []
+    original = hardware.camera.capture_timed
+
+    def capture():
+        frame = original()
+        taken.append(hardware.laser.is_on)
+        if taken.count(True) == 2 and not control.paused and len(taken) == 2:
+            control.pause()
+            threading.Timer(0.05, control.resume).start()
+        return frame
+
+    hardware.camera.capture_timed = capture
+    segments = []
+    try:
+        plan = ScanPlan.regular(1, 10.0, 4, "continuous")
+        acquire(hardware, "object", plan, segments.append, control=control)
+        assert sorted(s.view for s in segments) == [0, 1, 2, 3] and not table.turning
+        # Two laser-on frames before the pause, taken again after it with the other two.
+        assert taken == [True, True, True, True, True, True, False, False, False, False]
     finally:
         hardware.close()

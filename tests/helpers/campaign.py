@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
+from lamina_device.config import next_turn_frame_us
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
@@ -80,6 +81,8 @@ class CampaignPlan:
     views: int
     noise: str = NOISE
     resolution: float = 1.0  # < 1: the preset rig's camera binned down (fast tests)
+    mode: str = "stop-and-go"
+    off_frames: str = "interleaved"  # a continuous scan's laser-off frames (the box's config)
 
     def rig(self) -> Rig:
         """Return the rig: the preset, its image and focal length scaled by ``resolution``."""
@@ -92,7 +95,20 @@ class CampaignPlan:
 
     def scan_plan(self) -> ScanPlan:
         """Return the object's scan plan."""
-        return ScanPlan.regular(self.sections, self.pitch_mm, self.views)
+        return ScanPlan.regular(self.sections, self.pitch_mm, self.views, self.mode)
+
+    def box(self, hardware: Hardware) -> Hardware:
+        """Return the simulated ``hardware`` configured to take this plan's laser-off frames
+        (a turn later: with the frame period that divides the turn)."""
+        if self.off_frames != "next-turn":
+            return hardware
+        clock = hardware.turntable.clock
+        config = clock.config
+        table = replace(config.turntable, continuous_off_frames="next-turn")
+        frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
+        camera = replace(config.camera, frame_duration_us=frame_us)
+        clock.config = replace(config, turntable=table, camera=camera)
+        return hardware
 
 
 @dataclass(frozen=True)
@@ -218,7 +234,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         calibration = _calibration(plan)
         stage = "acquire"
         spec = f"random:seed={seed},scale={plan.scale}"
-        hardware = _unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig()))
+        hardware = plan.box(_unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig())))
         segments: list[Segment] = []
         object_plan = plan.scan_plan()
         try:

@@ -190,6 +190,11 @@ class SimTurntable(ContinuousTurntable):
         """Return the shipped configuration's continuous speed."""
         return self.clock.config.turntable.continuous_speed_deg_s
 
+    @property
+    def off_frames(self) -> str:
+        """Return the configuration's ``continuous_off_frames``."""
+        return self.clock.config.turntable.continuous_off_frames
+
     def spin_problem(self) -> str | None:
         """Return why the simulated table cannot turn continuously (its config says 0)."""
         if self.spin_speed_deg_s <= 0:
