@@ -38,7 +38,8 @@ def open_hardware(
         object_spec: the simulated object (sim only).
         seed: simulation noise seed (sim only).
         noise: one of ``NOISE_PRESETS``: ``thesis``, ``harsh`` or ``none`` (sim only).
-        config_path: the TOML configuration (pi only; the packaged default if None).
+        config_path: the TOML configuration (the packaged default if None; the simulator
+            takes its timing and continuous settings from it).
         pin_factory: gpiozero pin factory for ``pi`` (None: gpiozero's own choice).
         rig: the simulated rig's geometry, ``thesis`` or ``limb`` (sim only).
         sway: how the simulated object moves while scanned, e.g. ``patient`` (sim only).
@@ -49,8 +50,18 @@ def open_hardware(
         HardwareError: naming what is wrong and what to do.
     """
     if spec == SIM:
+        try:
+            config = load_config(config_path) if config_path is not None else None
+        except ConfigError as exc:
+            raise HardwareError(str(exc)) from None
         return open_sim(
-            object_spec, seed, noise, rig, sway=sway, lift_error_percent=lift_error_percent
+            object_spec,
+            seed,
+            noise,
+            rig,
+            sway=sway,
+            lift_error_percent=lift_error_percent,
+            config=config,
         )
     if (folder := replay_folder(spec)) is not None:
         if not folder:

@@ -57,7 +57,10 @@ def _add_hardware_options(parser: argparse.ArgumentParser) -> None:
         "--hardware", required=True, help="sim, replay:CAPTURE_DIR or pi (the scanner box)"
     )
     parser.add_argument(
-        "--config", type=Path, help="TOML configuration for --hardware pi (default: packaged)"
+        "--config",
+        type=Path,
+        help="TOML configuration (default: packaged); the simulator takes its speeds, frame "
+        "timing and continuous settings from it",
     )
     parser.add_argument("--object", help="simulated object, e.g. cylinder:d=19.05 (sim only)")
     parser.add_argument("--seed", type=int, default=0, help="simulation noise seed")

@@ -12,6 +12,8 @@ from gpiozero.pins.mock import MockFactory
 
 from lamina_device import cli as device_cli
 from lamina_device.backends import open_hardware
+from lamina_device.config import default_config_path
+from lamina_device.hardware import HardwareError
 from lamina_device.motion import MotionError, StepperLift, StepperTurntable
 from lamina_device.operations import axes_of
 from lamina_device.sim import SIM_LIFT_TRAVEL_MM, Mechanics, NoiseModel, Rig
@@ -110,3 +112,30 @@ def test_every_preset_name_builds_its_own_model():
     assert len(set(models)) == len(NOISE_PRESETS)
     with pytest.raises(ValueError, match=", ".join(RIG_PRESETS)):
         Rig.preset("desk")
+
+
+def test_the_simulator_runs_on_a_given_configuration_and_refuses_a_bad_one(tmp_path):
+    """``--hardware sim --config FILE``: the simulated box takes its timing and continuous
+    settings from the file (here laser-off frames a turn later); a file with a problem is
+    refused by name, as the box's would be."""
+    text = default_config_path().read_text()
+    good = text.replace(
+        'continuous_off_frames = "interleaved"', 'continuous_off_frames = "next-turn"'
+    ).replace("frame_duration_us = 8333", "frame_duration_us = 8320")
+    path = tmp_path / "box.toml"
+    path.write_text(good)
+    hardware = open_hardware("sim", config_path=path)
+    try:
+        assert hardware.turntable.off_frames == "next-turn"
+        assert hardware.timing is not None and hardware.timing.camera.frame_duration_us == 8320
+        assert hardware.camera.frame_timing.period_s == pytest.approx(8320e-6)
+    finally:
+        hardware.close()
+    path.write_text(good.replace("frame_duration_us = 8320", "frame_duration_us = 8333"))
+    with pytest.raises(HardwareError, match="set \\[camera\\] frame_duration_us = 8320"):
+        open_hardware("sim", config_path=path)
+    shipped = open_hardware("sim")
+    try:
+        assert shipped.turntable.off_frames == "interleaved"
+    finally:
+        shipped.close()

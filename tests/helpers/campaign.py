@@ -107,7 +107,7 @@ class CampaignPlan:
         table = replace(config.turntable, continuous_off_frames="next-turn")
         frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
         camera = replace(config.camera, frame_duration_us=frame_us)
-        clock.config = replace(config, turntable=table, camera=camera)
+        clock.config = hardware.timing = replace(config, turntable=table, camera=camera)
         return hardware
 
 

@@ -13,6 +13,7 @@ import hashlib
 from gpiozero.pins.mock import MockFactory
 
 from lamina_device.camera import Stage
+from lamina_device.config import DeviceConfig
 from lamina_device.hardware import Hardware, HardwareError, watched
 from lamina_device.laser import MOCK_LASER_PIN, Laser
 from lamina_device.sim.axes import Mechanics, SimClock, SimLift, SimTurntable
@@ -60,12 +61,15 @@ def open_sim(
     rig: Rig | None = None,
     sway: str = "none",
     lift_error_percent: float | None = None,
+    config: DeviceConfig | None = None,
 ) -> Hardware:
     """Return the simulated rig (``Rig.preset(rig_name)``) with ``object_spec`` on it.
 
     ``rig``, when given, replaces the preset (tests scan small, low-resolution variants).
     ``sway`` moves the object during the scan (:func:`lamina_device.sim.sway.parse_sway`).
     ``lift_error_percent`` replaces the preset's lift scale error (``--lift-error``).
+    ``config`` replaces the shipped configuration the simulated box runs on (its speeds,
+    settle times, frame timing and continuous settings; ``--config``).
     """
     spec = object_spec or DEFAULT_OBJECT
     try:
@@ -85,7 +89,7 @@ def open_sim(
     if not motion.still:
         source += f" sway={sway}"
     scene = SimScene(rig, obj, noise_model, seed)
-    clock = SimClock()
+    clock = SimClock() if config is None else SimClock(config=config)
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory(), clock_ns=clock.now_ns)
     turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
