@@ -428,23 +428,42 @@ def capture_next_turn(hardware: Hardware, camera: TimedCamera, lit: TimedFrame) 
 
     The frame is the streamed one that starts nearest a turn after ``lit`` started
     (:func:`~lamina_device.timing.next_turn_start_ns`); it is waited for from half a
-    period before it is due to arrive, so it is the next to arrive.
+    period before it is due to arrive. A frame that started earlier (one a camera kept
+    in its buffers) is passed over; one that started later than half a period after it
+    (the device was held up) missed the angle, which then comes round again a turn on.
+
+    Raises:
+        CameraError: the angle was missed :data:`NEXT_TURN_TRIES` turns running.
     """
     table = hardware.turntable
     assert isinstance(table, SpinningTable)
     timing = camera.frame_timing
+    half_ns = 0.5 * timing.period_s * 1e9
     middle_ns = lit.row_middle_ns(0.5 * (lit.image.shape[0] - 1))
     angle = table.angle_at(middle_ns)
-    wait_ns = round((timing.span_s - 0.5 * timing.period_s) * 1e9)
+    wait_ns = round(timing.span_s * 1e9 - half_ns)
     turns = 1
-    while True:  # more than one turn only if the first has passed already
+    for _ in range(NEXT_TURN_TRIES):
         turn_ns = table.time_at(angle + 360.0 * turns) - middle_ns
         start_ns = next_turn_start_ns(timing, lit.start_ns, turn_ns)
-        if start_ns + wait_ns >= hardware.clock_ns():
-            break
         turns += 1
-    hardware.sleep_until_ns(start_ns + wait_ns)
-    return camera.capture_timed().image
+        if start_ns + wait_ns < hardware.clock_ns():
+            continue  # already past: a turn on
+        hardware.sleep_until_ns(start_ns + wait_ns)
+        frame = camera.capture_timed()
+        while frame.start_ns < start_ns - half_ns:
+            frame = camera.capture_timed()
+        if frame.start_ns <= start_ns + half_ns:
+            return frame.image
+    raise CameraError(
+        f"the laser-off frame a turn after a view's laser-on frame was missed "
+        f"{NEXT_TURN_TRIES} turns running (the device is too busy to catch it): set "
+        '[turntable] continuous_off_frames = "interleaved", or scan stop-and-go'
+    )
+
+
+NEXT_TURN_TRIES = 3
+"""Turns a next-turn view's laser-off frame may be missed before the scan fails."""
 
 
 MOVED_SIGMAS = 3.0

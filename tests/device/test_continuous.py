@@ -25,6 +25,7 @@ from lamina_device.acquisition import (
     continuous_problem,
     laser_off_reference,
 )
+from lamina_device.camera import CameraError
 from lamina_device.config import load_config
 from lamina_device.motion import (
     SPIN_TICK_S,
@@ -517,5 +518,52 @@ def test_a_pause_before_the_second_turn_takes_the_sections_laser_on_frames_again
         assert sorted(s.view for s in segments) == [0, 1, 2, 3] and not table.turning
         # Two laser-on frames before the pause, taken again after it with the other two.
         assert taken == [True, True, True, True, True, True, False, False, False, False]
+    finally:
+        hardware.close()
+
+
+def _lit_then(hardware, late: int, buffered: bool = False):
+    """Take a laser-on frame on the turning tiny simulator; then return it and the frames
+    ``capture_next_turn`` was served when its first ``late`` captures come a period late
+    (the device held up) and, with ``buffered``, a frame older than the one due first."""
+    camera = hardware.camera
+    hardware.place("object")
+    hardware.turntable.spin()
+    lit = capture_lit(hardware, camera)
+    period_s = camera.frame_timing.period_s
+    original = camera.capture_timed
+    served = []
+
+    def held_up():
+        if buffered and not served:
+            served.append(lit)
+            return lit  # a frame the camera kept from before
+        if len(served) < late:
+            hardware.turntable.clock.advance(period_s)
+        frame = original()
+        served.append(frame)
+        return frame
+
+    camera.capture_timed = held_up
+    try:
+        capture_next_turn(hardware, camera, lit)
+    finally:
+        camera.capture_timed = original
+        hardware.turntable.stop_spin()
+    return lit, served
+
+
+def test_a_next_turn_frame_buffered_early_is_passed_over_and_a_late_one_waits_a_turn():
+    turn_ns = 0.9984e9  # 6400 steps of 156 us
+    hardware = next_turn(tiny_sim())
+    try:
+        lit, served = _lit_then(hardware, 0, buffered=True)
+        assert served[0] is lit and len(served) == 2
+        assert served[1].start_ns - lit.start_ns == pytest.approx(turn_ns, abs=2e5)
+        lit, served = _lit_then(hardware, 1)  # a period late: the next turn's frame
+        assert len(served) == 2
+        assert served[1].start_ns - lit.start_ns == pytest.approx(2 * turn_ns, abs=2e5)
+        with pytest.raises(CameraError, match="missed 3 turns running"):
+            _lit_then(hardware, 3)
     finally:
         hardware.close()
