@@ -423,6 +423,10 @@ def capture_lit(hardware: Hardware, camera: TimedCamera) -> TimedFrame:
         laser.off()
 
 
+NEXT_TURN_TRIES = 3
+"""Turns a next-turn view's laser-off frame may be missed before the scan fails."""
+
+
 def capture_next_turn(hardware: Hardware, camera: TimedCamera, lit: TimedFrame) -> np.ndarray:
     """Return the laser-off frame a turn after ``lit``: the table at ``lit``'s angle again.
 
@@ -460,10 +464,6 @@ def capture_next_turn(hardware: Hardware, camera: TimedCamera, lit: TimedFrame) 
         f"{NEXT_TURN_TRIES} turns running (the device is too busy to catch it): set "
         '[turntable] continuous_off_frames = "interleaved", or scan stop-and-go'
     )
-
-
-NEXT_TURN_TRIES = 3
-"""Turns a next-turn view's laser-off frame may be missed before the scan fails."""
 
 
 MOVED_SIGMAS = 3.0

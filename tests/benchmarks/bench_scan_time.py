@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
@@ -177,65 +178,59 @@ def time_rows(processing_s: float) -> list[dict[str, Any]]:
     return rows
 
 
-def next_turn_rows(processing_s: float) -> list[dict[str, Any]]:
+def next_turn_rows(rows: list[dict[str, Any]], processing_s: float) -> list[dict[str, Any]]:
     """Return each plan's modelled time continuously with laser-off frames a turn later
-    (``continuous_off_frames = "next-turn"`` and the frame period a turn divides)."""
-    from dataclasses import replace
-
-    from lamina_device.config import load_config, next_turn_frame_us
+    (``continuous_off_frames = "next-turn"`` and the frame period a turn divides), beside
+    its interleaved time from ``rows`` (:func:`time_rows`)."""
+    from lamina_device.config import load_config
     from lamina_device.timing import estimate_scan_time
+    from tests.helpers.campaign import next_turn_config
 
-    config = load_config()
-    table = replace(config.turntable, continuous_off_frames="next-turn")
-    frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
-    camera = replace(config.camera, frame_duration_us=frame_us)
-    config = replace(config, turntable=table, camera=camera)
-    rows = []
-    for row in time_rows(processing_s):
-        if row["mode"] != "continuous":
-            continue
-        plan = _time_plans(config)[row["plan"]].with_mode("continuous")
-        estimate = estimate_scan_time(config, plan, processing_s)
-        rows.append(
-            {
-                "plan": row["plan"],
-                "frame_duration_us": frame_us,
-                "modelled_s": round(estimate.modelled_s, 3),
-                "interleaved_s": row["modelled_s"],
-            }
-        )
-    return rows
+    config = next_turn_config(load_config())
+    plans = _time_plans(config)
+    return [
+        {
+            "plan": row["plan"],
+            "frame_duration_us": config.camera.frame_duration_us,
+            "modelled_s": round(
+                estimate_scan_time(
+                    config, plans[row["plan"]].with_mode("continuous"), processing_s
+                ).modelled_s,
+                3,
+            ),
+            "interleaved_s": row["modelled_s"],
+        }
+        for row in rows
+        if row["mode"] == "continuous"
+    ]
 
 
 def relief(workers: int = 2) -> list[dict[str, Any]]:
-    """Scan :data:`RELIEF_SEEDS` each way of :data:`RELIEF_WAYS` (harsh, limb rig, 2 x 8).
+    """Scan :data:`RELIEF_SEEDS` each way of :data:`RELIEF_WAYS` (harsh, limb rig, 2 x 8)
+    in the campaign's worker processes (``bench_campaign.run_scale``).
 
     Returns:
         One row per seed and way: mean surface distance, coverage, motion warnings.
     """
-    from concurrent.futures import ProcessPoolExecutor
+    from tests.benchmarks.bench_campaign import run_scale
+    from tests.helpers.campaign import CampaignPlan
 
-    from tests.helpers.campaign import CampaignPlan, scan_seed
-
-    jobs = [
-        (seed, name, CampaignPlan(RIG, 2, PITCH_MM, VIEWS, NOISE, mode=mode, off_frames=off))
-        for seed in RELIEF_SEEDS
-        for name, mode, off in RELIEF_WAYS
-    ]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        results = list(pool.map(scan_seed, [j[0] for j in jobs], [j[2] for j in jobs]))
-    return [
-        {
-            "seed": seed,
-            "way": name,
-            "group": r.group,
-            "mean_distance_mm": r.mean_distance_mm,
-            "coverage": r.coverage,
-            "motion_warnings": len(r.motion_warnings),
-            "failure": r.failure_kind,
-        }
-        for (seed, name, _), r in zip(jobs, results, strict=True)
-    ]
+    rows = []
+    for name, mode, off in RELIEF_WAYS:
+        plan = CampaignPlan(RIG, 2, PITCH_MM, VIEWS, NOISE, mode=mode, off_frames=off)
+        for r in run_scale(plan, list(RELIEF_SEEDS), workers, math.inf)["results"]:
+            rows.append(
+                {
+                    "seed": r["seed"],
+                    "way": name,
+                    "group": r["group"],
+                    "mean_distance_mm": r["mean_distance_mm"],
+                    "coverage": r["coverage"],
+                    "motion_warnings": len(r["motion_warnings"]),
+                    "failure": f"{r['error_type']}@{r['stage']}" if r["stage"] else "",
+                }
+            )
+    return sorted(rows, key=lambda row: row["seed"])
 
 
 def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> dict[str, Any]:
@@ -375,7 +370,7 @@ def run(full: bool = FULL) -> dict[str, Any]:
         for mode in MODES
     ]
     results["comparison"] = _comparison(results["accuracy"])
-    results["next_turn_rows"] = next_turn_rows(processing_s)
+    results["next_turn_rows"] = next_turn_rows(results["rows"], processing_s)
     results["relief"] = relief()
     return results
 
@@ -487,7 +482,7 @@ def report(results: dict[str, Any]) -> list[str]:
     for row in results.get("relief", []):
         figure = (
             f"{row['way']} failed ({row['failure']})"
-            if row["mean_distance_mm"] is None
+            if row["failure"]
             else f"{row['way']} {row['mean_distance_mm']:.3f} / {row['coverage']:.3f} / "
             f"{row['motion_warnings']}"
         )

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
-from lamina_device.config import next_turn_frame_us
+from lamina_device.config import DeviceConfig, next_turn_frame_us
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
@@ -99,16 +99,20 @@ class CampaignPlan:
 
     def box(self, hardware: Hardware) -> Hardware:
         """Return the simulated ``hardware`` configured to take this plan's laser-off frames
-        (a turn later: with the frame period that divides the turn)."""
-        if self.off_frames != "next-turn":
-            return hardware
-        clock = hardware.turntable.clock
-        config = clock.config
-        table = replace(config.turntable, continuous_off_frames="next-turn")
-        frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
-        camera = replace(config.camera, frame_duration_us=frame_us)
-        clock.config = hardware.timing = replace(config, turntable=table, camera=camera)
+        (a turn later: :func:`next_turn_config`)."""
+        if self.off_frames == "next-turn":
+            clock = hardware.turntable.clock
+            clock.config = hardware.timing = next_turn_config(clock.config)
         return hardware
+
+
+def next_turn_config(config: DeviceConfig) -> DeviceConfig:
+    """Return ``config`` taking continuous laser-off frames a turn later, with the frame
+    period nearest its own that a turn divides (``config.next_turn_frame_us``)."""
+    table = replace(config.turntable, continuous_off_frames="next-turn")
+    frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
+    camera = replace(config.camera, frame_duration_us=frame_us)
+    return replace(config, turntable=table, camera=camera)
 
 
 @dataclass(frozen=True)
