@@ -151,12 +151,15 @@ class Screen:
                 continue
         raise AssertionError(f"the field {placeholder!r} never took {value!r}:\n{self.text()}")
 
-    def find(self, text: str) -> tuple[int, int]:
-        """Return the line and column where ``text`` first shows on the screen."""
-        for y, line in enumerate(self.text().splitlines()):
+    def find(self, text: str, timeout_s: float = 10.0) -> tuple[int, int]:
+        """Return the line and column where ``text`` first shows on the screen, waiting up
+        to ``timeout_s`` for it: a screen just shown may draw its fields a moment after its
+        labels (CI once read "Subject" before the field beside it held its placeholder)."""
+        screen = self.wait_for(text, timeout_s=timeout_s)
+        for y, line in enumerate(screen.splitlines()):
             if text in line:
                 return y, line.index(text)
-        raise AssertionError(f"{text!r} is not on the screen:\n{self.text()}")
+        raise AssertionError(f"{text!r} is not on one line of the screen:\n{screen}")
 
     def field_starts_with(self, y: int, x: int, key: str, placeholder: str) -> bool:
         """Whether the field at line ``y``, column ``x`` shows ``key`` where its placeholder
