@@ -4,7 +4,9 @@ gpiozero drives the pin, so the same code runs on the Pi (lgpio) and in tests an
 simulation (gpiozero's own MockFactory), where the pin's state history is checkable.
 The laser is switched from more than one thread (the scan, the safety watchdog,
 signal handlers), so every switch holds a lock, and it remembers when it last
-changed so the camera can tell which frames were exposed entirely under one state.
+changed so the camera can tell which frames were exposed entirely under one state,
+and how long it has been on in all, on its own clock, so the safety watchdog can bound
+its share of time however seldom it looks.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ class Laser:
         self._clock_ns = clock_ns
         self._changed_ns = clock_ns()
         self._on_count = 0
+        self._on_before_ns = 0  # on-time of the switch-ons that have ended
 
     @property
     def is_on(self) -> bool:
@@ -58,6 +61,17 @@ class Laser:
         """Return how many times the laser has been switched on."""
         return self._on_count
 
+    def now_ns(self) -> int:
+        """Return the time on the laser's clock (``clock_ns``: the simulator's is virtual)."""
+        return self._clock_ns()
+
+    def on_time_ns(self) -> int:
+        """Return how long the laser has been on in all, up to now, on its clock."""
+        with self._lock:
+            if self.is_on:
+                return self._on_before_ns + self._clock_ns() - self._changed_ns
+            return self._on_before_ns
+
     def on(self) -> None:
         """Switch the laser on (refused once the laser has been released)."""
         with self._lock:
@@ -73,7 +87,13 @@ class Laser:
         with self._lock:
             if not self._output.closed and self._output.is_active:
                 self._output.off()
-                self._changed_ns = self._clock_ns()
+                self._switched_off()
+
+    def _switched_off(self) -> None:
+        """Note the switch-off that just happened: its time and the on-time it ended."""
+        now_ns = self._clock_ns()
+        self._on_before_ns += now_ns - self._changed_ns
+        self._changed_ns = now_ns
 
     def mock_pin_history(self) -> list[bool] | None:
         """Return the pin's recorded levels under gpiozero's MockFactory, else None.
@@ -90,7 +110,10 @@ class Laser:
         with self._lock:
             if self._output.closed:
                 return
+            was_on = self._output.is_active
             self._output.off()
+            if was_on:
+                self._switched_off()
             history = self.mock_pin_history()
             if history is not None:
                 # Test hook: a simulated device run with -v shows what its laser pin did.

@@ -12,6 +12,12 @@ switch-on starts the watchdog's on-time count afresh. So the watchdog also bound
 share of time the laser is on (:data:`MAX_LASER_DUTY` over a long window), which no
 train of re-armed pulses can pass, and a scan mode whose pulses would not be accepted
 (:meth:`LaserWatchdog.pulse_problem`) is refused before anything moves.
+
+The laser's times (its on-time, its share) are measured on the laser's own clock, the
+host link's silence on real time. On a box the two are the same clock; the simulator's
+laser runs on its virtual clock, which stands still while a frame is rendered (far
+longer than the exposure it stands for) and jumps over a move: measured in real time, or
+by sampling its state, a simulated scan would look like a laser left on.
 """
 
 from __future__ import annotations
@@ -49,6 +55,14 @@ class Switchable(Protocol):
         """Return how many times the laser has been switched on."""
         ...  # pragma: no cover - protocol
 
+    def now_ns(self) -> int:
+        """Return the time on the laser's clock."""
+        ...  # pragma: no cover - protocol
+
+    def on_time_ns(self) -> int:
+        """Return how long the laser has been on in all, up to now, on its clock."""
+        ...  # pragma: no cover - protocol
+
     def off(self) -> None:
         """Switch the laser off."""
         ...  # pragma: no cover - protocol
@@ -58,9 +72,16 @@ class LaserWatchdog(Scoped):
     """Switch the laser off after ``max_on_s`` on, or after ``link_silence_s`` without the host.
 
     The link is only watched once :meth:`link_alive` has been called (a recording
-    run has no host). The watchdog measures on-time with its own ``clock`` from the
-    moment it sees a new switch-on, so it does not trust the code it guards; it
-    polls often enough that the overrun past ``max_on_s`` is at most one poll.
+    run has no host). The watchdog measures on-time from the moment it sees a new
+    switch-on, so it does not trust the code it guards; it polls often enough that the
+    overrun past ``max_on_s`` is at most one poll.
+
+    Args:
+        laser: The laser to watch and switch off; its on-time and share of time are
+            measured on its clock.
+        max_on_s: The longest the laser may stay on after one switch-on.
+        link_silence_s: The longest the host may be silent once it has been heard.
+        clock: Real time in seconds, on which the host link's silence is measured.
     """
 
     def __init__(
@@ -85,7 +106,7 @@ class LaserWatchdog(Scoped):
         self._on_since: float | None = None
         self._last_link: float | None = None
         self._link_tripped = False
-        self._samples: deque[tuple[float, bool]] = deque()
+        self._samples: deque[tuple[float, float]] = deque()  # (laser clock, on-time) in s
 
     def start(self) -> None:
         """Start watching on a daemon thread (idempotent)."""
@@ -135,9 +156,13 @@ class LaserWatchdog(Scoped):
 
     def check(self) -> str | None:
         """Check once; switch the laser off and return the reason if a limit was passed."""
-        now = self.clock()
+        now, laser_now = self.clock(), self.laser.now_ns() * 1e-9
         with self._lock:
-            reason = self._on_time_reason(now) or self._duty_reason(now) or self._link_reason(now)
+            reason = (
+                self._on_time_reason(laser_now)
+                or self._duty_reason(laser_now)
+                or self._link_reason(now)
+            )
         if reason is not None:
             self.laser.off()
             self.trips.append(reason)
@@ -159,15 +184,22 @@ class LaserWatchdog(Scoped):
         return f"it was on for {on_s:.2f} s, longer than the {self.max_on_s:g} s limit"
 
     def _duty_reason(self, now: float) -> str | None:
-        """Return why the laser was on too large a share of the last window, from the checks."""
+        """Return why the laser was on too large a share of the last window.
+
+        Each check notes the laser's total on-time; the share is what it grew by since the
+        last check at least a window ago, so a switch the checks fell between still counts.
+        """
         window_s = DUTY_WINDOWS * self.max_on_s
         samples = self._samples
-        samples.append((now, self.laser.is_on))
+        if samples and samples[-1][0] >= now:
+            samples.pop()  # the clock stood still since: keep one note per instant
+        samples.append((now, self.laser.on_time_ns() * 1e-9))
         while len(samples) > 1 and samples[1][0] <= now - window_s:
             samples.popleft()
-        if samples[0][0] > now - window_s:
+        since_s, on_then_s = samples[0]
+        if since_s > now - window_s:
             return None  # not watched for a whole window yet
-        share = sum(on for _, on in samples) / len(samples)
+        share = (samples[-1][1] - on_then_s) / (now - since_s)
         if share <= MAX_LASER_DUTY:
             return None
         samples.clear()

@@ -82,7 +82,6 @@ from lamina_shared.types import LiftReference, ScanPlan, Segment
 if __package__ in (None, ""):  # run on its own: find the shared test builders
     sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
-from tests.helpers.campaign import _unwatched
 
 NOISE, RIG, VIEWS, PITCH_MM, SPACING_MM = "harsh", "limb", 8, 10.0, 10.0
 SHIFT_MM, TILT_DEG = 10.0, 3.0
@@ -210,7 +209,7 @@ def acquire_scan(
     object alone with ``calibration``'s board, cylinder and lift reference (taken earlier
     on the same rig, the same lift)."""
     start = time.perf_counter()
-    hardware = _unwatched(open_sim(spec, seed, NOISE, RIG, lift_error_percent=lift_error))
+    hardware = open_sim(spec, seed, NOISE, RIG, lift_error_percent=lift_error)
     cylinder: list[Segment] = []
     segments: list[Segment] = []
     try:

@@ -245,10 +245,9 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     from lamina_host.reconstruct.precision import views_disagreement_mm
     from lamina_host.store.outputs import build_report, write_outputs
     from lamina_shared.types import ScanPlan
-    from tests.helpers.campaign import _unwatched
 
     plan = ScanPlan.regular(sections, PITCH_MM, VIEWS, mode)
-    hardware = _unwatched(open_sim(spec, 0, NOISE, RIG, sway=sway))
+    hardware = open_sim(spec, 0, NOISE, RIG, sway=sway)
     clock = hardware.turntable.clock
     segments: list[Any] = []
     arrived_s: list[float] = []  # each segment's arrival on the clock: where the sway was

@@ -347,8 +347,11 @@ def test_pulses_the_watchdog_would_not_bound_refuse_the_mode():
         hardware.close()
 
 
-def test_the_watchdog_bounds_the_share_of_time_of_a_re_armed_laser(laser):
+def test_the_watchdog_bounds_the_share_of_time_of_a_re_armed_laser():
+    from lamina_device.laser import Laser
+
     now = [0.0]
+    laser = Laser(17, pin_factory=MockFactory(), clock_ns=lambda: round(now[0] * 1e9))
     dog = LaserWatchdog(laser, max_on_s=1.0, clock=lambda: now[0])
     assert dog.pulse_problem(0.017, 0.125) is None
     for step in range(int(DUTY_WINDOWS / 0.05) + 2):
@@ -361,6 +364,7 @@ def test_the_watchdog_bounds_the_share_of_time_of_a_re_armed_laser(laser):
             break
     assert reason is not None and "of the last 10 s" in reason
     assert not laser.is_on
+    laser.close()
 
 
 def test_the_model_takes_views_in_the_order_the_table_brings_them():
@@ -373,15 +377,6 @@ def test_the_model_takes_views_in_the_order_the_table_brings_them():
     # and read-out spans more than one), the second off frame two more.
     assert view_s == pytest.approx(0.5 * 8.333e-3 + 4 * 8.333e-3, rel=1e-3)
     assert 0.0 < lead_s < view_s
-
-
-@pytest.fixture
-def laser():
-    from lamina_device.laser import Laser
-
-    device = Laser(17, pin_factory=MockFactory())
-    yield device
-    device.close()
 
 
 def test_a_paused_continuous_scan_stops_the_table_until_resumed():
@@ -567,3 +562,32 @@ def test_a_next_turn_frame_buffered_early_is_passed_over_and_a_late_one_waits_a_
             _lit_then(hardware, 3)
     finally:
         hardware.close()
+
+
+def test_a_simulated_laser_rendered_slowly_is_timed_on_the_simulators_clock():
+    """The simulator renders a laser-on frame far slower than its exposure: the watchdog
+    times the laser on the simulator's clock, so a next-turn scan (laser-on frames back to
+    back for a turn) is not taken for a laser left on (it was, measured in real time)."""
+    hardware = next_turn(tiny_sim())
+    assert hardware.watchdog is not None
+    hardware.watchdog.max_on_s = 0.25  # a 2.5 s duty window: shorter than the scan's renders
+    scene = hardware.camera.scene
+    render = scene.render_exposure
+
+    def slowly(*args, **kwargs):
+        if hardware.laser.is_on:
+            threading.Event().wait(0.1)
+        return render(*args, **kwargs)
+
+    scene.render_exposure = slowly
+    plan = ScanPlan.regular(3, 10.0, 8, "continuous")
+    segments = []
+    try:
+        acquire(hardware, "object", plan, segments.append)
+        trips = list(hardware.watchdog.trips)
+        laser = hardware.laser.mock_pin_history() or []
+    finally:
+        hardware.close()
+    assert trips == []
+    assert laser.count(True) == len(plan.views)  # one pulse a view, none cut short
+    assert len(segments) == len(plan.views) and all(len(s.cols) > 0 for s in segments)

@@ -31,6 +31,10 @@ class FakeClock:
     def __call__(self) -> float:
         return self.now_s
 
+    def ns(self) -> int:
+        """Return the time in nanoseconds (the laser's clock)."""
+        return round(self.now_s * 1e9)
+
 
 def laser_levels(factory: MockFactory, pin: int = 17) -> list[bool]:
     return [bool(s.state) for s in factory.pin(pin).states]
@@ -44,9 +48,17 @@ def laser():
     laser.close()
 
 
-def test_watchdog_switches_off_after_the_maximum_on_time(laser, caplog):
-    laser, factory = laser
-    clock = FakeClock()
+@pytest.fixture
+def timed():
+    """A laser on a clock the test moves by hand: (laser, its pin factory, the clock)."""
+    factory, clock = MockFactory(), FakeClock()
+    laser = Laser(17, pin_factory=factory, clock_ns=clock.ns)
+    yield laser, factory, clock
+    laser.close()
+
+
+def test_watchdog_switches_off_after_the_maximum_on_time(timed, caplog):
+    laser, factory, clock = timed
     dog = LaserWatchdog(laser, max_on_s=2.0, clock=clock)
     laser.on()
     assert dog.check() is None  # first sight of this switch-on starts the count
@@ -60,9 +72,8 @@ def test_watchdog_switches_off_after_the_maximum_on_time(laser, caplog):
     assert laser_levels(factory) == [False, True, False]
 
 
-def test_each_new_switch_on_restarts_the_count(laser):
-    laser, _ = laser
-    clock = FakeClock()
+def test_each_new_switch_on_restarts_the_count(timed):
+    laser, _, clock = timed
     dog = LaserWatchdog(laser, max_on_s=2.0, clock=clock)
     for _ in range(5):  # a scan: on for 1.5 s per frame, off in between, 7.5 s in all
         laser.on()
@@ -106,6 +117,60 @@ def test_link_silence_switches_off_only_once_a_link_is_expected(laser):
     dog.link_alive()
     clock.now_s += 11.0
     assert dog.check() is not None and not laser.is_on
+
+
+def test_the_laser_is_timed_on_its_own_clock_and_the_link_on_real_time():
+    """A simulator renders a laser-on frame far slower than it is exposed, and its clock
+    jumps over each move: its laser's on-time and share of time are measured on that
+    (virtual) clock, however the checks fall; the host's silence on real time."""
+    factory, real, device = MockFactory(), FakeClock(), FakeClock()
+    laser = Laser(17, pin_factory=factory, clock_ns=device.ns)
+    dog = LaserWatchdog(laser, max_on_s=2.0, link_silence_s=10.0, clock=real)
+    dog.link_alive()
+    for _ in range(100):  # views: 20 ms on, then 1.5 s real rendering, then a 0.1 s move
+        laser.on()
+        device.now_s += 0.02
+        for _ in range(30):
+            real.now_s += 0.05
+            assert dog.check() is None  # every check sees the laser on
+        laser.off()
+        device.now_s += 0.1
+        laser.on()  # the next view's switch-on comes before the next check
+        laser.off()
+        dog.link_alive()
+    assert dog.trips == [] and real.now_s - 1000.0 > 149.0 and device.now_s - 1000.0 > 11.0
+    assert laser.on_time_ns() == pytest.approx(100 * 0.02e9)
+    laser.on()
+    assert dog.check() is None  # this switch-on seen
+    device.now_s += 2.5  # on 2.5 s on the laser's own clock
+    assert "on for 2.50 s" in (dog.check() or "")
+    laser.on()
+    assert dog.check() is None
+    real.now_s += 10.5  # the host silent for 10.5 s while the laser's clock stood still
+    assert "host link has been silent for 10.5 s" in (dog.check() or "")
+    assert laser_levels(factory)[-4:] == [True, False, True, False]
+    laser.close()
+
+
+@pytest.mark.parametrize("on_share, trips", [(0.45, False), (0.55, True)])
+def test_the_share_of_time_counts_what_the_checks_fell_between(timed, on_share, trips):
+    """On for 45 % of the time in pulses the checks never see, or seen by every check
+    while off is not: no trip at 45 %, a trip at 55 %."""
+    laser, _, clock = timed
+    dog = LaserWatchdog(laser, max_on_s=1.0, clock=FakeClock())
+    reason = None
+    for cycle in range(30):  # 30 s of 1 s cycles, each switch-on under the 1 s limit
+        laser.on()
+        for _ in range(20 if cycle % 2 else 0):  # every other cycle checked while on
+            reason = reason or dog.check()
+            clock.now_s += on_share / 20
+        clock.now_s += 0 if cycle % 2 else on_share
+        laser.off()
+        reason = reason or dog.check()  # checked once while off
+        clock.now_s += 1.0 - on_share
+    assert (reason is not None) == trips
+    if trips:
+        assert "it was on 55% of the last" in (reason or "")
 
 
 def test_sigterm_switches_the_laser_off_before_exiting(laser):

@@ -182,7 +182,7 @@ def _calibration(plan: CampaignPlan) -> _Calibration:
     """Return the rig's board and cylinder data, acquiring them on first use."""
     key = (plan.scale, plan.resolution, plan.noise)
     if key not in _CALIBRATIONS:
-        hardware = _unwatched(open_sim(None, 0, plan.noise, plan.scale, plan.rig()))
+        hardware = open_sim(None, 0, plan.noise, plan.scale, plan.rig())
         cylinder: list[Segment] = []
         try:
             grid = grab_grid(hardware)
@@ -191,15 +191,6 @@ def _calibration(plan: CampaignPlan) -> _Calibration:
             hardware.close()
         _CALIBRATIONS[key] = _Calibration(grid, cylinder)
     return _CALIBRATIONS[key]
-
-
-def _unwatched(hardware: Hardware) -> Hardware:
-    """Stop the laser watchdog: a simulated frame may take longer to render on a loaded
-    machine than the 2 s the laser may stay on, which no real exposure does."""
-    if hardware.watchdog is not None:
-        hardware.watchdog.stop()
-        hardware.watchdog = None
-    return hardware
 
 
 def _fail(result: SeedResult, stage: str, exc: BaseException) -> SeedResult:
@@ -238,7 +229,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         calibration = _calibration(plan)
         stage = "acquire"
         spec = f"random:seed={seed},scale={plan.scale}"
-        hardware = plan.box(_unwatched(open_sim(spec, 0, plan.noise, plan.scale, plan.rig())))
+        hardware = plan.box(open_sim(spec, 0, plan.noise, plan.scale, plan.rig()))
         segments: list[Segment] = []
         object_plan = plan.scan_plan()
         try:

@@ -24,7 +24,7 @@ from lamina_host.reconstruct.axis import fit_circle
 from lamina_host.reconstruct.pipeline import ProcessOptions, assemble, reconstruct
 from lamina_host.store.library import Library
 from lamina_shared.types import ScanPlan
-from tests.helpers.campaign import CampaignPlan, _calibration, _unwatched
+from tests.helpers.campaign import CampaignPlan, _calibration
 
 RADIUS_MM = 30.0
 OFF_AXIS = "cylinder:d=60,x=40"
@@ -42,7 +42,7 @@ def off_axis_scans():
     taken = _calibration(HALF_LIMB)
     scans = {}
     for mode in ("stop-and-go", "continuous"):
-        hardware = _unwatched(open_sim(OFF_AXIS, 0, "none", "limb", rig))
+        hardware = open_sim(OFF_AXIS, 0, "none", "limb", rig)
         segments: list = []
         try:
             acquire(hardware, "object", HALF_LIMB.scan_plan().with_mode(mode), segments.append)
