@@ -11,9 +11,12 @@ import sys
 import threading
 import time
 
+import numpy as np
 import pytest
 import serial
 from gpiozero.pins.mock import MockFactory
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lamina_device.laser import Laser
 from lamina_device.safety import LaserShutdown, LaserWatchdog
@@ -246,3 +249,41 @@ def test_sigterm_to_a_serving_device_leaves_its_laser_off():
     assert len(history) == 1, err
     states = history[0].split(":")[-1].split()
     assert "on" in states and states[-1] == "off"
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    cycles=st.lists(st.tuples(st.floats(0.02, 0.2), st.floats(0.05, 0.45)), min_size=1, max_size=8),
+    gaps=st.lists(st.floats(0.001, 2.0), min_size=5, max_size=40),
+    high=st.booleans(),
+)
+def test_the_share_of_time_is_bounded_however_the_checks_fall(cycles, gaps, high):
+    """Pulse trains of random short cycles, checked at random instants (between pulses,
+    inside them, seconds apart): a train on at most 45 % of each cycle never trips; one on
+    at least 55 % of each trips once a window has passed (a window's edges can add at most
+    one 0.2 s cycle, 2 % of the 10 s window)."""
+    clock = FakeClock()
+    laser = Laser(17, pin_factory=MockFactory(), clock_ns=clock.ns)
+    dog = LaserWatchdog(laser, max_on_s=1.0, clock=clock)
+    switches: list[tuple[float, bool]] = []
+    t = 0.0
+    while t < 30.0:
+        for cycle_s, share in cycles:
+            on_share = 1.0 - share if high else share  # 55-95 % when high
+            switches += [(t, True), (t + on_share * cycle_s, False)]
+            t += cycle_s
+    checks = np.cumsum(np.tile(gaps, int(30.0 / sum(gaps)) + 2))
+    checks = checks[checks < 30.0]
+    events = sorted([(s, 0, on) for s, on in switches] + [(c, 1, False) for c in checks])
+    tripped_at = None
+    for when_s, kind, on in events:
+        clock.now_s = 1000.0 + when_s
+        if kind == 0:
+            laser.on() if on else laser.off()
+        elif dog.check() is not None and tripped_at is None:
+            tripped_at = when_s
+    laser.close()
+    if not high:
+        assert tripped_at is None
+    elif checks.size and checks[-1] - checks[0] >= 10.0 + max(gaps):
+        assert tripped_at is not None
