@@ -38,7 +38,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from lamina_device.camera import CameraError, ColourCamera, TimedCamera, TimedFrame
-from lamina_device.config import continuous_turn_us, next_turn_period_problem
 from lamina_device.extract import ExtractSettings, StripePoints, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_device.motion import SpinningTable, move_axes
@@ -336,16 +335,6 @@ def continuous_problem(hardware: Hardware, plan: ScanPlan, colour: bool = False)
         every_s = 360.0 / (per_turn * table.spin_speed_deg_s)
         if problem := watchdog.pulse_problem(laser_pulse(camera.frame_timing), every_s):
             return f"the laser watchdog refuses its pulses: {problem}"
-    config = hardware.timing
-    if table.off_frames == "next-turn" and config is not None:
-        # The configuration was checked with the period the sensor should apply; this is
-        # the one the camera reports it does.
-        return next_turn_period_problem(
-            continuous_turn_us(config.turntable),
-            camera.frame_timing.period_s * 1e6,
-            config.camera,
-            config.turntable,
-        )
     return None
 
 

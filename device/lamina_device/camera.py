@@ -209,9 +209,6 @@ class PiCamera:
         self._mapped_array = module.MappedArray
         self.frames_dropped = 0
         self.exposure_us = config.exposure_us
-        self.applied_frame_us = config.frame_period_us
-        """The frame period the sensor reports it applies (``FrameDuration``): whole lines,
-        not quite ``frame_duration_us``; a next-turn scan's angles hang on it."""
         self._cam = module.Picamera2()
         try:
             self._start()
@@ -284,8 +281,6 @@ class PiCamera:
             finally:
                 request.release()
             if self._controls_applied(metadata):
-                applied_us = metadata.get("FrameDuration") or self.applied_frame_us
-                self.applied_frame_us = float(applied_us)
                 return
         raise CameraError(
             f"the camera did not apply exposure {self.exposure_us} us and gain "
@@ -360,10 +355,9 @@ class PiCamera:
 
     @property
     def frame_timing(self) -> FrameTiming:
-        """Return the frame period the sensor reports, the configured read-out and the
-        exposure now in use."""
+        """Return the configured frame period and read-out with the exposure now in use."""
         cfg = self.config
-        period_s = max(self.applied_frame_us, self.exposure_us) * 1e-6
+        period_s = max(cfg.frame_duration_us, self.exposure_us) * 1e-6
         return FrameTiming(period_s, self.exposure_us * 1e-6, cfg.readout_s, cfg.height)
 
     def capture_timed(self) -> TimedFrame:

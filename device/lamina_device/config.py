@@ -125,90 +125,33 @@ def continuous_turn_us(table: TurntableConfig) -> float:
     return steps / pulse_rate(table.continuous_speed_deg_s * steps / 360.0) * 1e6
 
 
-def next_turn_mismatch_deg(turn_us: float, period_us: float) -> float:
-    """Return how far the streamed frame nearest a turn after another stands from its angle.
-
-    Args:
-        turn_us: how long the table takes to turn once.
-        period_us: the camera's frame period.
-
-    Returns:
-        The turn's remainder after its nearest whole number of periods, in degrees.
-    """
-    frames = turn_us / period_us
-    return abs(frames - max(1, round(frames))) * 360.0 / frames
-
-
-NEXT_TURN_SEARCH = 40
-"""How many frame counts a turn either side of the asked period's :func:`next_turn_frame_us`
-tries."""
-
-
-def next_turn_frame_us(table: TurntableConfig, camera: CameraConfig) -> int:
-    """Return the ``frame_duration_us`` nearest ``camera``'s whose applied period (whole
-    lines: :func:`applied_frame_us`) a continuous turn divides best.
-
-    Among the frame counts a turn near the asked period's, the periods that miss the angle
-    by at most :data:`NEXT_TURN_MISMATCH_DEG` and fit the longest exposure and the read-out
-    are candidates, the nearest to the asked period chosen; without one, the least missing.
-    """
+def next_turn_frame_us(table: TurntableConfig, frame_duration_us: int) -> int:
+    """Return the frame period nearest ``frame_duration_us`` that divides a continuous turn."""
     turn_us = continuous_turn_us(table)
-    shortest_us = max(camera.max_exposure_us, camera.readout_us, 1000)
-    near = round(turn_us / camera.frame_period_us)
-    candidates: list[tuple[bool, float, int]] = []
-    for frames in range(max(1, near - NEXT_TURN_SEARCH), near + NEXT_TURN_SEARCH + 1):
-        asked_us = round(applied_frame_us(camera, turn_us / frames))
-        if asked_us < shortest_us:
-            continue
-        mismatch = next_turn_mismatch_deg(turn_us, applied_frame_us(camera, asked_us))
-        good = mismatch <= NEXT_TURN_MISMATCH_DEG
-        distance = abs(asked_us - camera.frame_duration_us)
-        candidates.append((not good, distance if good else mismatch, asked_us))
-    return min(candidates)[2] if candidates else camera.frame_duration_us
+    return round(turn_us / max(1, round(turn_us / frame_duration_us)))
 
 
 def next_turn_problem(table: TurntableConfig, camera: CameraConfig) -> str | None:
     """Return why laser-off frames a turn later would not meet their laser-on frames' angles.
 
-    The camera streams a frame every period it applies (:attr:`CameraConfig.frame_period_us`);
-    the frame a turn after a laser-on frame sees the same angle only when a turn (at the
-    step rate lgpio sends) is a whole number of those. Returns None when it is, to
+    The camera streams a frame every ``frame_duration_us``; the frame a turn after a
+    laser-on frame sees the same angle only when a turn (at the step rate lgpio sends) is
+    a whole number of frame periods. Returns None when it is, to
     :data:`NEXT_TURN_MISMATCH_DEG`, else the ``frame_duration_us`` that makes it so
     (:func:`next_turn_frame_us`).
     """
     turn_us = continuous_turn_us(table)
-    return next_turn_period_problem(turn_us, camera.frame_period_us, camera, table)
-
-
-def next_turn_period_problem(
-    turn_us: float, period_us: float, camera: CameraConfig, table: TurntableConfig
-) -> str | None:
-    """Return :func:`next_turn_problem` for a frame period ``period_us`` (the configured
-    one's, or the one a camera reports it applies), or None when a turn meets it."""
-    mismatch_deg = next_turn_mismatch_deg(turn_us, period_us)
+    frames = turn_us / camera.frame_duration_us
+    whole = max(1, round(frames))
+    mismatch_deg = abs(frames - whole) * 360.0 / frames
     if mismatch_deg <= NEXT_TURN_MISMATCH_DEG:
         return None
-    frames = turn_us / period_us
-    asked = camera.frame_duration_us
-    applied = "" if abs(period_us - asked) < 0.05 else f" (asked for {asked} us)"
-    found = (
-        f'[turntable] continuous_off_frames "next-turn": a turn of the table takes '
-        f"{turn_us / 1000:.1f} ms, {frames:.2f} frames of {period_us:.1f} us{applied}, so a "
-        f"frame a turn later misses the angle by {mismatch_deg:.2f} degrees"
-    )
-    if abs(period_us - camera.frame_period_us) > 1.0:
-        # The sensor does not time its lines as the read-out says: no period can be named.
-        return (
-            f"{found}; the camera applies that period, not the {camera.frame_period_us:.1f} us "
-            f"its read-out predicts (readout_us {camera.readout_us} over {camera.height} "
-            "lines): set [camera] readout_us to the sensor mode's, or "
-            'continuous_off_frames = "interleaved"'
-        )
-    better = next_turn_frame_us(table, camera)
     return (
-        f"{found}: set [camera] frame_duration_us = {better} "
-        f"({turn_us / applied_frame_us(camera, better):.0f} frames a turn), "
-        'or continuous_off_frames = "interleaved"'
+        f'[turntable] continuous_off_frames "next-turn": a turn of the table takes '
+        f"{turn_us / 1000:.1f} ms, {frames:.2f} frames of {camera.frame_duration_us} us, so a "
+        f"frame a turn later misses the angle by {mismatch_deg:.2f} degrees: set [camera] "
+        f"frame_duration_us = {next_turn_frame_us(table, camera.frame_duration_us)} "
+        f"({whole} frames a turn)"
     )
 
 
@@ -257,27 +200,6 @@ class CameraConfig:
     def readout_s(self) -> float:
         """Return the time from the first row's exposure to the last row's, in seconds."""
         return (self.readout_us or self.frame_duration_us) * 1e-6
-
-    @property
-    def frame_period_us(self) -> float:
-        """Return the frame period the sensor applies for ``frame_duration_us`` (microseconds).
-
-        A sensor times a frame in whole lines (the read-out over the rows, 9.21 us on the
-        shipped mode), so 8320 us becomes 8316.2 (903 lines): a next-turn scan's frame a
-        turn later misses the angle by that difference 120 times over. Without a read-out
-        (``readout_us`` 0) the period asked for.
-        """
-        return applied_frame_us(self, self.frame_duration_us)
-
-
-def applied_frame_us(camera: CameraConfig, frame_us: float) -> float:
-    """Return the frame period ``camera``'s sensor applies when ``frame_us`` is asked for:
-    the nearest whole number of lines (``readout_us`` over ``height``), or ``frame_us``
-    itself where the read-out is not given."""
-    if not camera.readout_us:
-        return float(frame_us)
-    line_us = camera.readout_us / camera.height
-    return max(1, round(frame_us / line_us)) * line_us
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,7 @@ def config_frame_timing(config: DeviceConfig, exposure_us: float | None = None) 
     """Return the camera's streaming timing as ``config`` describes it."""
     camera = config.camera
     exposure = camera.exposure_us if exposure_us is None else exposure_us
-    period_s = max(camera.frame_period_us, exposure) * 1e-6
+    period_s = max(camera.frame_duration_us, exposure) * 1e-6
     return FrameTiming(period_s, exposure * 1e-6, camera.readout_s, camera.height)
 
 
@@ -356,7 +356,7 @@ def estimate_scan_time(
         return _continuous_time(config, plan, processing_s_per_view, exposure_us)
     camera = config.camera
     exposure = camera.exposure_us if exposure_us is None else exposure_us
-    frames_s = FRAMES_PER_VIEW * frame_wait_s(camera.frame_period_us, exposure)
+    frames_s = FRAMES_PER_VIEW * frame_wait_s(camera.frame_duration_us, exposure)
     settle_s = max(config.turntable.settle_s, config.lift.settle_s)
     moves = _moves_s(config, plan)
     fixed_s = settle_s + frames_s

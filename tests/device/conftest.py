@@ -187,7 +187,6 @@ class FakeCameraWorld:
     max_gain: float = 16.0
     control_latency_frames: int = 3
     stall_when_lit: bool = False  # no frame comes once the laser is on (a loose cable)
-    line_us: float | None = None  # frames last whole lines of this (a real sensor's timing)
     cameras: list[Any] = field(default_factory=list)
 
     def lit_fraction(self, start_ns: np.ndarray, end_ns: np.ndarray) -> np.ndarray:
@@ -224,7 +223,7 @@ class FakeRequest:
             "SensorTimestamp": self.frame.end_first_row_ns,
             "ExposureTime": self.frame.exposure_us,
             "AnalogueGain": self.frame.gain,
-            "FrameDuration": round(self._camera.frame_us),
+            "FrameDuration": self._camera.frame_us,
         }
 
     def release(self) -> None:
@@ -274,7 +273,7 @@ class FakePicamera2:
         self.frames: list[_Frame] = []
         self.control_log: list[dict[str, Any]] = []
         self.config: dict[str, Any] | None = None
-        self.frame_us: float = 33_333
+        self.frame_us = 33_333
         self.exposure_us, self.gain = 20_000, 1.0  # auto values until controls apply
         self._pending: tuple[int, dict[str, Any]] | None = None
         self._start_ns = 0
@@ -292,8 +291,7 @@ class FakePicamera2:
         self.config = config
         limits = config["controls"].get("FrameDurationLimits")
         if limits:
-            line_us = self.world.line_us
-            self.frame_us = limits[1] if line_us is None else round(limits[1] / line_us) * line_us
+            self.frame_us = limits[1]
 
     def set_controls(self, controls: dict[str, Any]) -> None:
         self.control_log.append(dict(controls))
@@ -310,7 +308,7 @@ class FakePicamera2:
         self.closed = True
 
     def _end_ns(self, index: int) -> int:
-        return self._start_ns + round((index + 1) * self.frame_us * 1000)
+        return self._start_ns + (index + 1) * self.frame_us * 1000
 
     def capture_request(self, wait: bool | None = None) -> FakeRequest | FakeJob:
         """Return the next completed request, or with ``wait=False`` a job that will."""
@@ -326,7 +324,7 @@ class FakePicamera2:
         buffers = self.config["buffer_count"]
         frame_ns = self.frame_us * 1000
         # Frames finish (all rows read) one frame period after their first row ends exposure.
-        finished = int((time.monotonic_ns() - self._start_ns) // frame_ns) - 2
+        finished = (time.monotonic_ns() - self._start_ns) // frame_ns - 2
         index = max(self._next, finished - buffers + 1)  # older buffers were reused
         while time.monotonic_ns() < self._end_ns(index) + frame_ns:
             time.sleep(0.0005)

@@ -121,19 +121,18 @@ def test_the_simulator_runs_on_a_given_configuration_and_refuses_a_bad_one(tmp_p
     text = default_config_path().read_text()
     good = text.replace(
         'continuous_off_frames = "interleaved"', 'continuous_off_frames = "next-turn"'
-    ).replace("frame_duration_us = 8333", "frame_duration_us = 8390")
+    ).replace("frame_duration_us = 8333", "frame_duration_us = 8320")
     path = tmp_path / "box.toml"
     path.write_text(good)
     hardware = open_hardware("sim", config_path=path)
     try:
         assert hardware.turntable.off_frames == "next-turn"
-        assert hardware.timing is not None and hardware.timing.camera.frame_duration_us == 8390
-        # The simulated sensor times its frames in whole lines, as the box's does.
-        assert hardware.camera.frame_timing.period_s == pytest.approx(911 * 7957e-6 / 864)
+        assert hardware.timing is not None and hardware.timing.camera.frame_duration_us == 8320
+        assert hardware.camera.frame_timing.period_s == pytest.approx(8320e-6)
     finally:
         hardware.close()
-    path.write_text(good.replace("frame_duration_us = 8390", "frame_duration_us = 8333"))
-    with pytest.raises(HardwareError, match="set \\[camera\\] frame_duration_us = 8390"):
+    path.write_text(good.replace("frame_duration_us = 8320", "frame_duration_us = 8333"))
+    with pytest.raises(HardwareError, match="set \\[camera\\] frame_duration_us = 8320"):
         open_hardware("sim", config_path=path)
     shipped = open_hardware("sim")
     try:

@@ -414,7 +414,7 @@ def test_a_paused_continuous_scan_stops_the_table_until_resumed():
 
 def next_turn(hardware):
     """Set ``hardware``'s (simulated) box to take laser-off frames a turn later, with the
-    frame period whose whole lines a turn divides (8390 us: ``test_config``); return it."""
+    frame period a turn divides (8320 us: ``test_config``); return it."""
     return CampaignPlan("limb", 1, 10.0, 8, off_frames="next-turn").box(hardware)
 
 
@@ -423,8 +423,8 @@ RELIEF_SHAPE = "random:seed=97104,scale=limb"
 
 
 def _room_light_error(hardware, capture) -> float:
-    """Return the share of a view's laser-off reference that stands more than 3 DN from its
-    laser-on frame's own room light (the same exposure rendered with the laser off)."""
+    """Return how far a view's laser-off reference stands from its laser-on frame's own room
+    light (the same exposure rendered with the laser off), at most over the frame, in DN."""
     scene = hardware.camera.scene
     exposures = []
     render = scene.render_exposure
@@ -444,7 +444,7 @@ def _room_light_error(hardware, capture) -> float:
         hardware.turntable.stop_spin()
     target, z_mm, exposure, key, options = exposures[-1]
     room, _ = render(target, z_mm, False, exposure, key, **options)
-    return float(np.mean(np.abs(off.astype(float) - room.astype(float)) > 3.0))
+    return float(np.abs(off.astype(float) - room.astype(float)).max())
 
 
 def test_a_next_turn_laser_off_frame_is_the_laser_on_frames_own_room_light():
@@ -469,11 +469,9 @@ def test_a_next_turn_laser_off_frame_is_the_laser_on_frames_own_room_light():
             errors[mode] = _room_light_error(hardware, capture)
         finally:
             hardware.close()
-    # The table turned 12 degrees between the interleaved off frames: relief passes for light
-    # (11 % of the frame). A turn later the table stands within 0.004 degrees (the period's
-    # whole lines): a few silhouette pixels (16 of 82944).
-    assert errors["interleaved"] > 0.05
-    assert errors["next-turn"] <= 0.001, errors
+    # The table turned 12 degrees between the interleaved off frames: relief passes for light.
+    assert errors["interleaved"] > 20.0
+    assert errors["next-turn"] <= 1.0, errors
 
 
 def test_a_next_turn_scan_pulses_the_laser_once_a_view_and_takes_a_second_turn():
@@ -593,38 +591,3 @@ def test_a_simulated_laser_rendered_slowly_is_timed_on_the_simulators_clock():
     assert trips == []
     assert laser.count(True) == len(plan.views)  # one pulse a view, none cut short
     assert len(segments) == len(plan.views) and all(len(s.cols) > 0 for s in segments)
-
-
-@pytest.mark.parametrize(("sensor_line_us", "refused"), [(None, False), (30.0, True)])
-def test_a_next_turn_box_checks_the_frame_period_its_camera_reports(
-    pi_kit, fake_picamera2, tmp_path, sensor_line_us, refused
-):
-    """The configuration predicts the period the sensor applies from its read-out (whole
-    lines of ``readout_us / height``); the camera reports the one it does (``FrameDuration``)
-    and a next-turn scan is refused, naming it, when a turn does not divide it."""
-    from lamina_device.backends import open_hardware
-    from lamina_device.config import next_turn_frame_us
-
-    config = pi_kit.config
-    table = replace(config.turntable, continuous_off_frames="next-turn")
-    frame_us = next_turn_frame_us(table, config.camera)
-    camera = replace(config.camera, frame_duration_us=frame_us)
-    line_us = camera.readout_us / camera.height
-    fake_picamera2.line_us = sensor_line_us if sensor_line_us is not None else line_us
-    factory = MockFactory(pin_class=MockPWMPin)
-    fake_picamera2.laser_pin = lambda: factory.pin(config.laser.pin)
-    path = tmp_path / "box.toml"
-    path.write_text(pi_kit.toml(replace(config, turntable=table, camera=camera)))
-    hardware = open_hardware("pi", config_path=path, pin_factory=factory)
-    try:
-        applied_us = round(round(frame_us / fake_picamera2.line_us) * fake_picamera2.line_us)
-        assert hardware.camera.frame_timing.period_s == pytest.approx(applied_us * 1e-6)
-        problem = continuous_problem(hardware, ScanPlan.regular(1, 10.0, 4, "continuous"))
-    finally:
-        hardware.close()
-    if refused:
-        assert f"frames of {applied_us:.1f} us (asked for {frame_us} us)" in (problem or "")
-        assert "misses the angle" in (problem or ""), problem
-        assert "set [camera] readout_us to the sensor mode's" in (problem or "")
-    else:
-        assert problem is None

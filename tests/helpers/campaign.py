@@ -110,7 +110,7 @@ def next_turn_config(config: DeviceConfig) -> DeviceConfig:
     """Return ``config`` taking continuous laser-off frames a turn later, with the frame
     period nearest its own that a turn divides (``config.next_turn_frame_us``)."""
     table = replace(config.turntable, continuous_off_frames="next-turn")
-    frame_us = next_turn_frame_us(table, config.camera)
+    frame_us = next_turn_frame_us(table, config.camera.frame_duration_us)
     camera = replace(config.camera, frame_duration_us=frame_us)
     return replace(config, turntable=table, camera=camera)
 

@@ -74,7 +74,7 @@ class SimClock:
 
     def frame(self, exposure_us: float) -> None:
         """Let the wait for one fresh frame at ``exposure_us`` pass."""
-        self.advance(frame_wait_s(self.config.camera.frame_period_us, exposure_us))
+        self.advance(frame_wait_s(self.config.camera.frame_duration_us, exposure_us))
 
     @property
     def settle_s(self) -> float:

@@ -107,10 +107,9 @@ class SimCamera:
 
     @property
     def frame_timing(self) -> FrameTiming:
-        """Return the box's frame period (whole lines, as its sensor applies it) and read-out
-        (the configuration it runs on), this exposure."""
+        """Return the box's frame period and read-out (shipped configuration), this exposure."""
         camera = self.turntable.clock.config.camera
-        period_s = max(camera.frame_period_us, self.exposure_us) * 1e-6
+        period_s = max(camera.frame_duration_us, self.exposure_us) * 1e-6
         return FrameTiming(period_s, self.exposure_us * 1e-6, camera.readout_s, self.size[1])
 
     def capture_timed(self) -> TimedFrame:
