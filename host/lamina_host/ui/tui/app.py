@@ -74,7 +74,7 @@ class LaminaApp(JobApp):
     ) -> None:
         target = DeviceTarget(device, object_spec, noise=noise, rig=rig)
         super().__init__(ScanJob(target, library))
-        self._gc_thresholds = gc.get_threshold()
+        self._gc_thresholds = gc.get_threshold()  # restored on unmount
 
     def on_mount(self) -> None:
         """Install the help once: laid out on first use, it then opens at once, even during a
@@ -89,7 +89,6 @@ class LaminaApp(JobApp):
         # What a scan and processing make after that still brought a full collection (40-70
         # ms) about eight times a bench run; ten times fewer of them leave the rest to the
         # young generations, which free short-lived cycles in a millisecond or two.
-        self._gc_thresholds = gc.get_threshold()
         young, middle, old = self._gc_thresholds
         gc.set_threshold(young, middle, old * FULL_COLLECTIONS_RARER)
 
