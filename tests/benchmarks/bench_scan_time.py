@@ -18,9 +18,12 @@ scanned in both modes in this process (the simulated device's acquisition, then 
 default processing, each continuous point at its own row's angle as the product takes it;
 the calibration board and cylinder are taken once, stop-and-go, as a scan takes them)
 and measured as ``bench_limb`` measures them: volume over the scanned range, and the
-circumference at a level at every section (10 mm apart) against the true shape; the
-modes are compared on each phantom's volume and worst circumference error and on the RMS
-circumference error over all 19 levels. The continuous frames are rendered with the
+circumference at a level at every section (10 mm apart) against the true shape. Each
+mode scans each phantom with four noise draws (the simulator's seed, ``ACCURACY_DRAWS``;
+two worker processes), since a level's error moves by 0.03-0.04 mm from draw to draw, as
+far as the modes stand apart; the modes are compared on each phantom's volume and worst
+circumference error averaged over the draws and on the RMS circumference error over all
+levels and draws (19 levels a draw in the full study). The continuous frames are rendered with the
 rolling shutter, the motion blur over each exposure, the table turning between a view's
 laser-off, laser-on and laser-off frames, and the frame timestamps' jitter
 (``lamina_device.sim.camera``).
@@ -47,11 +50,10 @@ worker processes; ``next_turn_rows`` gives each plan's modelled time that way.
 **Quick by default.** A continuous frame renders each band of rows at its own pose, three
 frames a view, about 6 s of processor time a view, so ``make bench`` (and
 ``python tests/benchmarks/bench_scan_time.py``) runs the quick set: every plan's modelled
-times, the arm's first three sections still in both modes, and its first two with the
-strong sway in both modes (5.5 minutes of processor time; 12 minutes of wall time on two
-cores shared with three other jobs). The full study above (both phantoms, both sways,
-three sections each; about half an hour of processor time by the same rates, an hour
-or more of wall time on loaded cores; not yet run to its end) is
+times, the arm's first three sections still in both modes with four noise draws each, and
+its first three with the strong sway in both modes (about 10 minutes of processor time).
+The full study above (both phantoms with four draws, both sways; about two hours of
+processor time by the same rates; not yet run to its end) is
 ``python tests/benchmarks/bench_scan_time.py --full``, or ``LAMINA_SCAN_TIME_FULL=1 make
 bench``.
 """
@@ -65,6 +67,7 @@ import os
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +86,13 @@ OBJECTS = (
 """The phantoms compared (``bench_limb``'s set): name, object, sections."""
 QUICK_OBJECTS = (("arm", "arm:scale=5", 3),)
 """The quick set: the arm's first three sections (``bench_limb``'s quick arm)."""
+ACCURACY_DRAWS = (0, 1, 2, 3)
+"""The noise draws (the simulator's seed) each mode scans the still phantoms with. Within
+one mode a level's circumference error moves by 0.03-0.04 mm (one standard deviation) from
+one draw to the next, as far as the modes ever stood apart: on one draw the comparison
+ranked the draws, not the modes (a frame period 1 us longer or shorter renders other
+frames, so it is another draw too: 0.12-0.21 mm worst level continuously over five draws,
+0.13-0.20 mm stop-and-go over seven)."""
 SWAY_SECTIONS = QUICK_SWAY_SECTIONS = 3
 """Sections of the arm scanned with each sway: the first three of the plan (the fewest
 with an inner section, which the check of consecutive sections needs)."""
@@ -104,6 +114,8 @@ RELIEF_WAYS = (
     ("next-turn", "continuous", "next-turn"),
 )
 """How each random shape is scanned: name, plan mode, the box's laser-off frames."""
+WORKERS = 2
+"""Worker processes for the still scans and the random shapes (this machine's cores)."""
 MOTION_WARNING = "overlapping views stand"
 """What the report's motion warning says (``store/outputs.py``)."""
 JUMP_WARNING = "off the line of the sections below and above"
@@ -205,7 +217,7 @@ def next_turn_rows(rows: list[dict[str, Any]], processing_s: float) -> list[dict
     ]
 
 
-def relief(workers: int = 2) -> list[dict[str, Any]]:
+def relief(workers: int = WORKERS) -> list[dict[str, Any]]:
     """Scan :data:`RELIEF_SEEDS` each way of :data:`RELIEF_WAYS` (harsh, limb rig, 2 x 8)
     in the campaign's worker processes (``bench_campaign.run_scale``).
 
@@ -233,8 +245,11 @@ def relief(workers: int = 2) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda row: row["seed"])
 
 
-def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> dict[str, Any]:
-    """Scan one phantom in one mode with one sway; return its errors, time and warnings."""
+def scan(
+    calibration: Any, spec: str, sections: int, mode: str, sway: str, draw: int = 0
+) -> dict[str, Any]:
+    """Scan one phantom in one mode with one sway and noise draw; return its errors, time and
+    warnings."""
     from bench_limb import measure
 
     from lamina_device.acquisition import acquire, row_turn_deg
@@ -247,7 +262,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     from lamina_shared.types import ScanPlan
 
     plan = ScanPlan.regular(sections, PITCH_MM, VIEWS, mode)
-    hardware = open_sim(spec, 0, NOISE, RIG, sway=sway)
+    hardware = open_sim(spec, draw, NOISE, RIG, sway=sway)
     clock = hardware.turntable.clock
     segments: list[Any] = []
     arrived_s: list[float] = []  # each segment's arrival on the clock: where the sway was
@@ -267,7 +282,10 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
     finally:
         hardware.close()
     wall_s = time.perf_counter() - wall
-    print(f"  ({spec} {mode} sway={sway}: {len(plan.views)} views in {wall_s:.0f} s)", flush=True)
+    print(
+        f"  ({spec} {mode} sway={sway} draw {draw}: {len(plan.views)} views in {wall_s:.0f} s)",
+        flush=True,
+    )
     assert hardware.board is not None and hardware.cylinder_diameter_mm is not None
     # As the product processes it: each continuous point at its own row's angle.
     row_turn = row_turn_deg(hardware) if plan.continuous else 0.0
@@ -294,6 +312,7 @@ def scan(calibration: Any, spec: str, sections: int, mode: str, sway: str) -> di
         "spec": spec,
         "mode": mode,
         "sway": sway,
+        "draw": draw,
         "sections": sections,
         "scan_s": round(scan_s, 3),
         "modelled_s": round(modelled.modelled_s, 3),
@@ -344,8 +363,9 @@ def run(full: bool = FULL) -> dict[str, Any]:
     """Model every plan in both modes; scan the phantoms in both modes, still and swaying.
 
     Args:
-        full: the full study (both phantoms, both sways, about 30 processor minutes); otherwise the
-            quick set (the arm's first sections, the strong sway, 5.5 processor minutes).
+        full: the full study (both phantoms, four draws, both sways, about 2 processor
+            hours); otherwise the quick set (the arm's first sections, the strong sway, about
+            10 processor minutes).
     """
     from tests.helpers.campaign import CampaignPlan, _calibration
 
@@ -356,11 +376,15 @@ def run(full: bool = FULL) -> dict[str, Any]:
     }
     calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
     results["set"] = "full" if full else "quick"
-    results["accuracy"] = [
-        scan(calibration, spec, sections, mode, "none") | {"name": name}
+    jobs = [
+        (name, spec, sections, mode, draw)
         for name, spec, sections in (OBJECTS if full else QUICK_OBJECTS)
         for mode in MODES
+        for draw in ACCURACY_DRAWS
     ]
+    # Forked workers inherit the calibration taken above (the campaign's per-process cache).
+    with ProcessPoolExecutor(max_workers=WORKERS) as pool:
+        results["accuracy"] = list(pool.map(_still_scan, jobs))
     name, spec, _ = OBJECTS[0]
     sway_sections = SWAY_SECTIONS if full else QUICK_SWAY_SECTIONS
     results["sway"] = [
@@ -374,28 +398,47 @@ def run(full: bool = FULL) -> dict[str, Any]:
     return results
 
 
-def _comparison(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Return continuous mode's errors over stop-and-go's (target <= 1.2), on the same phantoms.
+def _still_scan(job: tuple[str, str, int, str, int]) -> dict[str, Any]:
+    """Scan one still phantom in one mode and draw (a worker's job); name the row."""
+    from tests.helpers.campaign import CampaignPlan, _calibration
 
-    Per phantom, the volume error and the worst circumference error; over every level of
-    every phantom, the RMS circumference error (the figure least at the mercy of one level's
-    noise: a level's circumference varies by about 0.1 mm between two scans of either mode).
+    name, spec, sections, mode, draw = job
+    calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
+    return scan(calibration, spec, sections, mode, "none", draw) | {"name": name}
+
+
+def _comparison(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return continuous mode's errors over stop-and-go's (target <= 1.2), on the same phantoms
+    and noise draws (:data:`ACCURACY_DRAWS`).
+
+    Per phantom, the volume error and the worst circumference error, each averaged over the
+    draws; over every level of every phantom and draw, the RMS circumference error (the
+    figure least at the mercy of one level's noise).
     """
-    by = {(r["name"], r["mode"]): r for r in rows}
+    by: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        by.setdefault((row["name"], row["mode"]), []).append(row)
     names = [n for n in dict.fromkeys(r["name"] for r in rows) if all((n, m) in by for m in MODES)]
     per_phantom = []
     pooled: dict[str, list[float]] = {mode: [] for mode in MODES}
     for name in names:
-        still, moving = by[(name, MODES[0])], by[(name, MODES[1])]
-        entry: dict[str, Any] = {"name": name}
+        entry: dict[str, Any] = {"name": name, "draws": len(by[(name, MODES[0])])}
         for key in ("volume_error_percent", "max_abs_circumference_error_mm"):
-            entry[key + "_ratio"] = _ratio(abs(moving[key]), abs(still[key]))
+            still, moving = (_mean_abs(by[(name, mode)], key) for mode in MODES)
+            entry[key + "_ratio"] = _ratio(moving, still)
+        worst = {
+            mode: [round(r["max_abs_circumference_error_mm"], 4) for r in by[(name, mode)]]
+            for mode in MODES
+        }
+        entry["worst_circumference_by_draw_mm"] = worst
         per_phantom.append(entry)
         for mode in MODES:
-            pooled[mode] += by[(name, mode)]["circumference_errors_mm"]
+            for row in by[(name, mode)]:
+                pooled[mode] += row["circumference_errors_mm"]
     rms = {m: float(np.sqrt(np.mean(np.square(v)))) if v else 0.0 for m, v in pooled.items()}
     volume = {
-        m: float(np.mean([abs(by[(n, m)]["volume_error_percent"]) for n in names])) for m in MODES
+        m: float(np.mean([abs(r["volume_error_percent"]) for n in names for r in by[(n, m)]]))
+        for m in MODES
     }
     return {
         "per_phantom": per_phantom,
@@ -405,6 +448,11 @@ def _comparison(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "mean_abs_volume_error_percent": {m: round(v, 4) for m, v in volume.items()},
         "volume_ratio": _ratio(volume[MODES[1]], volume[MODES[0]]),
     }
+
+
+def _mean_abs(rows: list[dict[str, Any]], key: str) -> float:
+    """Return the mean of ``key``'s absolute value over ``rows`` (a phantom's draws)."""
+    return float(np.mean([abs(row[key]) for row in rows]))
 
 
 def _ratio(value: float, base: float) -> float | None:
@@ -427,14 +475,14 @@ def report(results: dict[str, Any]) -> list[str]:
             f"{in_turn}"
         )
     lines.append(
-        "  phantom   mode         sway      scan s (model)   vol %   vol-lift %  max |dC| mm  "
+        "  phantom   mode         sway    draw  scan s (model)   vol %   vol-lift %  max |dC| mm  "
         "warned  views apart mm (per section, beyond noise)  jumped  "
         "section: jump mm (limit; true shift, its part toward the camera)"
     )
     for row in results.get("accuracy", []) + results.get("sway", []):
         lines.append(
             f"  {row['name']:<9} {row['mode']:<12} {row.get('sway_name', 'none'):<8}"
-            f"{row['scan_s']:>7.1f} ({row['modelled_s']:5.1f})  "
+            f"{row.get('draw', 0):>4}  {row['scan_s']:>7.1f} ({row['modelled_s']:5.1f})  "
             f"{row['volume_error_percent']:+6.3f}  "
             f"{row['volume_error_without_lift_percent']:+9.3f}  "
             f"{row['max_abs_circumference_error_mm']:11.3f}  {len(row['motion_warnings']):>6}  "
@@ -450,9 +498,14 @@ def report(results: dict[str, Any]) -> list[str]:
     comparison = results.get("comparison") or {}
     for entry in comparison.get("per_phantom", []):
         lines.append(
-            f"  {entry['name']}: continuous over stop-and-go: volume error x"
-            f"{entry['volume_error_percent_ratio']}, worst circumference error x"
-            f"{entry['max_abs_circumference_error_mm_ratio']}"
+            f"  {entry['name']} ({entry['draws']} draws): continuous over stop-and-go: mean "
+            f"|volume error| x{entry['volume_error_percent_ratio']}, mean worst circumference "
+            f"error x{entry['max_abs_circumference_error_mm_ratio']} (worst per draw: "
+            + "; ".join(
+                f"{mode} " + ", ".join(f"{v:.3f}" for v in values)
+                for mode, values in entry["worst_circumference_by_draw_mm"].items()
+            )
+            + " mm)"
         )
     if comparison:
         rms, volume = (

@@ -32,7 +32,7 @@ correction factor.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -98,20 +98,39 @@ class AxisCalibration:
     view_offset_sd_deg: float = float("nan")
     view_offsets_note: str = ""
 
-    def true_angle_deg(self, commanded_deg: float) -> float:
+    @overload
+    def true_angle_deg(self, commanded_deg: float) -> float: ...
+
+    @overload
+    def true_angle_deg(self, commanded_deg: np.ndarray) -> np.ndarray: ...
+
+    def true_angle_deg(self, commanded_deg: float | np.ndarray) -> float | np.ndarray:
         """Return the turntable angle the object was really at for a commanded angle.
 
         With per-view offsets (``view_offsets_deg`` rows: commanded angle, true minus
         commanded), the angle is ``scale x commanded`` plus the periodic remainder of the
         offsets, interpolated round the turn: exactly the fitted offset at a calibrated
-        angle, and a repeatable gear error in between.
+        angle, and a repeatable gear error in between. The error is a function of the
+        angle within the turn (the scale's undershoot grows through a turn and starts
+        again at 0), so a continuous view's rows either side of 0 are each taken on
+        their own side.
+
+        Args:
+            commanded_deg: one commanded angle within a turn, or an array of them (a
+                continuous view's rows, each at its own).
+
+        Returns:
+            The true angle, or an array of them.
         """
         base = commanded_deg * self.angle_scale
         if self.view_offsets_deg is None:
             return base
         cmd, offset = self.view_offsets_deg.T
         periodic = offset - (self.angle_scale - 1.0) * cmd
-        return base + float(np.interp(commanded_deg % 360.0, cmd % 360.0, periodic, period=360.0))
+        remainder = np.interp(np.mod(commanded_deg, 360.0), cmd % 360.0, periodic, period=360.0)
+        if isinstance(commanded_deg, np.ndarray):
+            return base + remainder
+        return base + float(remainder)
 
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""

@@ -515,13 +515,18 @@ def object_points(
     :func:`lamina_host.link.identity.row_turn_deg`) adds each point's own row's share:
     the view's angle is the table's when its stripe's median row was exposed (the
     device's ``_stripe_angle``, over every point it sent), each row below it one row
-    time later.
+    time later. Each row's commanded angle goes through the calibration on its own: a
+    stripe whose rows span the count's whole turn (the 0-degree view) has rows on either
+    side of it, and the calibrated error, a function of the angle within the turn, is
+    taken on each row's side.
     """
     points = grid.homography.apply(segment.uv[order])
-    angle: float | np.ndarray = axis.true_angle_deg(segment.angle_deg)
+    angle: float | np.ndarray
     if row_turn_deg:
         rows = segment.rows[order].astype(float) - float(np.median(segment.rows))
-        angle = angle + axis.angle_scale * row_turn_deg * rows
+        angle = axis.true_angle_deg(np.mod(segment.angle_deg + row_turn_deg * rows, 360.0))
+    else:
+        angle = axis.true_angle_deg(segment.angle_deg)
     return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
 
 
