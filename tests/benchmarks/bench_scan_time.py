@@ -23,10 +23,10 @@ mode scans each phantom with four noise draws (the simulator's seed, ``ACCURACY_
 two worker processes), since a level's error moves by 0.03-0.04 mm from draw to draw, as
 far as the modes stand apart; the modes are compared on each phantom's volume and worst
 circumference error averaged over the draws and on the RMS circumference error over all
-levels and draws (19 levels a draw in the full study). The continuous frames are rendered with the
-rolling shutter, the motion blur over each exposure, the table turning between a view's
-laser-off, laser-on and laser-off frames, and the frame timestamps' jitter
-(``lamina_device.sim.camera``).
+levels and draws (19 levels a draw in the full study). The continuous frames are
+rendered with the rolling shutter, the motion blur over each exposure, the table turning
+between a view's laser-off, laser-on and laser-off frames, and the frame timestamps'
+jitter (``lamina_device.sim.camera``).
 
 **Sway.** The arm is scanned again in both modes with the simulated patient's sway
 (``patient``: 1 mm a minute of drift and 0.5 mm breathing at 0.25 Hz; ``strong``: 3 mm a
@@ -90,9 +90,10 @@ ACCURACY_DRAWS = (0, 1, 2, 3)
 """The noise draws (the simulator's seed) each mode scans the still phantoms with. Within
 one mode a level's circumference error moves by 0.03-0.04 mm (one standard deviation) from
 one draw to the next, as far as the modes ever stood apart: on one draw the comparison
-ranked the draws, not the modes (a frame period 1 us longer or shorter renders other
-frames, so it is another draw too: 0.12-0.21 mm worst level continuously over five draws,
-0.13-0.20 mm stop-and-go over seven)."""
+ranked the draws, not the modes. A frame period 1 us longer or shorter renders other
+frames, so it is another draw too: the arm's worst level measured 0.12-0.21 mm
+continuously over draws 0-3 and over draw 0 at 8332, 8334 and 8335 us, and 0.13-0.20 mm
+stop-and-go over draws 0-6."""
 SWAY_SECTIONS = QUICK_SWAY_SECTIONS = 3
 """Sections of the arm scanned with each sway: the first three of the plan (the fewest
 with an inner section, which the check of consecutive sections needs)."""
