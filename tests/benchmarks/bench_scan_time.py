@@ -368,14 +368,12 @@ def run(full: bool = FULL) -> dict[str, Any]:
             hours); otherwise the quick set (the arm's first sections, the strong sway, about
             10 processor minutes).
     """
-    from tests.helpers.campaign import CampaignPlan, _calibration
-
     processing_s = _processing_s()
     results: dict[str, Any] = {
         "rows": time_rows(processing_s),
         "processing_s_per_view": round(processing_s, 5),
     }
-    calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
+    calibration = _bench_calibration()
     results["set"] = "full" if full else "quick"
     jobs = [
         (name, spec, sections, mode, draw)
@@ -401,11 +399,16 @@ def run(full: bool = FULL) -> dict[str, Any]:
 
 def _still_scan(job: tuple[str, str, int, str, int]) -> dict[str, Any]:
     """Scan one still phantom in one mode and draw (a worker's job); name the row."""
+    name, spec, sections, mode, draw = job
+    return scan(_bench_calibration(), spec, sections, mode, "none", draw) | {"name": name}
+
+
+def _bench_calibration() -> Any:
+    """Return the limb rig's board and cylinder data, taken once per process (the
+    campaign's cache), stop-and-go as a scan takes them."""
     from tests.helpers.campaign import CampaignPlan, _calibration
 
-    name, spec, sections, mode, draw = job
-    calibration = _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
-    return scan(calibration, spec, sections, mode, "none", draw) | {"name": name}
+    return _calibration(CampaignPlan(RIG, 1, PITCH_MM, VIEWS, NOISE))
 
 
 def _comparison(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -438,8 +441,7 @@ def _comparison(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 pooled[mode] += row["circumference_errors_mm"]
     rms = {m: float(np.sqrt(np.mean(np.square(v)))) if v else 0.0 for m, v in pooled.items()}
     volume = {
-        m: float(np.mean([abs(r["volume_error_percent"]) for n in names for r in by[(n, m)]]))
-        for m in MODES
+        m: _mean_abs([r for n in names for r in by[(n, m)]], "volume_error_percent") for m in MODES
     }
     return {
         "per_phantom": per_phantom,
