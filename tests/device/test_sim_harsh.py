@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from lamina_device.sim import NOISE_PRESETS, NoiseModel, Rig, SimScene, parse_object
-from lamina_device.sim.axes import Mechanics, _repeatable_unit_noise
+from lamina_device.sim.axes import Mechanics, SimTurntable, _repeatable_unit_noise
 from lamina_device.sim.truth import lit_and_seen_points
+from lamina_shared.types import ScanPlan
 
 CYLINDER = parse_object("cylinder:d=19.05")
 VIEW = ("object", 0.0, 5.0)  # the cylinder face-on, a strong stripe
@@ -221,6 +222,32 @@ def test_harsh_mechanics_add_a_once_per_turn_error_no_scale_absorbs():
     true = np.array([harsh.true_angle_deg(a) for a in views])
     fit = np.polyfit(views, true, 1)  # the best angle scale and offset the host could fit
     assert np.sqrt(np.mean((np.polyval(fit, views) - true) ** 2)) > 0.05
+
+
+def test_an_accumulating_gear_falls_a_turns_undershoot_behind_each_section():
+    """Stop-and-go turns on through 360 to each next section: with the error a function of
+    the count since power-up, each section's views stand 1.6 degrees (the thesis's 0.2 per
+    45) further back than the last's; the per-turn model repeats the first turn's."""
+    per_turn = Mechanics()
+    accumulating = replace(per_turn, angle_error_accumulates=True)
+    plan = ScanPlan.regular(4, 2.5, 8, "stop-and-go")
+    true = {}
+    for mechanics in (per_turn, accumulating):
+        table = SimTurntable(mechanics)
+        for view in plan.views:
+            table.move_to(view.angle_deg)
+            true[mechanics.angle_error_accumulates, view.section, view.angle_deg] = (
+                table.true_angle_deg,
+                table.count_deg,
+            )
+    for (accumulates, section, angle), (angle_true, count) in true.items():
+        assert count == pytest.approx(360.0 * section + angle, abs=1e-6)  # on, the short way
+        first_turn, _ = true[False, 0, angle]
+        if accumulates:
+            behind = (360.0 * section + first_turn) - angle_true
+            assert behind == pytest.approx(section * 1.6, abs=0.02)
+        else:
+            assert angle_true == first_turn
 
 
 def test_the_simulated_device_opens_with_the_harsh_preset():

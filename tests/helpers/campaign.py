@@ -26,6 +26,7 @@ from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
 from lamina_device.config import DeviceConfig, next_turn_frame_us
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
+from lamina_device.sim.axes import SimTurntable
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
 from lamina_device.sim.random_shapes import RandomShape, ShapeFeatures, random_shape
@@ -83,6 +84,7 @@ class CampaignPlan:
     resolution: float = 1.0  # < 1: the preset rig's camera binned down (fast tests)
     mode: str = "stop-and-go"
     off_frames: str = "interleaved"  # a continuous scan's laser-off frames (the box's config)
+    accumulating_gear: bool = False  # Mechanics.angle_error_accumulates, calibration and object
 
     def rig(self) -> Rig:
         """Return the rig: the preset, its image and focal length scaled by ``resolution``."""
@@ -99,10 +101,19 @@ class CampaignPlan:
 
     def box(self, hardware: Hardware) -> Hardware:
         """Return the simulated ``hardware`` configured to take this plan's laser-off frames
-        (a turn later: :func:`next_turn_config`)."""
+        (a turn later: :func:`next_turn_config`) on this plan's gear (:meth:`geared`)."""
+        self.geared(hardware)
         if self.off_frames == "next-turn":
             clock = hardware.turntable.clock
             clock.config = hardware.timing = next_turn_config(clock.config)
+        return hardware
+
+    def geared(self, hardware: Hardware) -> Hardware:
+        """Return the simulated ``hardware`` with this plan's gear: its error accumulating
+        over the turns (``accumulating_gear``) or, as the preset has it, per turn."""
+        if self.accumulating_gear and isinstance(hardware.turntable, SimTurntable):
+            table = hardware.turntable
+            table.mechanics = replace(table.mechanics, angle_error_accumulates=True)
         return hardware
 
 
@@ -175,14 +186,14 @@ class _Calibration:
     cylinder: list[Segment]
 
 
-_CALIBRATIONS: dict[tuple[str, float, str], _Calibration] = {}  # per process: frames are pure
+_CALIBRATIONS: dict[tuple[str, float, str, bool], _Calibration] = {}  # per process: frames are pure
 
 
 def _calibration(plan: CampaignPlan) -> _Calibration:
     """Return the rig's board and cylinder data, acquiring them on first use."""
-    key = (plan.scale, plan.resolution, plan.noise)
+    key = (plan.scale, plan.resolution, plan.noise, plan.accumulating_gear)
     if key not in _CALIBRATIONS:
-        hardware = open_sim(None, 0, plan.noise, plan.scale, plan.rig())
+        hardware = plan.geared(open_sim(None, 0, plan.noise, plan.scale, plan.rig()))
         cylinder: list[Segment] = []
         try:
             grid = grab_grid(hardware)
@@ -298,8 +309,9 @@ def _measure(
     rig = plan.rig()
     scene = SimScene(rig, shape, NoiseModel.preset(plan.noise))
     mechanics = Mechanics.preset(plan.noise)
-    views = [(v.z_mm, v.angle_deg) for v in plan.scan_plan().views]
-    lit = lit_and_seen_points(scene, views, mechanics)
+    if plan.accumulating_gear:
+        mechanics = replace(mechanics, angle_error_accumulates=True)
+    lit = lit_and_seen_points(scene, _counted_views(plan), mechanics)
     result.lit_points = len(lit)
     contour, _ = measured_cloud(recon)
     raw = (
@@ -337,6 +349,22 @@ def _measure(
             )
         )
     result.volume_error_percent = _volume_error(shape, recon, mechanics)
+
+
+def _counted_views(plan: CampaignPlan) -> list[tuple[float, float]]:
+    """Return each view's height and commanded angle as the gear sees it: within the turn,
+    or, where its error accumulates, the count since power-up the box's moves reach."""
+    views = plan.scan_plan().views
+    if not plan.accumulating_gear:
+        return [(v.z_mm, v.angle_deg) for v in views]
+    if plan.mode != "stop-and-go":
+        raise ValueError("an accumulating gear's views are counted for stop-and-go plans only")
+    table = SimTurntable(Mechanics.ideal())
+    counted = []
+    for v in views:
+        table.move_to(v.angle_deg)
+        counted.append((v.z_mm, table.count_deg))
+    return counted
 
 
 def _volume_error(shape: RandomShape, recon: Reconstruction, mechanics: Mechanics) -> float:

@@ -106,6 +106,15 @@ class Mechanics:
     """Amplitude of an off-centre gear's error, ``eccentric * sin(commanded + phase)``."""
     angle_eccentric_phase_deg: float = 0.0
     """Phase of the off-centre gear's error."""
+    angle_error_accumulates: bool = False
+    """True: the table's error is a function of its whole rotation since power-up (the
+    box's step count, turned the short way as the box turns), so the undershoot grows by
+    one turn's worth (1.6 degrees at the thesis's 0.2 per 45) each time a scan turns on
+    through a whole turn, as a table's does that turns short of its count with no index
+    to re-reference it (the thesis's motor: its sections came out under-rotated and the
+    object skewed, 8.3; a ``gear_ratio`` that does not match the pulleys). False (the
+    default): it starts again at each commanded 0, the model the host's angle correction
+    assumes. Issue 22 keeps the default until the device and host carry whole turns."""
 
     @classmethod
     def ideal(cls) -> Mechanics:
@@ -250,8 +259,12 @@ class SimTurntable(ContinuousTurntable):
         model jumps where the count passes a whole turn. A band of a frame's rows is
         rendered about its own reference angle, the error there plus the turn since
         scaled as the gear scales it: the object turns smoothly through each band's blur,
-        and each band sits on the side of the jump its own count says.
+        and each band sits on the side of the jump its own count says. A gear whose error
+        accumulates (:attr:`Mechanics.angle_error_accumulates`) has no jump: the count since
+        power-up gives the angle.
         """
+        if self.mechanics.angle_error_accumulates:
+            return self.mechanics.true_angle_deg(self.angle_at(at_ns))
         turned = self.angle_at(at_ns) - reference_deg
         base = self.mechanics.true_angle_deg(reference_deg % 360.0)
         return base + turned * (1.0 + self.mechanics.angle_scale_error)
@@ -264,7 +277,15 @@ class SimTurntable(ContinuousTurntable):
     @property
     def true_angle_deg(self) -> float:
         """Return the angle the object is really at."""
+        if self.mechanics.angle_error_accumulates:
+            return self.mechanics.true_angle_deg(self.count_deg)
         return self.mechanics.true_angle_deg(self._angle_deg)
+
+    @property
+    def count_deg(self) -> float:
+        """Return the commanded rotation since power-up, unwrapped: the box's step count,
+        turned the short way as the box turns (between continuous turns)."""
+        return self._steps / self.steps_per_deg
 
     def move_to(self, angle_deg: float) -> None:
         """Rotate to ``angle_deg``."""

@@ -1,0 +1,134 @@
+"""A turntable gear whose error accumulates over the turns (issue #22, open): what it costs.
+
+The simulator's gear, as the host's angle correction models it, undershoots within each
+turn and starts again at each commanded 0 (``Mechanics``). A table that turns short of
+its step count (the thesis's motor, 0.2 degrees per 45, 8.3; a ``gear_ratio`` that does
+not match the pulleys; lost steps) has no such reset: the shortfall grows with every
+turn since power-up, and a stop-and-go scan turns on through a whole turn from one
+section to the next (the short way, ``turntable_runs``), so each section stands 1.6
+degrees further turned than the host takes it to be. The thesis saw it as sections
+under-rotated and a skewed object. This bench scans the same random shapes, stop-and-go
+on the harsh preset, with both gears (calibration and object alike) and reports what the
+host's per-turn correction leaves: mean distance and coverage against the truth, and the
+turn left uncorrected at the top section. It measures an open defect: the figures with
+the accumulating gear are far worse, and will be until the device sends its whole turns
+and the host corrects over them. ``python tests/benchmarks/bench_gear.py`` runs it alone.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run on its own: find the shared test builders
+    sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
+
+from lamina_device.sim import Mechanics
+from lamina_device.sim.axes import SimTurntable
+from tests.helpers.campaign import CampaignPlan, SeedResult, scan_seed
+
+NOISE = "harsh"
+PLANS = {
+    "thesis": CampaignPlan("thesis", sections=6, pitch_mm=2.5, views=6, noise=NOISE),
+    "limb": CampaignPlan("limb", sections=3, pitch_mm=12.0, views=6, noise=NOISE),
+}
+SEEDS = {"thesis": (1, 4), "limb": (1,)}
+"""Random shapes of each scale (``random:seed=N,scale=...``)."""
+WORKERS = 2
+TITLE = (
+    "turntable gear error accumulating over the turns (issue 22, open): random shapes "
+    f"stop-and-go, {NOISE} preset, the host's per-turn correction against a gear that "
+    "resets each turn and one that does not (mean distance mm, coverage, turn left at "
+    "the top section)"
+)
+
+
+def _scan(job: tuple[int, CampaignPlan]) -> SeedResult:
+    """Scan one seed along one plan in a worker."""
+    return scan_seed(*job)
+
+
+def top_turn_left_deg(plan: CampaignPlan) -> float:
+    """Return how far the top section's first view stands from the angle the host takes
+    it at, with the gear's error accumulating: the true angle at the count the box's
+    moves reach, less its whole turns and the true angle at the same angle within the
+    turn."""
+    mechanics = Mechanics.preset(plan.noise)
+    table = SimTurntable(mechanics)
+    views = plan.scan_plan().views
+    top = max(v.section for v in views)
+    for view in views:
+        table.move_to(view.angle_deg)
+        if view.section == top:
+            break
+    count = table.count_deg
+    within = count % 360.0
+    return mechanics.true_angle_deg(count) - (count - within) - mechanics.true_angle_deg(within)
+
+
+def run(workers: int = WORKERS) -> dict[str, Any]:
+    """Scan every seed with both gears; return the rows and the turn left per scale."""
+    start = time.perf_counter()
+    jobs = [
+        (seed, CampaignPlan(**{**asdict(plan), "accumulating_gear": accumulating}))
+        for scale, plan in PLANS.items()
+        for seed in SEEDS[scale]
+        for accumulating in (False, True)
+    ]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(_scan, jobs))
+    rows = [
+        {
+            "scale": plan.scale,
+            "seed": seed,
+            "gear": "accumulating" if plan.accumulating_gear else "per turn",
+            "mean_distance_mm": r.mean_distance_mm,
+            "coverage": r.coverage,
+            "failure": r.failure_kind,
+        }
+        for (seed, plan), r in zip(jobs, results, strict=True)
+    ]
+    return {
+        "plans": {scale: asdict(plan) for scale, plan in PLANS.items()},
+        "top_turn_left_deg": {scale: top_turn_left_deg(plan) for scale, plan in PLANS.items()},
+        "rows": rows,
+        "wall_s": time.perf_counter() - start,
+    }
+
+
+def report(results: dict[str, Any]) -> list[str]:
+    """Return the table: per scale and seed, each gear's mean distance and coverage."""
+    lines = []
+    for scale, plan in results["plans"].items():
+        lines.append(
+            f"  {scale}: {plan['sections']} sections x {plan['views']} views, "
+            f"{plan['pitch_mm']:g} mm pitch; the top section left "
+            f"{results['top_turn_left_deg'][scale]:+.2f} deg turned by the accumulating gear"
+        )
+        lines.append(f"    {'seed':>6}  {'gear':<13} {'mean mm':>8} {'coverage':>9}")
+        for row in results["rows"]:
+            if row["scale"] != scale:
+                continue
+            figures = (
+                row["failure"]
+                if row["failure"]
+                else f"{row['mean_distance_mm']:8.4f} {row['coverage']:9.3f}"
+            )
+            lines.append(f"    {row['seed']:>6}  {row['gear']:<13} {figures}")
+    lines.append(f"  wall {results['wall_s']:.0f} s on {WORKERS} workers")
+    return lines
+
+
+def main() -> int:
+    """Run the bench alone and print its table."""
+    print(TITLE)
+    print("\n".join(report(run())))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
