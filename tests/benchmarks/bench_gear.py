@@ -20,7 +20,7 @@ from __future__ import annotations
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +28,7 @@ if __package__ in (None, ""):  # run on its own: find the shared test builders
     sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
 from lamina_device.sim import Mechanics
-from lamina_device.sim.axes import SimTurntable
-from tests.helpers.campaign import CampaignPlan, SeedResult, scan_seed
+from tests.helpers.campaign import CampaignPlan, SeedResult, counted_views, scan_seed
 
 NOISE = "harsh"
 PLANS = {
@@ -58,14 +57,9 @@ def top_turn_left_deg(plan: CampaignPlan) -> float:
     moves reach, less its whole turns and the true angle at the same angle within the
     turn."""
     mechanics = Mechanics.preset(plan.noise)
-    table = SimTurntable(mechanics)
-    views = plan.scan_plan().views
-    top = max(v.section for v in views)
-    for view in views:
-        table.move_to(view.angle_deg)
-        if view.section == top:
-            break
-    count = table.count_deg
+    counts = counted_views(replace(plan, accumulating_gear=True))
+    top = max(z for z, _ in counts)
+    count = next(c for z, c in counts if z == top)
     within = count % 360.0
     return mechanics.true_angle_deg(count) - (count - within) - mechanics.true_angle_deg(within)
 
@@ -74,7 +68,7 @@ def run(workers: int = WORKERS) -> dict[str, Any]:
     """Scan every seed with both gears; return the rows and the turn left per scale."""
     start = time.perf_counter()
     jobs = [
-        (seed, CampaignPlan(**{**asdict(plan), "accumulating_gear": accumulating}))
+        (seed, replace(plan, accumulating_gear=accumulating))
         for scale, plan in PLANS.items()
         for seed in SEEDS[scale]
         for accumulating in (False, True)
@@ -106,8 +100,8 @@ def report(results: dict[str, Any]) -> list[str]:
     for scale, plan in results["plans"].items():
         lines.append(
             f"  {scale}: {plan['sections']} sections x {plan['views']} views, "
-            f"{plan['pitch_mm']:g} mm pitch; the top section left "
-            f"{results['top_turn_left_deg'][scale]:+.2f} deg turned by the accumulating gear"
+            f"{plan['pitch_mm']:g} mm pitch; the accumulating gear's top section "
+            f"{results['top_turn_left_deg'][scale]:+.2f} deg from where the host takes it"
         )
         lines.append(f"    {'seed':>6}  {'gear':<13} {'mean mm':>8} {'coverage':>9}")
         for row in results["rows"]:

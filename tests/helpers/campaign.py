@@ -311,7 +311,7 @@ def _measure(
     mechanics = Mechanics.preset(plan.noise)
     if plan.accumulating_gear:
         mechanics = replace(mechanics, angle_error_accumulates=True)
-    lit = lit_and_seen_points(scene, _counted_views(plan), mechanics)
+    lit = lit_and_seen_points(scene, counted_views(plan), mechanics)
     result.lit_points = len(lit)
     contour, _ = measured_cloud(recon)
     raw = (
@@ -351,7 +351,7 @@ def _measure(
     result.volume_error_percent = _volume_error(shape, recon, mechanics)
 
 
-def _counted_views(plan: CampaignPlan) -> list[tuple[float, float]]:
+def counted_views(plan: CampaignPlan) -> list[tuple[float, float]]:
     """Return each view's height and commanded angle as the gear sees it: within the turn,
     or, where its error accumulates, the count since power-up the box's moves reach."""
     views = plan.scan_plan().views
