@@ -28,7 +28,7 @@ if __package__ in (None, ""):  # run on its own: find the shared test builders
     sys.path[:0] = [str(Path(__file__).resolve().parents[2])]
 
 from lamina_device.sim import Mechanics
-from tests.helpers.campaign import CampaignPlan, SeedResult, counted_views, scan_seed
+from tests.helpers.campaign import CampaignPlan, counted_views, scan_seed
 
 NOISE = "harsh"
 PLANS = {
@@ -44,11 +44,6 @@ TITLE = (
     "resets each turn and one that does not (mean distance mm, coverage, turn left at "
     "the top section)"
 )
-
-
-def _scan(job: tuple[int, CampaignPlan]) -> SeedResult:
-    """Scan one seed along one plan in a worker."""
-    return scan_seed(*job)
 
 
 def top_turn_left_deg(plan: CampaignPlan) -> float:
@@ -74,7 +69,8 @@ def run(workers: int = WORKERS) -> dict[str, Any]:
         for accumulating in (False, True)
     ]
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        results = list(pool.map(_scan, jobs))
+        seeds, plans = zip(*jobs, strict=True)
+        results = list(pool.map(scan_seed, seeds, plans))
     rows = [
         {
             "scale": plan.scale,
