@@ -38,7 +38,7 @@ from lamina_host.link.connect import open_device
 from lamina_host.link.errors import DeviceError
 from lamina_host.link.identity import identity_difference, legacy_identity, scan_identity
 from lamina_host.link.spawn import PtyBridge
-from lamina_host.store.library import Library, StoreError
+from lamina_host.store.library import SCHEMA_VERSION, Library, StoreError
 from lamina_host.store.outputs import load_segments
 from lamina_host.ui.tui.adapter import UserError, parse_plan
 from lamina_host.workflow import check_plan_limits
@@ -350,7 +350,7 @@ def test_a_schema_1_library_is_migrated_and_its_scans_guarded(tmp_path):
             library.check_identity(1, {**same, "source": "sim object=sphere:d=25"})
     with sqlite3.connect(path) as db:
         # 3: colour, 4: side, 5: test mark, 6: lift reference
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
 
 
 def test_tui_resume_and_scan_refuse_another_device(library_copy, tmp_path):

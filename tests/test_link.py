@@ -17,7 +17,7 @@ from lamina_host.testing import LineFaults
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.messages import AxesInfo, Event, ProgressEvent, StatusEvent
 from lamina_shared.protocol import PROTOCOL_VERSION, Kind, encode_json
-from lamina_shared.types import ScanPlan, Segment
+from lamina_shared.types import ScanPlan, Segment, from_first_turn
 from tests.helpers.served import link, reference
 
 PLAN = ScanPlan.regular(2, 2.0, 4)
@@ -29,7 +29,11 @@ def expected() -> list[Segment]:
 
 
 def same(a: list[Segment], b: list[Segment]) -> bool:
-    return len(a) == len(b) and all(x.same_as(y) for x, y in zip(a, b, strict=True))
+    """Return True when both are the same views bit for bit, their turns counted from each
+    list's first (a device's turns run on from one scan to the next)."""
+    return len(a) == len(b) and all(
+        x.same_as(y) for x, y in zip(from_first_turn(a), from_first_turn(b), strict=True)
+    )
 
 
 def test_handshake_reports_capabilities():

@@ -123,6 +123,8 @@ class _Captured:
     rgb_off: np.ndarray | None = None
     timed: TimedFrame | None = None
     """The laser-on frame's timing (continuous scans: the angle comes from it)."""
+    count_deg: float = 0.0
+    """The table's step count where the view was taken (stop-and-go; unwrapped degrees)."""
 
 
 def grab_grid(hardware: Hardware) -> np.ndarray:
@@ -222,6 +224,7 @@ def acquire(
     control: ScanControl | None = None,
     numbers: Sequence[int] | None = None,
     colour: bool = False,
+    resumed: bool = False,
 ) -> int:
     """Scan ``target`` along ``plan``; return the number of segments produced.
 
@@ -238,6 +241,8 @@ def acquire(
             whole scan when ``plan`` is the part of it still to acquire); by default
             ``plan``'s own numbering.
         colour: sample each point's sRGB from the view's laser-off frame.
+        resumed: the scan goes on from views already held, the target still standing
+            where it was (:meth:`~lamina_device.hardware.Hardware.place`).
 
     Returns:
         How many segments were handed to ``on_segment``.
@@ -253,21 +258,23 @@ def acquire(
         raise CameraError(f"this device cannot scan continuously: {problem}")
 
     def handle(item: _Captured) -> None:
-        view = item.view
+        view, count_deg = item.view, item.count_deg
         points = extract(item.on, item.off, settings)
         if item.timed is not None:
-            view = ViewSpec(view.section, view.z_mm, _stripe_angle(hardware, points, item.timed))
+            count_deg = _stripe_count_deg(hardware, points, item.timed)
+            view = ViewSpec(view.section, view.z_mm, _within_turn_deg(count_deg))
         if sink is not None:
             sink(target, view, item.index, item.on, item.off)
-        on_segment(
-            to_segment(
-                points, target, view.section, item.index, view.z_mm, view.angle_deg, item.rgb_off
-            )
-        )
+        turns = whole_turns(count_deg, view.angle_deg)
+        segment = to_segment(
+            points, target, view.section, item.index, view.z_mm, view.angle_deg,
+            item.rgb_off, turns,
+        )  # fmt: skip
+        on_segment(segment)
         if on_progress is not None:
             on_progress(_progress(target, item, total, started_s, control))
 
-    hardware.place(target)
+    hardware.place(target, again=resumed)
     stage = _Stage(handle)
     index_in_section = list(numbers) if numbers is not None else views_in_section(plan)
     if len(index_in_section) != total:
@@ -306,7 +313,8 @@ def _take_stopping(
         move_axes(hardware.lift, hardware.turntable, view.z_mm, view.angle_deg)
         hardware.settle()
         on, off, rgb_off = capture_views(hardware, colour)
-        yield _Captured(view, number, 0, on, off, rgb_off)
+        count_deg = hardware.turntable.count_deg
+        yield _Captured(view, number, 0, on, off, rgb_off, count_deg=count_deg)
 
 
 def continuous_problem(hardware: Hardware, plan: ScanPlan, colour: bool = False) -> str | None:
@@ -497,8 +505,9 @@ def laser_off_reference(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.where(moved, np.maximum(b, a), mean).astype(before.dtype)
 
 
-def _stripe_angle(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> float:
-    """Return the table's angle when the laser-on frame exposed the stripe's middle row.
+def _stripe_count_deg(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> float:
+    """Return the table's step count (unwrapped degrees) when the laser-on frame exposed
+    the stripe's middle row.
 
     The rolling shutter exposes each row at its own time; one angle serves a segment, so
     it is taken at the median row of the stripe found (the frame's middle row if none).
@@ -507,15 +516,30 @@ def _stripe_angle(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> 
     assert isinstance(table, SpinningTable)
     rows = points.rows
     row = float(np.median(rows)) if len(rows) else 0.5 * (lit.image.shape[0] - 1)
-    angle = table.angle_at(lit.row_middle_ns(row)) % 360.0
+    return table.angle_at(lit.row_middle_ns(row))
+
+
+def _within_turn_deg(count_deg: float) -> float:
+    """Return a step count's angle within the turn, in [0, 360)."""
+    angle = count_deg % 360.0
     return 0.0 if angle >= 360.0 else angle  # a hair below 0 wraps to 360.0 in floats
+
+
+def whole_turns(count_deg: float, angle_deg: float) -> int:
+    """Return the whole turns that take a view's ``angle_deg`` to the step count
+    ``count_deg`` (a segment's ``turns``: the count is ``angle_deg + 360 * turns``).
+
+    A stop-and-go view's count is its commanded angle's to within a microstep, whatever
+    turn the table is on; a continuous view's angle is its count's within the turn.
+    """
+    return round((count_deg - angle_deg) / 360.0)
 
 
 def row_turn_deg(hardware: Hardware) -> float:
     """Return the table's turn from one image row's exposure to the next's in a continuous
     scan (degrees): its speed times the rolling shutter's row time.
 
-    :func:`_stripe_angle` gives a view the angle of its stripe's median row; a point
+    :func:`_stripe_count_deg` gives a view the angle of its stripe's median row; a point
     ``d`` rows below it was exposed ``d`` times this later. Across a stripe of 200 rows
     at a turn a second that is 0.7 degrees, 1 mm at 80 mm from the axis: the host turns
     each point by its own share (the WELCOME's ``row_turn_deg``).

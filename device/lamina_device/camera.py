@@ -164,6 +164,9 @@ class Stage:
     """What currently stands on the turntable: ``grid``, ``cylinder`` or ``object``."""
 
     target: str = "object"
+    placed_count_deg: float = 0.0
+    """The turntable's step count (unwrapped degrees) when the target was put on: a
+    simulated target's own frame starts at the whole turn nearest it."""
 
 
 # The sensor timestamps a frame when its first row ends exposure; the last row ends up

@@ -1223,11 +1223,13 @@ def to_segment(
     z_mm: float,
     angle_deg: float,
     rgb_off: np.ndarray | None = None,
+    turns: int = 0,
 ) -> Segment:
     """Label one view's stripe points with where they were taken (flags stay on-device).
 
     With ``rgb_off`` (the view's laser-off frame in sRGB) each point carries the colour
-    there, sampled at its sub-pixel stripe centre.
+    there, sampled at its sub-pixel stripe centre. ``turns`` are the step count's whole
+    turns at the view (:attr:`Segment.turns`).
     """
     colour = (
         np.zeros((0, 3), np.uint8)
@@ -1236,5 +1238,5 @@ def to_segment(
     )
     return Segment(
         target, section, view, z_mm, angle_deg, points.cols, points.rows, points.peak,
-        points.width, points.confidence, colour,
+        points.width, points.confidence, colour, turns,
     )  # fmt: skip

@@ -65,8 +65,14 @@ class Hardware:
     """The calibration cylinder's marks that calibrate the lift (WELCOME ``lift_reference``);
     the default cylinder plan then holds a section at each (None: the lift is trusted)."""
 
-    def place(self, target: str) -> None:
-        """Put ``target`` on the turntable (the operator does this on a real scanner)."""
+    def place(self, target: str, again: bool = False) -> None:
+        """Put ``target`` on the turntable (the operator does this on a real scanner).
+
+        ``again``: a scan goes on with the target already standing there (a resumed scan),
+        so where the table's count stood when it was put on is kept.
+        """
+        if not again or target != self.stage.target:
+            self.stage.placed_count_deg = self.turntable.count_deg
         self.stage.target = target
 
     def settle(self) -> None:

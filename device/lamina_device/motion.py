@@ -44,6 +44,11 @@ class Turntable(Protocol):
         ...  # pragma: no cover - protocol
 
     @property
+    def count_deg(self) -> float:
+        """Return the rotation the step count has made since power-up, unwrapped."""
+        ...  # pragma: no cover - protocol
+
+    @property
     def min_deg(self) -> float | None:
         """Return the lowest angle the axis may be sent to; None for a continuous table."""
         ...  # pragma: no cover - protocol
@@ -569,6 +574,11 @@ class StepperTurntable(ContinuousTurntable):
     def angle_deg(self) -> float:
         """Return the table angle in [0, 360)."""
         return (self._position % self.steps_per_rev) / self.steps_per_deg
+
+    @property
+    def count_deg(self) -> float:
+        """Return the rotation since power-up, unwrapped (the step count in degrees)."""
+        return self._position / self.steps_per_deg
 
     def move_to(self, angle_deg: float) -> None:
         """Rotate to ``angle_deg`` the short way, arriving counter-clockwise."""

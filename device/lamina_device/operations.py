@@ -312,6 +312,7 @@ class Operations:
                 control=self.control,
                 numbers=[index[s] for s in todo],
                 colour=colour,
+                resumed=held > 0,
             )
         except ScanAborted as exc:
             if self.link.abandoned.is_set():

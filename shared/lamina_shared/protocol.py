@@ -24,7 +24,7 @@ import numpy as np
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import CONFIDENCE_SCALE, TARGETS, Segment
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Largest decoded payload either end accepts; longer frames are discarded unread."""
 
@@ -383,8 +383,8 @@ def _scale_runs(peak: np.ndarray, confidence: np.ndarray) -> list[tuple[int, int
     return runs
 
 
-_SEGMENT_HEAD = struct.Struct("<IIBHHddHIBB")
-"""request id, seq, target, section, view, z_mm, angle_deg, n, first row (1/64 px),
+_SEGMENT_HEAD = struct.Struct("<IIBHHddiHIBB")
+"""request id, seq, target, section, view, z_mm, angle_deg, turns, n, first row (1/64 px),
 first peak, first width."""
 
 
@@ -416,6 +416,7 @@ def encode_segment_body(request_id: int, seq: int, segment: Segment) -> bytes:
         segment.view,
         segment.z_mm,
         segment.angle_deg,
+        segment.turns,
         n,
         *firsts,
     )
@@ -511,7 +512,7 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
     if len(body) < _SEGMENT_HEAD.size:
         raise ProtocolError("segment message shorter than its header")
     head = _SEGMENT_HEAD.unpack_from(body)
-    request_id, seq, target, section, view, z_mm, angle_deg, n, row0, peak0, width0 = head
+    request_id, seq, target, section, view, z_mm, angle_deg, turns, n, row0, peak0, width0 = head
     coloured = bool(target & COLOUR_FLAG)
     target &= ~COLOUR_FLAG
     if target >= len(TARGETS):
@@ -557,6 +558,7 @@ def decode_segment_body(body: bytes) -> SegmentEvent:
         width.astype(np.uint8),
         _confidence(peak, scales).astype(np.uint8),
         colour.astype(np.uint8),
+        turns,
     )
     return SegmentEvent(request_id, seq, segment)
 

@@ -9,7 +9,7 @@ World and object coordinates follow ``docs/capture-format.md`` (in the repositor
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -309,7 +309,12 @@ class Segment:
     image, times :data:`CONFIDENCE_SCALE` and capped at 255; 0 means unknown (segments
     recorded before the device measured its noise). ``colour`` is either empty (0, 3)
     (the scan did not ask for colour) or (N, 3) uint8 sRGB sampled from the view's
-    laser-off frame at each stripe centre.
+    laser-off frame at each stripe centre. ``turns`` is how many whole turns the
+    table's step count had made since the device powered up when the view was taken:
+    the count is ``angle_deg + 360 * turns``. A gear that turns short of its count falls
+    further behind with every turn, so the host scales its calibrated error over the
+    whole count, not the angle within the turn (0 in segments recorded before the
+    device sent it).
     """
 
     target: str
@@ -323,6 +328,7 @@ class Segment:
     width: np.ndarray = field(repr=False)
     confidence: np.ndarray = field(default_factory=_unknown_confidence, repr=False)
     colour: np.ndarray = field(default_factory=_no_colour, repr=False)
+    turns: int = 0
 
     def __post_init__(self) -> None:
         n = len(self.cols)
@@ -343,18 +349,25 @@ class Segment:
         return len(self.cols)
 
     @property
+    def count_deg(self) -> float:
+        """Return the view's step count in degrees, ``angle_deg + 360 * turns``: the
+        angle the gear's calibrated error is taken at."""
+        return self.angle_deg + 360.0 * self.turns
+
+    @property
     def uv(self) -> np.ndarray:
         """Return the (N, 2) image points ``(u, v)`` as float64."""
         return np.stack([self.cols.astype(float), self.rows.astype(float)], axis=1)
 
     def same_as(self, other: Segment) -> bool:
         """Return True when both segments are identical bit for bit."""
-        return (self.target, self.section, self.view, self.z_mm, self.angle_deg) == (
+        return (self.target, self.section, self.view, self.z_mm, self.angle_deg, self.turns) == (
             other.target,
             other.section,
             other.view,
             other.z_mm,
             other.angle_deg,
+            other.turns,
         ) and all(
             a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
             for a, b in zip(  # noqa: B905 - two tuples of six arrays
@@ -362,3 +375,17 @@ class Segment:
                 (other.cols, other.rows, other.peak, other.width, other.confidence, other.colour),
             )
         )
+
+
+def from_first_turn(segments: list[Segment], among: list[Segment] | None = None) -> list[Segment]:
+    """Return ``segments`` with their turns counted from the first turn among them.
+
+    A segment's turns are the device's since it powered up, so a scan's first view may
+    stand hundreds of turns on. Counted from the scan's own first turn, a gear's
+    calibrated shortfall (scaled over the count) turns the whole object by at most a
+    turn's shortfall however long the device has run, and the fits stay well
+    conditioned. Give it every segment of one target of one scan, or a part of them with
+    the whole as ``among`` (whose first turn is then the one counted from).
+    """
+    first = min((s.turns for s in (segments if among is None else among)), default=0)
+    return [replace(s, turns=s.turns - first) for s in segments] if first else list(segments)

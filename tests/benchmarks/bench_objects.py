@@ -40,9 +40,10 @@ from lamina_device.sim.truth import (
     TrueSurface,
     lit_and_seen_points,
     scan_accuracy,
+    segment_views,
 )
 from lamina_host.store.outputs import load_segments
-from lamina_shared.types import ScanPlan, Segment
+from lamina_shared.types import Segment
 
 NOISE = "harsh"
 SECTIONS, PITCH_MM, VIEWS = 8, 2.5, 8
@@ -78,7 +79,7 @@ def extracted_points(scene: SimScene, mechanics: Mechanics, segments: list[Segme
         if s.target != "object" or len(s.cols) == 0:
             continue
         xy = scene.rig.backproject_to_plane(s.uv) - axis
-        th = math.radians(mechanics.true_angle_deg(s.angle_deg))
+        th = math.radians(mechanics.true_angle_deg(s.angle_deg + 360.0 * s.turns))
         c, si = math.cos(th), math.sin(th)
         q = xy @ np.array([[c, -si], [si, c]])  # rows times Rz(theta) = Rz(-theta) applied
         z = mechanics.true_z_mm(s.z_mm)
@@ -106,12 +107,12 @@ def _measure(spec: str, out: Path) -> dict[str, Any]:
     obj = parse_object(spec)
     scene = SimScene(Rig(), obj, NoiseModel.preset(NOISE))
     mechanics = Mechanics.preset(NOISE)
-    plan = ScanPlan.regular(SECTIONS, PITCH_MM, VIEWS)
-    lit = lit_and_seen_points(scene, [(v.z_mm, v.angle_deg) for v in plan.views], mechanics)
+    segments = load_segments(out / "segments.npz")
+    lit = lit_and_seen_points(scene, segment_views(segments), mechanics)
     raw = read_ply_points(out / "raw_points.ply")
     contour = read_ply_points(out / "points.ply")
     acc = scan_accuracy(obj, raw, contour, lit)
-    extracted = extracted_points(scene, mechanics, load_segments(out / "segments.npz"))
+    extracted = extracted_points(scene, mechanics, segments)
     ext_d = TrueSurface(obj).distance_mm(extracted)
     row: dict[str, Any] = {
         "extracted_points": len(extracted),

@@ -28,12 +28,16 @@ from typing import Any
 import numpy as np
 
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, parse_object
-from lamina_device.sim.truth import coverage, lit_and_seen_points, scan_accuracy
+from lamina_device.sim.truth import (
+    coverage,
+    lit_and_seen_points,
+    scan_accuracy,
+    segment_views,
+)
 from lamina_host.reconstruct.pipeline import ProcessOptions
 from lamina_host.store.library import Library
 from lamina_host.store.outputs import measured_cloud
 from lamina_host.workflow.batch import reprocess
-from lamina_shared.types import ScanPlan
 
 NOISE, VIEWS, PITCH_MM, SECTIONS = "harsh", 8, 8.0, 8
 OBJECTS = (
@@ -68,9 +72,8 @@ def _measure(spec: str, library: Path) -> dict[str, Any]:
     obj = parse_object(spec)
     rig, mechanics = Rig.limb(), Mechanics.preset(NOISE)
     scene = SimScene(rig, obj, NoiseModel.preset(NOISE))
-    plan = ScanPlan.regular(SECTIONS, PITCH_MM, VIEWS)
-    lit = lit_and_seen_points(scene, [(v.z_mm, v.angle_deg) for v in plan.views], mechanics)
     inputs = Library(library).inputs(1)
+    lit = lit_and_seen_points(scene, segment_views(inputs.segments), mechanics)
     base = ProcessOptions.from_dict(inputs.options)
     rows: dict[str, Any] = {}
     for name, change in RULES:

@@ -227,9 +227,10 @@ def test_harsh_mechanics_add_a_once_per_turn_error_no_scale_absorbs():
 def test_an_accumulating_gear_falls_a_turns_undershoot_behind_each_section():
     """Stop-and-go turns on through 360 to each next section: with the error a function of
     the count since power-up, each section's views stand 1.6 degrees (the thesis's 0.2 per
-    45) further back than the last's; the per-turn model repeats the first turn's."""
-    per_turn = Mechanics()
-    accumulating = replace(per_turn, angle_error_accumulates=True)
+    45) further back than the last's (the default, as a real table); the per-turn model
+    repeats the first turn's."""
+    accumulating = Mechanics()
+    per_turn = replace(accumulating, angle_error_accumulates=False)
     plan = ScanPlan.regular(4, 2.5, 8, "stop-and-go")
     true = {}
     for mechanics in (per_turn, accumulating):

@@ -26,11 +26,15 @@ from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
 from lamina_device.config import DeviceConfig, next_turn_frame_us
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
-from lamina_device.sim.axes import SimTurntable
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
 from lamina_device.sim.random_shapes import RandomShape, ShapeFeatures, random_shape
-from lamina_device.sim.truth import TrueSurface, lit_and_seen_points, scan_accuracy
+from lamina_device.sim.truth import (
+    TrueSurface,
+    lit_and_seen_points,
+    scan_accuracy,
+    segment_views,
+)
 from lamina_host.reconstruct.continuity import outline_jumps
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
@@ -84,7 +88,9 @@ class CampaignPlan:
     resolution: float = 1.0  # < 1: the preset rig's camera binned down (fast tests)
     mode: str = "stop-and-go"
     off_frames: str = "interleaved"  # a continuous scan's laser-off frames (the box's config)
-    accumulating_gear: bool = False  # Mechanics.angle_error_accumulates, calibration and object
+    counts_turns: bool = True
+    """False: the host as it was before issue 22's mend, each view's whole turns dropped, so
+    the gear's shortfall is corrected within the turn only (the gear bench's comparison)."""
 
     def rig(self) -> Rig:
         """Return the rig: the preset, its image and focal length scaled by ``resolution``."""
@@ -101,20 +107,16 @@ class CampaignPlan:
 
     def box(self, hardware: Hardware) -> Hardware:
         """Return the simulated ``hardware`` configured to take this plan's laser-off frames
-        (a turn later: :func:`next_turn_config`) on this plan's gear (:meth:`geared`)."""
-        self.geared(hardware)
+        (a turn later: :func:`next_turn_config`)."""
         if self.off_frames == "next-turn":
             clock = hardware.turntable.clock
             clock.config = hardware.timing = next_turn_config(clock.config)
         return hardware
 
-    def geared(self, hardware: Hardware) -> Hardware:
-        """Return the simulated ``hardware`` with this plan's gear: its error accumulating
-        over the turns (``accumulating_gear``) or, as the preset has it, per turn."""
-        if self.accumulating_gear and isinstance(hardware.turntable, SimTurntable):
-            table = hardware.turntable
-            table.mechanics = replace(table.mechanics, angle_error_accumulates=True)
-        return hardware
+    def as_counted(self, segments: list[Segment]) -> list[Segment]:
+        """Return ``segments`` as this plan's host takes them: whole turns and all, or,
+        without ``counts_turns``, with them dropped."""
+        return segments if self.counts_turns else [replace(s, turns=0) for s in segments]
 
 
 def next_turn_config(config: DeviceConfig) -> DeviceConfig:
@@ -186,14 +188,14 @@ class _Calibration:
     cylinder: list[Segment]
 
 
-_CALIBRATIONS: dict[tuple[str, float, str, bool], _Calibration] = {}  # per process: frames are pure
+_CALIBRATIONS: dict[tuple[str, float, str], _Calibration] = {}  # per process: frames are pure
 
 
 def _calibration(plan: CampaignPlan) -> _Calibration:
     """Return the rig's board and cylinder data, acquiring them on first use."""
-    key = (plan.scale, plan.resolution, plan.noise, plan.accumulating_gear)
+    key = (plan.scale, plan.resolution, plan.noise)
     if key not in _CALIBRATIONS:
-        hardware = plan.geared(open_sim(None, 0, plan.noise, plan.scale, plan.rig()))
+        hardware = open_sim(None, 0, plan.noise, plan.scale, plan.rig())
         cylinder: list[Segment] = []
         try:
             grid = grab_grid(hardware)
@@ -252,9 +254,9 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         recon = reconstruct(
             calibration.grid_image,
             hardware.board,
-            calibration.cylinder,
+            plan.as_counted(calibration.cylinder),
             hardware.cylinder_diameter_mm,
-            segments,
+            plan.as_counted(segments),
             ProcessOptions(),
             row_turn_deg=row_turn_deg(hardware) if object_plan.continuous else 0.0,
         )
@@ -268,7 +270,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
         with tempfile.TemporaryDirectory() as tmp:
             write_outputs(Path(tmp), recon, report)
         stage = "measure"
-        _measure(result, shape, recon, plan)
+        _measure(result, shape, recon, plan, segments)
     except Exception as exc:
         _fail(result, stage, exc)
     result.wall_s = time.perf_counter() - start
@@ -299,9 +301,14 @@ def motion_warnings(recon: Reconstruction) -> list[str]:
 
 
 def _measure(
-    result: SeedResult, shape: RandomShape, recon: Reconstruction, plan: CampaignPlan
+    result: SeedResult,
+    shape: RandomShape,
+    recon: Reconstruction,
+    plan: CampaignPlan,
+    segments: list[Segment],
 ) -> None:
-    """Fill in the figures of a finished scan against the truth."""
+    """Fill in the figures of a finished scan against the truth (the surface its
+    ``segments`` lit, each where the simulated gear put the object)."""
     result.warnings = list(recon.warnings)
     result.motion_warnings = motion_warnings(recon)
     for s in recon.sections:
@@ -309,9 +316,7 @@ def _measure(
     rig = plan.rig()
     scene = SimScene(rig, shape, NoiseModel.preset(plan.noise))
     mechanics = Mechanics.preset(plan.noise)
-    if plan.accumulating_gear:
-        mechanics = replace(mechanics, angle_error_accumulates=True)
-    lit = lit_and_seen_points(scene, counted_views(plan), mechanics)
+    lit = lit_and_seen_points(scene, segment_views(segments), mechanics)
     result.lit_points = len(lit)
     contour, _ = measured_cloud(recon)
     raw = (
@@ -349,22 +354,6 @@ def _measure(
             )
         )
     result.volume_error_percent = _volume_error(shape, recon, mechanics)
-
-
-def counted_views(plan: CampaignPlan) -> list[tuple[float, float]]:
-    """Return each view's height and commanded angle as the gear sees it: within the turn,
-    or, where its error accumulates, the count since power-up the box's moves reach."""
-    views = plan.scan_plan().views
-    if not plan.accumulating_gear:
-        return [(v.z_mm, v.angle_deg) for v in views]
-    if plan.mode != "stop-and-go":
-        raise ValueError("an accumulating gear's views are counted for stop-and-go plans only")
-    table = SimTurntable(Mechanics.ideal())
-    counted = []
-    for v in views:
-        table.move_to(v.angle_deg)
-        counted.append((v.z_mm, table.count_deg))
-    return counted
 
 
 def _volume_error(shape: RandomShape, recon: Reconstruction, mechanics: Mechanics) -> float:

@@ -24,8 +24,9 @@ from lamina_device.sim.objects import Cylinder, grooved_cylinder
 from lamina_host.reconstruct.axis import fit_circle
 from lamina_host.reconstruct.calibration import calibrate_lift
 from lamina_host.reconstruct.pipeline import lift_sections
-from lamina_host.store.library import Library
+from lamina_host.store.library import SCHEMA_VERSION, Library
 from lamina_shared.messages import Welcome
+from lamina_shared.protocol import PROTOCOL_VERSION
 from lamina_shared.types import BoardSpec, LiftReference, ScanPlan, Segment
 
 REFERENCE = LiftReference((22.5, 162.5), 140.0, 1.0, 5.0)
@@ -89,7 +90,7 @@ def test_the_reference_travels_in_the_welcome_and_is_kept_with_the_calibration(
 ) -> None:
     """WELCOME carries it (a malformed one is a listed problem); the library stores it
     with the scan's calibration, and a library of schema 5 gains the column, empty."""
-    welcome = Welcome(4, hardware="sim", image_size=(8, 8), lift_reference=REFERENCE)
+    welcome = Welcome(PROTOCOL_VERSION, hardware="sim", image_size=(8, 8), lift_reference=REFERENCE)
     assert Welcome.from_wire(welcome.to_wire()).lift_reference == REFERENCE
     wire = welcome.to_wire() | {"lift_reference": {"marks_mm": [5, 1], "spacing_mm": 1}}
     with pytest.raises(ValueError, match=r"welcome\.lift_reference"):
@@ -109,7 +110,7 @@ def test_the_reference_travels_in_the_welcome_and_is_kept_with_the_calibration(
         library.save_calibration(new, np.zeros((8, 8), np.uint8), board, 60.0, None, REFERENCE)
         assert library.calibration(new).lift_reference == REFERENCE
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
 
 
 def test_the_cylinder_views_split_between_axis_and_marks() -> None:

@@ -8,6 +8,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lamina_host.reconstruct.mesh import save_ply
-from lamina_host.store.library import Library, StoreError, default_library_path
+from lamina_host.store.library import (
+    SCHEMA_VERSION,
+    Library,
+    StoreError,
+    default_library_path,
+)
 from lamina_shared.types import BoardSpec, ScanPlan, Segment
 
 PLANS = {"cylinder": ScanPlan.regular(1, 2.0, 4), "object": ScanPlan.regular(3, 2.0, 4)}
@@ -202,7 +208,7 @@ def test_a_schema_2_library_gains_a_side_per_scan_and_loses_nothing(tmp_path):
         with pytest.raises(StoreError, match="no scan"):
             lib.set_side(99, "left")
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         after = [tuple(r)[:-2] for r in db.execute("SELECT * FROM scans WHERE id < ?", (third,))]
         assert after == before
         assert db.execute("SELECT data FROM segments").fetchall() == held
@@ -236,8 +242,31 @@ def test_a_schema_4_library_gains_the_test_mark_and_loses_nothing(tmp_path):
         with pytest.raises(StoreError, match="no scan"):
             lib.set_test(99)
     with sqlite3.connect(path) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 6
+        assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         assert [tuple(r)[:-1] for r in db.execute("SELECT * FROM scans ORDER BY id")] == before
+
+
+def test_a_schema_6_library_gains_segment_turns_and_loses_nothing(tmp_path):
+    """Opening a schema-6 library gives every segment turn 0 (recorded before devices sent
+    them: corrected within the turn, as they were), keeps its points bit for bit, and
+    stores the turns of segments added after."""
+    path = tmp_path / "library.sqlite"
+    with Library(path) as lib:
+        scan = lib.create_scan("P-01", PLANS)
+        lib.add_segment(scan, 0, segment(0))
+    with sqlite3.connect(path) as db:  # back to schema 6: no turns column
+        db.execute("ALTER TABLE segments DROP COLUMN turns")
+        db.execute("PRAGMA user_version=6")
+        held = db.execute("SELECT data FROM segments").fetchall()
+    with Library(path) as lib:
+        (kept,) = lib.segments(scan, "object")
+        assert kept.turns == 0 and kept.same_as(segment(0))
+        later = replace(segment(1), turns=41)
+        lib.add_segment(scan, 1, later)
+        assert lib.segments(scan, "object")[1].same_as(later)
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+        assert db.execute("SELECT data FROM segments WHERE seq = 0").fetchall() == held
 
 
 def test_cli_marks_a_test_scan_and_lists_one_subject(tmp_path):

@@ -29,6 +29,7 @@ from lamina_shared.link import (
 )
 from lamina_shared.protocol import (
     MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
     FrameDecoder,
     Kind,
     ProtocolError,
@@ -240,5 +241,5 @@ def test_a_peer_of_another_version_gets_the_versions_in_one_whole_frame():
     assert payloads, "no WELCOME"
     welcome = decode_message(payloads[0])
     assert welcome.kind is Kind.WELCOME
-    assert json.loads(json.dumps(welcome.body))["protocol"] == 4
+    assert json.loads(json.dumps(welcome.body))["protocol"] == PROTOCOL_VERSION
     assert set(welcome.body) == {"protocol", "software"}

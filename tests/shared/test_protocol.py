@@ -1,6 +1,7 @@
 """Frames, COBS, CRC and message encodings of the link protocol."""
 
 import json
+import struct
 from dataclasses import replace
 
 import numpy as np
@@ -125,6 +126,18 @@ def test_segments_of_any_length_and_gappy_columns_round_trip(n):
 
 
 SEG_FIELDS = ("cols", "rows", "peak", "width")
+
+
+@pytest.mark.parametrize("turns", [0, 1, -1, 41, 2**31 - 1, -(2**31)])
+def test_a_segments_whole_turns_travel_exactly(turns):
+    """The step count's whole turns (negative after turning back past power-up's 0) go
+    over the wire as sent; a count beyond 32 bits cannot be encoded at all."""
+    segment = replace(make_segment(50), turns=turns)
+    got = decode(encode_segment(3, 4, segment)).body.segment
+    assert got.turns == turns and got.same_as(segment)
+    assert got.count_deg == segment.angle_deg + 360.0 * turns
+    with pytest.raises(struct.error):
+        encode_segment(3, 4, replace(segment, turns=2**31))
 
 
 def test_full_width_segment_fits_in_one_and_a_half_kilobytes():

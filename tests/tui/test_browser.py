@@ -115,7 +115,7 @@ class Screen:
     def type_into(self, label: str, value: str, row: str | None = None) -> None:
         """Tap the field after ``label`` and replace its text with ``value``; tap again if
         the field does not show it (a loaded machine may deliver the tap after the keys)."""
-        for _ in range(3):
+        for _ in range(5):
             self.tap(label, row=row, after=True)
             time.sleep(TAP_SETTLE_S)
             self.press("End", *["Backspace"] * 12)

@@ -21,7 +21,7 @@ from lamina_host.ui.tui.app import LaminaApp
 from lamina_host.ui.tui.screens.scan import ScanScreen
 from lamina_host.workflow.job import TRIM_FRACTION
 from lamina_shared.durations import duration_text
-from lamina_shared.types import SCAN_MODES
+from lamina_shared.types import SCAN_MODES, from_first_turn
 
 RADIUS_MM = 19.05 / 2
 """The simulated device's default object: the thesis's calibration cylinder."""
@@ -73,8 +73,9 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         assert isinstance(screen, ScanScreen)
         assert "object view 16/16" in text_of(app, "#progress-text")
         # The live plot's last section is assembled exactly as the final result is.
-        last = [s for s in job.acquisition.data.segments if s.section == 1]
-        live = job.acquisition.section_points(last)
+        held = job.acquisition.data.segments
+        live = job.acquisition.section_points([s for s in held if s.section == 1])
+        last = [s for s in from_first_turn(held) if s.section == 1]
         by_section, _, _ = assemble(last, grid, axis, TRIM_FRACTION)
         np.testing.assert_array_equal(live, np.vstack(by_section[1]))
         radii = np.hypot(live[:, 0], live[:, 1])

@@ -20,6 +20,7 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+from lamina_device.camera import Stage
 from lamina_device.config import DeviceConfig, load_config
 from lamina_device.motion import (
     SPIN_TICK_S,
@@ -106,15 +107,16 @@ class Mechanics:
     """Amplitude of an off-centre gear's error, ``eccentric * sin(commanded + phase)``."""
     angle_eccentric_phase_deg: float = 0.0
     """Phase of the off-centre gear's error."""
-    angle_error_accumulates: bool = False
-    """True: the table's error is a function of its whole rotation since power-up (the
-    box's step count, turned the short way as the box turns), so the undershoot grows by
-    one turn's worth (1.6 degrees at the thesis's 0.2 per 45) each time a scan turns on
-    through a whole turn, as a table's does that turns short of its count with no index
-    to re-reference it (the thesis's motor: its sections came out under-rotated and the
-    object skewed, 8.3; a ``gear_ratio`` that does not match the pulleys). False (the
-    default): it starts again at each commanded 0, the model the host's angle correction
-    assumes. Issue 22 keeps the default until the device and host carry whole turns."""
+    angle_error_accumulates: bool = True
+    """True (the default): the table's error is a function of its whole rotation since
+    power-up (the box's step count, turned the short way as the box turns), so the
+    undershoot grows by one turn's worth (1.6 degrees at the thesis's 0.2 per 45) each
+    time a scan turns on through a whole turn, as a table's does that turns short of its
+    count with no index to re-reference it (the thesis's motor: its sections came out
+    under-rotated and the object skewed, 8.3; a ``gear_ratio`` that does not match the
+    pulleys). The device sends each view's whole turns and the host corrects over them.
+    False: the error starts again at each commanded 0, as no real table's does; kept to
+    measure what a host that corrects within the turn only would make of it."""
 
     @classmethod
     def ideal(cls) -> Mechanics:
@@ -181,9 +183,12 @@ class SimTurntable(ContinuousTurntable):
     the same ramp, the step rates noted on a step clock against the virtual time.
     """
 
-    def __init__(self, mechanics: Mechanics, clock: SimClock | None = None) -> None:
+    def __init__(
+        self, mechanics: Mechanics, clock: SimClock | None = None, stage: Stage | None = None
+    ) -> None:
         self.mechanics = mechanics
         self.clock = clock if clock is not None else SimClock()
+        self.stage = stage
         self._angle_deg = 0.0
         self._steps = 0  # where the box's stepper would be, for the move's duration
         self._engaged = False
@@ -264,7 +269,7 @@ class SimTurntable(ContinuousTurntable):
         power-up gives the angle.
         """
         if self.mechanics.angle_error_accumulates:
-            return self.mechanics.true_angle_deg(self.angle_at(at_ns))
+            return self._object_angle_deg(self.angle_at(at_ns))
         turned = self.angle_at(at_ns) - reference_deg
         base = self.mechanics.true_angle_deg(reference_deg % 360.0)
         return base + turned * (1.0 + self.mechanics.angle_scale_error)
@@ -278,8 +283,19 @@ class SimTurntable(ContinuousTurntable):
     def true_angle_deg(self) -> float:
         """Return the angle the object is really at."""
         if self.mechanics.angle_error_accumulates:
-            return self.mechanics.true_angle_deg(self.count_deg)
+            return self._object_angle_deg(self.count_deg)
         return self.mechanics.true_angle_deg(self._angle_deg)
+
+    def _object_angle_deg(self, count_deg: float) -> float:
+        """Return the angle the object on the stage is really at when the count is
+        ``count_deg``: the gear's error over the turns since the object was put on, its
+        frame starting at the whole turn nearest that count (the turns of shortfall the
+        table gathered before only set where the table stood). The whole turns before it
+        are left out (a turn changes nothing), so a scan renders the same frames however
+        long the device has run."""
+        placed = self.stage.placed_count_deg if self.stage is not None else 0.0
+        origin_deg = 360.0 * round(placed / 360.0)
+        return self.mechanics.true_angle_deg(count_deg - origin_deg)
 
     @property
     def count_deg(self) -> float:

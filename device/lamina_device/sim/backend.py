@@ -91,8 +91,8 @@ def open_sim(
     scene = SimScene(rig, obj, noise_model, seed)
     clock = SimClock() if config is None else SimClock(config=config)
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory(), clock_ns=clock.now_ns)
-    turntable, lift = SimTurntable(mechanics, clock), SimLift(mechanics, clock=clock)
     stage = Stage()
+    turntable, lift = SimTurntable(mechanics, clock, stage), SimLift(mechanics, clock=clock)
     camera = SimCamera(scene, stage, turntable, lift, laser, motion)
     reference = rig.lift_reference()
     cylinder_plan = reference.plan(DEFAULT_CYLINDER_PLAN) if reference else DEFAULT_CYLINDER_PLAN

@@ -50,6 +50,7 @@ from lamina_device.sim.objects import (
     section_curves,
 )
 from lamina_device.sim.render import SimScene, laser_reaches
+from lamina_shared.types import Segment, from_first_turn
 
 __all__ = [
     "COVERAGE_MM",
@@ -333,6 +334,15 @@ def _resample(
     return pts, np.column_stack([tangent[:, 1], -tangent[:, 0]])
 
 
+def segment_views(segments: list[Segment]) -> list[tuple[float, float]]:
+    """Return each segment's commanded height and step count (its angle plus its whole
+    turns, counted from the first turn among them): the views of one scan as the
+    simulated table took them, for :func:`lit_and_seen_points`. The count, not the angle
+    within the turn, is where the simulated gear put the object
+    (:attr:`Mechanics.angle_error_accumulates`), over the turns since it was put on."""
+    return [(s.z_mm, s.count_deg) for s in from_first_turn(segments)]
+
+
 def lit_and_seen_points(
     scene: SimScene,
     views: Iterable[tuple[float, float]],
@@ -341,8 +351,9 @@ def lit_and_seen_points(
 ) -> np.ndarray:
     """Return the object-frame surface points (M, 3) the sheet's centre lit and the camera saw.
 
-    For each commanded ``(z_mm, angle_deg)`` view the object is where the mechanics really
-    put it; the true section there is sampled every ``spacing_mm``, and a sample counts
+    For each commanded ``(z_mm, angle_deg)`` view (the angle is the table's step count
+    since power-up, unwrapped: :func:`segment_views`) the object is where the mechanics
+    really put it; the true section there is sampled every ``spacing_mm``, and a sample counts
     when the laser reaches it within the sheet (nothing of the section in between) and
     the camera's ray to it meets nothing first, and it lies inside the image.
     """

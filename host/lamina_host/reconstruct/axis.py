@@ -42,6 +42,9 @@ from lamina_host.reconstruct.calibration import CalibrationError
 CF_WARNING = 0.05
 """Thesis 6.2.4: warn when the correction factor differs from 1 by more than 5 %."""
 
+SCALE_SIGMAS = 3.0
+"""A fitted turntable scale within this many standard errors of 1 is held at exactly 1."""
+
 MIN_OFFSET_FOR_SCALE_MM = 0.5
 """The angle scale is only estimated from a cylinder at least this far off the axis."""
 
@@ -74,8 +77,10 @@ AXIS_METHODS = ("joint", "centroid")
 class AxisCalibration:
     """Turntable axis, scale correction and the per-arc circles they came from.
 
-    ``angle_scale`` maps a commanded turntable angle to the true one (1.0 unless the
-    joint fit estimated it); ``cylinder_offset_mm`` is the cylinder's centre in the object
+    ``angle_scale`` maps a turntable step count to the true angle (1.0 unless the joint
+    fit estimated it, to about ``angle_scale_sd``), ``angle_wave_deg`` the sine and
+    cosine amplitudes of a once-per-turn error on top (:func:`_gear_rad`);
+    ``cylinder_offset_mm`` is the cylinder's centre in the object
     frame (joint fit only); ``rms_mm`` is the joint fit's RMS orthogonal residual.
     ``view_offsets_deg`` (per-view fit only) holds one row per calibrated view, its
     commanded angle and its true-minus-commanded offset, measured to about
@@ -92,6 +97,8 @@ class AxisCalibration:
     warnings: tuple[str, ...]
     method: str = "centroid"
     angle_scale: float = 1.0
+    angle_scale_sd: float = float("nan")
+    angle_wave_deg: tuple[float, float] = (0.0, 0.0)
     cylinder_offset_mm: tuple[float, float] | None = None
     rms_mm: float = float("nan")
     view_offsets_deg: np.ndarray | None = None
@@ -107,30 +114,44 @@ class AxisCalibration:
     def true_angle_deg(self, commanded_deg: float | np.ndarray) -> float | np.ndarray:
         """Return the turntable angle the object was really at for a commanded angle.
 
-        With per-view offsets (``view_offsets_deg`` rows: commanded angle, true minus
+        The commanded angle is the step count (a view's angle plus its whole turns,
+        counted from the scan's first turn): a table that turns short of its count falls
+        ``1 - scale`` further behind with every degree, over the turns as within them.
+        With per-view offsets (``view_offsets_deg`` rows: commanded count, true minus
         commanded), the angle is ``scale x commanded`` plus the periodic remainder of the
         offsets, interpolated round the turn: exactly the fitted offset at a calibrated
-        angle, and a repeatable gear error in between. The error is a function of the
-        angle within the turn (the scale's undershoot grows through a turn and starts
-        again at 0), so a continuous view's rows either side of 0 are each taken on
-        their own side.
+        count, and a repeatable gear error, a function of the angle within the turn, in
+        between and on later turns (a continuous view's rows either side of a whole turn
+        are each taken on their own side).
 
         Args:
-            commanded_deg: one commanded angle within a turn, or an array of them (a
+            commanded_deg: one view's step count in degrees, or an array of them (a
                 continuous view's rows, each at its own).
 
         Returns:
             The true angle, or an array of them.
         """
-        base = commanded_deg * self.angle_scale
+        base = self._geared_deg(commanded_deg)
         if self.view_offsets_deg is None:
             return base
         cmd, offset = self.view_offsets_deg.T
-        periodic = offset - (self.angle_scale - 1.0) * cmd
+        periodic = offset - (self._geared_deg(cmd) - cmd)
         remainder = np.interp(np.mod(commanded_deg, 360.0), cmd % 360.0, periodic, period=360.0)
         if isinstance(commanded_deg, np.ndarray):
             return base + remainder
         return base + float(remainder)
+
+    @overload
+    def _geared_deg(self, count_deg: float) -> float: ...
+
+    @overload
+    def _geared_deg(self, count_deg: np.ndarray) -> np.ndarray: ...
+
+    def _geared_deg(self, count_deg: float | np.ndarray) -> float | np.ndarray:
+        """Return the fitted gear's true angle of a step count (degrees), offsets aside."""
+        gear = np.array([self.angle_scale, *np.deg2rad(self.angle_wave_deg)])
+        true = np.rad2deg(_gear_rad(np.deg2rad(count_deg), gear))
+        return true if isinstance(count_deg, np.ndarray) else float(true)
 
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
@@ -138,6 +159,8 @@ class AxisCalibration:
             "method": self.method,
             "angle_scale": self.angle_scale,
             "undershoot_deg_per_45": 45.0 * (1.0 - self.angle_scale),
+            "angle_scale_sd": self.angle_scale_sd,
+            "angle_wave_deg": list(self.angle_wave_deg),
             "cylinder_offset_mm": (
                 list(self.cylinder_offset_mm) if self.cylinder_offset_mm is not None else None
             ),
@@ -367,19 +390,22 @@ def find_axis_joint(
     if fit_offset:
         x0 += list(offsets.mean(axis=0))
     if fit_angle_scale:
-        x0 += [1.0]
+        x0 += [1.0, 0.0, 0.0]
+    n_offset = 2 if fit_offset else 0
 
-    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
         offset = p[3:5] if fit_offset else np.zeros(2)
-        return p[:2], float(p[2]), offset, float(p[-1]) if fit_angle_scale else 1.0
+        gear = p[3 + n_offset :] if fit_angle_scale else np.array([1.0, 0.0, 0.0])
+        return p[:2], float(p[2]), offset, gear
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        axis, r, offset, scale = unpack(p)
-        q = _rotate(pts - axis, -scale * theta) - offset
+        axis, r, offset, gear = unpack(p)
+        q = _rotate(pts - axis, -_gear_rad(theta, gear)) - offset
         return np.hypot(q[:, 0], q[:, 1]) - r
 
     sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
-    axis, r, offset, scale = unpack(sol.x)
+    axis, r, offset, gear = unpack(sol.x)
+    scale = float(gear[0])
     if fit_angle_scale and np.hypot(*offset) < MIN_OFFSET_FOR_SCALE_MM:
         # A (nearly) centred cylinder looks the same at every angle: the scale is noise.
         calibration = find_axis_joint(arcs, angles_deg, actual_diameter_mm, fit_offset, False)
@@ -401,6 +427,7 @@ def find_axis_joint(
         warnings=tuple(warnings),
         method="joint",
         angle_scale=scale,
+        angle_wave_deg=(float(np.rad2deg(gear[1])), float(np.rad2deg(gear[2]))),
         cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
         rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
     )
@@ -409,13 +436,21 @@ def find_axis_joint(
     return calibration
 
 
+def _gear_rad(count_rad: np.ndarray, gear: np.ndarray) -> np.ndarray:
+    """Return the true angles (rad) of step counts ``count_rad`` for a gear ``(scale, sin,
+    cos)``: the scale's shortfall over the whole count plus a once-per-turn error (an
+    off-centre gear's, a bearing's runout), zero at count 0 so the frame starts there."""
+    scale, a, b = gear
+    return scale * count_rad + a * np.sin(count_rad) + b * (np.cos(count_rad) - 1.0)
+
+
 def fit_view_offsets(
     calibration: AxisCalibration,
     arcs: list[np.ndarray],
     angles_deg: list[float],
     radius_mm: float | None = None,
 ) -> AxisCalibration:
-    """Refine a joint fit with one turntable angle offset per distinct commanded angle.
+    """Refine a joint fit with one turntable angle offset per distinct angle within the turn.
 
     The cylinder is scanned at the object's view angles, so the error of each view's
     angle (a gear's once-per-turn runout, an eccentric gear) is measured where it is
@@ -434,7 +469,11 @@ def fit_view_offsets(
     theta = np.deg2rad(np.repeat(commanded, counts))
     point_view = np.repeat(view, counts)
     scale = calibration.angle_scale
-    start = (scale - 1.0) * np.array([commanded[view == k][0] for k in range(len(distinct))])
+    first = np.array([commanded[view == k][0] for k in range(len(distinct))])
+    start = calibration._geared_deg(first) - first
+    # A view's angle seen again turns later stands the gear's shortfall over those turns
+    # further: its offset is the first sighting's plus the scale's share of the turns.
+    theta += np.deg2rad((scale - 1.0) * (np.repeat(commanded, counts) - first[point_view]))
     free_radius = () if radius_mm is not None else (calibration.estimated_diameter_mm / 2.0,)
     first_offset = 4 + len(free_radius)  # parameters: axis, cylinder offset, [radius], views
     x0 = np.array(
@@ -448,7 +487,6 @@ def fit_view_offsets(
 
     sol = least_squares(residuals, x0, method="lm", xtol=1e-12, ftol=1e-12)
     offsets = np.concatenate([start[:1], sol.x[first_offset:]])
-    first = np.array([commanded[view == k][0] for k in range(len(distinct))])
     sd_deg = _standard_errors(sol.jac, sol.fun)[first_offset:]
     if not np.median(sd_deg) <= MAX_VIEW_OFFSET_SD_DEG:
         note = (
@@ -495,33 +533,49 @@ def _hold_radius(
     """Refit the axis, offset and angle scale of a free joint fit with ``r = D_a / 2``.
 
     The free fit is the starting point and keeps its role as a check: its diameter is
-    reported as ``estimated_diameter_mm`` and drives the 5 % warning.
+    reported as ``estimated_diameter_mm`` and drives the 5 % warning. A scale the
+    cylinder cannot tell from 1 (within :data:`SCALE_SIGMAS` of its standard error) is
+    held at exactly 1: a tooth-exact belt has none, and a scale's noise, multiplied by
+    every turn of a long scan, would twist its upper sections.
     """
     pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
     theta = np.deg2rad(np.repeat(np.asarray(angles_deg, float), [len(a) for a in arcs]))
     radius = actual_diameter_mm / 2.0
     offset0 = free.cylinder_offset_mm if free.cylinder_offset_mm is not None else (0.0, 0.0)
-    fit_scale = free.angle_scale != 1.0
-    x0 = [*free.axis_xy_mm, *(offset0 if fit_offset else ())]
-    if fit_scale:
-        x0.append(free.angle_scale)
+    fit_gear = free.angle_scale != 1.0
+    n_offset = 2 if fit_offset else 0
 
-    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        offset = p[2:4] if fit_offset else np.zeros(2)
-        return p[:2], offset, float(p[-1]) if fit_scale else 1.0
+    def solve(scale_free: bool) -> Any:
+        x0 = [*free.axis_xy_mm, *(offset0 if fit_offset else ())]
+        if fit_gear:
+            x0 += [*([free.angle_scale] if scale_free else []), *np.deg2rad(free.angle_wave_deg)]
 
-    def residuals(p: np.ndarray) -> np.ndarray:
-        axis, offset, scale = unpack(p)
-        q = _rotate(pts - axis, -scale * theta) - offset
-        return np.hypot(q[:, 0], q[:, 1]) - radius
+        def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            offset = p[2:4] if fit_offset else np.zeros(2)
+            gear = p[2 + n_offset :] if scale_free else np.concatenate([[1.0], p[2 + n_offset :]])
+            return p[:2], offset, gear if fit_gear else np.array([1.0, 0.0, 0.0])
 
-    sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
-    axis, offset, scale = unpack(sol.x)
+        def residuals(p: np.ndarray) -> np.ndarray:
+            axis, offset, gear = unpack(p)
+            q = _rotate(pts - axis, -_gear_rad(theta, gear)) - offset
+            return np.hypot(q[:, 0], q[:, 1]) - radius
+
+        sol = least_squares(residuals, np.array(x0), method="lm", xtol=1e-12, ftol=1e-12)
+        return sol, unpack(sol.x)
+
+    sol, (axis, offset, gear) = solve(scale_free=True)
+    scale_sd = float("nan")
+    if fit_gear:
+        scale_sd = float(_standard_errors(sol.jac, sol.fun)[2 + n_offset])
+        if abs(gear[0] - 1.0) < SCALE_SIGMAS * scale_sd:
+            sol, (axis, offset, gear) = solve(scale_free=False)
     return replace(
         free,
         axis_xy_mm=(float(axis[0]), float(axis[1])),
         correction_factor=1.0,
-        angle_scale=scale,
+        angle_scale=float(gear[0]),
+        angle_scale_sd=scale_sd,
+        angle_wave_deg=(float(np.rad2deg(gear[1])), float(np.rad2deg(gear[2]))),
         cylinder_offset_mm=(float(offset[0]), float(offset[1])) if fit_offset else None,
         rms_mm=float(np.sqrt(np.mean(sol.fun**2))),
     )

@@ -91,7 +91,7 @@ from lamina_host.reconstruct.status import CLOSED, OutlineStatus
 from lamina_host.reconstruct.workers import map_in_workers, workers_for
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
-from lamina_shared.types import BoardSpec, LiftReference, Segment
+from lamina_shared.types import BoardSpec, LiftReference, Segment, from_first_turn
 
 MIN_SEGMENT_POINTS = 10
 """Segments with fewer points than this after trimming carry no usable outline."""
@@ -453,7 +453,7 @@ def calibrate_axis(
     per_view: bool = False,
 ) -> AxisCalibration:
     """Find the turntable axis and correction factor from the calibration cylinder (6.2)."""
-    views = [(world_points(s, grid, trim_fraction), s.angle_deg) for s in cylinder]
+    views = [(world_points(s, grid, trim_fraction), s.count_deg) for s in cylinder]
     views = [(a, angle) for a, angle in views if len(a) >= MIN_SEGMENT_POINTS]
     if len(views) < 3:
         raise CalibrationError(
@@ -511,22 +511,24 @@ def object_points(
     """Return a segment's points ``order`` in the object frame, in mm (thesis 6.1-6.2).
 
     The one transform of a view's points: the laser plane's homography, then the turn to
-    the object's frame at the view's true angle. ``row_turn_deg`` (a continuous scan's,
-    :func:`lamina_host.link.identity.row_turn_deg`) adds each point's own row's share:
-    the view's angle is the table's when its stripe's median row was exposed (the
-    device's ``_stripe_angle``, over every point it sent), each row below it one row
-    time later. Each row's commanded angle goes through the calibration on its own: a
-    stripe whose rows span the count's whole turn (the 0-degree view) has rows on either
-    side of it, and the calibrated error, a function of the angle within the turn, is
-    taken on each row's side.
+    the object's frame at the view's true angle, taken at its step count
+    (:attr:`Segment.count_deg`; turns counted from the scan's first,
+    :func:`~lamina_shared.types.from_first_turn`).
+    ``row_turn_deg`` (a continuous scan's, :func:`lamina_host.link.identity.row_turn_deg`)
+    adds each point's own row's share: the view's count is the table's when its
+    stripe's median row was exposed (the device's ``_stripe_count_deg``, over every
+    point it sent), each row below it one row time later. Each row's count goes through
+    the calibration on its own: a stripe whose rows span a whole turn of the count (the
+    0-degree view) has rows on either side of it, and the gear's periodic error is taken
+    on each row's side.
     """
     points = grid.homography.apply(segment.uv[order])
     angle: float | np.ndarray
     if row_turn_deg:
         rows = segment.rows[order].astype(float) - float(np.median(segment.rows))
-        angle = axis.true_angle_deg(np.mod(segment.angle_deg + row_turn_deg * rows, 360.0))
+        angle = axis.true_angle_deg(segment.count_deg + row_turn_deg * rows)
     else:
-        angle = axis.true_angle_deg(segment.angle_deg)
+        angle = axis.true_angle_deg(segment.count_deg)
     return to_object_frame(points, angle, axis.axis_xy_mm, axis.correction_factor)
 
 
@@ -1582,6 +1584,7 @@ def reconstruct(
     options = options or ProcessOptions()
     options.check()
     timer = Timer()
+    cylinder, segments = from_first_turn(cylinder), from_first_turn(segments)
     if options.refine_stripes:
         with timer.stage("refine_stripes"):
             refined = refined_segments([*cylinder, *segments])

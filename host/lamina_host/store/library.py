@@ -75,9 +75,9 @@ from lamina_host.store.files import (
 from lamina_host.store.subjects import check_subject
 from lamina_shared.errors import InputError, LaminaError
 from lamina_shared.scoped import Scoped
-from lamina_shared.types import BoardSpec, LiftReference, ScanPlan, Segment
+from lamina_shared.types import BoardSpec, LiftReference, ScanPlan, Segment, from_first_turn
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 SIDES = ("none", "left", "right")
 """The limb side a scan records; ``none`` for anything that is not one of a pair."""
 BUSY_TIMEOUT_S = 30.0
@@ -120,6 +120,7 @@ CREATE TABLE IF NOT EXISTS segments (
     view INTEGER NOT NULL,
     z_mm REAL NOT NULL,
     angle_deg REAL NOT NULL,
+    turns INTEGER NOT NULL DEFAULT 0,
     points INTEGER NOT NULL,
     data BLOB NOT NULL,
     PRIMARY KEY (scan_id, target, seq)
@@ -297,7 +298,7 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
     if len(data) not in (8 * n, 9 * n, 12 * n):
         raise StoreError(f"stored segment {row['seq']} is damaged: restore the library")
     confidence = np.frombuffer(data, "u1", n, 8 * n).copy() if len(data) >= 9 * n else None
-    colour = None
+    colour = np.zeros((0, 3), np.uint8)
     if n and len(data) == 12 * n:
         colour = np.frombuffer(data, "u1", 3 * n, 9 * n).reshape(n, 3).copy()
     return Segment(
@@ -310,8 +311,9 @@ def _segment_from_row(row: sqlite3.Row) -> Segment:
         np.frombuffer(data, "<f4", n, 2 * n).astype(np.float32),
         np.frombuffer(data, "u1", n, 6 * n).copy(),
         np.frombuffer(data, "u1", n, 7 * n).copy(),
-        *(() if confidence is None else (confidence,)),
-        *(() if colour is None else (colour,)),
+        np.zeros(n, np.uint8) if confidence is None else confidence,  # unknown
+        colour,
+        row["turns"],
     )
 
 
@@ -487,6 +489,8 @@ class Library(Scoped):
                 self._migrate_test()
             if 1 <= version <= 5:
                 self._migrate_lift_reference()
+            if 1 <= version <= 6:
+                self._migrate_turns()
             for statement in _SCHEMA.split(";"):
                 if statement.strip():
                     db.execute(statement)
@@ -549,6 +553,13 @@ class Library(Scoped):
         # than it is may have the column already.
         if columns and "lift_reference" not in columns:
             self._db.execute("ALTER TABLE calibrations ADD COLUMN lift_reference TEXT")
+
+    def _migrate_turns(self) -> None:
+        """Add each segment's whole turns (0 for segments recorded before devices sent them:
+        their scans are corrected within the turn, as they were)."""
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(segments)")}
+        if columns and "turns" not in columns:
+            self._db.execute("ALTER TABLE segments ADD COLUMN turns INTEGER NOT NULL DEFAULT 0")
 
     def leave(self) -> None:
         """Close the file at the end of a ``with`` block."""
@@ -743,7 +754,7 @@ class Library(Scoped):
         with self._write():
             cursor = self._db.execute(
                 "INSERT OR IGNORE INTO segments (scan_id, target, seq, section, view, z_mm, "
-                "angle_deg, points, data) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "angle_deg, turns, points, data) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     scan_id,
                     segment.target,
@@ -752,6 +763,7 @@ class Library(Scoped):
                     segment.view,
                     segment.z_mm,
                     segment.angle_deg,
+                    segment.turns,
                     len(segment),
                     _segment_blob(segment),
                 ),
@@ -826,7 +838,8 @@ class Library(Scoped):
         return Calibration(image, board, row["cylinder_mm"], lift)
 
     def inputs(self, scan_id: int) -> ScanInputs:
-        """Return what reprocessing scan ``scan_id`` needs.
+        """Return what reprocessing scan ``scan_id`` needs, each target's segments with
+        their turns counted from its own first (:func:`~lamina_shared.types.from_first_turn`).
 
         Raises:
             StoreError: no such scan, or it lacks its calibration or the cylinder diameter.
@@ -845,9 +858,9 @@ class Library(Scoped):
             record.created,
             calibration.grid_image,
             calibration.board,
-            self.segments(scan_id, "cylinder"),
+            from_first_turn(self.segments(scan_id, "cylinder")),
             float(calibration.cylinder_mm),
-            self.segments(scan_id, "object"),
+            from_first_turn(self.segments(scan_id, "object")),
             dict(report.get("options", {})),
             dict(record.device),
             calibration.lift_reference,

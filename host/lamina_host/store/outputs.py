@@ -8,7 +8,7 @@ front ends read its attributes, and ``report.json`` is written from its one
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +54,7 @@ def save_segments(path: Path, segments: list[Segment]) -> None:
     """
     arrays: dict[str, Any] = {}
     for k, s in enumerate(segments):
-        head = np.array([s.section, s.view, s.z_mm, s.angle_deg], dtype=np.float64)
+        head = np.array([s.section, s.view, s.z_mm, s.angle_deg, s.turns], dtype=np.float64)
         arrays[f"{k:05d}_head"] = head
         arrays[f"{k:05d}_target"] = np.array(s.target)
         for name in SEGMENT_FIELDS:
@@ -68,22 +68,22 @@ def save_segments(path: Path, segments: list[Segment]) -> None:
 
 
 def load_segments(path: Path) -> list[Segment]:
-    """Read segments written by :func:`save_segments`."""
+    """Read segments written by :func:`save_segments` (files from before segments carried
+    their turns read as turn 0)."""
     with np.load(path) as data:
         keys = sorted({name.split("_", 1)[0] for name in data.files})
         segments = []
         for k in keys:
-            section, view, z_mm, angle = data[f"{k}_head"]
-            segments.append(
-                Segment(
-                    str(data[f"{k}_target"]),
-                    int(section),
-                    int(view),
-                    float(z_mm),
-                    float(angle),
-                    *(data[f"{k}_{n}"] for n in SEGMENT_FIELDS if f"{k}_{n}" in data.files),
-                )
+            section, view, z_mm, angle, *turns = data[f"{k}_head"]
+            segment = Segment(
+                str(data[f"{k}_target"]),
+                int(section),
+                int(view),
+                float(z_mm),
+                float(angle),
+                *(data[f"{k}_{n}"] for n in SEGMENT_FIELDS if f"{k}_{n}" in data.files),
             )
+            segments.append(replace(segment, turns=int(turns[0])) if turns else segment)
     return segments
 
 

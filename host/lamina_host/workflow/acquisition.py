@@ -47,7 +47,14 @@ from lamina_host.workflow.library_access import LibraryAccess
 from lamina_host.workflow.results import ScanData
 from lamina_shared.errors import InputError
 from lamina_shared.ops import ExtractChanges
-from lamina_shared.types import SCAN_MODES, BoardSpec, LiftReference, ScanPlan, Segment
+from lamina_shared.types import (
+    SCAN_MODES,
+    BoardSpec,
+    LiftReference,
+    ScanPlan,
+    Segment,
+    from_first_turn,
+)
 
 TRIM_FRACTION = ProcessOptions().trim_fraction
 """The trim of the axis shown during calibration and of the live section plot."""
@@ -179,7 +186,7 @@ class Acquisition:
         """
         data, grid = self.data, self.grid
         if self.axis is None and grid is not None and data.cylinder and data.cylinder_mm:
-            axis_views, _ = lift_sections(data.cylinder, data.lift_reference)
+            axis_views, _ = lift_sections(from_first_turn(data.cylinder), data.lift_reference)
             with suppress(CalibrationError):
                 self.axis = calibrate_axis(axis_views, grid, data.cylinder_mm, TRIM_FRACTION)
         return self.axis
@@ -217,7 +224,7 @@ class Acquisition:
             )
         self.cylinder_plan, self.cylinder_held = plan, held
         self.data.cylinder, self.data.cylinder_mm = cylinder, diameter
-        axis_views, _ = lift_sections(cylinder, self._lift_reference())
+        axis_views, _ = lift_sections(from_first_turn(cylinder), self._lift_reference())
         self.axis = calibrate_axis(axis_views, grid, diameter, TRIM_FRACTION)
         return self.axis
 
@@ -472,10 +479,14 @@ class Acquisition:
         """Return the object-frame points (mm) of one section's views so far.
 
         The same assembly as the final result (:func:`lamina_host.reconstruct.pipeline.assemble`,
-        with the turntable's angle correction); (0, 2) before calibration.
+        with the turntable's angle correction, turns counted from the first of the
+        object's views held); (0, 2) before calibration.
         """
         if self.grid is None or self.axis is None or not segments:
             return np.empty((0, 2))
-        by_section, _, _ = assemble(segments, self.grid, self.axis, TRIM_FRACTION)
+        held = [*self.held.values(), *self.data.segments, *segments]
+        by_section, _, _ = assemble(
+            from_first_turn(segments, held), self.grid, self.axis, TRIM_FRACTION
+        )
         parts = [p for k in sorted(by_section) for p in by_section[k]]
         return np.vstack(parts) if parts else np.empty((0, 2))
