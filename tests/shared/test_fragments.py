@@ -192,21 +192,30 @@ def test_a_long_message_sent_once_crosses_a_line_that_damages_three_bytes_in_a_t
         while not stop.is_set():
             device.receive(0.05)
 
+    received: list = []
+
+    def host_reads() -> None:  # from before the send: a loaded machine may fill the ptys
+        deadline = time.monotonic() + 30
+        while not received and time.monotonic() < deadline and not stop.is_set():
+            if (message_in := host.receive(0.1)) is not None:
+                received.append(message_in)
+
     reader = threading.Thread(target=device_reads, daemon=True)
+    listener = threading.Thread(target=host_reads, daemon=True)
     reader.start()
+    listener.start()
     try:
         device.sizer = FrameSizer(errors=3.0, bytes_seen=1000.0)  # as measured on this line
         device.send(encode_json(Kind.EVENT, body))
-        deadline = time.monotonic() + 20
-        got = None
-        while got is None and time.monotonic() < deadline:
-            got = host.receive(0.1)
+        listener.join(timeout=30)
     finally:
         stop.set()
         reader.join(timeout=2)
+        listener.join(timeout=2)
         for port in ports:
             port.close()
         bridge.close()
+    got = received[0] if received else None
     assert got is not None and got.kind is Kind.EVENT and got.body == body
     assert faults.counts["flipped"] + faults.counts["dropped"] + faults.counts["duplicated"] > 20
     assert host.repairs_asked > 0 and device.repairs_served > 0
