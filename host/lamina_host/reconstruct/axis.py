@@ -466,14 +466,15 @@ def fit_view_offsets(
         return calibration
     pts = np.concatenate([np.asarray(a, dtype=float) for a in arcs])
     counts = [len(a) for a in arcs]
-    theta = np.deg2rad(np.repeat(commanded, counts))
+    point_count = np.repeat(commanded, counts)
+    theta = np.deg2rad(point_count)
     point_view = np.repeat(view, counts)
     scale = calibration.angle_scale
     first = np.array([commanded[view == k][0] for k in range(len(distinct))])
     start = calibration._geared_deg(first) - first
     # A view's angle seen again turns later stands the gear's shortfall over those turns
     # further: its offset is the first sighting's plus the scale's share of the turns.
-    theta += np.deg2rad((scale - 1.0) * (np.repeat(commanded, counts) - first[point_view]))
+    theta += np.deg2rad((scale - 1.0) * (point_count - first[point_view]))
     free_radius = () if radius_mm is not None else (calibration.estimated_diameter_mm / 2.0,)
     first_offset = 4 + len(free_radius)  # parameters: axis, cylinder offset, [radius], views
     x0 = np.array(
