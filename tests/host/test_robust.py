@@ -382,8 +382,8 @@ def test_per_view_angles_absorb_a_once_per_turn_error() -> None:
     mechanics = replace(Mechanics(), angle_runout_deg=0.15)
     truth = ellipse((5.0, 2.0), 8.0, 5.0)
     scan = synthetic_scan(rig, mechanics, dict.fromkeys(range(3), truth))
-    per_view = run(scan)
-    one_scale = run(scan, ProcessOptions(per_view_angles=False))
+    per_view = run(scan, ProcessOptions(per_view_angles=True))
+    one_scale = run(scan)
     offsets = per_view.axis.view_offsets_deg
     assert offsets is not None and one_scale.axis.view_offsets_deg is None
     # True per-view errors, relative to the first view's (a common rotation is the
