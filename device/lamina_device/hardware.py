@@ -8,6 +8,7 @@ backends build on this module, and :mod:`lamina_device.backends` picks one by na
 
 from __future__ import annotations
 
+import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,7 +48,8 @@ class Hardware:
     watchdog: LaserWatchdog | None = None
     identity: dict[str, str] = field(default_factory=lambda: {"serial": "", "source": ""})
     """What the host stores with a scan and checks at resume: ``serial`` names the
-    device, ``source`` what it images (WELCOME ``identity``)."""
+    device, ``source`` what it images, ``count_since`` (the box only) the run of the
+    turntable's step count, new each time the program starts (WELCOME ``identity``)."""
     extract: ExtractSettings = field(default_factory=ExtractSettings)
     """The configured stripe extraction (``[extract]``; a scan request may change it)."""
     sleep: Callable[[float], None] = time.sleep
@@ -176,7 +178,13 @@ def open_pi(config: DeviceConfig, source: str, pin_factory: Factory | None = Non
         settle_s=max(config.turntable.settle_s, config.lift.settle_s),
         timing=config,
         lift_settle_s=config.lift.settle_s,
-        identity={"serial": config.device_id or pi_serial(), "source": "camera"},
+        identity={
+            "serial": config.device_id or pi_serial(),
+            "source": "camera",
+            # The stepper's count starts at 0 wherever the table stands: a scan begun
+            # before this program started cannot be continued on this count.
+            "count_since": secrets.token_hex(8),
+        },
         extract=config.extract,
         lift_reference=reference,
     )

@@ -239,16 +239,21 @@ def _heartbeat_session(data: dict[str, Any], problems: Problems) -> str:
 
 @dataclass(frozen=True)
 class DeviceIdentity:
-    """Which device it is (``serial``) and what it images (``source``); see PROTOCOL.md."""
+    """Which device it is (``serial``), what it images (``source``) and, for a turntable
+    whose step count starts again when its program does, which run of the count its
+    angles belong to (``count_since``); see PROTOCOL.md."""
 
     serial: str | None = None
     source: str | None = None
+    count_since: str | None = None
+    """A token new each time the device program starts, from a device whose table's
+    angle is lost then (the box: no index sensor); None from one that starts its world
+    afresh with it (the simulator, a replay)."""
 
     def to_wire(self) -> dict[str, str]:
         """Return the WELCOME ``identity`` object (fields the device knows)."""
-        return {
-            k: v for k, v in (("serial", self.serial), ("source", self.source)) if v is not None
-        }
+        fields = (("serial", self.serial), ("source", self.source))
+        return {k: v for k, v in (*fields, ("count_since", self.count_since)) if v is not None}
 
 
 @dataclass(frozen=True)
@@ -542,7 +547,7 @@ def _identity(value: Any, problems: Problems) -> DeviceIdentity | None:
         problems.add(f"welcome.identity: an object is required, found {show(value)}")
         return None
     known = {}
-    for key in ("serial", "source"):
+    for key in ("serial", "source", "count_since"):
         item = value.get(key)
         if item is not None:
             # Kept as text whatever its kind: an identity is compared, never computed with.

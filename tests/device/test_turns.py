@@ -7,6 +7,7 @@ to sending the count the table really reached, in both modes.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from lamina_device.acquisition import acquire, whole_turns
@@ -71,3 +72,78 @@ def test_a_continuous_scan_sends_the_count_its_stripe_was_exposed_at():
 def test_whole_turns_take_the_views_angle_to_its_count(count_deg, angle_deg, turns):
     """A stop-and-go count sits on its commanded angle to within a microstep, either side."""
     assert whole_turns(count_deg, angle_deg) == turns
+
+
+# --- a count that starts again ----------------------------------------------------------
+
+
+def _box_identity(pi_kit, fake_picamera2, tmp_path) -> dict:
+    """Return the scan identity a host makes of a freshly started box's WELCOME."""
+    from gpiozero.pins.mock import MockFactory
+
+    from lamina_device.backends import open_hardware
+    from lamina_host.link.identity import scan_identity
+    from lamina_shared.messages import DeviceIdentity, Welcome
+    from lamina_shared.protocol import PROTOCOL_VERSION
+    from tests.device.test_acquisition import pi_hardware
+
+    factory = MockFactory()
+    pi_hardware(pi_kit, fake_picamera2, factory)
+    path = tmp_path / "box.toml"
+    path.write_text(pi_kit.toml(pi_kit.config))
+    hardware = open_hardware("pi", config_path=path, pin_factory=factory)
+    try:
+        welcome = Welcome(
+            PROTOCOL_VERSION,
+            image_size=hardware.camera.size,
+            identity=DeviceIdentity(**hardware.identity),
+        )
+    finally:
+        hardware.close()
+    # Through the wire form, as the host receives it.
+    return scan_identity(Welcome.from_wire(welcome.to_wire()))
+
+
+def _view(plan: ScanPlan, seq: int) -> Segment:
+    """Return a small segment labelled as view ``seq`` of ``plan``."""
+    view = plan.views[seq]
+    cols = np.arange(10, dtype=np.uint16)
+    rows, ones = np.full(10, 20.0, np.float32), np.ones(10, np.uint8)
+    return Segment("object", view.section, seq, view.z_mm, view.angle_deg, cols, rows, ones, ones)
+
+
+def test_a_scan_begun_before_the_box_restarted_is_not_continued_and_keeps_its_views(
+    pi_kit, fake_picamera2, tmp_path
+):
+    """The box's table has no index: its count starts at 0 wherever the table stands each
+    time the program starts, so views counted before and after cannot be joined. The
+    WELCOME says which run of the count it is; a resume on another run is refused in one
+    line, the views held stay, and a resume on the same run is accepted."""
+    from lamina_host.store.library import Library, StoreError
+
+    first = _box_identity(pi_kit, fake_picamera2, tmp_path)
+    again = _box_identity(pi_kit, fake_picamera2, tmp_path)
+    assert len(first["count_since"]) == 16 and first["count_since"] != again["count_since"]
+    assert {k: v for k, v in first.items() if k != "count_since"} == {
+        k: v for k, v in again.items() if k != "count_since"
+    }
+    plan = ScanPlan.regular(1, 1.0, 2)
+    with Library(tmp_path / "lib.sqlite") as library:
+        scan_id = library.create_scan("P-1", {"object": plan}, identity=first)
+        assert library.add_segment(scan_id, 0, _view(plan, 0), first)
+        library.check_identity(scan_id, dict(first))  # the same run: a dropped link resumed
+        with pytest.raises(StoreError) as caught:
+            library.check_identity(scan_id, again)
+        line = str(caught.value)
+        assert "\n" not in line and "begun before the device's program last started" in line
+        assert "start a new scan" in line
+        with pytest.raises(StoreError, match="begun before"):
+            library.add_segment(scan_id, 1, _view(plan, 1), again)
+        assert list(library.held_segments(scan_id, "object")) == [0]
+        # Another device altogether is named as such, whatever its count.
+        with pytest.raises(StoreError, match="another device or setup"):
+            library.check_identity(scan_id, {**again, "serial": "another box"})
+        # A scan recorded before the WELCOME said it is compared without it.
+        older = {k: v for k, v in first.items() if k != "count_since"}
+        old_id = library.create_scan("P-1", {"object": plan}, identity=older)
+        library.check_identity(old_id, again)

@@ -49,7 +49,7 @@ def _welcome() -> Welcome:
         axes=AxesInfo(0.0, 200.0, -90.0, 90.0, 0.0025),
         operations=("move", "scan"),
         limits=DeviceLimits(max_views=500),
-        identity=DeviceIdentity("sim", "sim object=x"),
+        identity=DeviceIdentity("box-7", "camera", "00f1e2d3c4b5a697"),
         extract=ExtractChanges((("threshold", None), ("power", 1.0), ("min_chain_px", 8))),
         colour=True,
         modes=SCAN_MODES,
@@ -63,6 +63,12 @@ def test_welcome_round_trips_through_json():
     assert body["limits"]["max_views"] == 500 and body["segment_encoding"] == {"row_scale": 64}
     assert Welcome.from_wire(body) == welcome
     assert Welcome.from_wire(body).to_wire() == welcome.to_wire()
+    assert body["identity"]["count_since"] == "00f1e2d3c4b5a697"
+    # A device that starts its world afresh (simulator, replay) leaves the key out.
+    assert DeviceIdentity("sim", "sim object=x").to_wire() == {
+        "serial": "sim",
+        "source": "sim object=x",
+    }
 
 
 def test_an_older_welcome_reads_with_defaults_and_another_version_for_its_versions_only():

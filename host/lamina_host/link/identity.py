@@ -126,10 +126,24 @@ def _shown(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-LATER_KEYS = frozenset({"row_turn_deg"})
+LATER_KEYS = frozenset({"row_turn_deg", "count_since"})
 """Identity keys added after scans were recorded without them: such a scan is compared
 without the key (it is processed as it was recorded, without the figure), so an update
 does not leave a half-acquired scan that no resume can finish."""
+
+
+def count_restarted(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> bool:
+    """Return True when the device that recorded a scan is the same but its program has
+    started again since: its ``count_since`` changed and nothing else did.
+
+    The box's turntable has no index; its step count starts at 0 wherever the table
+    stands, so angles counted before and after cannot be told apart or joined.
+    """
+    if "count_since" not in recorded or recorded.get("count_since") == current.get("count_since"):
+        return False
+    others = {k: v for k, v in current.items() if k != "count_since"}
+    kept = {k: v for k, v in recorded.items() if k != "count_since"}
+    return identity_difference(kept, others) is None
 
 
 def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:

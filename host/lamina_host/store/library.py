@@ -59,6 +59,7 @@ import cv2
 import numpy as np
 
 from lamina_host.link.identity import (
+    count_restarted,
     identity_difference,
     legacy_identity,
     row_turn_deg,
@@ -652,6 +653,13 @@ class Library(Scoped):
                 "add to it only through a connected device"
             )
         difference = identity_difference(recorded, identity)
+        if difference is not None and count_restarted(recorded, identity):
+            raise StoreError(
+                f"scan {scan_id} was begun before the device's program last started: its "
+                "turntable has no index and counts its angle afresh from wherever the table "
+                "stood, so views taken now would not line up with those held; start a new "
+                "scan (the views held stay in the library)"
+            )
         if difference is not None:
             raise StoreError(
                 f"scan {scan_id} was acquired by another device or setup ({difference}): "
