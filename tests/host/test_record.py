@@ -77,8 +77,9 @@ def limb() -> Reconstruction:
         np.zeros(0), 0.01, 0.02, 54, (),
     )  # fmt: skip
     axis = AxisCalibration(
-        (1.5, -2.0), 1.0021, 99.8, 100.0, np.zeros((8, 2)), np.full(8, 50.0), (), "joint"
-    )
+        (1.5, -2.0), 1.0021, 99.8, 100.0, np.zeros((8, 2)), np.full(8, 50.0), (), "joint",
+        angle_scale=0.99556, angle_scale_sd=1.7e-5, angle_wave_deg=(0.15, 0.126),
+    )  # fmt: skip
     return Reconstruction(grid, axis, sections, vertices, faces, {}, options=options)
 
 
@@ -107,6 +108,14 @@ def test_a_40_section_limb_record_fits_10_kb_and_rebuilds_within_0_1_percent(lim
     assert record.mesh_volume_mm3() == pytest.approx(volume, rel=1e-3)
     # And against the truth: the rebuilt mesh holds the limb's volume (4 mm pitch, 0.5 %).
     assert volume > 1e6
+
+
+def test_the_record_keeps_the_gear_the_calibration_fitted(limb) -> None:
+    """The gear's whole fit travels with the contours (provenance): its scale over the
+    count, that scale's standard error and its once-per-turn error."""
+    axis = load_record(record_bytes(limb, 1, "P1", "2026-11-29T10:00:00+00:00")).axis
+    assert axis["angle_scale"] == 0.99556 and axis["angle_scale_sd"] == 1.7e-5
+    assert axis["angle_wave_deg"] == [0.15, 0.126]
 
 
 def test_rebuilt_contours_lie_on_the_true_outline(limb) -> None:

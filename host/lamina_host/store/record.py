@@ -39,8 +39,10 @@ QUANTUM_MM = 1e-3
 
 CALIBRATION_KEYS = ("method", "matrix", "division_k", "distortion_centre_px",
                     "distortion_radius_px", "n_corners", "rms_mm", "max_mm")  # fmt: skip
-AXIS_KEYS = ("method", "axis_xy_mm", "correction_factor", "angle_scale", "estimated_diameter_mm",
-             "actual_diameter_mm", "cylinder_offset_mm", "rms_mm")  # fmt: skip
+AXIS_KEYS = ("method", "axis_xy_mm", "correction_factor", "angle_scale", "angle_scale_sd",
+             "angle_wave_deg", "estimated_diameter_mm", "actual_diameter_mm",
+             "cylinder_offset_mm", "rms_mm")  # fmt: skip
+"""The axis calibration a record keeps for provenance (the gear's whole fit among it)."""
 OPTION_KEYS = ("outline_points", "mesh", "interpolation", "ball_radius_mm")
 """What of the processing options the rebuild needs (the rest is kept for provenance)."""
 
