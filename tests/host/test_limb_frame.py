@@ -105,7 +105,9 @@ def test_cli_exports_a_scan_in_the_limb_frame(scanned_library: Path, tmp_path: P
     flat = triangles.reshape(-1, 3)
     volume = signed_volume(flat, np.arange(len(flat)).reshape(-1, 3))
     assert volume == pytest.approx(signed_volume(vertices, faces), rel=1e-5)
-    assert sidecar["volume_mm3"] == pytest.approx(signed_volume(vertices, faces), rel=1e-9)
+    # A rigid move keeps the volume; the sum of the faces' triple products about another
+    # origin rounds differently (1.3e-9 apart seen on one mesh), far below any real change.
+    assert sidecar["volume_mm3"] == pytest.approx(signed_volume(vertices, faces), rel=1e-7)
     assert sidecar["landmark"] == "distal end" and sidecar["units"] == "mm"
 
 
