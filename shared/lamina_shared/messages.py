@@ -252,8 +252,8 @@ class DeviceIdentity:
 
     def to_wire(self) -> dict[str, str]:
         """Return the WELCOME ``identity`` object (fields the device knows)."""
-        fields = (("serial", self.serial), ("source", self.source))
-        return {k: v for k, v in (*fields, ("count_since", self.count_since)) if v is not None}
+        known = {"serial": self.serial, "source": self.source, "count_since": self.count_since}
+        return {k: v for k, v in known.items() if v is not None}
 
 
 @dataclass(frozen=True)
