@@ -723,7 +723,7 @@ def _single_run_centres(
     """Return :func:`_centres` (eq. 5.1, ``p`` = 1) when every column holds one run, else None.
 
     The usual frame's fast path: with one run per column (its gaps no wider than
-    ``bridge_px``) nothing needs ordering column by column, so each column's first
+    ``bridge_px``) nothing needs ordering column by column, so each column's last
     bright row and its count come from unordered reductions, and the run, its bridged
     gaps and ``margin_px`` pixels either side are weighed from one window per column.
     The results equal the general path's (runs, choice, :func:`_margin_centres`).
@@ -734,19 +734,20 @@ def _single_run_centres(
     count = np.bincount(col, minlength=bright.width)
     cols = count.nonzero()[0]
     # A bright row of each column, no ordering: where indices repeat, one assignment
-    # wins. Pixels come row by row, so reversed that is the first one in practice; if
-    # it is not, or the rows are not consecutive, the window below misses bright pixels
-    # and the exact bounds are taken instead.
-    top = np.empty(bright.width, np.int64)
-    top[col[::-1]] = row[::-1]
+    # wins. Pixels come row by row, so that is the last one in practice (taken in this
+    # order it costs half what the first does); if it is not, or the rows are not
+    # consecutive, the window below misses bright pixels and the exact bounds are taken.
+    bottom = np.empty(bright.width, np.int64)
+    bottom[col] = row
     if cols.size < count.size:  # the usual stripe crosses every column: no gathers
-        count, top = count[cols], top[cols]
+        count, bottom = count[cols], bottom[cols]
     length = count
     longest = int(count.max())
     windows = None
-    # Rows come in ascending order and every column's top lies between their ends: the
-    # windows then fit.
-    start = top - margin_px  # each window's first row
+    # Rows come in ascending order and every column's run, as its count places it,
+    # lies between their ends: the windows then fit.
+    start = bottom - count
+    start += 1 - margin_px  # each window's first row
     if int(row[0]) >= margin_px and int(row[-1]) + longest + margin_px <= diff.shape[0]:
         windows = _windows(diff, cols, start, longest, length, margin_px)
     if windows is None or not _runs_bright(*windows, margin_px, threshold, col.size):
