@@ -147,3 +147,25 @@ def test_a_scan_begun_before_the_box_restarted_is_not_continued_and_keeps_its_vi
         older = {k: v for k, v in first.items() if k != "count_since"}
         old_id = library.create_scan("P-1", {"object": plan}, identity=older)
         library.check_identity(old_id, again)
+
+
+def test_a_calibration_outlives_a_restart_of_the_box_for_its_camera_not_its_table_count(
+    pi_kit, fake_picamera2, tmp_path
+):
+    """The chessboard is the camera's: it serves after the box's program started again.
+    Cylinder views counted before the restart do not, and the line says so and what to
+    do; another box is named as such, with what differs."""
+    from lamina_host.link.identity import calibration_mismatch
+
+    first = _box_identity(pi_kit, fake_picamera2, tmp_path)
+    again = _box_identity(pi_kit, fake_picamera2, tmp_path)
+    assert calibration_mismatch(first, dict(first), counts_held=True) is None
+    assert calibration_mismatch(first, again, counts_held=False) is None
+    line = calibration_mismatch(first, again, counts_held=True)
+    assert line is not None and "\n" not in line
+    assert "started again" in line and "scan the cylinder again" in line
+    other = {**again, "serial": "another box"}
+    for held in (False, True):
+        line = calibration_mismatch(first, other, counts_held=held)
+        assert line is not None and "not the one calibrated" in line
+        assert "serial" in line and "another box" in line and "calibrate again" in line

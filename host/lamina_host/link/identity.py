@@ -146,6 +146,41 @@ def count_restarted(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> 
     return identity_difference(kept, others) is None
 
 
+def calibration_mismatch(
+    calibrated: Mapping[str, Any], current: Mapping[str, Any], counts_held: bool
+) -> str | None:
+    """Return why a calibration made on ``calibrated`` cannot serve ``current``, or None.
+
+    The same box whose program started again is still calibrated as far as its camera
+    goes (the chessboard), but its turntable now counts from wherever it stood, so
+    cylinder views counted before (``counts_held``) cannot be joined to a scan counted
+    after; any other difference is another device or setup.
+
+    Args:
+        calibrated: the identity of the device when the calibration was captured.
+        current: the connected device's identity.
+        counts_held: whether cylinder views counted on ``calibrated`` are to be used.
+
+    Returns:
+        One line naming the problem and what to do, or None when the calibration serves.
+    """
+    if dict(calibrated) == dict(current):
+        return None
+    if count_restarted(calibrated, current):
+        if not counts_held:
+            return None
+        return (
+            "the device's program has started again since the calibration cylinder was "
+            "scanned, so its turntable now counts from wherever it stood: scan the "
+            "cylinder again (Calibrate screen, F4) before scanning"
+        )
+    difference = identity_difference(calibrated, current) or "its identity differs"
+    return (
+        f"the connected device is not the one calibrated ({difference}): calibrate again "
+        "(F4) before scanning with it"
+    )
+
+
 def identity_difference(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
     """Return what differs between a scan's recorded identity and the current one, or None.
 

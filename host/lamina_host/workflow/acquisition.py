@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from lamina_host.link.client import DeviceClient
-from lamina_host.link.identity import row_turn_deg
+from lamina_host.link.identity import calibration_mismatch, row_turn_deg
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
 from lamina_host.reconstruct.pipeline import (
@@ -196,14 +196,19 @@ class Acquisition:
             raise InputError("calibrate and accept the chessboard first (Calibrate screen, F4)")
         return self.grid
 
-    def _check_calibrated_here(self, client: DeviceClient) -> dict[str, Any]:
-        """Return the device's identity; refuse if calibration came from another device."""
+    def _check_calibrated_here(self, client: DeviceClient, counts_held: bool) -> dict[str, Any]:
+        """Return the device's identity; refuse if the calibration cannot serve it.
+
+        Args:
+            client: the connected device.
+            counts_held: whether cylinder views held from the calibration are to be used
+                (their step counts must be of the device's current run).
+        """
         identity = client.identity()
-        if self.calibrated_by is not None and identity != self.calibrated_by:
-            raise InputError(
-                "the connected device is not the one calibrated: calibrate again (F4) "
-                "before scanning with it"
-            )
+        if self.calibrated_by is not None:
+            problem = calibration_mismatch(self.calibrated_by, identity, counts_held)
+            if problem is not None:
+                raise InputError(problem)
         return identity
 
     def calibrate_axis(
@@ -215,14 +220,15 @@ class Acquisition:
         diameter = client.info.cylinder_diameter_mm if client.info else None
         if diameter is None:
             raise InputError("the device does not report its calibration cylinder's diameter")
-        self._check_calibrated_here(client)
+        identity = self._check_calibrated_here(client, counts_held=False)
         plan = client.plan_for("cylinder", None)
         held: dict[int, Segment] = {}
         with self.device.busy():
             cylinder = self.device.run_views(
                 "cylinder", plan, held, None, on_segment, on_progress, None
             )
-        self.cylinder_plan, self.cylinder_held = plan, held
+        # The views are counted on the device's current run: later scans are checked on it.
+        self.cylinder_plan, self.cylinder_held, self.calibrated_by = plan, held, identity
         self.data.cylinder, self.data.cylinder_mm = cylinder, diameter
         axis_views, _ = lift_sections(from_first_turn(cylinder), self._lift_reference())
         self.axis = calibrate_axis(axis_views, grid, diameter, TRIM_FRACTION)
@@ -279,7 +285,7 @@ class Acquisition:
             InputError: a plan beyond the device's limits, or no cylinder diameter known.
         """
         client = self.device.client()
-        identity = self._check_calibrated_here(client)
+        identity = self._check_calibrated_here(client, counts_held=bool(self.cylinder_held))
         limits = client.info.limits if client.info else None
         axes = client.info.axes if client.info else None
         plans = {
