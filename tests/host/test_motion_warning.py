@@ -129,6 +129,30 @@ def test_the_turntables_own_angle_error_is_no_motion():
     assert moved > MOTION_WARN_MM
 
 
+def test_the_allowance_is_taken_wherever_it_could_change_the_warning(monkeypatch):
+    """The turned comparison only lowers the figure, so it is made only where the figure
+    would warn: on random turns and shifts the warning is the same as with it made
+    everywhere, and so is the figure wherever it warns."""
+    from lamina_host.reconstruct import precision
+
+    rng = np.random.default_rng(22)
+    cases = [
+        ellipse_views(rng.uniform(-0.3, 0.3), tuple(rng.uniform(-0.25, 0.25, 2))) for _ in range(12)
+    ]
+    cases += [arc_views(tuple(rng.uniform(-0.15, 0.15, 2))) for _ in range(6)]
+    # A gear's turn alone: apart beyond the warning until the allowance is taken off.
+    cases += [ellipse_views(t) for t in (0.15, 0.2, -0.2)]
+    quick = [views_disagreement_mm(v) for v in cases]
+    monkeypatch.setattr(precision, "MOTION_WARN_MM", -1.0)  # the allowance everywhere
+    full = [views_disagreement_mm(v) for v in cases]
+    warned = [q > MOTION_WARN_MM for q in quick]
+    assert warned == [f > MOTION_WARN_MM for f in full]
+    assert 3 <= sum(warned) <= len(cases) - 3  # both outcomes are tried
+    for q, f, w in zip(quick, full, warned, strict=True):
+        assert f <= q + 1e-12 and (q == f if w else True)
+    assert max(quick[-2:]) < 0.02  # the 0.2 degree turns stood apart until allowed for
+
+
 @pytest.fixture(scope="module")
 def calibration():
     """The board and the calibration cylinder, taken once with nothing moving."""
