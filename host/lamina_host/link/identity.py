@@ -164,8 +164,6 @@ def calibration_mismatch(
     Returns:
         One line naming the problem and what to do, or None when the calibration serves.
     """
-    if dict(calibrated) == dict(current):
-        return None
     if count_restarted(calibrated, current):
         if not counts_held:
             return None
@@ -174,7 +172,9 @@ def calibration_mismatch(
             "scanned, so its turntable now counts from wherever it stood: scan the "
             "cylinder again (Calibrate screen, F4) before scanning"
         )
-    difference = identity_difference(calibrated, current) or "its identity differs"
+    difference = identity_difference(calibrated, current)
+    if difference is None:
+        return None
     return (
         f"the connected device is not the one calibrated ({difference}): calibrate again "
         "(F4) before scanning with it"

@@ -306,17 +306,18 @@ def disagreement_of(
     noise = _MOTION_SIGMAS * 1.25 * spread / np.sqrt(sizes)
     beyond = np.abs(centre)
     moved = coherent & (beyond > noise)
-    # The allowance only lowers the figure, so it is taken only where the figure would
-    # warn: comparing the views again costs a sixth of a still section's processing.
-    if views is not None and _second_largest(beyond[moved]) > MOTION_WARN_MM:
-        beyond = beyond - _turn_allowances(pairs, centre, moved, views, frame)
-        moved = coherent & (beyond > noise)
     # A subject who moves between two views stands apart in at least two pairs: round a
     # closed outline the views before and after the move meet at two places. A lone
     # offset pair is the shape's (a thin part's edge, a shell's far face): of the 48
     # outlines of 30 still limb shapes the largest offset warned of, 43 had one pair
     # alone beyond the warning's 0.15 mm.
-    return _second_largest(beyond[moved])
+    figure = _second_largest(beyond[moved])
+    # The allowance only lowers the figure, so it is taken only where the figure would
+    # warn: comparing the views again costs a sixth of a still section's processing.
+    if views is not None and figure > MOTION_WARN_MM:
+        beyond = beyond - _turn_allowances(pairs, centre, moved, views, frame)
+        figure = _second_largest(beyond[coherent & (beyond > noise)])
+    return figure
 
 
 def _second_largest(values: np.ndarray) -> float:
