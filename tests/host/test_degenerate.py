@@ -244,6 +244,26 @@ def test_blend_takes_any_views(pieces: list[np.ndarray]) -> None:
     assert finite(t) and finite(offset)
 
 
+def test_a_view_all_at_one_angle_blends_nothing_into_a_number_it_cannot_be() -> None:
+    """A view whose points share one polar angle spans nothing, so it covers no other
+    view's point (found by random views on a grid of angles: it covered a point at
+    exactly its angle and gave it weight 0 / 0, a NaN in the blended outline)."""
+
+    def ring(angle_deg: np.ndarray) -> np.ndarray:
+        a = np.deg2rad(angle_deg)
+        # Heights in eighths of a millimetre sum exactly: the centre lies at y = 0, so
+        # the ray's points and the front's point at y = 0 share the angle 0 exactly.
+        return np.column_stack([20.0 * np.cos(a), np.round(20.0 * np.sin(a) * 8.0) / 8.0])
+
+    front, back = ring(np.arange(-90.0, 91.0, 3.0)), ring(np.arange(90.0, 271.0, 3.0))
+    ray = np.array([[20.2, 0.0], [20.4, 0.0]])
+    blend = blend_overlaps([front, back, ray])
+    assert blend.frame.polar and blend.frame.centre_mm[1] == 0.0
+    assert finite(blend.points)
+    # The front's point at angle 0 stays where it was measured: no other view spans it.
+    assert np.abs(blend.points - [20.0, 0.0]).max(axis=1).min() < 1e-9
+
+
 @FAST
 @given(point_sets(), st.sampled_from([0.5, 3.0, 20.0]))
 def test_outline_frames_take_any_points(points: np.ndarray, link_mm: float) -> None:

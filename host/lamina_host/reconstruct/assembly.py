@@ -456,7 +456,7 @@ def _overlap_means(
     total = np.concatenate(values).astype(float) * weight[:, None]
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
     for m, (xp, rp, fp) in enumerate(tables):
-        if len(xp) < 2:
+        if len(xp) < 2 or xp[-1] <= xp[0]:  # all at one angle: it spans nothing
             continue
         lo, hi = xp[0], xp[-1]
         # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
