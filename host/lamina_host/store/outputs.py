@@ -394,12 +394,19 @@ def _outline_name(index: int, part: int) -> str:
 
 
 def _motion_warnings(sections: list[Section]) -> list[str]:
-    """Return a warning for each outline whose overlapping views show the subject moving."""
+    """Return a warning for each outline whose overlapping views show the subject moving.
+
+    Views also disagree, on a still limb, where the surface is finer than they resolve
+    alike (thin parts, deep folds, an open shell: the campaign's still shapes); a
+    second scan tells the two apart, so the line says what a repeat would mean.
+    """
     return [
         _outline_name(s.index, s.part)
         + f": its overlapping views stand {s.views_apart_mm:.2f} mm apart, beyond their "
         "noise: the subject may have moved during the scan; scan again with the limb "
-        "supported and still"
+        "supported and still (if a still limb is warned of again, the surface there is "
+        "finer than its views agree on, a thin or deeply folded part: its outline is "
+        "less certain than the rest)"
         for s in sorted(sections, key=lambda s: (s.index, s.part))
         if s.views_moved
     ]
