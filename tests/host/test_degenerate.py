@@ -244,7 +244,7 @@ def test_blend_takes_any_views(pieces: list[np.ndarray]) -> None:
     assert finite(t) and finite(offset)
 
 
-def test_a_view_all_at_one_angle_blends_nothing_into_a_number_it_cannot_be() -> None:
+def test_a_view_all_at_one_angle_covers_no_other_view() -> None:
     """A view whose points share one polar angle spans nothing, so it covers no other
     view's point (found by random views on a grid of angles: it covered a point at
     exactly its angle and gave it weight 0 / 0, a NaN in the blended outline)."""

@@ -184,5 +184,6 @@ def test_a_breathing_subject_is_warned_of_and_a_still_one_is_not(calibration):
     breathing = scan_report(calibration, "drift=0,breath=0.5,hz=0.25")
     moved = [w for w in breathing.warnings if "may have moved" in w]
     assert moved and moved[0].startswith("section 0: its overlapping views stand")
-    # What a repeat means is said: motion goes with stillness, a fine surface does not.
+    # The line says what a repeat means: motion goes when the limb is held still, a fine
+    # surface does not.
     assert "if a still limb is warned of again" in moved[0] and "\n" not in moved[0]
