@@ -358,14 +358,9 @@ def _overlap_differences(
     for m, (xp, rad_m) in enumerate(polar):
         order = np.argsort(xp, kind="stable")
         xp, fp = xp[order], rad_m[order]
-        if len(xp) < 2 or xp[-1] <= xp[0]:
+        inside, x = _covered(xp, ang_all, owner, m)
+        if not inside.size:
             continue
-        # Every other segment's points at once, shifted into [lo, lo + 2 pi).
-        shifted = xp[0] + np.mod(ang_all - xp[0], TWO_PI)
-        inside = (shifted <= xp[-1]) & (owner != m)
-        if not inside.any():
-            continue
-        x = shifted[inside]
         j = np.clip(np.searchsorted(xp, x) - 1, 0, len(xp) - 2)
         t = (x - xp[j]) / np.maximum(xp[j + 1] - xp[j], 1e-300)
         diffs.append(rad_all[inside] - np.interp(x, xp, fp))
@@ -373,6 +368,32 @@ def _overlap_differences(
     if not diffs:
         return np.zeros(0), np.zeros(0)
     return np.concatenate(diffs), np.concatenate(factors)
+
+
+def _covered(
+    xp: np.ndarray, ang: np.ndarray, owner: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the points of other segments that segment ``m``'s angular span covers.
+
+    One rule for the blend and the noise estimate: a segment spans its sorted angles
+    ``xp`` from first to last; one of fewer than two points, or all at one angle, spans
+    nothing (it would weigh a point at its angle by 0 / 0).
+
+    Args:
+        xp: segment ``m``'s angles, sorted ascending.
+        ang: every segment's points' angles, one after another.
+        owner: the segment each of those points belongs to.
+        m: the covering segment.
+
+    Returns:
+        The covered points' indices into ``ang`` and their angles shifted into
+        ``[xp[0], xp[0] + 2 pi)``, so the wrap at +-pi hides no cover.
+    """
+    if len(xp) < 2 or xp[-1] <= xp[0]:
+        return np.zeros(0, np.intp), np.zeros(0)
+    shifted = xp[0] + np.mod(ang - xp[0], TWO_PI)
+    covered = np.flatnonzero((shifted <= xp[-1]) & (owner != m))
+    return covered, shifted[covered]
 
 
 def average_overlap_colours(
@@ -456,16 +477,12 @@ def _overlap_means(
     total = np.concatenate(values).astype(float) * weight[:, None]
     owner = np.repeat(np.arange(len(polar)), [len(a) for a, _ in polar])
     for m, (xp, rp, fp) in enumerate(tables):
-        if len(xp) < 2 or xp[-1] <= xp[0]:  # all at one angle: it spans nothing
+        covered, x = _covered(xp, ang, owner, m)
+        if not covered.size:
             continue
-        lo, hi = xp[0], xp[-1]
-        # Shift each angle into [lo, lo + 2 pi) so the wrap at +-pi cannot hide cover.
-        shifted = lo + np.mod(ang - lo, TWO_PI)
-        covered = np.flatnonzero((shifted <= hi) & (owner != m))
-        same = np.abs(np.interp(shifted[covered], xp, rp) - rad[covered]) <= FOLD_MM
-        covered = covered[same]
-        x = shifted[covered]
-        w = blend_weight((x - lo) / (hi - lo))
+        same = np.abs(np.interp(x, xp, rp) - rad[covered]) <= FOLD_MM
+        covered, x = covered[same], x[same]
+        w = blend_weight((x - xp[0]) / (xp[-1] - xp[0]))
         for d in range(total.shape[1]):
             total[covered, d] += w * np.interp(x, xp, fp[:, d])
         weight[covered] += w
