@@ -16,7 +16,9 @@ from lamina_device.sim import Rig, SimScene
 from lamina_host.reconstruct import workers
 from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
 from lamina_host.reconstruct.workers import (
+    CHUNKS_PER_WORKER,
     MIN_TASKS_PER_WORKER,
+    in_batches,
     map_in_workers,
     usable_cores,
     workers_for,
@@ -99,8 +101,9 @@ def test_workers_give_the_same_scan_bit_for_bit_as_one_process(
     assert len({s[0] for s in one[0]}) == SECTIONS - 3
     for n in (2, 3):
         assert processed(rig, cylinder, segments, n) == one
-    # Both runs went through a pool (19 sections with stripes: 2 workers' worth, not 3).
-    assert pools == [SECTIONS - 1, SECTIONS - 1]
+    # Both runs went through a pool (19 sections with stripes: 2 workers' worth, not 3),
+    # in batches of whole sections, each worker's share in CHUNKS_PER_WORKER of them.
+    assert pools == [2 * CHUNKS_PER_WORKER, 2 * CHUNKS_PER_WORKER]
 
 
 @forks
@@ -152,3 +155,17 @@ def dies_in_a_worker(value: int) -> int:
 def test_a_worker_that_dies_costs_nothing() -> None:
     """A worker killed mid-scan breaks the pool: every task is done again here."""
     assert map_in_workers(dies_in_a_worker, list(range(-30, 0)), 2) == list(range(30, 0, -1))
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("items", [0, 1, 3, 7, 8, 9, 19, 100, 101])
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_batches_keep_every_item_once_in_order_and_near_equal(items: int, workers: int) -> None:
+    """Sections split for the workers: none lost, none twice, none reordered; one batch
+    for one worker, else up to CHUNKS_PER_WORKER a worker, lengths at most one apart."""
+    batches = in_batches(list(range(items)), workers)
+    assert [x for b in batches for x in b] == list(range(items))
+    expected = 0 if items == 0 else 1 if workers == 1 else min(items, workers * CHUNKS_PER_WORKER)
+    assert len(batches) == expected
+    sizes = [len(b) for b in batches]
+    assert all(sizes) and max(sizes, default=0) - min(sizes, default=0) <= 1

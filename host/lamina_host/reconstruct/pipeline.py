@@ -8,11 +8,13 @@ method and Lamina's default side by side; ``ProcessOptions.thesis()`` runs the t
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from functools import partial
 from types import MappingProxyType
 from typing import Any
 
@@ -88,7 +90,7 @@ from lamina_host.reconstruct.precision import (
     precision_of,
 )
 from lamina_host.reconstruct.status import CLOSED, OutlineStatus
-from lamina_host.reconstruct.workers import map_in_workers, workers_for
+from lamina_host.reconstruct.workers import in_batches, map_in_workers, workers_for
 from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import BoardSpec, LiftReference, Segment, from_first_turn
@@ -590,16 +592,14 @@ def colour_section(section: Section, views: list[tuple[np.ndarray, np.ndarray]])
     return replace(section, colour_points=points, colours=rgb)
 
 
-def colour_sections(
-    sections: list[Section],
-    segments: list[Segment],
-    grid: GridCalibration,
-    axis: AxisCalibration,
-    trim_fraction: float,
-) -> list[Section]:
-    """Colour every section from the coloured segments (unchanged when none carry colour)."""
-    views = assemble_colours(segments, grid, axis, trim_fraction)
-    if not views:
+def colour_sections(sections: list[Section], views: ColourViews) -> list[Section]:
+    """Colour every section from its coloured views (unchanged when none carry colour).
+
+    Args:
+        sections: the fitted outlines.
+        views: per section index, its coloured views (:func:`assemble_colours`).
+    """
+    if not any(views.values()):
         return sections
     return [_coloured_or_not(s, views.get(s.index, [])) for s in sections]
 
@@ -817,24 +817,88 @@ def process_section(
 
 
 @dataclass(frozen=True)
-class SectionTask:
-    """One section's input to :func:`process_section`, as sent to a worker process."""
+class SectionContext:
+    """What every section's processing shares: the calibration, the options and the rules."""
 
-    index: int
-    z_mm: float
-    pieces: list[np.ndarray]
+    grid: GridCalibration
+    axis: AxisCalibration
     options: ProcessOptions
     rules: OutlierRules
+    lift_scale: float = 1.0
+    row_turn_deg: float = 0.0
 
 
-def process_task(task: SectionTask) -> tuple[SectionOutcome, dict[str, float]]:
-    """Process one section (:func:`process_section`); return its outcome and stage times.
+@dataclass(eq=False)
+class SectionDone:
+    """What processing a section gave: its outcome, and what the scan's warnings and colour
+    need of it."""
 
-    Module-level and never raising, so :func:`map_in_workers` can run it in a worker.
+    index: int
+    outcome: SectionOutcome
+    points: int
+    """Stripe points assembled, before the outlier tests."""
+    beyond_view: int
+    """Of them, those beyond the disc the camera sees at every angle."""
+    colour_views: list[tuple[np.ndarray, np.ndarray]]
+    """The coloured views' object-frame points and colours (:func:`assemble_colours`)."""
+
+    @property
+    def assembled(self) -> bool:
+        """False: every segment of the section was too short after trimming (no section)."""
+        return self.points > 0
+
+
+@dataclass(eq=False)
+class BatchDone:
+    """What a batch of sections gave (:func:`process_batch`)."""
+
+    sections: list[SectionDone]
+    """Each section's result, in the order of its index."""
+    skipped: int
+    """Segments left out for fewer than ``MIN_SEGMENT_POINTS`` points after trimming."""
+    seconds: dict[str, float]
+    """The batch's stage times (:class:`Timer`)."""
+
+
+def process_batch(segments: list[Segment], context: SectionContext) -> BatchDone:
+    """Fit, assemble and process the sections of ``segments`` (:func:`process_section`).
+
+    The stripe fit and the assembly of a section depend on its own segments alone, so
+    they run in the workers with the rest: done up front for the whole scan, they were a
+    sixth of its processing time on one core. A batch holds several whole sections, as
+    the stripe fit costs less per segment when given many at once. Module-level, so
+    :func:`map_in_workers` can run it in a worker; a section's failure is its outcome's,
+    not an exception (only a fault of the fit or the assembly raises, as it did when
+    they ran up front).
+
+    Args:
+        segments: every segment of the batch's sections, as the device sent them.
+        context: the calibration, options and rules every section shares.
+
+    Returns:
+        Each section's result in the order of its index, the segments left out and the
+        batch's stage times.
     """
     timer = Timer()
-    outcome = process_section(task.index, task.z_mm, task.pieces, task.options, task.rules, timer)
-    return outcome, timer.seconds
+    if context.options.refine_stripes:
+        with timer.stage("refine_stripes"):
+            segments = refined_segments(segments)
+    grid, axis, trim = context.grid, context.axis, context.options.trim_fraction
+    with timer.stage("assemble"):
+        by_section, heights, skipped = assemble(segments, grid, axis, trim, context.row_turn_deg)
+        colours = assemble_colours(segments, grid, axis, trim)
+    done = []
+    for index in sorted({s.section for s in segments}):
+        pieces = by_section.get(index, [])
+        if not pieces:
+            done.append(SectionDone(index, SectionOutcome(), 0, 0, []))
+            continue
+        z_mm = heights[index] * context.lift_scale
+        outcome = process_section(index, z_mm, pieces, context.options, context.rules, timer)
+        seen = int(sum(len(p) for p in pieces))
+        beyond = beyond_view_count(pieces, context.rules)
+        done.append(SectionDone(index, outcome, seen, beyond, colours.get(index, [])))
+    return BatchDone(done, skipped, timer.seconds)
 
 
 def all_left_out(seen: int, rejected: Rejected) -> str:
@@ -1353,22 +1417,27 @@ def camera_disc_mm(
     return float(np.hypot(d[:, 0], d[:, 1]).min() * axis.correction_factor)
 
 
-def beyond_view_warning(
-    by_section: dict[int, list[np.ndarray]], rules: OutlierRules, rejected: Rejected
-) -> str | None:
+def beyond_view_count(pieces: list[np.ndarray], rules: OutlierRules) -> int:
+    """Return how many of a section's points lie beyond ``rules.working_radius_mm`` (or 0)."""
+    if rules.working_radius_mm is None:
+        return 0
+    return sum(int(np.sum(np.hypot(p[:, 0], p[:, 1]) > rules.working_radius_mm)) for p in pieces)
+
+
+def beyond_view_warning(beyond: int, rules: OutlierRules, rejected: Rejected) -> str | None:
     """Return the line saying the object reaches beyond the camera's view, or None.
 
     Stripe points further from the axis than the disc the camera sees at every angle are
     kept where other views confirm them (:mod:`.outliers`), but the views that turned that
     part out of the image saw nothing of it: the object is wider than the rig's view.
+
+    Args:
+        beyond: the scan's stripe points beyond that disc (:func:`beyond_view_count`).
+        rules: the outlier rules, with the disc's radius.
+        rejected: what the outlier tests removed.
     """
     if rules.working_radius_mm is None:
         return None
-    beyond = sum(
-        int(np.sum(np.hypot(p[:, 0], p[:, 1]) > rules.working_radius_mm))
-        for parts in by_section.values()
-        for p in parts
-    )
     kept = beyond - rejected.outside_volume
     if kept <= 0:
         return None
@@ -1461,32 +1530,44 @@ def process_segments(
     workers: int | None = None,
     row_turn_deg: float = 0.0,
 ) -> tuple[list[Section], list[str], Rejected, list[FailedSection]]:
-    """Assemble the object's segments, reject outliers, fit the outlines, close the gaps.
+    """Fit and assemble the object's stripes, reject outliers, fit the outlines, close gaps.
 
-    Each section is processed on its own (:func:`process_section`): one that fails is
-    returned among the failed outlines with its reason, and the others go on. Each
-    section's height is its commanded lift height times ``lift_scale`` (the calibrated
-    lift, :func:`lift_calibration`). Sections are shared among ``workers`` processes
-    (:func:`workers_for`: None, every core where the scan is large enough), with the
-    same result bit for bit; ``timer``'s "reject" and "fit_efd" then add up the
-    workers' times, so they can exceed the wall time. ``row_turn_deg`` turns each point of
-    a continuous scan by its row's share (:func:`assemble`).
+    Each section is processed on its own (:func:`process_batch`: its stripes fitted when
+    ``options.refine_stripes``, then assembled and processed by :func:`process_section`):
+    one that fails is returned among the failed outlines with its reason, and the others
+    go on. Each section's height is its commanded lift height times ``lift_scale`` (the
+    calibrated lift, :func:`lift_calibration`). Sections are shared among ``workers``
+    processes (:func:`workers_for`: None, every core where the scan is large enough), in
+    batches of whole sections (:func:`in_batches`), with the same result bit for bit;
+    ``timer``'s "refine_stripes", "assemble", "reject" and "fit_efd" then add up the
+    workers' times, so they can exceed the wall time. ``row_turn_deg`` turns each point
+    of a continuous scan by its row's share (:func:`assemble`).
 
     Raises:
         CalibrationError: no view shows the stripe, or no section gave an outline.
     """
     rules = rules or OutlierRules(working_radius_mm=options.working_radius_mm)
-    with timer.stage("assemble"):
-        by_section, heights, skipped = assemble(
-            segments, grid, axis, options.trim_fraction, row_turn_deg
-        )
+    context = SectionContext(grid, axis, options, rules, lift_scale, row_turn_deg)
+    by_section: dict[int, list[Segment]] = {}
+    for segment in segments:
+        by_section.setdefault(segment.section, []).append(segment)
+    count = workers_for(len(by_section), workers)
+    sections_in = in_batches([by_section[k] for k in sorted(by_section)], count)
+    batches = [list(itertools.chain.from_iterable(b)) for b in sections_in]
+    done: list[SectionDone] = []
+    skipped = 0
+    for batch in map_in_workers(partial(process_batch, context=context), batches, count):
+        done += batch.sections
+        skipped += batch.skipped
+        timer.add(batch.seconds)
     warnings = []
     if skipped:
         warnings.append(
             f"{skipped} segment(s) had fewer than {MIN_SEGMENT_POINTS} points "
             "after trimming and were left out"
         )
-    if not by_section:
+    done = [d for d in done if d.assembled]
+    if not done:
         raise CalibrationError(
             "no view of the object shows the laser stripe: check the object "
             "stands inside the laser plane and the laser works"
@@ -1494,21 +1575,15 @@ def process_segments(
     rejected = Rejected()
     sections: list[Section] = []
     failed: list[FailedSection] = []
-    tasks = [
-        SectionTask(k, heights[k] * lift_scale, by_section[k], options, rules)
-        for k in sorted(by_section)
-    ]
-    done = map_in_workers(process_task, tasks, workers_for(len(tasks), workers))
-    for outcome, seconds in done:
-        timer.add(seconds)
-        rejected.add(outcome.rejected)
-        sections += outcome.sections
-        failed += outcome.failed
+    for d in done:
+        rejected.add(d.outcome.rejected)
+        sections += d.outcome.sections
+        failed += d.outcome.failed
     if rejected.points:
         warnings.append(rejection_warning(rejected))
-    if line := beyond_view_warning(by_section, rules, rejected):
+    if line := beyond_view_warning(sum(d.beyond_view for d in done), rules, rejected):
         warnings.append(line)
-    total = sum(len(p) for parts in by_section.values() for p in parts)
+    total = sum(d.points for d in done)
     if sections and (line := kept_little_warning(total, rejected)):
         warnings.append(line)
     if not sections:
@@ -1528,7 +1603,7 @@ def process_segments(
     with timer.stage("fit_efd"):
         sections = fill_gaps(sections, options)
     with timer.stage("colour"):
-        sections = colour_sections(sections, segments, grid, axis, options.trim_fraction)
+        sections = colour_sections(sections, {d.index: d.colour_views for d in done})
     warnings += failure_warning(failed) + gap_warnings(sections)
     return sections, warnings, rejected, failed
 
@@ -1593,10 +1668,9 @@ def reconstruct(
     options.check()
     timer = Timer()
     cylinder, segments = from_first_turn(cylinder), from_first_turn(segments)
-    if options.refine_stripes:
+    if options.refine_stripes:  # the object's stripes are fitted section by section
         with timer.stage("refine_stripes"):
-            refined = refined_segments([*cylinder, *segments])
-            cylinder, segments = refined[: len(cylinder)], refined[len(cylinder) :]
+            cylinder = refined_segments(cylinder)
     with timer.stage("calibrate_grid"):
         distortion = options.distortion if options.calibration == "ml" else "off"
         grid = calibrate_grid(grid_image, board, options.calibration, distortion)

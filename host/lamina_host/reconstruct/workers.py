@@ -1,7 +1,8 @@
 """Worker processes: a scan's sections processed on every core, the same result as one.
 
-Each section's outlier rejection and outline fit depend on that section alone, so they
-can run side by side. Threads would not help (the work is many small numpy calls, held
+Each section's stripe fit, assembly, outlier rejection and outline fit depend on that
+section alone, so they can run side by side, in batches of whole sections
+(:func:`in_batches`). Threads would not help (the work is many small numpy calls, held
 by the interpreter's lock), so sections go to forked worker processes, which inherit
 the imported pipeline: a freshly spawned one would spend about a second importing
 numpy, SciPy and OpenCV, as long as a whole scan's processing on this host. Where
@@ -13,6 +14,7 @@ same bit for bit whatever the number of workers.
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 from collections.abc import Callable, Sequence
@@ -64,6 +66,25 @@ def workers_for(tasks: int, requested: int | None = None) -> int:
     if nested or "fork" not in multiprocessing.get_all_start_methods():
         return 1
     return max(1, min(wanted, tasks // MIN_TASKS_PER_WORKER))
+
+
+def in_batches(items: Sequence[Task], workers: int) -> list[list[Task]]:
+    """Split ``items`` in order into batches for ``workers`` processes to take in turn.
+
+    Args:
+        items: the work, in the order its results are wanted.
+        workers: the processes that will share it (:func:`workers_for`).
+
+    Returns:
+        No batch for no items; one batch of everything for one worker; else
+        ``workers * CHUNKS_PER_WORKER`` batches of near-equal length (fewer when there
+        are fewer items), in order.
+    """
+    if not items:
+        return []
+    count = 1 if workers <= 1 else min(len(items), workers * CHUNKS_PER_WORKER)
+    bounds = [len(items) * k // count for k in range(count + 1)]
+    return [list(items[a:b]) for a, b in itertools.pairwise(bounds)]
 
 
 def map_in_workers(
