@@ -7,6 +7,7 @@ import multiprocessing
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -33,11 +34,12 @@ forks = pytest.mark.skipif(
 SECTIONS, VIEWS = 20, 8
 
 
-def random_scan(seed: int) -> tuple[Rig, list[Segment], list[Segment]]:
+def random_scan(seed: int, colour: bool = False) -> tuple[Rig, list[Segment], list[Segment]]:
     """Return a rig, its cylinder's views and a random lobed object's views.
 
     Each section's outline has its own random lobes; sections 3 and 11 keep one view
-    only (nothing confirms their points: failed outlines), section 7 none at all.
+    only (nothing confirms their points: failed outlines), section 7 none at all. With
+    ``colour`` every object point carries a random colour.
     """
     rig = Rig()
     rng = np.random.default_rng(seed)
@@ -56,6 +58,8 @@ def random_scan(seed: int) -> tuple[Rig, list[Segment], list[Segment]]:
         for v in range(views):
             angle = 360.0 * v / VIEWS
             s = view_segment(rig, "object", k, v, 2.0 * k, angle, angle, outline, rng, 0.3)
+            if s is not None and colour:
+                s = replace(s, colour=rng.integers(0, 256, (len(s), 3), dtype=np.uint8))
             if s is not None:
                 segments.append(s)
     return rig, cylinder, segments
@@ -69,7 +73,8 @@ def processed(rig: Rig, cylinder: list[Segment], segments: list[Segment], n: int
         workers=n,
     )  # fmt: skip
     return (
-        [(s.index, s.part, s.status, s.contour.tobytes(), s.measured_contour.tobytes())
+        [(s.index, s.part, s.status, s.contour.tobytes(), s.measured_contour.tobytes(),
+          None if s.colours is None else (s.colour_points.tobytes(), s.colours.tobytes()))
          for s in result.sections],
         [(f.index, f.part, f.points, f.reason) for f in result.failed],
         result.rejected, result.warnings, result.vertices.tobytes(), result.faces.tobytes(),
@@ -78,13 +83,13 @@ def processed(rig: Rig, cylinder: list[Segment], segments: list[Segment], n: int
 
 @forks
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize(("seed", "colour"), [(0, False), (1, True)])
 def test_workers_give_the_same_scan_bit_for_bit_as_one_process(
-    seed: int, monkeypatch: pytest.MonkeyPatch
+    seed: int, colour: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Random lobed sections, some failing, processed by 1, 2 and 3 workers: the same
-    outlines, failures, rejections, warnings and mesh, byte for byte."""
-    rig, cylinder, segments = random_scan(seed)
+    outlines, failures, rejections, warnings, mesh and colours, byte for byte."""
+    rig, cylinder, segments = random_scan(seed, colour)
     pools: list[int] = []
 
     class CountedPool(ProcessPoolExecutor):
@@ -99,6 +104,8 @@ def test_workers_give_the_same_scan_bit_for_bit_as_one_process(
     failed = {f[0] for f in one[1]}
     assert {3, 11} <= failed and 7 not in {s[0] for s in one[0]}
     assert len({s[0] for s in one[0]}) == SECTIONS - 3
+    # Colour comes back from the workers with each section's views.
+    assert all((s[5] is not None) == colour for s in one[0])
     for n in (2, 3):
         assert processed(rig, cylinder, segments, n) == one
     # Both runs went through a pool (19 sections with stripes: 2 workers' worth, not 3),
@@ -158,14 +165,26 @@ def test_a_worker_that_dies_costs_nothing() -> None:
 
 
 @pytest.mark.timeout(30)
-@pytest.mark.parametrize("items", [0, 1, 3, 7, 8, 9, 19, 100, 101])
-@pytest.mark.parametrize("workers", [1, 2, 3])
-def test_batches_keep_every_item_once_in_order_and_near_equal(items: int, workers: int) -> None:
+@pytest.mark.parametrize(
+    ("items", "workers", "sizes"),
+    [
+        (0, 2, []),
+        (1, 2, [1]),
+        (19, 1, [19]),
+        (3, 2, [1, 1, 1]),
+        (8, 2, [1] * 8),
+        (9, 2, [1, 1, 1, 1, 1, 1, 1, 2]),
+        (19, 2, [2, 2, 3, 2, 2, 3, 2, 3]),
+        (100, 3, [8, 8, 9, 8, 8, 9, 8, 8, 9, 8, 8, 9]),
+    ],
+)
+def test_batches_keep_every_item_once_in_order_and_near_equal(
+    items: int, workers: int, sizes: list[int]
+) -> None:
     """Sections split for the workers: none lost, none twice, none reordered; one batch
-    for one worker, else up to CHUNKS_PER_WORKER a worker, lengths at most one apart."""
+    for one worker, else CHUNKS_PER_WORKER a worker (fewer for fewer sections), their
+    lengths at most one apart."""
+    assert CHUNKS_PER_WORKER == 4  # the sizes below are for four batches a worker
     batches = in_batches(list(range(items)), workers)
     assert [x for b in batches for x in b] == list(range(items))
-    expected = 0 if items == 0 else 1 if workers == 1 else min(items, workers * CHUNKS_PER_WORKER)
-    assert len(batches) == expected
-    sizes = [len(b) for b in batches]
-    assert all(sizes) and max(sizes, default=0) - min(sizes, default=0) <= 1
+    assert [len(b) for b in batches] == sizes
