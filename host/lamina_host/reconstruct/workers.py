@@ -93,7 +93,8 @@ def map_in_workers(
     """Return ``[function(t) for t in tasks]``, computed by ``workers`` forked processes.
 
     ``function`` must be a module-level function and never raise (a section's failure is
-    its outcome's, not the scan's). If the pool cannot start or a worker dies (out of
+    its outcome's, not the scan's). Each task goes to a worker on its own: the caller
+    sizes them (:func:`in_batches`). If the pool cannot start or a worker dies (out of
     memory, killed), the tasks are done again here, one after another: a scan is never
     lost to the pool.
 
@@ -107,10 +108,9 @@ def map_in_workers(
     """
     if workers <= 1 or len(tasks) < 2 or "fork" not in multiprocessing.get_all_start_methods():
         return [function(t) for t in tasks]
-    chunk = max(1, len(tasks) // (workers * CHUNKS_PER_WORKER))
     try:
         context = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(workers, mp_context=context) as pool:
-            return list(pool.map(function, tasks, chunksize=chunk))
+            return list(pool.map(function, tasks))
     except (BrokenProcessPool, OSError):
         return [function(t) for t in tasks]
