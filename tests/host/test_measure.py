@@ -10,9 +10,11 @@ from lamina_host.reconstruct.measure import (
     centroid,
     centroid_or_mean,
     perimeter,
+    perimeters,
     polygon_area,
     radial_error_table,
     signed_area,
+    signed_areas,
 )
 
 R = 9.525
@@ -36,6 +38,27 @@ def test_polygon_measures() -> None:
     assert np.allclose(centroid(dense), [2.0, 2.0])
     with pytest.raises(CalibrationError):
         centroid(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]))
+
+
+def test_a_batch_of_contours_measures_as_each_alone() -> None:
+    """Areas and perimeters of stacked contours: the truth, and each alone bit for bit.
+
+    The contour mesh's ring spacing measures hundreds of probe contours at once; a batch
+    must round as the plain formula over one contour does, as the single measures do.
+    """
+    square = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0], [1.0, 3.0]])
+    batch = np.stack([square, square[::-1], square * 2.0])
+    assert signed_areas(batch) == pytest.approx([6.0, -6.0, 24.0])
+    assert perimeters(batch) == pytest.approx([10.0, 10.0, 20.0])
+    rng = np.random.default_rng(5)
+    many = rng.normal(size=(40, 64, 2)) * rng.uniform(0.1, 60.0, (40, 1, 1))
+    areas, lengths = signed_areas(many), perimeters(many)
+    # The shoelace and the edge lengths written out for one contour at a time.
+    alone = [0.5 * np.sum(c[:, 0] * np.roll(c[:, 1], -1) - np.roll(c[:, 0], -1) * c[:, 1])
+             for c in many]  # fmt: skip
+    assert areas.tolist() == alone == [signed_area(c) for c in many]
+    edges = [np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1).sum() for c in many]
+    assert lengths.tolist() == edges == [perimeter(c) for c in many]
 
 
 def test_a_flat_outline_is_placed_at_its_mean() -> None:

@@ -28,7 +28,13 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator, make_smoothing_spline
 
 from lamina_host.reconstruct.calibration import CalibrationError
-from lamina_host.reconstruct.measure import centroid, perimeter, polygon_area
+from lamina_host.reconstruct.measure import (
+    centroid,
+    perimeter,
+    perimeters,
+    polygon_area,
+    signed_areas,
+)
 from lamina_host.reconstruct.outline_frame import OutlineFrame, unwrap_angles
 
 
@@ -778,12 +784,8 @@ class EfdStack:
         ends = self.sample(probe_points)
         inner = self.sample(probe_points, probe_z.ravel())
         chord = ((1.0 - t) * ends[:-1, None] + t * ends[1:, None]).reshape(inner.shape)
-        sag = np.array(
-            [
-                abs(polygon_area(a) - polygon_area(b)) / max(perimeter(b), 1e-12)
-                for a, b in zip(inner, chord, strict=True)
-            ]
-        ).reshape(probe_z.shape)
+        area_gap = np.abs(np.abs(signed_areas(inner)) - np.abs(signed_areas(chord)))
+        sag = (area_gap / np.maximum(perimeters(chord), 1e-12)).reshape(probe_z.shape)
         parts = np.ceil(np.sqrt(sag.max(axis=1) / sag_mm))
         parts = np.clip(parts, 1, MAX_RINGS_PER_SLAB).astype(int)
         heights = np.concatenate(

@@ -22,11 +22,30 @@ def _closed_xy(contour: np.ndarray) -> np.ndarray:
     return pts
 
 
+def _next(values: np.ndarray) -> np.ndarray:
+    """Return ``values`` shifted one place back along the last axis (the first comes last):
+    each point's successor round a closed contour (``np.roll(values, -1, axis=-1)``, with
+    fewer copies)."""
+    return np.concatenate([values[..., 1:], values[..., :1]], axis=-1)
+
+
+def signed_areas(contours: np.ndarray) -> np.ndarray:
+    """Return the shoelace areas in mm^2 of closed contours, positive counter-clockwise.
+
+    Args:
+        contours: (..., N, 2) points, N >= 3 (not checked: :func:`signed_area` checks one).
+
+    Returns:
+        (...) areas; a 0-d array for one (N, 2) contour. Each area is summed along its
+        own contour, so a contour's area is the same alone or in a batch.
+    """
+    x, y = contours[..., 0], contours[..., 1]
+    return 0.5 * np.sum(x * _next(y) - _next(x) * y, axis=-1)
+
+
 def signed_area(contour: np.ndarray) -> float:
     """Return the shoelace area in mm^2, positive when the contour runs counter-clockwise."""
-    pts = _closed_xy(contour)
-    x, y = pts.T
-    return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return float(signed_areas(_closed_xy(contour)))
 
 
 def polygon_area(contour: np.ndarray) -> float:
@@ -34,10 +53,19 @@ def polygon_area(contour: np.ndarray) -> float:
     return abs(signed_area(contour))
 
 
+def perimeters(contours: np.ndarray) -> np.ndarray:
+    """Return the lengths in mm of closed contours (..., N, 2), closing edges included.
+
+    Returns:
+        (...) lengths, each summed along its own contour as :func:`perimeter` sums it.
+    """
+    step = np.concatenate([contours[..., 1:, :], contours[..., :1, :]], axis=-2) - contours
+    return np.linalg.norm(step, axis=-1).sum(axis=-1)
+
+
 def perimeter(contour: np.ndarray) -> float:
     """Return the length in mm of a closed contour, including the closing edge."""
-    pts = _closed_xy(contour)
-    return float(np.linalg.norm(np.roll(pts, -1, axis=0) - pts, axis=1).sum())
+    return float(perimeters(_closed_xy(contour)))
 
 
 def centroid(contour: np.ndarray) -> np.ndarray:
@@ -48,7 +76,7 @@ def centroid(contour: np.ndarray) -> np.ndarray:
     """
     pts = _closed_xy(contour)
     x, y = pts.T
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    xn, yn = _next(x), _next(y)
     cross = x * yn - xn * y
     area = 0.5 * cross.sum()
     scale = float(np.ptp(pts, axis=0).max())

@@ -27,6 +27,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from lamina_host.reconstruct.measure import signed_area
+
 TWO_PI = 2.0 * math.pi
 
 CELLS_ACROSS = 100
@@ -216,7 +218,7 @@ def reference_curve(points: np.ndarray, link_mm: float) -> np.ndarray | None:
         return None
     closed = _closes(means[path], reach)
     xy = _smooth(_smooth(means[path], SMOOTHING_CELLS, closed), SMOOTHING_CELLS, closed)
-    if _signed_area(xy) < 0.0:
+    if signed_area(xy) < 0.0:  # clockwise
         xy = xy[::-1]
     return _resample_closed(xy, cell / 4.0)
 
@@ -268,12 +270,6 @@ def _smooth(xy: np.ndarray, window: int, closed: bool) -> np.ndarray:
     if not closed:
         out[0], out[-1] = xy[0], xy[-1]  # an arc keeps its ends where they were seen
     return out
-
-
-def _signed_area(xy: np.ndarray) -> float:
-    """Return the shoelace area of a closed polyline (positive counter-clockwise)."""
-    x, y = xy[:, 0], xy[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
 
 
 def _resample_closed(xy: np.ndarray, spacing_mm: float) -> np.ndarray:
