@@ -187,10 +187,45 @@ def test_limb_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_seen
     _check_scan("limb", seed)
 
 
-def _check_scan(scale: str, seed: int) -> None:
-    """Scan one seed small and assert no traceback and only true claims of measurement."""
-    result = scan_seed(seed, SMALL[scale])
-    where = f"seed {seed} scale {scale} ({result.features})"
+# Plans a technician may choose, the fewest views and sections included, and every
+# preset and mode: what a fix tuned on the campaign's one plan per scale never met.
+PLANS = st.builds(
+    CampaignPlan,
+    scale=st.just("thesis"),
+    sections=st.integers(1, 3),
+    pitch_mm=st.sampled_from([0.5, 2.5, 7.0, 30.0]),
+    views=st.sampled_from([1, 2, 3, 5, 8]),
+    noise=st.sampled_from(["thesis", "harsh", "wide", "none"]),
+    resolution=st.just(0.5),
+    mode=st.sampled_from(["stop-and-go", "continuous"]),
+    off_frames=st.sampled_from(["interleaved", "next-turn"]),
+)
+
+
+@settings(
+    max_examples=max(1, EXAMPLES - 1),
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=NO_SHRINK,
+)
+@given(seed=st.integers(min_value=0, max_value=10**6), plan=PLANS)
+def test_any_plan_and_preset_scans_without_a_traceback_and_claims_only_what_was_seen(seed, plan):
+    """Random plans (one view, one section, a 30 mm pitch, continuous), every preset."""
+    _check_scan(plan.scale, seed, plan)
+
+
+def _check_scan(scale: str, seed: int, plan: CampaignPlan | None = None) -> None:
+    """Scan one seed small and assert no traceback and only true claims of measurement.
+
+    Args:
+        scale: the shape's scale, whose tolerance applies.
+        seed: the random shape.
+        plan: how it is scanned; None, the scale's small plan (:data:`SMALL`).
+    """
+    plan = plan or SMALL[scale]
+    result = scan_seed(seed, plan)
+    where = f"seed {seed} scale {scale} ({result.features}), {plan}"
     assert not result.crashed, f"{where}: {result.failure_kind}: {result.error} [{result.trace}]"
     assert not result.internal_errors, f"{where}: caught {result.internal_errors}"
     if result.stage:  # an honest one-line refusal (LaminaError): nothing more to check
