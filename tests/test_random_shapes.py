@@ -163,6 +163,14 @@ def test_a_shell_section_is_open_and_its_truth_has_no_closing_chord():
 
 # No shrinking: each example is a whole scan, and the seed in the message replays it.
 NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
+# One example fewer where each scan costs more (larger frames, or plans up to 8 views).
+FEWER = settings(
+    max_examples=max(1, EXAMPLES - 1),
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=NO_SHRINK,
+)
 
 
 @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, phases=NO_SHRINK)
@@ -173,13 +181,7 @@ def test_thesis_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_se
     _check_scan("thesis", seed)
 
 
-@settings(
-    max_examples=max(1, EXAMPLES - 1),
-    deadline=None,
-    derandomize=True,
-    database=None,
-    phases=NO_SHRINK,
-)
+@FEWER
 @given(seed=st.integers(min_value=0, max_value=10**6))
 @example(seed=308)  # a bent strip: its closing curve ran beside its measured face
 def test_limb_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_seen(seed):
@@ -202,13 +204,7 @@ PLANS = st.builds(
 )
 
 
-@settings(
-    max_examples=max(1, EXAMPLES - 1),
-    deadline=None,
-    derandomize=True,
-    database=None,
-    phases=NO_SHRINK,
-)
+@FEWER
 @given(seed=st.integers(min_value=0, max_value=10**6), plan=PLANS)
 def test_any_plan_and_preset_scans_without_a_traceback_and_claims_only_what_was_seen(seed, plan):
     """Random plans (one view, one section, a 30 mm pitch, continuous), every preset."""
