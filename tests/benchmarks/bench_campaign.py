@@ -23,9 +23,13 @@ judged against the simulator's truth with ``lamina_device.sim.truth``:
 Seeds run in parallel processes (2 by default), each exception caught per seed. The
 plans are small (2 sections x 6 views) to keep the time down: ``LAMINA_CAMPAIGN_SEEDS``
 (or ``--seeds``) sets the seeds per scale (default 200), ``--quick`` runs 12, and
-``LAMINA_CAMPAIGN_BUDGET_S`` (default 1800) stops starting seeds of a scale after that
-many seconds, so ``make bench`` ends in bounded time (the report says how many ran;
-``inf`` lifts it). ``python tests/benchmarks/bench_campaign.py --quick`` runs it alone.
+``LAMINA_CAMPAIGN_BUDGET_S`` (default 3600) stops starting seeds of a scale after that
+many seconds, so ``make bench`` ends in bounded time on a slow machine (the report says
+how many ran; ``inf`` lifts it). The default is twice what the limb scale's 200 seeds
+take on a two-core machine (about 1800 s, the old default): issue 18 asks for 200 seeds
+per scale, and a budget no longer than the run would cut its last seeds whenever the
+machine is a little slower. ``python tests/benchmarks/bench_campaign.py --quick`` runs it
+alone.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ PLANS = {
 SEEDS = int(os.environ.get("LAMINA_CAMPAIGN_SEEDS", "200"))
 QUICK_SEEDS = 12
 WORKERS = int(os.environ.get("LAMINA_CAMPAIGN_WORKERS", "2"))
-BUDGET_S = float(os.environ.get("LAMINA_CAMPAIGN_BUDGET_S", "1800"))
+BUDGET_S = float(os.environ.get("LAMINA_CAMPAIGN_BUDGET_S", "3600"))
 TITLE = (
     "random-shape campaign, harsh preset, per scale: mean distance (median, p95), coverage "
     "(median, p5), volume error, failures by kind, worst seeds (targets: <= 0.03 / 0.05 mm, "
