@@ -162,18 +162,18 @@ def test_a_shell_section_is_open_and_its_truth_has_no_closing_chord():
 
 
 # No shrinking: each example is a whole scan, and the seed in the message replays it.
-NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
-# One example fewer where each scan costs more (larger frames, or plans up to 8 views).
-FEWER = settings(
-    max_examples=max(1, EXAMPLES - 1),
+SCANS = settings(
+    max_examples=EXAMPLES,
     deadline=None,
     derandomize=True,
     database=None,
-    phases=NO_SHRINK,
+    phases=(Phase.explicit, Phase.reuse, Phase.generate),
 )
+# One example fewer where each scan costs more (larger frames, or plans up to 8 views).
+FEWER = settings(SCANS, max_examples=max(1, EXAMPLES - 1))
 
 
-@settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, phases=NO_SHRINK)
+@SCANS
 @given(seed=st.integers(min_value=0, max_value=10**6))
 @example(seed=18190)  # a curled outline: its coverage centre sat on its inner branch
 def test_thesis_scale_shapes_scan_without_a_traceback_and_claim_only_what_was_seen(seed):
