@@ -37,6 +37,7 @@ from lamina_host.clinical.report_page import write_report
 from lamina_host.link.errors import DeviceError, RequestRefused
 from lamina_host.link.local_box import is_endpoint
 from lamina_host.reconstruct.assembly import DEFAULT_TRIM_FRACTION, THESIS_TRIM_FRACTION
+from lamina_host.reconstruct.axis import gear_advice
 from lamina_host.reconstruct.expect import Expectation, parse_expectation
 from lamina_host.reconstruct.mesh import meshlab
 from lamina_host.reconstruct.pipeline import ANGLE_CORRECTION_AXIS, OPTION_CHOICES, ProcessOptions
@@ -755,6 +756,8 @@ def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
         f"axis: ({axis.axis_xy_mm[0]:.3f}, {axis.axis_xy_mm[1]:.3f}) mm, correction "
         f"factor {report.correction_factor:.5f}"
     )
+    if advice := gear_advice(axis):
+        print(f"turntable: {advice}")
     print(f"lift: {lift_summary(report.lift)}")
     table = report.accuracy.table if report.accuracy is not None else None
     accuracy = {r.section: r for r in table.rows} if table is not None else {}

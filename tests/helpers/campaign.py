@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from lamina_device.acquisition import acquire, grab_grid, row_turn_deg
-from lamina_device.config import DeviceConfig, next_turn_frame_us
+from lamina_device.config import DeviceConfig, load_config, next_turn_frame_us
 from lamina_device.hardware import Hardware
 from lamina_device.sim import Mechanics, NoiseModel, Rig, SimScene, open_sim
+from lamina_device.sim.axes import SimTurntable
 from lamina_device.sim.backend import DEFAULT_CYLINDER_PLAN
 from lamina_device.sim.objects import section_curves
 from lamina_device.sim.random_shapes import RandomShape, ShapeFeatures, random_shape
@@ -35,10 +36,19 @@ from lamina_device.sim.truth import (
     scan_accuracy,
     segment_views,
 )
+from lamina_host.reconstruct.axis import AxisCalibration
+from lamina_host.reconstruct.calibration import calibrate_grid
 from lamina_host.reconstruct.continuity import outline_jumps
 from lamina_host.reconstruct.measure import polygon_area
-from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, reconstruct
+from lamina_host.reconstruct.pipeline import (
+    ProcessOptions,
+    Reconstruction,
+    calibrate_axis,
+    lift_sections,
+    reconstruct,
+)
 from lamina_host.store.outputs import build_report, measured_cloud, write_outputs
+from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
 
@@ -91,6 +101,11 @@ class CampaignPlan:
     counts_turns: bool = True
     """False: the host as it was before issue 22's mend, each view's whole turns dropped, so
     the gear's shortfall is corrected within the turn only (the gear bench's comparison)."""
+    gear_ratio_factor: float = 1.0
+    """The box's ``[turntable] gear_ratio`` times this, its pulleys the shipped ones
+    (:meth:`Mechanics.on_box`): the factor a calibration names
+    (:func:`lamina_host.reconstruct.axis.gear_ratio_factor`) takes the table's shortfall
+    out. The calibration cylinder is scanned on the same box."""
 
     def rig(self) -> Rig:
         """Return the rig: the preset, its image and focal length scaled by ``resolution``."""
@@ -105,13 +120,33 @@ class CampaignPlan:
         """Return the object's scan plan."""
         return ScanPlan.regular(self.sections, self.pitch_mm, self.views, self.mode)
 
-    def box(self, hardware: Hardware) -> Hardware:
-        """Return the simulated ``hardware`` configured to take this plan's laser-off frames
-        (a turn later: :func:`next_turn_config`)."""
-        if self.off_frames == "next-turn":
-            clock = hardware.turntable.clock
-            clock.config = hardware.timing = next_turn_config(clock.config)
+    def box(self, hardware: Hardware, object_scan: bool = True) -> Hardware:
+        """Return the simulated ``hardware`` configured as this plan's box: its gear ratio
+        (:attr:`gear_ratio_factor`) and, for the object's scan, its laser-off frames (a
+        turn later: :func:`next_turn_config`)."""
+        turntable = hardware.turntable
+        assert isinstance(turntable, SimTurntable)
+        config = self.geared(turntable.clock.config)
+        if object_scan and self.off_frames == "next-turn":
+            config = next_turn_config(config)
+        if config is not turntable.clock.config:
+            shipped = turntable.clock.config.turntable.gear_ratio
+            turntable.clock.config = hardware.timing = config
+            turntable.mechanics = turntable.mechanics.on_box(config.turntable, shipped)
         return hardware
+
+    def geared(self, config: DeviceConfig) -> DeviceConfig:
+        """Return ``config`` with its turntable's gear ratio times :attr:`gear_ratio_factor`."""
+        if self.gear_ratio_factor == 1.0:
+            return config
+        ratio = config.turntable.gear_ratio * self.gear_ratio_factor
+        return replace(config, turntable=replace(config.turntable, gear_ratio=ratio))
+
+    def mechanics(self) -> Mechanics:
+        """Return the simulated axes' errors on this plan's box (its gear ratio's shortfall)."""
+        shipped = load_config().turntable
+        mechanics = Mechanics.preset(self.noise)
+        return mechanics.on_box(self.geared(load_config()).turntable, shipped.gear_ratio)
 
     def as_counted(self, segments: list[Segment]) -> list[Segment]:
         """Return ``segments`` as this plan's host takes them: whole turns and all, or,
@@ -188,14 +223,15 @@ class _Calibration:
     cylinder: list[Segment]
 
 
-_CALIBRATIONS: dict[tuple[str, float, str], _Calibration] = {}  # per process: frames are pure
+# Per process (frames are pure): by scale, resolution, noise and gear ratio factor.
+_CALIBRATIONS: dict[tuple[str, float, str, float], _Calibration] = {}
 
 
 def _calibration(plan: CampaignPlan) -> _Calibration:
     """Return the rig's board and cylinder data, acquiring them on first use."""
-    key = (plan.scale, plan.resolution, plan.noise)
+    key = (plan.scale, plan.resolution, plan.noise, plan.gear_ratio_factor)
     if key not in _CALIBRATIONS:
-        hardware = open_sim(None, 0, plan.noise, plan.scale, plan.rig())
+        hardware = plan.box(open_sim(None, 0, plan.noise, plan.scale, plan.rig()), False)
         cylinder: list[Segment] = []
         try:
             grid = grab_grid(hardware)
@@ -204,6 +240,30 @@ def _calibration(plan: CampaignPlan) -> _Calibration:
             hardware.close()
         _CALIBRATIONS[key] = _Calibration(grid, cylinder)
     return _CALIBRATIONS[key]
+
+
+def calibrated_axis(plan: CampaignPlan) -> AxisCalibration:
+    """Return the host's turntable calibration of ``plan``'s box, as :func:`reconstruct`
+    makes it with the default options from the board and cylinder it scans first.
+
+    Args:
+        plan: the rig, noise and box (its gear ratio).
+
+    Returns:
+        The axis, with the gear's angle scale the cylinder measured.
+    """
+    calibration, rig, options = _calibration(plan), plan.rig(), ProcessOptions()
+    assert rig.board is not None
+    cylinder = plan.as_counted(calibration.cylinder)
+    if options.refine_stripes:
+        cylinder = refined_segments(cylinder)
+    distortion = options.distortion if options.calibration == "ml" else "off"
+    grid = calibrate_grid(calibration.grid_image, rig.board, options.calibration, distortion)
+    views, _ = lift_sections(cylinder, rig.lift_reference())
+    return calibrate_axis(
+        views, grid, rig.cylinder_diameter_mm, options.trim_fraction, options.axis,
+        options.angle_correction, options.per_view_angles,
+    )  # fmt: skip
 
 
 def _fail(result: SeedResult, stage: str, exc: BaseException) -> SeedResult:
@@ -315,7 +375,7 @@ def _measure(
         result.statuses[s.status] = result.statuses.get(s.status, 0) + 1
     rig = plan.rig()
     scene = SimScene(rig, shape, NoiseModel.preset(plan.noise))
-    mechanics = Mechanics.preset(plan.noise)
+    mechanics = plan.mechanics()
     lit = lit_and_seen_points(scene, segment_views(segments), mechanics)
     result.lit_points = len(lit)
     contour, _ = measured_cloud(recon)

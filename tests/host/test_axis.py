@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from lamina_host.reconstruct.assembly import trim
-from lamina_host.reconstruct.axis import find_axis, find_axis_joint, fit_circle
+from lamina_host.reconstruct.axis import (
+    find_axis,
+    find_axis_joint,
+    fit_circle,
+    gear_advice,
+    gear_ratio_factor,
+)
 from lamina_host.reconstruct.calibration import CalibrationError
 
 R_CYL = 9.525  # thesis test cylinder, 19.05 mm diameter
@@ -202,6 +210,42 @@ def test_a_scale_the_cylinder_cannot_tell_from_one_is_held_at_one() -> None:
     assert exact.to_dict()["angle_scale_sd"] == exact.angle_scale_sd
     assert abs(short.angle_scale - 1.0) > 100 * short.angle_scale_sd
     assert short.angle_scale == pytest.approx(1.0 - 0.2 / 45.0, abs=3 * short.angle_scale_sd)
+
+
+def test_a_table_short_of_its_count_is_named_with_the_gear_ratio_that_mends_it() -> None:
+    """The calibration names the ``gear_ratio`` factor (1 / scale) where a turn misses its
+    count by more than 0.05 degrees (what a laser-off frame a turn later may), in
+    ``report.json`` and as a line for the technician; a scale held at 1, or one whose turn
+    misses by less, needs nothing."""
+    axis, offset = (0.6, -0.4), (6.0, -3.0)
+    counts = [360.0 * turn + 45.0 * k for turn in range(3) for k in range(8)]
+    fits = {}
+    for scale in (1.0, 1.0 - 0.2 / 45.0, 1.0 + 0.1 / 45.0):
+        centres = turned_centres(axis, offset, counts, scale)
+        rng = np.random.default_rng(5)
+        arcs = [trim(arc(c, R_CYL, -170.0, 160.0, 300, 0.02, rng)) for c in centres]
+        fits[scale] = find_axis_joint(
+            arcs, counts, 2 * R_CYL, fit_angle_scale=True, fit_radius=False
+        )
+    exact, short, long = fits.values()
+    assert gear_ratio_factor(exact) is None and gear_advice(exact) is None
+    assert exact.to_dict()["gear_ratio_factor"] is None
+    factor = gear_ratio_factor(short)
+    assert factor == pytest.approx(1.0 / short.angle_scale) and factor > 1.0
+    assert factor == pytest.approx(45.0 / 44.8, abs=3e-5)
+    assert short.to_dict()["gear_ratio_factor"] == factor
+    line = gear_advice(short)
+    miss_deg = 360.0 * (1.0 - short.angle_scale)
+    assert miss_deg == pytest.approx(1.6, abs=0.02)
+    assert line is not None and f"{miss_deg:.2f} degrees short of its step count" in line
+    assert f"gear_ratio in the box's configuration by {factor:.5f}" in line
+    advice = gear_advice(long)
+    assert advice is not None and "degrees beyond its step count" in advice
+    assert 360.0 * (long.angle_scale - 1.0) == pytest.approx(0.8, abs=0.02)
+    # A miss within the tolerance, or a scale that is no number, names nothing.
+    for scale in (1.0 + 0.049 / 360.0, 1.0 - 0.049 / 360.0, float("nan"), 0.0):
+        assert gear_ratio_factor(replace(short, angle_scale=scale)) is None
+    assert gear_ratio_factor(replace(short, angle_scale=1.0 + 0.051 / 360.0)) is not None
 
 
 def test_joint_fit_beats_centroid_on_uneven_views() -> None:

@@ -14,6 +14,7 @@ import numpy as np
 from drive import calibrate, connect, fill_scan_form, open_library, wait_for
 from textual.widgets import DataTable, Input, Select, Static
 
+from lamina_host.reconstruct.axis import gear_ratio_factor
 from lamina_host.reconstruct.pipeline import assemble
 from lamina_host.store.outputs import OutlineEntry
 from lamina_host.ui.tui.adapter import parse_plan
@@ -47,6 +48,12 @@ async def test_screens_show_the_workflow_figures(tmp_path: Path) -> None:
         assert f"correction     {axis.correction_factor:.5f}" in axis_text
         assert f"{axis.estimated_diameter_mm:.3f} mm measured" in axis_text
         assert abs(axis.estimated_diameter_mm - 2 * RADIUS_MM) < 0.1
+        # The simulated table is geared 0.2 degrees per 45 short: the factor that mends it.
+        factor = gear_ratio_factor(axis)
+        assert factor is not None and abs(factor - 45.0 / 44.8) < 2e-4
+        assert f"gear_ratio in the box's configuration by {factor:.5f}" in " ".join(
+            axis_text.split()
+        )
 
         await fill_scan_form(pilot, "P001", "2", "2", "8")
         # Before Start: the device's estimate of the typed plan, for the subject's sake.

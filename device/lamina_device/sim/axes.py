@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from lamina_device.camera import Stage
-from lamina_device.config import DeviceConfig, load_config
+from lamina_device.config import DeviceConfig, TurntableConfig, load_config
 from lamina_device.motion import (
     SPIN_TICK_S,
     ContinuousTurntable,
@@ -145,6 +145,30 @@ class Mechanics:
             "none": cls.ideal,
         }
         return make_preset("noise", noise, makers)
+
+    def on_box(self, table: TurntableConfig, pulley_ratio: float) -> Mechanics:
+        """Return these mechanics on a box whose configuration says ``table``.
+
+        The simulated table's pulleys turn it once per ``pulley_ratio`` motor turns (the
+        shipped configuration's ``gear_ratio``), and ``angle_scale_error`` is its shortfall
+        with that ratio configured. A box configured with another ratio counts a degree
+        in another number of steps, so its table turns (configured steps / pulley steps)
+        times as far per degree of its count: a ratio multiplied by the factor the host's
+        calibration names (``lamina_host.reconstruct.axis.gear_advice``) takes the
+        shortfall out, as it would on a real box. The shipped ratio changes nothing.
+
+        Args:
+            table: the box's turntable configuration.
+            pulley_ratio: motor turns per table turn of the simulated pulleys.
+
+        Returns:
+            The mechanics with the configured ratio's scale error (``self`` when none).
+        """
+        pulley_steps = table.full_steps_per_rev * table.microsteps * pulley_ratio
+        factor = turntable_steps_per_rev(table) / pulley_steps
+        if factor == 1.0:
+            return self
+        return replace(self, angle_scale_error=(1.0 + self.angle_scale_error) * factor - 1.0)
 
     def with_lift_error(self, percent: float) -> Mechanics:
         """Return these mechanics with the lift running ``percent`` % long (negative: short).

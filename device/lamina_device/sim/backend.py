@@ -13,7 +13,7 @@ import hashlib
 from gpiozero.pins.mock import MockFactory
 
 from lamina_device.camera import Stage
-from lamina_device.config import DeviceConfig
+from lamina_device.config import DeviceConfig, load_config
 from lamina_device.hardware import Hardware, HardwareError, watched
 from lamina_device.laser import MOCK_LASER_PIN, Laser
 from lamina_device.sim.axes import Mechanics, SimClock, SimLift, SimTurntable
@@ -90,6 +90,8 @@ def open_sim(
         source += f" sway={sway}"
     scene = SimScene(rig, obj, noise_model, seed)
     clock = SimClock() if config is None else SimClock(config=config)
+    if config is not None:  # the pulleys are the shipped box's, whatever the file says
+        mechanics = mechanics.on_box(config.turntable, load_config().turntable.gear_ratio)
     laser = Laser(MOCK_LASER_PIN, pin_factory=MockFactory(), clock_ns=clock.now_ns)
     stage = Stage()
     turntable, lift = SimTurntable(mechanics, clock, stage), SimLift(mechanics, clock=clock)

@@ -55,6 +55,12 @@ standard error treats every stripe point as independent and so understates the o
 error: at 0.045 deg (the thesis rig's cylinder at three heights, 0.02 deg runout) they
 made an ellipsoid's outlines worse, 0.0111 against 0.0084 mm RMS over five seeds."""
 
+GEAR_ADVICE_DEG_PER_TURN = 0.05
+"""A table whose turn misses its count by more than this (degrees) is named, with the
+``gear_ratio`` factor that mends it: the most a continuous scan's laser-off frame taken a
+turn later may stand from its laser-on frame's angle (the device's own tolerance for
+its frame period, ``NEXT_TURN_MISMATCH_DEG``)."""
+
 RADIUS_SPREAD_WARNING = 0.02
 """Fitted arc radii that differ by more than 2 % between views suggest bad arcs."""
 
@@ -160,6 +166,7 @@ class AxisCalibration:
             "angle_scale": self.angle_scale,
             "undershoot_deg_per_45": 45.0 * (1.0 - self.angle_scale),
             "angle_scale_sd": self.angle_scale_sd,
+            "gear_ratio_factor": gear_ratio_factor(self),
             "angle_wave_deg": list(self.angle_wave_deg),
             "cylinder_offset_mm": (
                 list(self.cylinder_offset_mm) if self.cylinder_offset_mm is not None else None
@@ -434,6 +441,53 @@ def find_axis_joint(
     if fit_angle_scale and per_view and fit_offset:
         return fit_view_offsets(calibration, arcs, angles_deg)
     return calibration
+
+
+def gear_ratio_factor(axis: AxisCalibration) -> float | None:
+    """Return what the box's ``[turntable] gear_ratio`` should be multiplied by, or None.
+
+    The calibration's angle scale is the table's true turn per turn of its count; a box
+    configured with its ratio times ``1 / scale`` counts true degrees. None where the
+    scale was held at 1 or its turn's miss is within :data:`GEAR_ADVICE_DEG_PER_TURN`.
+
+    Args:
+        axis: the cylinder's calibration.
+
+    Returns:
+        The factor, or None when the configured ratio needs no change.
+    """
+    scale = axis.angle_scale
+    if not np.isfinite(scale) or scale <= 0.0:
+        return None
+    if 360.0 * abs(1.0 - scale) <= GEAR_ADVICE_DEG_PER_TURN:
+        return None
+    return 1.0 / scale
+
+
+def gear_advice(axis: AxisCalibration) -> str | None:
+    """Return a line for the technician when the table turns short of (or past) its count.
+
+    The host corrects every view at its step count either way; what the count's miss
+    spoils is a continuous scan's laser-off frame taken a turn later (``next-turn``),
+    which the box takes a turn of its count after the laser-on frame.
+
+    Args:
+        axis: the cylinder's calibration.
+
+    Returns:
+        The line, or None when the configured ``gear_ratio`` needs no change.
+    """
+    factor = gear_ratio_factor(axis)
+    if factor is None:
+        return None
+    miss_deg = 360.0 * (1.0 - axis.angle_scale)
+    way = "short of" if miss_deg > 0 else "beyond"
+    return (
+        f"the turntable turns {abs(miss_deg):.2f} degrees {way} its step count each turn "
+        f"(scale {axis.angle_scale:.5f}); the views are corrected for it, but laser-off "
+        f"frames taken a turn later miss their angle: multiply [turntable] gear_ratio in the "
+        f"box's configuration by {factor:.5f} and scan the calibration cylinder again"
+    )
 
 
 def _gear_rad(count_rad: np.ndarray, gear: np.ndarray) -> np.ndarray:

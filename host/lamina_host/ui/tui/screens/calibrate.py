@@ -18,7 +18,7 @@ from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.widgets import Button, Label, ProgressBar, Static
 
-from lamina_host.reconstruct.axis import CF_WARNING, AxisCalibration
+from lamina_host.reconstruct.axis import CF_WARNING, AxisCalibration, gear_advice
 from lamina_host.reconstruct.calibration import GridCalibration
 from lamina_host.ui.tui.adapter import Progress
 from lamina_host.ui.tui.widgets import FrameView, LaminaScreen
@@ -89,7 +89,9 @@ def axis_summary(axis: AxisCalibration | None) -> str:
         f"diameter       {axis.estimated_diameter_mm:.3f} mm measured, "
         f"{axis.actual_diameter_mm:.3f} mm true",
     ]
-    return "\n".join(lines + [f"WARNING: {w}" for w in axis.warnings])
+    advice = gear_advice(axis)
+    notes = [f"WARNING: {w}" for w in axis.warnings] + ([f"NOTE: {advice}"] if advice else [])
+    return "\n".join(lines + notes)
 
 
 class CylinderProgress(Message):
