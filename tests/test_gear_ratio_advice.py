@@ -15,11 +15,21 @@ from dataclasses import replace
 
 import pytest
 
+from lamina_device.acquisition import off_frames
 from lamina_device.config import load_config
 from lamina_device.sim import open_sim
 from lamina_device.sim.axes import Mechanics, SimTurntable
-from lamina_host.reconstruct.axis import gear_ratio_factor
-from tests.helpers.campaign import CampaignPlan, calibrated_axis
+from lamina_host.link.identity import laser_off_turn_later, scan_identity
+from lamina_host.reconstruct.axis import gear_ratio_factor, next_turn_warning
+from lamina_shared.types import ScanPlan
+from tests.helpers.campaign import CampaignPlan, calibrated_axis, scan_seed
+from tests.helpers.served import link
+
+
+def next_turn(hardware):
+    """Return the simulated box set to take its laser-off frames a turn later."""
+    return CampaignPlan("limb", 1, 10.0, 8, off_frames="next-turn").box(hardware)
+
 
 SHORTFALL = Mechanics().angle_scale_error  # the thesis motor's 0.2 degrees per 45
 SMALL = CampaignPlan("limb", sections=2, pitch_mm=12.0, views=4, resolution=0.5)
@@ -65,7 +75,7 @@ def test_the_calibrations_factor_makes_a_turn_of_the_count_a_true_turn() -> None
     """On the simulated default gear (1.6 degrees short a turn) the calibration names
     1 / scale; the box configured with it turns within 0.05 degrees of a true turn per
     turn of its count (its whole steps per turn the rest), which a second calibration
-    measures."""
+    measures and names no mend for."""
     assert _turn_miss_deg(SMALL.mechanics()) == pytest.approx(1.6, abs=0.02)  # jitter aside
     factor = gear_ratio_factor(calibrated_axis(SMALL))
     assert factor == pytest.approx(1.0 / (1.0 + SHORTFALL), abs=1e-4)
@@ -80,3 +90,49 @@ def test_the_calibrations_factor_makes_a_turn_of_the_count_a_true_turn() -> None
           f"+- {again.angle_scale_sd:.1e}")  # fmt: skip
     assert again.angle_scale == 1.0 or abs(again.angle_scale - left) < 4 * again.angle_scale_sd
     assert abs(360.0 * (1.0 - again.angle_scale)) < 0.1
+    assert gear_ratio_factor(again) is None  # what is left is within the cylinder's noise
+
+
+def test_the_device_says_where_its_laser_off_frames_come_from_and_the_scan_keeps_it():
+    """The WELCOME names the box's ``continuous_off_frames`` (the simulator's shipped box:
+    interleaved), its identity keeps it, and only a continuous scan's next-turn frames are
+    judged against the gear."""
+    with link() as ends:
+        assert ends.info.off_frames == "interleaved"
+        identity = scan_identity(ends.info, None)
+        hardware = ends.hardware
+        assert off_frames(next_turn(hardware)) == "next-turn"
+    assert identity["off_frames"] == "interleaved"
+    continuous = ScanPlan.regular(2, 10.0, 8, "continuous")
+    later = {**identity, "off_frames": "next-turn"}
+    assert laser_off_turn_later(later, continuous)
+    assert not laser_off_turn_later(identity, continuous)
+    assert not laser_off_turn_later(later, continuous.with_mode("stop-and-go"))
+    assert not laser_off_turn_later({}, continuous) and not laser_off_turn_later(later, None)
+
+
+@pytest.mark.timeout(240)
+def test_a_next_turn_scan_on_a_table_short_of_its_count_is_warned_and_on_a_mended_one_not():
+    """The scan's warnings name the frames' miss and the mend; on the box configured with
+    the calibration's factor the warning is gone."""
+    plan = CampaignPlan(
+        "limb", 1, 10.0, 4, resolution=0.5, mode="continuous", off_frames="next-turn"
+    )
+    short = scan_seed(97104, plan)
+    factor = gear_ratio_factor(calibrated_axis(plan))
+    mended = scan_seed(97104, replace(plan, gear_ratio_factor=factor))
+    assert factor is not None and not short.stage and not mended.stage
+    line = next(w for w in short.warnings if w.startswith("the laser-off frames taken a turn"))
+    assert f"by {factor:.5f}" in line and "1.6" in line
+    assert not any("laser-off frames taken a turn" in w for w in mended.warnings)
+    print(f"short gear {short.mean_distance_mm:.3f} mm at {short.coverage:.3f}; mended "
+          f"{mended.mean_distance_mm:.3f} mm at {mended.coverage:.3f}")  # fmt: skip
+    assert mended.mean_distance_mm < short.mean_distance_mm
+
+
+def test_the_warning_is_only_for_a_table_that_misses_its_turn():
+    """No miss beyond the tolerance, no warning; otherwise the miss and the factor."""
+    axis = calibrated_axis(replace(SMALL, resolution=0.5))
+    line = next_turn_warning(axis)
+    assert line is not None and f"{1.0 / axis.angle_scale:.5f}" in line
+    assert next_turn_warning(replace(axis, angle_scale=1.0)) is None

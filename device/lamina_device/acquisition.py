@@ -549,6 +549,17 @@ def row_turn_deg(hardware: Hardware) -> float:
     return table.spin_speed_deg_s * camera.frame_timing.row_s
 
 
+def off_frames(hardware: Hardware) -> str:
+    """Return where a continuous scan's laser-off frames come from (``OFF_FRAMES``).
+
+    The host keeps it with each scan: frames a turn of the count later are misregistered
+    on a table that turns short of its count, which only the host's calibration shows.
+    """
+    table = hardware.turntable
+    assert isinstance(table, SpinningTable)
+    return table.off_frames
+
+
 def views_in_section(plan: ScanPlan) -> list[int]:
     """Return each view's index within its section: the one place views are numbered."""
     seen: dict[int, int] = {}

@@ -22,7 +22,7 @@ from lamina_device.extract import ExtractSettings, changed_settings
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import Problems, check_extract, check_plan
-from lamina_shared.types import LiftReference
+from lamina_shared.types import OFF_FRAMES, LiftReference
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
 MAX_SPIN_STEP_HZ = 10_000
@@ -84,10 +84,6 @@ class DriverConfig:
     full_steps_per_rev: int = _spec(1, 10_000)
     microsteps: int = _spec(choices=MICROSTEPS)
     settle_s: float = _spec(0.0, 10.0)
-
-
-OFF_FRAMES = ("interleaved", "next-turn")
-"""The ways a continuous view's laser-off frames are taken (``continuous_off_frames``)."""
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ import logging
 from typing import Any
 
 from lamina_device import __version__
-from lamina_device.acquisition import row_turn_deg
+from lamina_device.acquisition import off_frames, row_turn_deg
 from lamina_device.camera import CameraError, camera_has_colour
 from lamina_device.hardware import Hardware
 from lamina_device.motion import MotionError
@@ -116,6 +116,7 @@ class DeviceServer(DeviceEndpoint):
             modes=modes,
             lift_reference=hw.lift_reference,
             row_turn_deg=row_turn_deg(hw) if "continuous" in modes else None,
+            off_frames=off_frames(hw) if "continuous" in modes else None,
         )
 
     def _welcome_plans(self) -> dict[str, ScanPlan]:

@@ -29,7 +29,7 @@ from lamina_shared.ops import (
     is_int,
 )
 from lamina_shared.protocol import PROTOCOL_VERSION, ROW_SCALE
-from lamina_shared.types import SCAN_MODES, BoardSpec, LiftReference, ScanPlan
+from lamina_shared.types import OFF_FRAMES, SCAN_MODES, BoardSpec, LiftReference, ScanPlan
 
 MAX_LOST_SEQS = 64
 """Earlier plan indices one ACK names as lost (the device resends them at once)."""
@@ -361,6 +361,11 @@ class Welcome:
     """In a continuous scan, the table's turn from one image row's exposure to the next's
     (degrees: its continuous speed times the rolling shutter's row time); a continuous
     view's angle is its stripe's median row's. None: a stop-and-go device, or an older one."""
+    off_frames: str | None = None
+    """Where its continuous views' laser-off frames come from (one of ``OFF_FRAMES``:
+    ``next-turn`` takes them a turn of the step count later, which a table turning short
+    of its count misses). None: a stop-and-go device, an older one, or a kind this host
+    does not know."""
 
     def to_wire(self) -> dict[str, Any]:
         """Return the JSON body the device sends."""
@@ -384,6 +389,7 @@ class Welcome:
             "modes": list(self.modes),
             "lift_reference": self.lift_reference.to_dict() if self.lift_reference else None,
             "row_turn_deg": self.row_turn_deg,
+            "off_frames": self.off_frames,
         }
 
     @classmethod
@@ -429,6 +435,7 @@ class Welcome:
             _modes(data.get("modes"), problems),
             _lift_reference(data.get("lift_reference"), problems),
             _row_turn(data.get("row_turn_deg"), problems),
+            _off_frames(data.get("off_frames"), problems),
         )
         if problems.items:
             raise MessageError("WELCOME", problems.items)
@@ -513,6 +520,19 @@ def _row_turn(value: Any, problems: Problems) -> float | None:
         return None
     where = "welcome.row_turn_deg"
     return check_number(value, where, -MAX_ROW_TURN_DEG, MAX_ROW_TURN_DEG, problems)
+
+
+def _off_frames(value: Any, problems: Problems) -> str | None:
+    """Return where the device's continuous laser-off frames come from (None: not said).
+
+    A kind this host does not know is left out, not refused, as a scan mode is.
+    """
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        problems.add(f"welcome.off_frames: a name is required, found {show(value)}")
+        return None
+    return value if value in OFF_FRAMES else None
 
 
 def _modes(value: Any, problems: Problems) -> tuple[str, ...]:

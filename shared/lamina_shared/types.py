@@ -27,6 +27,11 @@ SCAN_MODES = ("stop-and-go", "continuous")
 """How a plan's views are taken: the turntable stopping at each view (the default), or
 turning at constant speed through each section while the camera streams (issue 22)."""
 
+OFF_FRAMES = ("interleaved", "next-turn")
+"""Where a continuous view's laser-off frames come from (the box's ``[turntable]
+continuous_off_frames``): the frames just before and after its laser-on frame, or one
+frame a turn of the table's step count later, at the same count."""
+
 
 @dataclass(frozen=True)
 class ViewSpec:

@@ -319,6 +319,7 @@ def scan_seed(seed: int, plan: CampaignPlan) -> SeedResult:
             plan.as_counted(segments),
             ProcessOptions(),
             row_turn_deg=row_turn_deg(hardware) if object_plan.continuous else 0.0,
+            laser_off_turn_later=object_plan.continuous and plan.off_frames == "next-turn",
         )
         # Outlines and meshes the product caught failing by a bug: tracebacks all the same.
         caught = [f.reason for f in recon.failed] + [

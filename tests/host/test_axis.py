@@ -242,10 +242,15 @@ def test_a_table_short_of_its_count_is_named_with_the_gear_ratio_that_mends_it()
     advice = gear_advice(long)
     assert advice is not None and "degrees beyond its step count" in advice
     assert 360.0 * (long.angle_scale - 1.0) == pytest.approx(0.8, abs=0.02)
-    # A miss within the tolerance, or a scale that is no number, names nothing.
+    # A miss within the tolerance, or a scale that is no number, names nothing; nor does
+    # one the cylinder cannot tell from the tolerance (within three standard errors).
+    exact_sd = replace(short, angle_scale_sd=0.0)
     for scale in (1.0 + 0.049 / 360.0, 1.0 - 0.049 / 360.0, float("nan"), 0.0):
-        assert gear_ratio_factor(replace(short, angle_scale=scale)) is None
-    assert gear_ratio_factor(replace(short, angle_scale=1.0 + 0.051 / 360.0)) is not None
+        assert gear_ratio_factor(replace(exact_sd, angle_scale=scale)) is None
+    assert gear_ratio_factor(replace(exact_sd, angle_scale=1.0 + 0.051 / 360.0)) is not None
+    unsure = replace(short, angle_scale=1.0 + 0.06 / 360.0, angle_scale_sd=0.01 / 360.0)
+    assert gear_ratio_factor(unsure) is None
+    assert gear_ratio_factor(replace(unsure, angle_scale_sd=0.003 / 360.0)) is not None
 
 
 def test_joint_fit_beats_centroid_on_uneven_views() -> None:

@@ -54,6 +54,7 @@ def _welcome() -> Welcome:
         colour=True,
         modes=SCAN_MODES,
         row_turn_deg=0.0033,
+        off_frames="next-turn",
     )
 
 
@@ -78,6 +79,7 @@ def test_an_older_welcome_reads_with_defaults_and_another_version_for_its_versio
     assert (older.colour, older.extract, older.identity, older.board) == (False, None, None, None)
     assert older.modes == ("stop-and-go",)  # a device from before scan modes stops at each view
     assert older.row_turn_deg is None  # nor does it say how its rows were exposed
+    assert older.off_frames is None  # nor where its laser-off frames came from
     assert older.limits == DeviceLimits() and older.software == "?"
     other = Welcome.from_wire({"protocol": 3, "software": "lamina-device 0", "image_size": "x"})
     assert other == Welcome(3, "lamina-device 0")
@@ -258,6 +260,16 @@ def test_scan_modes_a_welcome_offers_are_read_leaving_out_names_this_host_does_n
     body["modes"] = "continuous"
     with pytest.raises(MessageError, match=r"welcome\.modes"):
         Welcome.from_wire(body)
+
+
+def test_laser_off_frames_of_a_kind_this_host_does_not_know_are_left_out_not_refused():
+    body = _json(_welcome().to_wire())
+    assert body["off_frames"] == "next-turn"
+    for said, read in (("interleaved", "interleaved"), ("two-turns-later", None), (None, None)):
+        assert Welcome.from_wire({**body, "off_frames": said}).off_frames == read
+    with pytest.raises(MessageError) as info:
+        Welcome.from_wire({**body, "off_frames": 2})
+    assert "welcome.off_frames: a name is required, found 2" in info.value.problems
 
 
 @pytest.mark.parametrize(

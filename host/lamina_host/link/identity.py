@@ -71,6 +71,7 @@ def scan_identity(welcome: Welcome, spawned: str | None = None) -> dict[str, Any
         "protocol": welcome.protocol,
         "extract": welcome.extract.to_wire() if welcome.extract is not None else None,
         "row_turn_deg": welcome.row_turn_deg,
+        "off_frames": welcome.off_frames,
     }
     identity.update({key: _plain(value) for key, value in reported.items() if value is not None})
     setup = {
@@ -103,6 +104,22 @@ def row_turn_deg(identity: Mapping[str, Any] | None, plan: ScanPlan | None) -> f
     return float(value) if isinstance(value, int | float) and math.isfinite(value) else 0.0
 
 
+def laser_off_turn_later(identity: Mapping[str, Any] | None, plan: ScanPlan | None) -> bool:
+    """Return True when a scan's views took their laser-off frames a turn of the count later.
+
+    Only a continuous scan's, on a device that said so (``off_frames`` of the WELCOME)
+    when the scan began; the host then warns where its calibration finds the table
+    turning short of its count (:func:`lamina_host.reconstruct.axis.next_turn_warning`).
+
+    Args:
+        identity: the scan's identity (:func:`scan_identity`), None if it has none.
+        plan: the scan's object plan, None if unknown.
+    """
+    if plan is None or not plan.continuous:
+        return False
+    return (identity or {}).get("off_frames") == "next-turn"
+
+
 def legacy_identity(device: Mapping[str, Any], spawned: str | None) -> dict[str, Any]:
     """Return the identity a scan recorded before identities existed can be given.
 
@@ -126,7 +143,7 @@ def _shown(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-LATER_KEYS = frozenset({"row_turn_deg", "count_since"})
+LATER_KEYS = frozenset({"row_turn_deg", "count_since", "off_frames"})
 """Identity keys added after scans were recorded without them: such a scan is compared
 without the key (it is processed as it was recorded, without the figure), so an update
 does not leave a half-acquired scan that no resume can finish."""

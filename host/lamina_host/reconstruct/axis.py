@@ -448,7 +448,9 @@ def gear_ratio_factor(axis: AxisCalibration) -> float | None:
 
     The calibration's angle scale is the table's true turn per turn of its count; a box
     configured with its ratio times ``1 / scale`` counts true degrees. None where the
-    scale was held at 1 or its turn's miss is within :data:`GEAR_ADVICE_DEG_PER_TURN`.
+    scale was held at 1 or its turn's miss is within :data:`GEAR_ADVICE_DEG_PER_TURN`
+    once :data:`SCALE_SIGMAS` of the scale's standard error are taken off it: a box
+    mended to its whole steps must not be told to change again by the cylinder's noise.
 
     Args:
         axis: the cylinder's calibration.
@@ -456,10 +458,11 @@ def gear_ratio_factor(axis: AxisCalibration) -> float | None:
     Returns:
         The factor, or None when the configured ratio needs no change.
     """
-    scale = axis.angle_scale
+    scale, sd = axis.angle_scale, axis.angle_scale_sd
     if not np.isfinite(scale) or scale <= 0.0:
         return None
-    if 360.0 * abs(1.0 - scale) <= GEAR_ADVICE_DEG_PER_TURN:
+    surely = abs(1.0 - scale) - SCALE_SIGMAS * (sd if np.isfinite(sd) else 0.0)
+    if 360.0 * surely <= GEAR_ADVICE_DEG_PER_TURN:
         return None
     return 1.0 / scale
 
@@ -487,6 +490,34 @@ def gear_advice(axis: AxisCalibration) -> str | None:
         f"(scale {axis.angle_scale:.5f}); the views are corrected for it, but laser-off "
         f"frames taken a turn later miss their angle: multiply [turntable] gear_ratio in the "
         f"box's configuration by {factor:.5f} and scan the calibration cylinder again"
+    )
+
+
+def next_turn_warning(axis: AxisCalibration) -> str | None:
+    """Return the warning of a scan whose laser-off frames were taken a turn later, or None.
+
+    The box takes each such frame a turn of its step count after the laser-on frame; a
+    table that turns short of its count (:func:`gear_ratio_factor`) has not come round
+    by then, so the frame sees the subject turned by the turn's miss and room light on
+    fine relief can pass for stripe (random limb shapes with 1 mm relief measured 0.23-0.29
+    mm instead of 0.09 mm at 1.6 degrees).
+
+    Args:
+        axis: the calibration the scan was processed with.
+
+    Returns:
+        The warning, or None when the table comes round within the tolerance.
+    """
+    factor = gear_ratio_factor(axis)
+    if factor is None:
+        return None
+    miss_deg = abs(360.0 * (1.0 - axis.angle_scale))
+    return (
+        f"the laser-off frames taken a turn later stood {miss_deg:.2f} degrees from their "
+        "laser-on frames (the turntable does not turn once per turn of its step count), so "
+        f"room light on fine relief may have been taken for stripe: multiply [turntable] "
+        f"gear_ratio in the box's configuration by {factor:.5f}, scan the calibration "
+        "cylinder again, and scan again"
     )
 
 

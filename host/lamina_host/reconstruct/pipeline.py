@@ -39,6 +39,7 @@ from lamina_host.reconstruct.axis import (
     find_axis,
     find_axis_joint,
     fit_circle,
+    next_turn_warning,
 )
 from lamina_host.reconstruct.calibration import (
     CALIBRATION_METHODS,
@@ -1652,6 +1653,7 @@ def reconstruct(
     lift_reference: LiftReference | None = None,
     workers: int | None = None,
     row_turn_deg: float = 0.0,
+    laser_off_turn_later: bool = False,
 ) -> Reconstruction:
     """Run every stage from the raw calibration data and segments to the mesh.
 
@@ -1659,7 +1661,10 @@ def reconstruct(
     (:func:`lift_calibration`) and the others the axis; every section height is then
     the commanded one times the lift's scale. ``workers`` processes share the sections
     (:func:`process_segments`; None: as many as the cores and the scan's size allow).
-    ``row_turn_deg`` is a continuous scan's turn per image row (:func:`assemble`).
+    ``row_turn_deg`` is a continuous scan's turn per image row (:func:`assemble`);
+    ``laser_off_turn_later`` says its laser-off frames were taken a turn of the count
+    later, which the scan's warnings then judge against the calibrated gear
+    (:func:`~lamina_host.reconstruct.axis.next_turn_warning`).
 
     Raises:
         CalibrationError: the board or the cylinder could not be used.
@@ -1692,6 +1697,8 @@ def reconstruct(
     )
     lift_warnings = list(lift.warnings) if lift is not None else []
     warnings = [*grid.warnings, *axis.warnings, *lift_warnings, *warnings]
+    if laser_off_turn_later and (line := next_turn_warning(axis)):
+        warnings.append(line)
     with timer.stage("mesh"):
         vertices, faces, mesh_warnings = safe_mesh(sections, options)
         topo = MeshTopology.of(vertices, faces)

@@ -61,6 +61,7 @@ import numpy as np
 from lamina_host.link.identity import (
     count_restarted,
     identity_difference,
+    laser_off_turn_later,
     legacy_identity,
     row_turn_deg,
     spawned_source,
@@ -242,6 +243,8 @@ class ScanInputs:
     lift_reference: LiftReference | None = None
     row_turn_deg: float = 0.0
     """The table's turn per image row in its object views (0.0 unless continuous)."""
+    laser_off_turn_later: bool = False
+    """Its continuous views took their laser-off frames a turn of the count later."""
 
 
 def no_result_line(scan: ScanRecord) -> str:
@@ -873,6 +876,7 @@ class Library(Scoped):
             dict(record.device),
             calibration.lift_reference,
             row_turn_deg(record.identity, record.plans.get("object")),
+            laser_off_turn_later(record.identity, record.plans.get("object")),
         )
 
     def save_result(self, scan_id: int, report: dict[str, Any], files: dict[str, Path]) -> None:

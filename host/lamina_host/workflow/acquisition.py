@@ -17,7 +17,11 @@ from typing import Any
 import numpy as np
 
 from lamina_host.link.client import DeviceClient
-from lamina_host.link.identity import calibration_mismatch, row_turn_deg
+from lamina_host.link.identity import (
+    calibration_mismatch,
+    laser_off_turn_later,
+    row_turn_deg,
+)
 from lamina_host.reconstruct.axis import AxisCalibration
 from lamina_host.reconstruct.calibration import CalibrationError, GridCalibration, calibrate_grid
 from lamina_host.reconstruct.pipeline import (
@@ -323,6 +327,7 @@ class Acquisition:
         self.cylinder_plan, self.plan, self.held = plans["cylinder"], plans["object"], {}
         data.subject_id, data.segments, data.complete = request.subject, [], False
         data.row_turn_deg = row_turn_deg(identity, plans["object"])
+        data.laser_off_turn_later = laser_off_turn_later(identity, plans["object"])
         self._forget_results()
         return scan_id
 
@@ -374,6 +379,7 @@ class Acquisition:
             self.plan is not None and len(self.held) == len(self.plan.views),
             calibration.lift_reference if calibration else None,
             row_turn_deg(record.identity, self.plan),
+            laser_off_turn_later(record.identity, self.plan),
         )
         return self.data
 

@@ -124,6 +124,7 @@ def reprocess(inputs: ScanInputs, options: ProcessOptions | None = None) -> Reco
         chosen,
         inputs.lift_reference,
         row_turn_deg=inputs.row_turn_deg,
+        laser_off_turn_later=inputs.laser_off_turn_later,
     )
 
 

@@ -60,6 +60,7 @@ class Processing:
             result = reconstruct(
                 data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments,
                 options, data.lift_reference, row_turn_deg=data.row_turn_deg,
+                laser_off_turn_later=data.laser_off_turn_later,
             )  # fmt: skip
         except Exception as exc:  # the acquisition must outlive any failure of processing
             if self.acquisition.scan_id is None:

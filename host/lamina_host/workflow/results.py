@@ -96,6 +96,9 @@ class ScanData:
     row_turn_deg: float = 0.0
     """The table's turn per image row in the object's views (a continuous scan's rolling
     shutter, :func:`lamina_host.link.identity.row_turn_deg`; 0.0: stop-and-go)."""
+    laser_off_turn_later: bool = False
+    """The object's continuous views took their laser-off frames a turn of the count later
+    (:func:`lamina_host.link.identity.laser_off_turn_later`)."""
 
 
 @dataclass(frozen=True)
