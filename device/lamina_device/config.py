@@ -22,14 +22,11 @@ from lamina_device.extract import ExtractSettings, changed_settings
 from lamina_shared.errors import LaminaError
 from lamina_shared.limits import DeviceLimits
 from lamina_shared.ops import Problems, check_extract, check_plan
-from lamina_shared.types import OFF_FRAMES, LiftReference
+from lamina_shared.types import NEXT_TURN_MISMATCH_DEG, OFF_FRAMES, LiftReference
 
 DEFAULT_CONFIG_NAME = "default_config.toml"
 MAX_SPIN_STEP_HZ = 10_000
 """Highest step rate of a continuous turn: lgpio's software PWM runs from 0.1 to 10 kHz."""
-NEXT_TURN_MISMATCH_DEG = 0.05
-"""Most a next-turn laser-off frame may stand from its laser-on frame's angle (the frame
-period must divide the table's turn to within this)."""
 BCM_PINS = range(0, 28)  # GPIO0..GPIO27 on the Pi's 40-pin header
 MICROSTEPS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 

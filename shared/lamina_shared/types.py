@@ -32,6 +32,11 @@ OFF_FRAMES = ("interleaved", "next-turn")
 continuous_off_frames``): the frames just before and after its laser-on frame, or one
 frame a turn of the table's step count later, at the same count."""
 
+NEXT_TURN_MISMATCH_DEG = 0.05
+"""Most a next-turn laser-off frame may stand from its laser-on frame's angle: the box's
+frame period must divide its turn to within this, and the host names the gear ratio that
+mends a table whose turn misses its count by more."""
+
 
 @dataclass(frozen=True)
 class ViewSpec:

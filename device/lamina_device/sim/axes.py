@@ -154,7 +154,7 @@ class Mechanics:
         with that ratio configured. A box configured with another ratio counts a degree
         in another number of steps, so its table turns (configured steps / pulley steps)
         times as far per degree of its count: a ratio multiplied by the factor the host's
-        calibration names (``lamina_host.reconstruct.axis.gear_advice``) takes the
+        calibration names (``lamina_host.reconstruct.axis.gear_ratio_factor``) takes the
         shortfall out, as it would on a real box. The shipped ratio changes nothing.
 
         Args:

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from lamina_host.reconstruct.calibration import CalibrationError
+from lamina_shared.types import NEXT_TURN_MISMATCH_DEG
 
 CF_WARNING = 0.05
 """Thesis 6.2.4: warn when the correction factor differs from 1 by more than 5 %."""
@@ -54,12 +55,6 @@ MAX_VIEW_OFFSET_SD_DEG = 0.03
 standard error treats every stripe point as independent and so understates the offsets'
 error: at 0.045 deg (the thesis rig's cylinder at three heights, 0.02 deg runout) they
 made an ellipsoid's outlines worse, 0.0111 against 0.0084 mm RMS over five seeds."""
-
-GEAR_ADVICE_DEG_PER_TURN = 0.05
-"""A table whose turn misses its count by more than this (degrees) is named, with the
-``gear_ratio`` factor that mends it: the most a continuous scan's laser-off frame taken a
-turn later may stand from its laser-on frame's angle (the device's own tolerance for
-its frame period, ``NEXT_TURN_MISMATCH_DEG``)."""
 
 RADIUS_SPREAD_WARNING = 0.02
 """Fitted arc radii that differ by more than 2 % between views suggest bad arcs."""
@@ -448,9 +443,10 @@ def gear_ratio_factor(axis: AxisCalibration) -> float | None:
 
     The calibration's angle scale is the table's true turn per turn of its count; a box
     configured with its ratio times ``1 / scale`` counts true degrees. None where the
-    scale was held at 1 or its turn's miss is within :data:`GEAR_ADVICE_DEG_PER_TURN`
-    once :data:`SCALE_SIGMAS` of the scale's standard error are taken off it: a box
-    mended to its whole steps must not be told to change again by the cylinder's noise.
+    scale was held at 1, or where its turn's miss is within the next-turn tolerance
+    (:data:`~lamina_shared.types.NEXT_TURN_MISMATCH_DEG`) once :data:`SCALE_SIGMAS` of
+    the scale's standard error are taken off it: a box mended to its whole steps must
+    not be told to change again by the cylinder's noise.
 
     Args:
         axis: the cylinder's calibration.
@@ -462,7 +458,7 @@ def gear_ratio_factor(axis: AxisCalibration) -> float | None:
     if not np.isfinite(scale) or scale <= 0.0:
         return None
     surely = abs(1.0 - scale) - SCALE_SIGMAS * (sd if np.isfinite(sd) else 0.0)
-    if 360.0 * surely <= GEAR_ADVICE_DEG_PER_TURN:
+    if 360.0 * surely <= NEXT_TURN_MISMATCH_DEG:
         return None
     return 1.0 / scale
 
