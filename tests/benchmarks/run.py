@@ -23,7 +23,8 @@ def show(name: str, module: Any, results: dict[str, Any], out: Path | None = Non
     print(f"{name}: {module.TITLE}")
     for line in module.report(results):
         print(line)
-    if out:
+    if out:  # a bench run alone on a fresh clone must not lose its results to a folder
+        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(results, indent=2) + "\n")
 
 
