@@ -53,6 +53,10 @@ class SimCamera:
     frames_taken: int = field(default=0, init=False)
     last_frame_s: float = field(default=0.0, init=False)
     """When the last frame arrived on the virtual clock (the end of a scan's wait)."""
+    lit_frames_s: list[float] = field(default_factory=list, init=False)
+    """When each laser-on frame arrived on the virtual clock, in the order taken: where a
+    swaying subject was for each view (a segment reaches its receiver later, when the
+    device's extraction thread is done with it, which the machine's load moves)."""
     exposure_us: int = field(default=SIM_EXPOSURE_US, init=False)
     exposure_range_us: tuple[int, int] = field(default=SIM_EXPOSURE_RANGE_US, init=False)
 
@@ -70,7 +74,7 @@ class SimCamera:
         """Render one frame of the current scene."""
         self.frames_taken += 1
         self.turntable.clock.frame(self.exposure_us)
-        self.last_frame_s = self.turntable.clock.now_s
+        self._arrived(self.turntable.clock.now_s)
         return self._render(self.scene.render)
 
     @property
@@ -91,8 +95,14 @@ class SimCamera:
             )
         self.frames_taken += 1
         self.turntable.clock.frame(self.exposure_us)
-        self.last_frame_s = self.turntable.clock.now_s
+        self._arrived(self.turntable.clock.now_s)
         return self._render(self.scene.render), self._render(self.scene.render_rgb)
+
+    def _arrived(self, now_s: float) -> None:
+        """Note a frame's arrival at ``now_s`` (and a laser-on frame's among the lit ones)."""
+        self.last_frame_s = now_s
+        if self.laser.is_on:
+            self.lit_frames_s.append(now_s)
 
     def _render(self, render: Callable[..., np.ndarray]) -> np.ndarray:
         """Return ``render`` of the scene at the true axis positions and laser state."""
@@ -130,7 +140,7 @@ class SimCamera:
         start_s = index * period
         clock.advance(start_s + span - clock.now_s)
         self.frames_taken += 1
-        self.last_frame_s = clock.now_s
+        self._arrived(clock.now_s)
 
         def pose(when_s: float, around_s: float) -> tuple[float, tuple[float, float]]:
             reference = self.turntable.angle_at(round(around_s * 1e9))
