@@ -591,3 +591,24 @@ def test_a_simulated_laser_rendered_slowly_is_timed_on_the_simulators_clock():
     assert trips == []
     assert laser.count(True) == len(plan.views)  # one pulse a view, none cut short
     assert len(segments) == len(plan.views) and all(len(s.cols) > 0 for s in segments)
+
+
+@pytest.mark.parametrize("mode", ["stop-and-go", "continuous"])
+def test_the_simulated_camera_notes_when_each_laser_on_frame_arrived(mode):
+    """One time a view, in the order the views were taken, each when the laser was on:
+    what a bench needs to know where a swaying subject was (a segment itself reaches its
+    receiver later, when the extraction thread is done with it)."""
+    hardware = tiny_sim()
+    segments = []
+    laser, clock = hardware.laser, hardware.turntable.clock
+    try:
+        acquire(hardware, "object", PLAN.with_mode(mode), segments.append)
+        lit_s = list(hardware.camera.lit_frames_s)
+        taken = hardware.camera.frames_taken
+        history = laser.mock_pin_history() or []
+    finally:
+        hardware.close()
+    assert len(lit_s) == len(segments) == len(PLAN.views) < taken  # off frames not noted
+    assert (np.diff(lit_s) > 0).all()
+    assert lit_s[-1] <= clock.now_s
+    assert history.count(True) == len(lit_s)  # a laser pulse a view, its frame noted once
