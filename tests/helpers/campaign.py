@@ -37,18 +37,15 @@ from lamina_device.sim.truth import (
     segment_views,
 )
 from lamina_host.reconstruct.axis import AxisCalibration
-from lamina_host.reconstruct.calibration import calibrate_grid
 from lamina_host.reconstruct.continuity import outline_jumps
 from lamina_host.reconstruct.measure import polygon_area
 from lamina_host.reconstruct.pipeline import (
     ProcessOptions,
     Reconstruction,
-    calibrate_axis,
-    lift_sections,
+    calibrate_rig,
     reconstruct,
 )
 from lamina_host.store.outputs import build_report, measured_cloud, write_outputs
-from lamina_shared.centreline import refined_segments
 from lamina_shared.errors import LaminaError
 from lamina_shared.types import ScanPlan, Segment
 
@@ -144,9 +141,9 @@ class CampaignPlan:
 
     def mechanics(self) -> Mechanics:
         """Return the simulated axes' errors on this plan's box (its gear ratio's shortfall)."""
-        shipped = load_config().turntable
+        shipped = load_config()
         mechanics = Mechanics.preset(self.noise)
-        return mechanics.on_box(self.geared(load_config()).turntable, shipped.gear_ratio)
+        return mechanics.on_box(self.geared(shipped).turntable, shipped.turntable.gear_ratio)
 
     def as_counted(self, segments: list[Segment]) -> list[Segment]:
         """Return ``segments`` as this plan's host takes them: whole turns and all, or,
@@ -252,18 +249,14 @@ def calibrated_axis(plan: CampaignPlan) -> AxisCalibration:
     Returns:
         The axis, with the gear's angle scale the cylinder measured.
     """
-    calibration, rig, options = _calibration(plan), plan.rig(), ProcessOptions()
+    calibration, rig = _calibration(plan), plan.rig()
     assert rig.board is not None
     cylinder = plan.as_counted(calibration.cylinder)
-    if options.refine_stripes:
-        cylinder = refined_segments(cylinder)
-    distortion = options.distortion if options.calibration == "ml" else "off"
-    grid = calibrate_grid(calibration.grid_image, rig.board, options.calibration, distortion)
-    views, _ = lift_sections(cylinder, rig.lift_reference())
-    return calibrate_axis(
-        views, grid, rig.cylinder_diameter_mm, options.trim_fraction, options.axis,
-        options.angle_correction, options.per_view_angles,
+    _, axis, _ = calibrate_rig(
+        calibration.grid_image, rig.board, cylinder, rig.cylinder_diameter_mm,
+        ProcessOptions(), rig.lift_reference(),
     )  # fmt: skip
+    return axis
 
 
 def _fail(result: SeedResult, stage: str, exc: BaseException) -> SeedResult:

@@ -1643,6 +1643,52 @@ def lift_calibration(
     return calibrate_lift(arcs, reference, axis.actual_diameter_mm / 2.0, circle)
 
 
+def calibrate_rig(
+    grid_image: np.ndarray,
+    board: BoardSpec,
+    cylinder: list[Segment],
+    cylinder_mm: float,
+    options: ProcessOptions,
+    lift_reference: LiftReference | None = None,
+    timer: Timer | None = None,
+) -> tuple[GridCalibration, AxisCalibration, list[list[Segment]]]:
+    """Calibrate the laser plane from the board and the turntable from the cylinder (6.1-6.2).
+
+    Args:
+        grid_image: the board's image.
+        board: the board's layout.
+        cylinder: the cylinder's views as the device sent them (their turns are counted
+            from the first here).
+        cylinder_mm: the cylinder's diameter.
+        options: the processing options (calibration method, distortion, axis method,
+            trim, angle correction, stripe fit).
+        lift_reference: the cylinder's lift marks, None when it has none.
+        timer: where the stages' times go (None: nowhere).
+
+    Returns:
+        The plane's calibration, the turntable's, and the cylinder's views at each lift
+        mark (for :func:`lift_calibration`).
+
+    Raises:
+        CalibrationError: the board or the cylinder could not be used.
+    """
+    timer = timer or Timer()
+    cylinder = from_first_turn(cylinder)
+    if options.refine_stripes:  # the object's stripes are fitted section by section
+        with timer.stage("refine_stripes"):
+            cylinder = refined_segments(cylinder)
+    with timer.stage("calibrate_grid"):
+        distortion = options.distortion if options.calibration == "ml" else "off"
+        grid = calibrate_grid(grid_image, board, options.calibration, distortion)
+    axis_views, marks = lift_sections(cylinder, lift_reference)
+    with timer.stage("calibrate_axis"):
+        axis = calibrate_axis(
+            axis_views, grid, cylinder_mm, options.trim_fraction, options.axis,
+            options.angle_correction, options.per_view_angles,
+        )  # fmt: skip
+    return grid, axis, marks
+
+
 def reconstruct(
     grid_image: np.ndarray,
     board: BoardSpec,
@@ -1672,19 +1718,10 @@ def reconstruct(
     options = options or ProcessOptions()
     options.check()
     timer = Timer()
-    cylinder, segments = from_first_turn(cylinder), from_first_turn(segments)
-    if options.refine_stripes:  # the object's stripes are fitted section by section
-        with timer.stage("refine_stripes"):
-            cylinder = refined_segments(cylinder)
-    with timer.stage("calibrate_grid"):
-        distortion = options.distortion if options.calibration == "ml" else "off"
-        grid = calibrate_grid(grid_image, board, options.calibration, distortion)
-    axis_views, marks = lift_sections(cylinder, lift_reference)
-    with timer.stage("calibrate_axis"):
-        axis = calibrate_axis(
-            axis_views, grid, cylinder_mm, options.trim_fraction, options.axis,
-            options.angle_correction, options.per_view_angles,
-        )  # fmt: skip
+    segments = from_first_turn(segments)
+    grid, axis, marks = calibrate_rig(
+        grid_image, board, cylinder, cylinder_mm, options, lift_reference, timer
+    )
     lift = None
     if lift_reference is not None:
         with timer.stage("calibrate_lift"):
