@@ -15,9 +15,9 @@ A continuous plan (``ScanPlan.mode``, issue 22) is taken without stopping the ta
 ramps up once and turns at constant speed through every section while the camera
 streams; the lift moves between sections with the table still turning. Each view is
 three frames in a row, laser off, on, off: the table turns a few degrees from one to the
-next, so the laser-off reference is made of both off frames (:func:`laser_off_reference`:
-their mean where they agree, the brighter where something moved), which leaves nothing
-of the motion in the difference that could read as a stripe. Each view's
+next, so the extraction thread brings both off frames to the laser-on frame's instant
+before it takes their room light from it
+(:func:`~lamina_device.room_light.laser_off_reference`). Each view's
 angle is the table's step count when the laser-on frame exposed the stripe's middle row
 (the sensor's timestamp on the step clock), not the planned angle, which the view is
 only started to come near.
@@ -41,6 +41,7 @@ from lamina_device.camera import CameraError, ColourCamera, TimedCamera, TimedFr
 from lamina_device.extract import ExtractSettings, StripePoints, extract, to_segment
 from lamina_device.hardware import Hardware
 from lamina_device.motion import SpinningTable, move_axes
+from lamina_device.room_light import laser_off_reference
 from lamina_device.timing import (
     laser_pulse,
     lit_capture_s,
@@ -55,6 +56,12 @@ log = logging.getLogger(__name__)
 
 PIPELINE_DEPTH = 2
 """Captured views waiting for extraction: enough to keep both stages busy, little memory."""
+CONTINUOUS_PIPELINE_DEPTH = 16
+"""The same for a continuous scan, whose capture cannot wait: a view held up misses its
+angle and waits a turn. Its extraction thread also brings each view's laser-off frames to
+the laser-on frame's instant (``room_light``), which can take longer than the table's
+time between views (8 a turn at one turn a second: 125 ms); it catches up while the lift
+moves between sections. 16 views of three 1536x864 frames hold 64 MB."""
 
 
 class ScanAborted(Exception):
@@ -123,6 +130,10 @@ class _Captured:
     rgb_off: np.ndarray | None = None
     timed: TimedFrame | None = None
     """The laser-on frame's timing (continuous scans: the angle comes from it)."""
+    off_after: np.ndarray | None = None
+    """A continuous view's second laser-off frame, ``off`` its first: the extraction
+    thread makes their room light at the laser-on frame's instant (the capture thread
+    is not held up by it)."""
     count_deg: float = 0.0
     """The table's step count where the view was taken (stop-and-go; unwrapped degrees)."""
 
@@ -259,12 +270,15 @@ def acquire(
 
     def handle(item: _Captured) -> None:
         view, count_deg = item.view, item.count_deg
-        points = extract(item.on, item.off, settings)
+        off = item.off
+        if item.off_after is not None:
+            off = laser_off_reference(item.off, item.on, item.off_after)
+        points = extract(item.on, off, settings)
         if item.timed is not None:
             count_deg = _stripe_count_deg(hardware, points, item.timed)
             view = ViewSpec(view.section, view.z_mm, _within_turn_deg(count_deg))
         if sink is not None:
-            sink(target, view, item.index, item.on, item.off)
+            sink(target, view, item.index, item.on, off)
         turns = whole_turns(count_deg, view.angle_deg)
         segment = to_segment(
             points, target, view.section, item.index, view.z_mm, view.angle_deg,
@@ -275,7 +289,7 @@ def acquire(
             on_progress(_progress(target, item, total, started_s, control))
 
     hardware.place(target, again=resumed)
-    stage = _Stage(handle)
+    stage = _Stage(handle, CONTINUOUS_PIPELINE_DEPTH if plan.continuous else PIPELINE_DEPTH)
     index_in_section = list(numbers) if numbers is not None else views_in_section(plan)
     if len(index_in_section) != total:
         raise ValueError(f"{len(index_in_section)} view numbers for {total} views")
@@ -392,8 +406,8 @@ def _take_continuous(
                 if next_turn:
                     lit_views.append((view, number, capture_lit(hardware, camera)))
                     continue
-                lit, off = capture_moving(hardware, camera)
-                yield _Captured(view, number, 0, lit.image, off, None, lit)
+                lit, before, after = capture_moving(hardware, camera)
+                yield _Captured(view, number, 0, lit.image, before, None, lit, off_after=after)
             for view, number, lit in lit_views:
                 off = capture_next_turn(hardware, camera, lit)
                 yield _Captured(view, number, 0, lit.image, off, None, lit)
@@ -402,12 +416,14 @@ def _take_continuous(
         table.stop_spin()
 
 
-def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame, np.ndarray]:
+def capture_moving(
+    hardware: Hardware, camera: TimedCamera
+) -> tuple[TimedFrame, np.ndarray, np.ndarray]:
     """Capture laser-off, laser-on and laser-off frames in a row; the laser ends off.
 
     Returns:
-        The laser-on frame with its timing, and its laser-off reference
-        (:func:`laser_off_reference` of the two off frames around it).
+        The laser-on frame with its timing, and the laser-off frames before and after it
+        (:func:`~lamina_device.room_light.laser_off_reference` makes its room light of them).
     """
     laser = hardware.laser
     laser.off()
@@ -418,7 +434,7 @@ def capture_moving(hardware: Hardware, camera: TimedCamera) -> tuple[TimedFrame,
     finally:
         laser.off()
     after = camera.capture_timed()
-    return lit, laser_off_reference(before.image, after.image)
+    return lit, before.image, after.image
 
 
 def capture_lit(hardware: Hardware, camera: TimedCamera) -> TimedFrame:
@@ -472,37 +488,6 @@ def capture_next_turn(hardware: Hardware, camera: TimedCamera, lit: TimedFrame) 
         f"{NEXT_TURN_TRIES} turns running (the device is too busy to catch it): set "
         '[turntable] continuous_off_frames = "interleaved", or scan stop-and-go'
     )
-
-
-MOVED_SIGMAS = 3.0
-"""How far apart (in the two frames' noise) the off frames must be for a pixel to have moved."""
-
-
-def laser_off_reference(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """Return the room light of a laser-on frame taken between two laser-off frames.
-
-    Where the two off frames agree within their noise, their mean: the room light at the
-    moment between them (to second order as the table turns: shading changes smoothly),
-    with less noise than either. Where they differ more, something moved across that
-    pixel (an edge, a silhouette, a textured mark): the brighter of the two, which the on
-    frame's own room light, passing from one to the other, cannot exceed, so what motion
-    leaves in the difference is never positive and never reads as a stripe. A single off
-    frame or the mean alone would leave positive steps at every moving edge.
-
-    Args:
-        before: the laser-off frame before the laser-on frame (uint8 or uint16).
-        after: the laser-off frame after it.
-
-    Returns:
-        A frame like ``before``.
-    """
-    b, a = before.astype(np.int32), after.astype(np.int32)
-    difference = b - a
-    sample = difference[::7, ::7]
-    sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
-    moved = np.abs(difference) > max(MOVED_SIGMAS * sigma, 2.0)
-    mean = (b + a + 1) >> 1
-    return np.where(moved, np.maximum(b, a), mean).astype(before.dtype)
 
 
 def _stripe_count_deg(hardware: Hardware, points: StripePoints, lit: TimedFrame) -> float:
