@@ -39,8 +39,9 @@ REACH_FRACTION = 1.0 / 12.0
 """The largest motion matched between two consecutive frames, as a share of the frame's
 width (128 pixels at 1536). At the shipped continuous speed the table turns 6 degrees
 from one frame to the next that the laser allows (:func:`~lamina_device.timing.frames_apart`);
-a point at the frame's side, half its width from the axis, moves a tenth of the width.
-The random limb shapes' skin moved 18-60 pixels a frame."""
+a point seen at the frame's side, half its width from the axis, moves a twentieth of the
+width; the rest is room for a point nearer the camera, whose image moves further. The
+random limb shapes' skin moved 18-60 pixels a frame."""
 BLOCK_PX = 5
 """The matcher's window (pixels): small, so that a narrow relief crest is matched itself."""
 SMOOTH_SMALL, SMOOTH_LARGE = 8, 256
@@ -50,9 +51,8 @@ STILL_QUARTILE = 0.3186
 """The lower quartile of a normal noise's magnitude, in its standard deviations."""
 COARSE_SCALE = 2
 """The first matching pass's frames are scaled down by this."""
-FINE_REACH_PX = 8
-"""The full-size pass looks this far either side of the first pass's motion (the matcher
-counts in sixteens: it searches 16 either way)."""
+FINE_REACH_PX = 16
+"""The full-size pass looks this far either side of the first pass's motion."""
 MOVED_OPENING_PX = 3
 """Single noisy pixels are not motion: the moved pixels are opened by this square."""
 
@@ -109,8 +109,8 @@ def row_motion_px(lit: np.ndarray, off: np.ndarray, reach: int) -> np.ndarray:
 
     Matched in two passes, so that the full-size pass searches a few pixels only: the
     frames scaled down by :data:`COARSE_SCALE` over the whole reach, then at full size
-    within :data:`FINE_REACH_PX` of that (a third of the time of one full-size pass over
-    the reach, for the same false light on the limb rig's frames).
+    within :data:`FINE_REACH_PX` of that: about half the time of one full-size pass over
+    the reach, for the same false light on the limb rig's frames.
 
     Args:
         lit: the laser-on frame (or a part of it).
@@ -125,6 +125,8 @@ def row_motion_px(lit: np.ndarray, off: np.ndarray, reach: int) -> np.ndarray:
     left, right = _as_8bit(lit, off)
     height, width = left.shape
     small = (width // COARSE_SCALE, height // COARSE_SCALE)
+    if min(small) < BLOCK_PX:  # too small to scale down: one full-size pass
+        return _matched(left, right, reach)
     coarse = _matched(
         cv2.resize(left, small, interpolation=cv2.INTER_AREA),
         cv2.resize(right, small, interpolation=cv2.INTER_AREA),

@@ -169,10 +169,20 @@ def test_sixteen_bit_frames_keep_their_type_and_scale():
     assert false_light(reference // 256, room).max() <= 12.0
 
 
-@pytest.mark.parametrize("shape", [(1, 1), (1, 50), (50, 1), (4, 4), (3, 200), (200, 30)])
+@pytest.mark.parametrize(
+    "shape", [(1, 1), (1, 50), (1, 240), (50, 1), (4, 4), (3, 200), (7, 400), (200, 30)]
+)
 def test_frames_too_small_to_match_are_combined_as_they_are(shape):
-    rng = np.random.default_rng(1)
-    before, lit, after = (rng.integers(0, 255, shape, dtype=np.uint8) for _ in range(3))
+    """A bright mark moving along the rows of a frame too small for the matcher's window
+    or its reach: no motion is matched, and the reference lies between the off frames."""
+    width = shape[1]
+
+    def frame(mark_at: int) -> np.ndarray:
+        image = np.full(shape, 40, np.uint8)
+        image[:, max(0, min(width - 1, mark_at)) : mark_at + 4] = 200
+        return image
+
+    before, lit, after = frame(width // 4), frame(width // 2), frame(3 * width // 4)
     reference = laser_off_reference(before, lit, after)
     assert reference.shape == shape and reference.dtype == np.uint8
     assert np.all(reference >= np.minimum(before, after))  # never below both off frames
