@@ -438,6 +438,12 @@ def find_axis_joint(
     return calibration
 
 
+def turn_miss_deg(axis: AxisCalibration) -> float:
+    """Return how far the table turns short of one turn of its step count (degrees;
+    negative: beyond it), from the calibration's angle scale."""
+    return 360.0 * (1.0 - axis.angle_scale)
+
+
 def gear_ratio_factor(axis: AxisCalibration) -> float | None:
     """Return what the box's ``[turntable] gear_ratio`` should be multiplied by, or None.
 
@@ -457,8 +463,8 @@ def gear_ratio_factor(axis: AxisCalibration) -> float | None:
     scale, sd = axis.angle_scale, axis.angle_scale_sd
     if not np.isfinite(scale) or scale <= 0.0:
         return None
-    surely = abs(1.0 - scale) - SCALE_SIGMAS * (sd if np.isfinite(sd) else 0.0)
-    if 360.0 * surely <= NEXT_TURN_MISMATCH_DEG:
+    surely = abs(turn_miss_deg(axis)) - 360.0 * SCALE_SIGMAS * (sd if np.isfinite(sd) else 0.0)
+    if surely <= NEXT_TURN_MISMATCH_DEG:
         return None
     return 1.0 / scale
 
@@ -479,7 +485,7 @@ def gear_advice(axis: AxisCalibration) -> str | None:
     factor = gear_ratio_factor(axis)
     if factor is None:
         return None
-    miss_deg = 360.0 * (1.0 - axis.angle_scale)
+    miss_deg = turn_miss_deg(axis)
     way = "short of" if miss_deg > 0 else "beyond"
     return (
         f"the turntable turns {abs(miss_deg):.2f} degrees {way} its step count each turn "
@@ -507,7 +513,7 @@ def next_turn_warning(axis: AxisCalibration) -> str | None:
     factor = gear_ratio_factor(axis)
     if factor is None:
         return None
-    miss_deg = abs(360.0 * (1.0 - axis.angle_scale))
+    miss_deg = abs(turn_miss_deg(axis))
     return (
         f"the laser-off frames taken a turn later stood {miss_deg:.2f} degrees from their "
         "laser-on frames (the turntable does not turn once per turn of its step count), so "
