@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
+from lamina_host.reconstruct.workers import call_apart
+from lamina_host.workflow import processing
 from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest
+from lamina_host.workflow.processing import ProcessingError
 from lamina_shared.errors import InputError
 from lamina_shared.types import ScanPlan
 
@@ -58,4 +64,35 @@ def test_deleting_the_open_scan_forgets_it_and_its_result(job: ScanJob) -> None:
     assert job.scan_id is None and job.processing.results is None
     assert job.acquisition.held == {} and job.acquisition.data.segments == []
     with pytest.raises(InputError, match="nothing to process"):
+        job.processing.process_scan()
+
+
+def test_a_scan_processed_apart_is_the_scan_processed_here(
+    job: ScanJob, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The terminal UI's processing runs in a process of its own: the same result bit for
+    bit, stored the same way, and a failure still names the command that processes again."""
+    scan_id = _scan(job, "P001")
+    here = job.processing.results
+    assert here is not None
+    apart_pids: list[int] = []
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        apart_pids.append(os.getpid())
+        return call_apart(*args, **kwargs)
+
+    monkeypatch.setattr(processing, "call_apart", counted)
+    job.processing.apart = True
+    apart = job.processing.process_scan()
+    assert apart_pids == [os.getpid()]  # one reconstruction, through call_apart
+    assert apart.rows == here.rows
+    assert apart.volume_mm3 == here.volume_mm3 > 0
+    assert apart.reconstruction.warnings == here.reconstruction.warnings
+    for name in ("vertices", "faces"):
+        assert np.array_equal(
+            getattr(apart.reconstruction, name), getattr(here.reconstruction, name)
+        )
+    assert job.store.library().scan(scan_id).status == "processed"
+    job.acquisition.data.cylinder_mm = -1.0  # a calibration processing refuses, over there
+    with pytest.raises(ProcessingError, match=f"lamina process {scan_id}"):
         job.processing.process_scan()

@@ -19,11 +19,13 @@ from lamina_host.reconstruct.pipeline import ProcessOptions, Reconstruction, rec
 from lamina_host.reconstruct.workers import (
     CHUNKS_PER_WORKER,
     MIN_TASKS_PER_WORKER,
+    call_apart,
     in_batches,
     map_in_workers,
     usable_cores,
     workers_for,
 )
+from lamina_shared.errors import InputError
 from lamina_shared.types import Segment
 from tests.helpers.shapes import circle, view_segment
 
@@ -125,11 +127,16 @@ def test_tasks_are_shared_among_other_processes_and_come_back_in_order() -> None
 
 
 @forks
-def test_a_worker_shares_nothing_further() -> None:
-    """Inside a worker process (``lamina batch``), sections are processed there."""
-    inside = map_in_workers(functools.partial(workers_for, requested=4), [400] * 16, 2)
+def test_a_worker_shares_nothing_further_unless_told_how_many() -> None:
+    """Inside a worker process (``lamina batch``), sections are processed there; a process
+    computing apart for a caller that waits (the terminal UI's) shares them as asked."""
+    inside = map_in_workers(functools.partial(workers_for, requested=None), [400] * 16, 2)
     assert inside == [1] * 16
     assert workers_for(400, 4) == min(4, 400 // MIN_TASKS_PER_WORKER)
+    told = map_in_workers(functools.partial(workers_for, requested=4), [400] * 16, 2)
+    assert told == [min(4, 400 // MIN_TASKS_PER_WORKER)] * 16
+    assert call_apart(workers_for, 400, 3) == 3
+    assert call_apart(workers_for, 400) == 1
 
 
 def test_few_tasks_or_one_core_use_no_pool() -> None:
@@ -188,3 +195,39 @@ def test_batches_keep_every_item_once_in_order_and_near_equal(
     batches = in_batches(list(range(items)), workers)
     assert [x for b in batches for x in b] == list(range(items))
     assert [len(b) for b in batches] == sizes
+
+
+def refused_apart(reason: str) -> int:
+    """Raise the caller's kind of error, naming the process that raised it."""
+    raise InputError(f"{reason} in process {os.getpid()}")
+
+
+@forks
+def test_a_call_apart_runs_in_a_process_of_its_own() -> None:
+    """The result and what was raised come back; the work was done in another process."""
+    assert call_apart(os.getpid) != os.getpid()
+    assert call_apart(divmod, 7, 2) == (3, 1)
+    assert call_apart(int, "ff", base=16) == 255
+    with pytest.raises(InputError, match="no stripe in process") as raised:
+        call_apart(refused_apart, "no stripe")
+    assert str(os.getpid()) not in str(raised.value)  # raised there, not computed again here
+
+
+@forks
+def test_a_call_apart_whose_process_dies_is_computed_here() -> None:
+    """Killed (as the OOM killer would) or never started: the caller still gets its result."""
+    assert call_apart(dies_in_a_worker, -5) == 5
+
+
+def test_a_call_apart_that_cannot_fork_is_computed_here(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A call that cannot go (a local function), no process can be forked (memory,
+    limits), or fork does not exist: done here."""
+
+    def refused(*_: Any, **__: Any) -> None:
+        raise OSError(11, "Resource temporarily unavailable")
+
+    assert call_apart(lambda: os.getpid()) == os.getpid()  # a call that does not pickle
+    monkeypatch.setattr(workers, "ProcessPoolExecutor", refused)
+    assert call_apart(os.getpid) == os.getpid()
+    monkeypatch.setattr(workers.multiprocessing, "get_all_start_methods", lambda: ["spawn"])
+    assert call_apart(divmod, 7, 2) == (3, 1)

@@ -10,6 +10,10 @@ numpy, SciPy and OpenCV, as long as a whole scan's processing on this host. Wher
 already keeps every core busy with whole scans), sections are processed one after
 another. Results come back in the order the tasks were given, so the outcome is the
 same bit for bit whatever the number of workers.
+
+A whole computation can also run apart (:func:`call_apart`): the terminal UI processes
+a scan in a forked process of its own, so that the processing never holds the UI
+process's interpreter lock while a key waits for an answer.
 """
 
 from __future__ import annotations
@@ -17,10 +21,11 @@ from __future__ import annotations
 import itertools
 import multiprocessing
 import os
+import pickle
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import TypeVar
+from typing import Any, TypeVar
 
 Task = TypeVar("Task")
 Result = TypeVar("Result")
@@ -57,12 +62,15 @@ def workers_for(tasks: int, requested: int | None = None) -> int:
         requested: a worker count asked for (None: every usable core); 1 means none.
 
     Returns:
-        1 (process here, one after another) without ``fork``, inside a worker process,
-        or with fewer than ``MIN_TASKS_PER_WORKER`` tasks a worker; else at most
-        ``requested`` workers, each given at least ``MIN_TASKS_PER_WORKER`` tasks.
+        1 (process here, one after another) without ``fork``, inside a worker process
+        unless ``requested`` says how many (a process computing apart for a caller that
+        waits, :func:`call_apart`, may use every core; a batch's worker, which asks for
+        none, shares the cores with its siblings), or with fewer than
+        ``MIN_TASKS_PER_WORKER`` tasks a worker; else at most ``requested`` workers, each
+        given at least ``MIN_TASKS_PER_WORKER`` tasks.
     """
     wanted = usable_cores() if requested is None else max(1, requested)
-    nested = multiprocessing.parent_process() is not None
+    nested = requested is None and multiprocessing.parent_process() is not None
     if nested or "fork" not in multiprocessing.get_all_start_methods():
         return 1
     return max(1, min(wanted, tasks // MIN_TASKS_PER_WORKER))
@@ -114,3 +122,49 @@ def map_in_workers(
             return list(pool.map(function, tasks))
     except (BrokenProcessPool, OSError):
         return [function(t) for t in tasks]
+
+
+def call_apart(function: Callable[..., Result], *args: Any, **kwargs: Any) -> Result:
+    """Return ``function(*args, **kwargs)``, computed in a forked process of its own.
+
+    Python runs one thread at a time: a thread of many small numpy calls, as a scan's
+    processing is, takes the interpreter's lock from the thread that answers the user
+    every few milliseconds, and C calls that keep it (a sparse graph's components, a
+    garbage collection) hold a key's answer up past 100 ms. A forked process has a lock
+    of its own and inherits the imported pipeline, so it starts in milliseconds.
+
+    Args:
+        function: a module-level function (or a partial of one), whose result pickles.
+        *args: its positional arguments.
+        **kwargs: its keyword arguments.
+
+    Returns:
+        What ``function`` returned. What it raised is raised here. Without ``fork``, if
+        the call does not pickle (a function defined inside another), or if the process
+        cannot start or dies (out of memory, killed), it is computed here instead: the
+        caller never loses its result to the process.
+    """
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return function(*args, **kwargs)
+    try:
+        call = pickle.dumps((function, args, kwargs), pickle.HIGHEST_PROTOCOL)
+        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"))
+    except (pickle.PicklingError, AttributeError, TypeError, OSError):
+        return function(*args, **kwargs)
+    with pool:
+        try:
+            future = pool.submit(_call_pickled, call)  # the fork happens here
+        except OSError:
+            future = None
+        if future is not None:
+            try:
+                return future.result()
+            except BrokenProcessPool:  # the process died; what the function raised passes
+                pass
+    return function(*args, **kwargs)
+
+
+def _call_pickled(call: bytes) -> Any:
+    """Return the result of a call pickled by :func:`call_apart` (in its process)."""
+    function, args, kwargs = pickle.loads(call)
+    return function(*args, **kwargs)

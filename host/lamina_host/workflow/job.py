@@ -63,16 +63,22 @@ class ScanJob:
 
     :attr:`device` (the connection and its controls), :attr:`acquisition` (calibration,
     the scan and its views), :attr:`processing` (its result) and :attr:`store` (the
-    library). The few steps that touch several parts are here.
+    library). The few steps that touch several parts are here. ``process_apart``
+    processes scans in a process of their own (:class:`Processing`), for a user interface
+    that must stay responsive meanwhile.
     """
 
     def __init__(
-        self, target: DeviceTarget, library_path: Path | None = None, library: Library | None = None
+        self,
+        target: DeviceTarget,
+        library_path: Path | None = None,
+        library: Library | None = None,
+        process_apart: bool = False,
     ) -> None:
         self.store = LibraryAccess(library_path, library)
         self.device = DeviceSession(target)
         self.acquisition = Acquisition(self.device, self.store, self._forget_results)
-        self.processing = Processing(self.acquisition, self.store)
+        self.processing = Processing(self.acquisition, self.store, process_apart)
 
     def _forget_results(self) -> None:
         self.processing.forget()

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 
 from lamina_host.reconstruct.expect import Expectation
 from lamina_host.reconstruct.pipeline import ProcessOptions, reconstruct
+from lamina_host.reconstruct.workers import call_apart, usable_cores
 from lamina_host.store.outputs import build_report, write_outputs
 from lamina_host.workflow.acquisition import Acquisition
 from lamina_host.workflow.library_access import LibraryAccess
@@ -28,11 +30,17 @@ def process_again_hint(scan_id: int) -> str:
 
 
 class Processing:
-    """The processing of the acquisition's scan, and its latest result (:attr:`results`)."""
+    """The processing of the acquisition's scan, and its latest result (:attr:`results`).
 
-    def __init__(self, acquisition: Acquisition, store: LibraryAccess) -> None:
+    With ``apart`` the reconstruction runs in a process of its own
+    (:func:`~lamina_host.reconstruct.workers.call_apart`), as the terminal UI needs: its
+    keys are answered from this process, which the processing then leaves free.
+    """
+
+    def __init__(self, acquisition: Acquisition, store: LibraryAccess, apart: bool = False) -> None:
         self.acquisition = acquisition
         self.store = store
+        self.apart = apart
         self.results: Results | None = None
 
     def forget(self) -> None:
@@ -56,12 +64,14 @@ class Processing:
         if not data.segments:
             raise InputError("nothing to process: scan the subject first (F5)")
         options = options or ProcessOptions()
+        run = partial(
+            reconstruct, data.grid_image, data.board, data.cylinder, data.cylinder_mm,
+            data.segments, options, data.lift_reference, row_turn_deg=data.row_turn_deg,
+            laser_off_turn_later=data.laser_off_turn_later,
+        )  # fmt: skip
         try:
-            result = reconstruct(
-                data.grid_image, data.board, data.cylinder, data.cylinder_mm, data.segments,
-                options, data.lift_reference, row_turn_deg=data.row_turn_deg,
-                laser_off_turn_later=data.laser_off_turn_later,
-            )  # fmt: skip
+            # Apart, its sections are still shared among the cores, as they are here.
+            result = call_apart(run, workers=usable_cores()) if self.apart else run()
         except Exception as exc:  # the acquisition must outlive any failure of processing
             if self.acquisition.scan_id is None:
                 raise

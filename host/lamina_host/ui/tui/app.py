@@ -73,7 +73,9 @@ class LaminaApp(JobApp):
         rig: str = "thesis",
     ) -> None:
         target = DeviceTarget(device, object_spec, noise=noise, rig=rig)
-        super().__init__(ScanJob(target, library))
+        # Processed apart: a processing thread here took the interpreter's lock from the
+        # keys' answers, past 100 ms in a quarter of the bench's runs.
+        super().__init__(ScanJob(target, library, process_apart=True))
         self._gc_thresholds = gc.get_threshold()  # restored on unmount
 
     def on_mount(self) -> None:
