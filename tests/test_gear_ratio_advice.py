@@ -11,7 +11,10 @@ that factor turns a true turn per turn of its count, as a real one would.
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
+from importlib.resources import files
+from pathlib import Path
 
 import pytest
 
@@ -19,10 +22,14 @@ from lamina_device.acquisition import off_frames
 from lamina_device.config import load_config
 from lamina_device.sim import open_sim
 from lamina_device.sim.axes import Mechanics, SimTurntable
+from lamina_host.link import connect
 from lamina_host.link.identity import laser_off_turn_later, scan_identity
 from lamina_host.reconstruct.axis import gear_ratio_factor, next_turn_warning
+from lamina_host.workflow.checks import check_next_turn
+from lamina_host.workflow.job import DeviceTarget, ScanJob, ScanRequest, acquire
+from lamina_shared.errors import InputError
 from lamina_shared.types import ScanPlan
-from tests.helpers.campaign import CampaignPlan, calibrated_axis, scan_seed
+from tests.helpers.campaign import CampaignPlan, calibrated_axis, next_turn_config, scan_seed
 from tests.helpers.served import link
 
 
@@ -136,3 +143,78 @@ def test_the_warning_is_only_for_a_table_that_misses_its_turn():
     line = next_turn_warning(axis)
     assert line is not None and f"{1.0 / axis.angle_scale:.5f}" in line
     assert next_turn_warning(replace(axis, angle_scale=1.0)) is None
+
+
+def test_the_refusal_names_the_miss_the_mend_and_the_way_round() -> None:
+    """Only a continuous scan whose frames come a turn later, on a table found to miss
+    its turn, is refused; the line names the miss, the factor and stop-and-go."""
+    axis = calibrated_axis(replace(SMALL, resolution=0.5))
+    factor = gear_ratio_factor(axis)
+    assert factor is not None
+    continuous = ScanPlan.regular(2, 10.0, 8, "continuous")
+    with link() as ends:
+        info = ends.info  # the simulator's shipped box: interleaved
+    later = replace(info, off_frames="next-turn")
+    with pytest.raises(InputError) as refused:
+        check_next_turn(continuous, later, axis)
+    line = str(refused.value)
+    assert f"turning {360.0 * (1.0 - axis.angle_scale):.2f} degrees short of" in line
+    assert f"by {factor:.5f}" in line and "stop-and-go" in line
+    beyond = replace(axis, angle_scale=2.0 - axis.angle_scale)
+    with pytest.raises(InputError, match="degrees beyond its step count"):
+        check_next_turn(continuous, later, beyond)
+    check_next_turn(continuous.with_mode("stop-and-go"), later, axis)
+    check_next_turn(continuous, info, axis)  # interleaved frames: taken beside the lit one
+    check_next_turn(continuous, later, None)  # no cylinder yet: judged when it is in
+    check_next_turn(continuous, None, axis)
+    check_next_turn(continuous, later, replace(axis, angle_scale=1.0))
+
+
+@pytest.mark.timeout(180)
+def test_a_next_turn_scan_on_a_short_table_is_refused_before_the_subject_stands_for_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A box set to next-turn on the simulator's short gear: with the cylinder calibrated
+    first (the terminal UI) no scan is made; scanned at once (the command line) the scan
+    keeps its calibration and cylinder, and no view of the object is taken."""
+    shipped = load_config()
+    frame_us = next_turn_config(shipped).camera.frame_duration_us
+    text = (files("lamina_device") / "default_config.toml").read_text()
+    text = text.replace(
+        'continuous_off_frames = "interleaved"', 'continuous_off_frames = "next-turn"'
+    )
+    text, changed = re.subn(
+        r"^frame_duration_us = \d+", f"frame_duration_us = {frame_us}", text, flags=re.M
+    )
+    assert changed == 1 and "next-turn" in text
+    box = tmp_path / "box.toml"
+    box.write_text(text)
+    command = connect.device_command
+    monkeypatch.setattr(
+        connect, "device_command", lambda *a, **k: [*command(*a, **k), "--config", str(box)]
+    )
+    continuous = ScanRequest("P001", ScanPlan.regular(2, 10.0, 8, "continuous"))
+    job = ScanJob(DeviceTarget("sim"), tmp_path / "library.sqlite")
+    try:
+        assert job.connect().off_frames == "next-turn"
+        job.acquisition.calibrate_grid()
+        job.acquisition.accept_grid(True)
+        factor = gear_ratio_factor(job.acquisition.calibrate_axis())
+        assert factor is not None and abs(factor - 45.0 / 44.8) < 2e-4
+        with pytest.raises(InputError, match=f"by {factor:.5f}"):
+            job.acquisition.create(continuous)
+        assert job.store.scans() == []
+    finally:
+        job.close()
+    job = ScanJob(DeviceTarget("sim"), tmp_path / "library.sqlite")
+    try:
+        job.connect()
+        with pytest.raises(InputError, match="a turn later") as refused:
+            acquire(job, continuous)
+        assert "stop-and-go" in str(refused.value)
+        (scan,) = job.store.scans()
+        assert scan.status == "acquiring" and scan.received == 0
+        assert job.store.library().calibration(scan.id) is not None
+        assert job.acquisition.data.cylinder  # the cylinder's views are kept
+    finally:
+        job.close()

@@ -36,6 +36,7 @@ from lamina_host.store.subjects import check_subject
 from lamina_host.workflow.checks import (
     check_extract_limits,
     check_mode,
+    check_next_turn,
     check_object_fits,
     check_plan_limits,
     check_positive_mm,
@@ -299,6 +300,7 @@ class Acquisition:
         if request.mode is not None:
             plans["object"] = plans["object"].with_mode(request.mode)
         check_mode(plans["object"], client.info, request.colour)
+        check_next_turn(plans["object"], client.info, self.axis)
         check_extract_limits(request.extract, client.info)
         for target, wanted in plans.items():
             check_plan_limits(target, wanted, limits, axes)
@@ -434,6 +436,8 @@ class Acquisition:
         info = self.device.info
         limits, axes = (info.limits, info.axes) if info else (None, None)
         check_plan_limits("object", plan, limits, axes)
+        if plan.continuous:  # the cylinder's views are in by now: its axis judges the gear
+            check_next_turn(plan, info, self.find_axis())
         self.identity = identity
         self.data.complete = False
         self._forget_results()
