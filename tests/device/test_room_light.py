@@ -206,3 +206,48 @@ def test_a_still_scene_of_any_size_is_combined_as_it_stands(height, width, level
     )
     reference = laser_off_reference(before, lit, after)
     np.testing.assert_array_equal(reference, combine_off_frames(before, after))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.sampled_from([np.uint8, np.uint16]),
+    st.integers(0, 2**32 - 1),
+    st.integers(1, 40),
+)
+def test_the_mean_and_the_brighter_are_exact_at_any_level(dtype, seed, width):
+    """The mean rounds half up and never wraps, up to the type's top: the same as in wide
+    integers, where the frames agree; the brighter where they differ."""
+    rng = np.random.default_rng(seed)
+    top = np.iinfo(dtype).max
+    before = rng.integers(top - 3, top + 1, (7, width), endpoint=False).astype(dtype)
+    after = rng.integers(0, top + 1, (7, width)).astype(dtype)
+    after[:, ::2] = before[:, ::2]  # agreeing pixels, some at the very top
+    after[:, 1::3] = before[:, 1::3] - rng.integers(0, 2, (7, len(range(1, width, 3))))
+    combined = combine_off_frames(before, after)
+    assert combined.dtype == dtype
+    wide_b, wide_a = before.astype(np.int64), after.astype(np.int64)
+    mean = (wide_b + wide_a + 1) >> 1
+    brighter = np.maximum(wide_b, wide_a)
+    assert np.all((combined == mean) | (combined == brighter))
+    assert np.all(combined[:, ::2] == before[:, ::2])  # agreeing: themselves
+
+
+def test_the_two_off_frames_are_matched_side_by_side(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One match on the calling thread, the other beside it: the device runs OpenCV on one
+    thread, and a view must be done within the time the table takes to the next."""
+    import threading
+
+    import lamina_device.room_light as room_light
+
+    threads: list[int] = []
+    real = room_light.row_motion_px
+
+    def noted(*args):
+        threads.append(threading.get_ident())
+        return real(*args)
+
+    monkeypatch.setattr(room_light, "row_motion_px", noted)
+    before, lit, after, room = frames(12.0)
+    reference = laser_off_reference(before, lit, after)
+    assert len(threads) == 2 and threading.get_ident() in threads and len(set(threads)) == 2
+    assert false_light(reference, room).max() <= 8.0
