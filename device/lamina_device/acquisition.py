@@ -43,6 +43,7 @@ from lamina_device.hardware import Hardware
 from lamina_device.motion import SpinningTable, move_axes
 from lamina_device.room_light import laser_off_reference
 from lamina_device.timing import (
+    CONTINUOUS_PIPELINE_DEPTH,
     laser_pulse,
     lit_capture_s,
     next_turn_start_ns,
@@ -56,12 +57,6 @@ log = logging.getLogger(__name__)
 
 PIPELINE_DEPTH = 2
 """Captured views waiting for extraction: enough to keep both stages busy, little memory."""
-CONTINUOUS_PIPELINE_DEPTH = 16
-"""The same for a continuous scan, whose capture cannot wait: a view held up misses its
-angle and waits a turn. Its extraction thread also brings each view's laser-off frames to
-the laser-on frame's instant (``room_light``), which can take longer than the table's
-time between views (8 a turn at one turn a second: 125 ms); it catches up while the lift
-moves between sections. 16 views of three 1536x864 frames hold 64 MB."""
 
 
 class ScanAborted(Exception):

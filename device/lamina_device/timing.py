@@ -218,6 +218,15 @@ def spin_up_s(config: TurntableConfig, speed_deg_s: float) -> tuple[float, float
     return (len(ramp) + 1) * SPIN_TICK_S, turned
 
 
+CONTINUOUS_PIPELINE_DEPTH = 16
+"""Captured views a continuous scan holds for its extraction thread (``acquisition``),
+whose capture cannot wait: a view held up misses its angle and waits a turn. The thread
+also brings each view's laser-off frames to the laser-on frame's instant (``room_light``),
+which can take longer than the table's time between views (8 a turn at one turn a
+second: 125 ms); it catches up while the lift moves between sections. 16 views of three
+1536x864 frames hold 64 MB."""
+
+
 def _continuous_time(
     config: DeviceConfig, plan: ScanPlan, processing_s_per_view: float, exposure_us: float | None
 ) -> ScanTime:
@@ -227,9 +236,13 @@ def _continuous_time(
     section; each section waits for its lift move and the lift's settle, then takes its
     views in the order the table reaches them (:func:`next_view`), each one started a lead
     before its angle comes round; with ``continuous_off_frames = "next-turn"`` a view is
-    sent a turn later, when its laser-off frame has come round. The mechanical minimum:
-    the ramp, the lift moves and settles, each section's turn from its first view to its
-    last (and the turn on, next-turn), and one view's frames.
+    sent a turn later, when its laser-off frame has come round. Each view is handed to
+    the extraction thread, whose queue holds :data:`CONTINUOUS_PIPELINE_DEPTH` views:
+    where the processing per view outlasts the table's time to the next view and the lift
+    moves do not take up the backlog, the queue fills and holds the capture up, and the
+    views still to take wait for their angles to come round again. The mechanical
+    minimum: the ramp, the lift moves and settles, each section's turn from its first view
+    to its last (and the turn on, next-turn), and one view's frames.
     """
     table = config.turntable
     speed = table.continuous_speed_deg_s
@@ -245,6 +258,19 @@ def _continuous_time(
     lift_at: int | None = None
     lift_total = settle_total = frames_total = turning = minimum = 0.0
     finished_s = worker_free_s = 0.0
+    taken_s: list[float] = []  # when the extraction thread took each view handed to it
+
+    def hand_over(sent_s: float) -> float:
+        """Queue a view sent at ``sent_s`` for the extraction thread; return when the
+        hand-over returns: at once, or, with the queue full, when the thread takes the
+        view :data:`CONTINUOUS_PIPELINE_DEPTH` places earlier (the capture waits so)."""
+        nonlocal worker_free_s, finished_s
+        taken_s.append(max(sent_s, worker_free_s))
+        worker_free_s = taken_s[-1] + processing_s_per_view
+        finished_s = sent_s
+        earlier = len(taken_s) - 1 - CONTINUOUS_PIPELINE_DEPTH
+        return max(sent_s, taken_s[earlier]) if earlier >= 0 else sent_s
+
     for section in plan.sections:
         views = [v for v in plan.views if v.section == section]
         lift_to = round(views[0].z_mm * steps_per_mm)
@@ -266,16 +292,19 @@ def _continuous_time(
             now_s = start_s + view_s
             frames_total += view_s
             pending.pop(k)
-            lit_done.append(now_s)
+            if next_turn:
+                lit_done.append(now_s)
+            else:  # a full queue holds the capture up: the next view may wait a turn
+                now_s = hand_over(now_s)
         # A next-turn view is sent once its laser-off frame, a turn on, has arrived.
         for done_s in lit_done:
-            sent_s = done_s + turn_s if next_turn else done_s
-            now_s = finished_s = sent_s
-            worker_free_s = max(worker_free_s, sent_s) + processing_s_per_view
+            now_s = hand_over(done_s + turn_s)
         assert first_s is not None
         turning += now_s - first_s
         minimum += now_s - first_s
     modelled = max(finished_s, worker_free_s)
+    if processing_s_per_view > 0:  # a full queue's waits are not mechanics
+        minimum = _continuous_time(config, plan, 0.0, exposure_us).mechanical_minimum_s - ramp_s
     return ScanTime(
         modelled_s=modelled,
         mechanical_minimum_s=ramp_s + minimum,
