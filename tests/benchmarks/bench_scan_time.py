@@ -81,7 +81,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 TITLE = (
@@ -141,9 +140,11 @@ def _processing_s() -> dict[str, float]:
     """Return one view's processing on this machine (best of 5), by mode: stop-and-go, its
     extraction and segment encoding; continuous (interleaved laser-off frames), the room
     light brought to the laser-on frame's instant as well (``room_light``)."""
+    from timing import opencv_inline
+
     from lamina_device.acquisition import capture_moving, capture_pair
     from lamina_device.backends import open_hardware
-    from lamina_device.extract import extract, run_opencv_inline, to_segment
+    from lamina_device.extract import extract, to_segment
     from lamina_device.room_light import laser_off_reference
     from lamina_shared.protocol import encode_segment, quantise_segment
 
@@ -160,14 +161,11 @@ def _processing_s() -> dict[str, float]:
 
     def best(view: Callable[[], Any]) -> float:
         times = []
-        run_opencv_inline()  # as the device program runs it on the box
-        try:
+        with opencv_inline():  # as the device program runs it on the box
             for _ in range(5):
                 start = time.perf_counter()
                 view()
                 times.append(time.perf_counter() - start)
-        finally:
-            cv2.setNumThreads(-1)  # back to OpenCV's default for the simulator's renders
         return min(times)
 
     def encoded(points: Any) -> bytes:

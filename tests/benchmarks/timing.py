@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
 
 import cv2
 import numpy as np
@@ -43,12 +44,19 @@ def timed_with_subtraction(
     threads, as Horus runs.
     """
     subtract_s = run_s = math.inf
-    try:
-        if inline:
-            run_opencv_inline()
+    with opencv_inline() if inline else nullcontext():
         for _ in range(rounds):
             subtract_s = min(subtract_s, best_time_s(lambda: np.subtract(on, off, dtype=np.int16)))
             run_s = min(run_s, best_time_s(run))
-    finally:
-        cv2.setNumThreads(-1)  # back to OpenCV's default for whatever runs next
     return run_s, subtract_s
+
+
+@contextmanager
+def opencv_inline() -> Iterator[None]:
+    """Run OpenCV on the calling thread within (as the device program runs it on the box),
+    then with OpenCV's default threads again, for whatever runs next."""
+    run_opencv_inline()
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(-1)
