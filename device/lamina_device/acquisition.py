@@ -15,9 +15,12 @@ A continuous plan (``ScanPlan.mode``, issue 22) is taken without stopping the ta
 ramps up once and turns at constant speed through every section while the camera
 streams; the lift moves between sections with the table still turning. Each view is
 three frames in a row, laser off, on, off: the table turns a few degrees from one to the
-next, so the extraction thread brings both off frames to the laser-on frame's instant
+next, so the extraction stage brings both off frames to the laser-on frame's instant
 before it takes their room light from it
-(:func:`~lamina_device.room_light.laser_off_reference`). Each view's
+(:func:`~lamina_device.room_light.laser_off_reference`). That keeps two cores busy for
+longer than the table takes from one view to the next on a Pi, so where there are cores
+for it (:func:`~lamina_device.timing.view_workers`: a Pi's four) two views are processed
+at once, and sent in their order. Each view's
 angle is the table's step count when the laser-on frame exposed the stripe's middle row
 (the sensor's timestamp on the step clock), not the planned angle, which the view is
 only started to come near.
@@ -27,11 +30,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import queue
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Generator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import closing
 from dataclasses import dataclass
 
@@ -49,6 +54,7 @@ from lamina_device.timing import (
     next_turn_start_ns,
     next_view,
     view_capture_s,
+    view_workers,
 )
 from lamina_shared.messages import Progress
 from lamina_shared.types import ScanPlan, Segment, ViewSpec
@@ -133,6 +139,20 @@ class _Captured:
     """The table's step count where the view was taken (stop-and-go; unwrapped degrees)."""
 
 
+@dataclass(frozen=True)
+class _Processed:
+    """One view's stripe points, and the laser-off frame (or room light) they came from."""
+
+    points: StripePoints
+    off: np.ndarray
+
+
+def _view_workers() -> int:
+    """Return :func:`~lamina_device.timing.view_workers` for the cores this process may use."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return view_workers(cores or 1)
+
+
 def grab_grid(hardware: Hardware) -> np.ndarray:
     """Capture the calibration board image with the laser off."""
     hardware.place("grid")
@@ -172,43 +192,65 @@ def capture_views(
 
 
 class _Stage:
-    """A worker thread applying ``handle`` to queued items in order.
+    """Views processed on ``workers`` threads, then handed on one by one in their order.
 
-    After a failure it keeps draining the queue (so the producer never blocks) and
-    :meth:`raise_error` re-raises the failure in the producer's thread.
+    ``process`` (the room light and the extraction: the costly part, free of shared
+    state) runs on a pool of ``workers`` threads, each view as soon as one is free;
+    ``deliver`` (the view's angle, recording, sending) runs on one thread, in the order
+    the views were put. A view is submitted when it is put, so the queue bounds the views
+    held, processed or waiting. After a failure the stage keeps draining the queue (so the
+    producer never blocks) and :meth:`raise_error` re-raises the failure in the
+    producer's thread.
     """
 
-    _END = object()
-
-    def __init__(self, handle: Callable[[_Captured], None], depth: int = PIPELINE_DEPTH) -> None:
-        self._handle = handle
-        self._queue: queue.Queue[object] = queue.Queue(maxsize=depth)
+    def __init__(
+        self,
+        process: Callable[[_Captured], _Processed],
+        deliver: Callable[[_Captured, _Processed], None],
+        depth: int = PIPELINE_DEPTH,
+        workers: int = 1,
+    ) -> None:
+        self._process = process
+        self._deliver = deliver
+        self._pool = (
+            ThreadPoolExecutor(workers, thread_name_prefix="scan-process") if workers > 1 else None
+        )
+        # Each view with its processing under way (None: done on delivery); None ends.
+        self._queue: queue.Queue[tuple[_Captured, Future[_Processed] | None] | None]
+        self._queue = queue.Queue(maxsize=depth)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="scan-extract", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        while (item := self._queue.get()) is not self._END:
+        while (entry := self._queue.get()) is not None:
+            item, pending = entry
             if self._error is None:
                 try:
-                    self._handle(item)  # type: ignore[arg-type]
+                    processed = self._process(item) if pending is None else pending.result()
+                    self._deliver(item, processed)
                 except BaseException as exc:  # re-raised in the scan's thread
                     self._error = exc
 
     def raise_error(self) -> None:
-        """Re-raise the worker's failure, if any, in the calling thread."""
+        """Re-raise the stage's failure, if any, in the calling thread."""
         if self._error is not None:
             raise self._error
 
     def put(self, item: _Captured) -> None:
-        """Queue ``item`` (blocks while the queue is full); raise an earlier worker failure."""
+        """Queue ``item`` (blocks while the queue is full); raise an earlier failure."""
         self.raise_error()
-        self._queue.put(item)
+        pending: Future[_Processed] | None = None
+        if self._pool is not None:
+            pending = self._pool.submit(self._process, item)
+        self._queue.put((item, pending))
 
     def finish(self) -> None:
-        """Let the worker handle everything queued, then stop it."""
-        self._queue.put(self._END)
+        """Let the stage process and deliver everything queued, then stop its threads."""
+        self._queue.put(None)
         self._thread.join()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
 
 
 def _progress(
@@ -231,6 +273,7 @@ def acquire(
     numbers: Sequence[int] | None = None,
     colour: bool = False,
     resumed: bool = False,
+    workers: int | None = None,
 ) -> int:
     """Scan ``target`` along ``plan``; return the number of segments produced.
 
@@ -249,6 +292,8 @@ def acquire(
         colour: sample each point's sRGB from the view's laser-off frame.
         resumed: the scan goes on from views already held, the target still standing
             where it was (:meth:`~lamina_device.hardware.Hardware.place`).
+        workers: continuous views processed at once; by default as many as this
+            machine's cores allow (:func:`~lamina_device.timing.view_workers`).
 
     Returns:
         How many segments were handed to ``on_segment``.
@@ -263,12 +308,15 @@ def acquire(
     if plan.continuous and (problem := continuous_problem(hardware, plan, colour)):
         raise CameraError(f"this device cannot scan continuously: {problem}")
 
-    def handle(item: _Captured) -> None:
-        view, count_deg = item.view, item.count_deg
+    def process(item: _Captured) -> _Processed:
         off = item.off
         if item.off_after is not None:
             off = laser_off_reference(item.off, item.on, item.off_after)
-        points = extract(item.on, off, settings)
+        return _Processed(extract(item.on, off, settings), off)
+
+    def deliver(item: _Captured, processed: _Processed) -> None:
+        view, count_deg = item.view, item.count_deg
+        points, off = processed.points, processed.off
         if item.timed is not None:
             count_deg = _stripe_count_deg(hardware, points, item.timed)
             view = ViewSpec(view.section, view.z_mm, _within_turn_deg(count_deg))
@@ -284,7 +332,10 @@ def acquire(
             on_progress(_progress(target, item, total, started_s, control))
 
     hardware.place(target, again=resumed)
-    stage = _Stage(handle, CONTINUOUS_PIPELINE_DEPTH if plan.continuous else PIPELINE_DEPTH)
+    if plan.continuous:
+        stage = _Stage(process, deliver, CONTINUOUS_PIPELINE_DEPTH, workers or _view_workers())
+    else:  # a view's extraction takes milliseconds against a move's second or more
+        stage = _Stage(process, deliver, PIPELINE_DEPTH)
     index_in_section = list(numbers) if numbers is not None else views_in_section(plan)
     if len(index_in_section) != total:
         raise ValueError(f"{len(index_in_section)} view numbers for {total} views")

@@ -50,6 +50,7 @@ __all__ = [
     "spin_up_s",
     "turntable_move_s",
     "view_capture_s",
+    "view_workers",
 ]
 
 FRAMES_PER_VIEW = 2
@@ -218,6 +219,31 @@ def spin_up_s(config: TurntableConfig, speed_deg_s: float) -> tuple[float, float
     return (len(ramp) + 1) * SPIN_TICK_S, turned
 
 
+ROOM_LIGHT_THREADS = 2
+"""Threads one continuous view's processing keeps busy: its two laser-off frames are
+matched side by side (``room_light``)."""
+MAX_VIEW_WORKERS = 2
+"""The most continuous views processed at once (:func:`view_workers`)."""
+
+
+def view_workers(cores: int) -> int:
+    """Return how many continuous views the device processes at once on ``cores`` cores.
+
+    Each view keeps :data:`ROOM_LIGHT_THREADS` busy, so a Pi's four cores process two
+    views side by side (each 2-4x slower than on an x86 core): the table's time between
+    views (125 ms at the shipped speed) is then met with a view's processing up to twice
+    that. A 2-core machine processes one at a time, as it gains nothing by two. At most
+    :data:`MAX_VIEW_WORKERS`: the capture, the camera and the link need a core too.
+
+    Args:
+        cores: the cores the device program may use.
+
+    Returns:
+        At least 1.
+    """
+    return max(1, min(MAX_VIEW_WORKERS, cores // ROOM_LIGHT_THREADS))
+
+
 CONTINUOUS_PIPELINE_DEPTH = 16
 """Captured views a continuous scan holds for its extraction thread (``acquisition``),
 whose capture cannot wait: a view held up misses its angle and waits a turn. The thread
@@ -228,7 +254,11 @@ second: 125 ms); it catches up while the lift moves between sections. 16 views o
 
 
 def _continuous_time(
-    config: DeviceConfig, plan: ScanPlan, processing_s_per_view: float, exposure_us: float | None
+    config: DeviceConfig,
+    plan: ScanPlan,
+    processing_s_per_view: float,
+    exposure_us: float | None,
+    workers: int = 1,
 ) -> ScanTime:
     """Return the modelled time of a continuous plan, as the loop takes it.
 
@@ -237,10 +267,12 @@ def _continuous_time(
     views in the order the table reaches them (:func:`next_view`), each one started a lead
     before its angle comes round; with ``continuous_off_frames = "next-turn"`` a view is
     sent a turn later, when its laser-off frame has come round. Each view is handed to
-    the extraction thread, whose queue holds :data:`CONTINUOUS_PIPELINE_DEPTH` views:
-    where the processing per view outlasts the table's time to the next view and the lift
-    moves do not take up the backlog, the queue fills and holds the capture up, and the
-    views still to take wait for their angles to come round again. The mechanical
+    the extraction stage, whose queue holds :data:`CONTINUOUS_PIPELINE_DEPTH` views:
+    ``workers`` threads process them in turn, each view as soon as one is free, and one
+    thread sends them in the plan's order, taking the next view off the queue once the
+    one before it is sent. Where the processing outlasts the table's time to the next view
+    and the lift moves do not take up the backlog, the queue fills and holds the capture
+    up, and the views still to take wait for their angles to come round again. The mechanical
     minimum: the ramp, the lift moves and settles, each section's turn from its first view
     to its last (and the turn on, next-turn), and one view's frames.
     """
@@ -257,16 +289,19 @@ def _continuous_time(
     steps_per_mm = lift_steps_per_mm(config.lift)
     lift_at: int | None = None
     lift_total = settle_total = frames_total = turning = minimum = 0.0
-    finished_s = worker_free_s = 0.0
-    taken_s: list[float] = []  # when the extraction thread took each view handed to it
+    finished_s = delivered_s = 0.0
+    free_s = [0.0] * max(1, workers)  # when each processing thread is next free
+    taken_s: list[float] = []  # when the sending thread took each view off the queue
 
     def hand_over(sent_s: float) -> float:
-        """Queue a view sent at ``sent_s`` for the extraction thread; return when the
-        hand-over returns: at once, or, with the queue full, when the thread takes the
-        view :data:`CONTINUOUS_PIPELINE_DEPTH` places earlier (the capture waits so)."""
-        nonlocal worker_free_s, finished_s
-        taken_s.append(max(sent_s, worker_free_s))
-        worker_free_s = taken_s[-1] + processing_s_per_view
+        """Queue a view sent at ``sent_s`` for the extraction stage; return when the
+        hand-over returns: at once, or, with the queue full, when the sending thread takes
+        the view :data:`CONTINUOUS_PIPELINE_DEPTH` places earlier (the capture waits so)."""
+        nonlocal delivered_s, finished_s
+        taken_s.append(max(sent_s, delivered_s))
+        worker = min(range(len(free_s)), key=free_s.__getitem__)
+        free_s[worker] = max(sent_s, free_s[worker]) + processing_s_per_view
+        delivered_s = max(delivered_s, free_s[worker])
         finished_s = sent_s
         earlier = len(taken_s) - 1 - CONTINUOUS_PIPELINE_DEPTH
         return max(sent_s, taken_s[earlier]) if earlier >= 0 else sent_s
@@ -302,7 +337,7 @@ def _continuous_time(
         assert first_s is not None
         turning += now_s - first_s
         minimum += now_s - first_s
-    modelled = max(finished_s, worker_free_s)
+    modelled = max(finished_s, delivered_s)
     if processing_s_per_view > 0:  # a full queue's waits are not mechanics
         minimum = _continuous_time(config, plan, 0.0, exposure_us).mechanical_minimum_s - ramp_s
     return ScanTime(
@@ -361,6 +396,7 @@ def estimate_scan_time(
     processing_s_per_view: float = 0.0,
     exposure_us: float | None = None,
     axes_together: bool = True,
+    workers: int = 1,
 ) -> ScanTime:
     """Return the modelled duration of ``plan`` on the hardware ``config`` describes.
 
@@ -372,6 +408,8 @@ def estimate_scan_time(
         axes_together: the lift moves beside the turntable (the box's steppers do,
             :func:`lamina_device.motion.move_axes`); False: one after the other
             (stop-and-go plans only).
+        workers: continuous views processed at once (:func:`view_workers`); a
+            stop-and-go plan processes one view at a time.
 
     Returns:
         The modelled time, the mechanical minimum and their parts.
@@ -382,7 +420,7 @@ def estimate_scan_time(
     if not plan.views:
         return ScanTime(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
     if plan.continuous:
-        return _continuous_time(config, plan, processing_s_per_view, exposure_us)
+        return _continuous_time(config, plan, processing_s_per_view, exposure_us, workers)
     camera = config.camera
     exposure = camera.exposure_us if exposure_us is None else exposure_us
     frames_s = FRAMES_PER_VIEW * frame_wait_s(camera.frame_duration_us, exposure)

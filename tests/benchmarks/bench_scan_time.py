@@ -195,18 +195,22 @@ def _time_plans(config: Any) -> dict[str, Any]:
     }
 
 
-def time_rows(processing_s: dict[str, float]) -> list[dict[str, Any]]:
-    """Return one row per plan and mode: the modelled time and the mechanical minimum."""
+def time_rows(processing_s: dict[str, float], workers: int | None = None) -> list[dict[str, Any]]:
+    """Return one row per plan and mode: the modelled time and the mechanical minimum, with
+    ``workers`` continuous views processed at once (by default as the device program would
+    on this machine's cores, :func:`~lamina_device.timing.view_workers`)."""
     from lamina_device.config import load_config
-    from lamina_device.timing import estimate_scan_time
+    from lamina_device.timing import estimate_scan_time, view_workers
 
+    if workers is None:
+        workers = view_workers(len(os.sched_getaffinity(0)))
     config = load_config()
     rows = []
     for name, plan in _time_plans(config).items():
         heights = [v.z_mm for v in plan.views]
         for mode in MODES:
             moded = plan.with_mode(mode)
-            estimate = estimate_scan_time(config, moded, processing_s[mode])
+            estimate = estimate_scan_time(config, moded, processing_s[mode], workers=workers)
             row: dict[str, Any] = {
                 "plan": name,
                 "mode": mode,
@@ -218,6 +222,7 @@ def time_rows(processing_s: dict[str, float]) -> list[dict[str, Any]]:
                 "ratio": round(estimate.ratio, 4),
                 "turntable_s": round(estimate.turntable_s, 3),
                 "lift_s": round(estimate.lift_s, 3),
+                "view_workers": workers if mode == "continuous" else 1,
             }
             if mode == "stop-and-go":
                 in_turn = estimate_scan_time(config, moded, processing_s[mode], axes_together=False)
@@ -230,19 +235,26 @@ SLOWER_CORES = (2.0, 4.0)
 """How much slower than this host a Pi's cores are taken to be (a Pi 4's Cortex-A72 is
 roughly 2-4x slower than an x86 core): the continuous rows are modelled again with the
 processing per view so multiplied, since nothing here runs on a Pi."""
+PI_CORES = 4
+"""A Pi 4's or 5's cores: the device program processes ``view_workers(4)`` continuous
+views at once there (one view keeps 1.9 of this host's two cores busy)."""
 
 
 def slower_core_rows(processing_s: dict[str, float]) -> list[dict[str, Any]]:
     """Return each plan's continuous modelled time with its processing per view times each
-    of :data:`SLOWER_CORES`: where a view's processing outlasts the table's time to the
-    next view, its backlog must be taken up while the lift moves."""
+    of :data:`SLOWER_CORES`, on one processing thread (a 2-core machine) and on a Pi's
+    :data:`PI_CORES`: where a view's processing outlasts the table's time to the next
+    view, its backlog must be taken up while the lift moves."""
+    from lamina_device.timing import view_workers
+
     rows = []
     for factor in SLOWER_CORES:
         slower = {mode: seconds * factor for mode, seconds in processing_s.items()}
-        for row in time_rows(slower):
-            if row["mode"] == "continuous":
-                per_view_s = round(slower["continuous"], 5)
-                rows.append(row | {"slower": factor, "processing_s_per_view": per_view_s})
+        for workers in (1, view_workers(PI_CORES)):
+            for row in time_rows(slower, workers):
+                if row["mode"] == "continuous":
+                    per_view_s = round(slower["continuous"], 5)
+                    rows.append(row | {"slower": factor, "processing_s_per_view": per_view_s})
     return rows
 
 
@@ -603,7 +615,9 @@ def report(results: dict[str, Any]) -> list[str]:
     for row in results.get("slower_core_rows", []):
         lines.append(
             f"  {row['plan']}: continuous on cores {row['slower']:g}x slower than this host's "
-            f"({1000 * row['processing_s_per_view']:.0f} ms a view) {row['modelled_s']:.1f} s"
+            f"({1000 * row['processing_s_per_view']:.0f} ms a view), "
+            f"{row['view_workers']} view{'s' if row['view_workers'] > 1 else ''} at once: "
+            f"{row['modelled_s']:.1f} s"
         )
     for row in results.get("next_turn_rows", []):
         lines.append(

@@ -217,6 +217,91 @@ def test_a_continuous_scan_takes_every_view_once_at_its_measured_angle(scans):
     assert took_s < scans["stop-and-go"][1] / 3
 
 
+def _slowed_extraction(monkeypatch, delay_s: float, fail_at: int | None = None):
+    """Make the acquisition's extraction take ``delay_s`` longer (and fail on call
+    ``fail_at``); return the names of the threads running each call and the most at once."""
+    from lamina_device import acquisition
+
+    real = acquisition.extract
+    seen = {"threads": [], "busy": 0, "most": 0, "calls": 0}
+    lock = threading.Lock()
+
+    def slowed(*args, **kwargs):
+        with lock:
+            seen["calls"] += 1
+            seen["busy"] += 1
+            seen["most"] = max(seen["most"], seen["busy"])
+            seen["threads"].append(threading.current_thread().name)
+            failing = seen["calls"] == fail_at
+        try:
+            threading.Event().wait(delay_s)
+            if failing:
+                raise RuntimeError("extraction failed")
+            return real(*args, **kwargs)
+        finally:
+            with lock:
+                seen["busy"] -= 1
+
+    monkeypatch.setattr(acquisition, "extract", slowed)
+    return seen
+
+
+def _continuous_segments(workers: int) -> list:
+    hardware = tiny_sim("cylinder:d=60")
+    segments = []
+    try:
+        plan = ScanPlan.regular(2, 10.0, 8, "continuous")
+        acquire(hardware, "object", plan, segments.append, workers=workers)
+    finally:
+        hardware.close()
+    return segments
+
+
+def test_views_processed_two_at_once_are_sent_in_plan_order_as_processed_one_at_a_time(
+    monkeypatch,
+):
+    """A Pi's four cores process two continuous views at once (``view_workers``): each
+    view's segment is the one a single thread makes, bit for bit, sent in the same order."""
+    alone = _continuous_segments(workers=1)
+    seen = _slowed_extraction(monkeypatch, delay_s=0.15)
+    together = _continuous_segments(workers=2)
+    assert seen["most"] == 2 and set(seen["threads"]) == {
+        "scan-process_0",
+        "scan-process_1",
+    }
+    assert len(together) == len(alone) == 16
+    for a, b in zip(alone, together, strict=True):
+        assert (a.section, a.view, a.angle_deg, a.turns) == (
+            b.section,
+            b.view,
+            b.angle_deg,
+            b.turns,
+        )
+        assert np.array_equal(a.cols, b.cols) and np.array_equal(a.rows, b.rows)
+        assert np.array_equal(a.confidence, b.confidence)
+
+
+def test_a_view_that_fails_on_a_processing_thread_ends_the_scan_with_its_error(monkeypatch):
+    alone = _continuous_segments(workers=1)
+    seen = _slowed_extraction(monkeypatch, delay_s=0.005, fail_at=5)
+    hardware = tiny_sim()
+    segments = []
+    try:
+        with pytest.raises(RuntimeError, match="extraction failed"):
+            plan = ScanPlan.regular(2, 10.0, 8, "continuous")
+            acquire(hardware, "object", plan, segments.append, workers=2)
+        # The views taken before it, in the order taken; none after it. The fifth call
+        # is the fifth view's or, where the two threads entered it out of turn, the sixth's.
+        assert 4 <= len(segments) <= 5
+        taken = [(s.section, s.view) for s in alone[: len(segments)]]
+        assert [(s.section, s.view) for s in segments] == taken
+        assert not hardware.turntable.turning and not hardware.laser.is_on
+        assert hardware.lift.z_mm == 0.0  # home
+    finally:
+        hardware.close()
+    assert seen["calls"] >= 5
+
+
 def test_an_abort_stops_the_table_and_the_laser_and_keeps_what_was_taken():
     hardware = tiny_sim()
     control = ScanControl()

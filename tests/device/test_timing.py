@@ -20,7 +20,12 @@ from lamina_device.motion import (
     run_together,
     turntable_intervals_s,
 )
-from lamina_device.timing import CONTINUOUS_PIPELINE_DEPTH, estimate_scan_time, frame_wait_s
+from lamina_device.timing import (
+    CONTINUOUS_PIPELINE_DEPTH,
+    estimate_scan_time,
+    frame_wait_s,
+    view_workers,
+)
 from lamina_shared.durations import duration_text
 from lamina_shared.types import ScanPlan, ViewSpec
 
@@ -99,6 +104,31 @@ def test_a_full_continuous_queue_holds_the_capture_up(config, per_view_s):
     assert slow.processing_s <= (CONTINUOUS_PIPELINE_DEPTH + 1) * per_view_s + 1e-9
     quick = estimate_scan_time(config, plan, processing_s_per_view=0.05)
     assert quick.modelled_s == pytest.approx(bare.modelled_s + 0.05)  # hidden but the last
+
+
+@pytest.mark.parametrize("per_view_s", [0.2, 0.284, 0.6])
+def test_two_processing_threads_take_a_view_at_half_the_pace_of_one(config, per_view_s):
+    """Two views processed at once (a Pi's four cores, ``view_workers``) keep up as one
+    thread at half the processing per view would, to within one view's processing (the
+    last, which no second thread shares), and never take longer than one thread."""
+    plan = ScanPlan.regular(sections=40, pitch_mm=10.0, views=8, mode="continuous")
+    one = estimate_scan_time(config, plan, processing_s_per_view=per_view_s)
+    two = estimate_scan_time(config, plan, processing_s_per_view=per_view_s, workers=2)
+    half = estimate_scan_time(config, plan, processing_s_per_view=per_view_s / 2)
+    assert two.modelled_s <= one.modelled_s
+    assert abs(two.modelled_s - half.modelled_s) <= per_view_s + 1e-9
+    assert two.mechanical_minimum_s == pytest.approx(one.mechanical_minimum_s)
+    if per_view_s > 0.25:  # one thread falls behind the table and the lift's moves
+        assert one.modelled_s > two.modelled_s + 5.0
+    # A stop-and-go plan processes one view at a time whatever is asked.
+    still = plan.with_mode("stop-and-go")
+    assert estimate_scan_time(config, still, per_view_s, workers=2) == estimate_scan_time(
+        config, still, per_view_s
+    )
+
+
+def test_a_view_keeps_two_cores_busy_so_four_cores_process_two_views():
+    assert [view_workers(cores) for cores in (1, 2, 3, 4, 8, 64)] == [1, 1, 1, 2, 2, 2]
 
 
 def test_an_empty_plan_takes_no_time_and_durations_read_in_minutes(config):
