@@ -53,7 +53,6 @@ from lamina_device.timing import (
     lit_capture_s,
     next_turn_start_ns,
     next_view,
-    section_shift_deg,
     view_capture_s,
     view_workers,
 )
@@ -413,12 +412,10 @@ def _take_continuous(
     """Yield each view of a continuous plan, section by section, the table turning throughout.
 
     The lift goes to the first section before the table starts; each later section waits
-    for its lift move and the lift's settle while the table turns on, then takes its
-    views at once: each this section's shift before its planned angle
-    (:func:`~lamina_device.timing.section_shift_deg`; a view's angle is measured), in the
-    order the table brings them round (:func:`~lamina_device.timing.next_view`), each
-    started a lead before its angle so that the laser-on frame meets it. A pause stops
-    the table (laser off) and starts it again on resume.
+    for its lift move and the lift's settle while the table turns on. A section's views
+    are taken in the order the table brings them round (:func:`~lamina_device.timing.next_view`),
+    each started a lead before its angle so that the laser-on frame meets it. A pause
+    stops the table (laser off) and starts it again on resume.
     """
     table, camera = hardware.turntable, hardware.camera
     assert isinstance(table, SpinningTable) and isinstance(camera, TimedCamera)
@@ -439,7 +436,6 @@ def _take_continuous(
                 hardware.lift.move_to(z_mm)
                 hardware.settle_lift()
             lit_views: list[tuple[ViewSpec, int, TimedFrame]] = []
-            shift_deg: float | None = None
             while views:
                 if control.paused:
                     table.stop_spin()
@@ -450,9 +446,7 @@ def _take_continuous(
                     lit_views.clear()
                 control.checkpoint()
                 reach = table.angle_at(hardware.clock_ns()) + speed * lead_s
-                if shift_deg is None:  # the section starts where the table stands
-                    shift_deg = section_shift_deg([view.angle_deg for view, _ in views], reach)
-                k, angle = next_view([view.angle_deg + shift_deg for view, _ in views], reach)
+                k, angle = next_view([view.angle_deg for view, _ in views], reach)
                 view, number = views.pop(k)
                 hardware.sleep_until_ns(table.time_at(angle) - round(lead_s * 1e9))
                 if next_turn:

@@ -47,7 +47,6 @@ __all__ = [
     "lit_capture_s",
     "next_turn_start_ns",
     "next_view",
-    "section_shift_deg",
     "spin_up_s",
     "turntable_move_s",
     "view_capture_s",
@@ -207,35 +206,9 @@ def next_view(angles_deg: Sequence[float], from_deg: float) -> tuple[int, float]
     Returns:
         The index into ``angles_deg``, and the unwrapped angle the table reaches it at.
     """
-    # An angle a rounding error behind is reached now, not a turn later.
     ahead = [(a - from_deg) % 360.0 for a in angles_deg]
-    ahead = [0.0 if d > 360.0 - _SAME_ANGLE_DEG else d for d in ahead]
     k = min(range(len(ahead)), key=ahead.__getitem__)
     return k, from_deg + ahead[k]
-
-
-_SAME_ANGLE_DEG = 1e-6
-"""Angles closer than this are one (far below a microstep: 0.056 degrees)."""
-
-
-def section_shift_deg(angles_deg: Sequence[float], from_deg: float) -> float:
-    """Return the turn that brings a continuous section's views to the table: at once.
-
-    A continuous view's angle is the table's step count when its laser-on frame was
-    exposed, not the planned one, so a section's views need not wait for their planned
-    angles to come round after the lift's move and settle (on average half the spacing
-    of the views, 62 ms at 8 a turn and one turn a second, 4 s over a 40-section leg):
-    every view of the section is taken this much before its planned angle, the first the
-    table reaches at ``from_deg``, the others at the plan's spacing from it.
-
-    Args:
-        angles_deg: the section's planned angles.
-        from_deg: the earliest (unwrapped) angle a view can be taken at.
-
-    Returns:
-        The shift in degrees, in (-360, 0]: (-45, 0] for 8 evenly spaced views.
-    """
-    return from_deg - next_view(angles_deg, from_deg)[1]
 
 
 def spin_up_s(config: TurntableConfig, speed_deg_s: float) -> tuple[float, float]:
@@ -291,10 +264,9 @@ def _continuous_time(
 
     The table ramps up once and turns on at ``continuous_speed_deg_s`` through every
     section; each section waits for its lift move and the lift's settle, then takes its
-    views at once, in the order the table reaches them (:func:`section_shift_deg`,
-    :func:`next_view`), each one started a lead before its angle comes round; with
-    ``continuous_off_frames = "next-turn"`` a view is sent a turn later, when its laser-off
-    frame has come round. Each view is handed to
+    views in the order the table reaches them (:func:`next_view`), each one started a lead
+    before its angle comes round; with ``continuous_off_frames = "next-turn"`` a view is
+    sent a turn later, when its laser-off frame has come round. Each view is handed to
     the extraction stage, whose queue holds :data:`CONTINUOUS_PIPELINE_DEPTH` views:
     ``workers`` threads process them in turn, each view as soon as one is free, and one
     thread sends them in the plan's order, taking the next view off the queue once the
@@ -344,9 +316,7 @@ def _continuous_time(
             now_s += move_s
             minimum += move_s
         lift_at = lift_to
-        reach = angle + speed * (now_s - ramp_s) + speed * lead_s
-        shift = section_shift_deg([v.angle_deg for v in views], reach)
-        pending = [v.angle_deg + shift for v in views]
+        pending = [v.angle_deg for v in views]
         first_s = None
         lit_done: list[float] = []
         while pending:

@@ -204,18 +204,12 @@ def test_a_continuous_scan_takes_every_view_once_at_its_measured_angle(scans):
     ]
     speed = config.turntable.continuous_speed_deg_s
     period_s = config.camera.frame_duration_us * 1e-6
-    for section in range(2):
-        # A section's views are all taken one shift before their planned angles, the table
-        # going on from where the lift's move left it (timing.section_shift_deg): within
-        # the 45 degrees to the next planned view.
-        mine = [s for s in segments if s.section == section]
-        offs = [(s.angle_deg - 45.0 * s.view) % 360.0 for s in mine]
-        shift = (offs[0] + 180.0) % 360.0 - 180.0
-        assert -45.0 - speed * period_s <= shift <= speed * period_s
-        for segment, off in zip(mine, offs, strict=True):
-            # The view starts a lead before its angle; the frames' phase leaves a period's turn.
-            assert abs((off - offs[0] + 180.0) % 360.0 - 180.0) <= speed * period_s
-            assert 0.0 <= segment.angle_deg < 360.0
+    for segment in segments:
+        planned = 45.0 * segment.view
+        off = (segment.angle_deg - planned + 180.0) % 360.0 - 180.0
+        # The view starts a lead before its angle; the frames' phase leaves a period's turn.
+        assert abs(off) <= speed * period_s
+        assert 0.0 <= segment.angle_deg < 360.0
     # The laser: on once per view and off after each (the pin's own history); the table stopped.
     assert laser == [False, True] * 16 + [False]
     assert not spinning

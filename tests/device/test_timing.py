@@ -90,7 +90,7 @@ def test_processing_hides_behind_the_mechanics_unless_it_is_slower(config):
     assert slow.modelled_s > 16 * 5.0 and slow.processing_s > 0.5 * slow.modelled_s
 
 
-@pytest.mark.parametrize("per_view_s", [0.26, 1.0])
+@pytest.mark.parametrize("per_view_s", [0.26, 0.7, 1.0])
 def test_a_full_continuous_queue_holds_the_capture_up(config, per_view_s):
     """Slower processing than the table's 125 ms between views: the extraction thread's
     queue fills and the capture waits, so at most the queue's views, the one in hand and
