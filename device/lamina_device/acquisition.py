@@ -225,12 +225,15 @@ class _Stage:
     def _run(self) -> None:
         while (entry := self._queue.get()) is not None:
             item, pending = entry
-            if self._error is None:
-                try:
-                    processed = self._process(item) if pending is None else pending.result()
-                    self._deliver(item, processed)
-                except BaseException as exc:  # re-raised in the scan's thread
-                    self._error = exc
+            if self._error is not None:
+                if pending is not None:
+                    pending.cancel()  # nothing after a failure is sent: spare the work
+                continue
+            try:
+                processed = self._process(item) if pending is None else pending.result()
+                self._deliver(item, processed)
+            except BaseException as exc:  # re-raised in the scan's thread
+                self._error = exc
 
     def raise_error(self) -> None:
         """Re-raise the stage's failure, if any, in the calling thread."""
