@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import queue
 import threading
 import time
@@ -145,12 +144,6 @@ class _Processed:
 
     points: StripePoints
     off: np.ndarray
-
-
-def _view_workers() -> int:
-    """Return :func:`~lamina_device.timing.view_workers` for the cores this process may use."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return view_workers(cores or 1)
 
 
 def grab_grid(hardware: Hardware) -> np.ndarray:
@@ -336,7 +329,7 @@ def acquire(
 
     hardware.place(target, again=resumed)
     if plan.continuous:
-        stage = _Stage(process, deliver, CONTINUOUS_PIPELINE_DEPTH, workers or _view_workers())
+        stage = _Stage(process, deliver, CONTINUOUS_PIPELINE_DEPTH, workers or view_workers())
     else:  # a view's extraction takes milliseconds against a move's second or more
         stage = _Stage(process, deliver, PIPELINE_DEPTH)
     index_in_section = list(numbers) if numbers is not None else views_in_section(plan)

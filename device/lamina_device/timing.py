@@ -18,6 +18,7 @@ is left out of both.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -226,7 +227,7 @@ MAX_VIEW_WORKERS = 2
 """The most continuous views processed at once (:func:`view_workers`)."""
 
 
-def view_workers(cores: int) -> int:
+def view_workers(cores: int | None = None) -> int:
     """Return how many continuous views the device processes at once on ``cores`` cores.
 
     Each view keeps :data:`ROOM_LIGHT_THREADS` busy, so a Pi's four cores process two
@@ -236,11 +237,14 @@ def view_workers(cores: int) -> int:
     :data:`MAX_VIEW_WORKERS`: the capture, the camera and the link need a core too.
 
     Args:
-        cores: the cores the device program may use.
+        cores: the cores the device program may use; None: those this process may run on.
 
     Returns:
         At least 1.
     """
+    if cores is None:
+        usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+        cores = len(usable) if usable is not None else os.cpu_count() or 1
     return max(1, min(MAX_VIEW_WORKERS, cores // ROOM_LIGHT_THREADS))
 
 

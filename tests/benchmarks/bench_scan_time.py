@@ -202,8 +202,7 @@ def time_rows(processing_s: dict[str, float], workers: int | None = None) -> lis
     from lamina_device.config import load_config
     from lamina_device.timing import estimate_scan_time, view_workers
 
-    if workers is None:
-        workers = view_workers(len(os.sched_getaffinity(0)))
+    workers = view_workers() if workers is None else workers
     config = load_config()
     rows = []
     for name, plan in _time_plans(config).items():
