@@ -787,8 +787,28 @@ def print_summary(report: ScanReport, paths: Mapping[str, Path]) -> None:
         print(f"wrote {path}")
 
 
-def _open_library(path: Path | None) -> Library:
-    """Open the scan library, saying once on stderr what it had to put right."""
+def _open_library(path: Path | None, create: bool = False) -> Library:
+    """Open the scan library, saying once on stderr what it had to put right.
+
+    Only ``lamina scan`` (``create``) makes a library where there is none. The commands
+    that read one refuse a file that is not there rather than make an empty one: a
+    mistyped ``--library`` would otherwise list "no scans", as if the scans were lost,
+    and leave an empty library (and its folders) behind.
+
+    Raises:
+        InputError: ``create`` is False and there is no library file at the path.
+    """
+    where = path if path is not None else default_library_path()
+    if not create and not os.path.lexists(where):
+        if path is None:
+            raise InputError(
+                f"there is no scan library at {where} yet: nothing has been scanned here "
+                "(lamina scan makes it; --library names a library elsewhere)"
+            )
+        raise InputError(
+            f"there is no scan library at {where}: check the --library path "
+            "(lamina scan makes the library the first time it records into it)"
+        )
     library = Library(path)
     for notice in library.notices:
         print(f"note: {notice}", file=sys.stderr)
@@ -829,7 +849,7 @@ def scan(args: argparse.Namespace) -> int:
 
 
 def _scan(args: argparse.Namespace) -> int:
-    with _open_library(args.library) as library:
+    with _open_library(args.library, create=True) as library:
         record = library.scan(args.resume) if args.resume is not None else None
         if args.reprocess and record is None:
             raise UsageError("--reprocess applies to a scan resumed with --resume SCAN")
@@ -984,6 +1004,11 @@ def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
     if args.set_test is not None and args.set_test == args.unset_test:
         raise UsageError("give a scan to --set-test or to --unset-test, not to both")
+    changes = (args.set_side, args.set_test, args.unset_test)
+    if args.library is None and not default_library_path().exists() and changes == (None,) * 3:
+        # A new box, where nothing has been scanned yet: no mistake to refuse.
+        print(f"no scans yet: the scan library {default_library_path()} is made by lamina scan")
+        return 0
     with _open_library(args.library) as library:
         if args.set_side:
             scan_id, side = args.set_side

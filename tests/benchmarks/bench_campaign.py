@@ -118,15 +118,17 @@ def run(
     workers: int = WORKERS,
     budget_s: float = BUDGET_S,
     progress: bool = True,
+    first: int = 0,
 ) -> dict[str, Any]:
     """Run the campaign at both scales; return the per-seed results and their summary.
 
-    ``progress`` prints one line per finished seed on stderr (a full run takes long).
+    ``progress`` prints one line per finished seed on stderr (a full run takes long);
+    ``first`` is the first seed, so that shapes no earlier run has seen can be scanned.
     """
     count = SEEDS if seeds is None else seeds
-    out: dict[str, Any] = {"seeds_per_scale": count}
+    out: dict[str, Any] = {"seeds_per_scale": count, "first_seed": first}
     for scale, plan in PLANS.items():
-        scale_run = run_scale(plan, list(range(count)), workers, budget_s, progress)
+        scale_run = run_scale(plan, list(range(first, first + count)), workers, budget_s, progress)
         scale_run["summary"] = summarise(scale_run["results"])
         out[scale] = scale_run
     return out
@@ -307,6 +309,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=f"{QUICK_SEEDS} seeds per scale")
     parser.add_argument("--seeds", type=int, help=f"seeds per scale (default {SEEDS})")
+    parser.add_argument(
+        "--first", type=int, default=0, help="first seed (default 0; others: unseen shapes)"
+    )
     parser.add_argument("--workers", type=int, default=WORKERS, help="worker processes")
     parser.add_argument("--scale", choices=list(PLANS), help="run one scale only")
     parser.add_argument("--out", type=Path, help="also write the results as JSON here")
@@ -317,7 +322,7 @@ def main() -> int:
             del PLANS[other]
     from run import show  # the bench runner beside this file
 
-    show("campaign", sys.modules[__name__], run(count, args.workers), args.out)
+    show("campaign", sys.modules[__name__], run(count, args.workers, first=args.first), args.out)
     return 0
 
 

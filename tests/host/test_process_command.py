@@ -146,6 +146,13 @@ def test_lamina_process_refuses_what_it_cannot_process(
     library = tmp_path / "library.sqlite"
     assert main(["process", "4", "--library", str(library)]) == 2
     assert capsys.readouterr().err.strip() == (
+        f"lamina: there is no scan library at {library}: check the --library path "
+        "(lamina scan makes the library the first time it records into it)"
+    )
+    assert not library.exists()  # nothing made where the user mistyped
+    Library(library).close()
+    assert main(["process", "4", "--library", str(library)]) == 2
+    assert capsys.readouterr().err.strip() == (
         f"lamina: there is no scan 4 in {library}: see lamina scans"
     )
 

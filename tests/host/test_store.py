@@ -448,3 +448,53 @@ def test_processes_creating_one_new_library_at_once_all_succeed_and_keep_it_priv
     assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
     with Library(path) as library:
         assert sorted(s.subject for s in library.scans()) == ["S-0", "S-1", "S-2", "S-3"]
+
+
+READING_COMMANDS = [
+    ["scans"],
+    ["scans", "--set-test", "1"],
+    ["process", "1"],
+    ["export", "1", "-o", "out.stl"],
+    ["report", "1", "-o", "report.pdf"],
+    ["batch", "--subjects", "P-01", "--measure", "-o", "table.csv"],
+    ["send", "1", "--to", "ORTHANC@localhost:4242"],
+]
+
+
+@pytest.mark.parametrize("argv", READING_COMMANDS, ids=lambda argv: "-".join(argv[:2]))
+def test_a_command_that_reads_refuses_a_missing_library_and_makes_none(
+    argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mistyped ``--library`` is named in one line, exit 2; no empty library (nor its
+    folder) is left behind, which a later ``lamina scans`` would list as having no scans."""
+    from lamina_host.cli import main
+
+    missing = tmp_path / "typo" / "library.sqlite"
+    assert main([*argv, "--library", str(missing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"lamina: there is no scan library at {missing}: check the --library path "
+        "(lamina scan makes the library the first time it records into it)"
+    ]
+    assert not missing.parent.exists()
+
+
+def test_lamina_scans_on_a_new_machine_lists_nothing_and_makes_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Before the first scan the default library is not there: listing says so (exit 0),
+    a change asked of a scan is refused (exit 2), and neither makes the library."""
+    from lamina_host.cli import main
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    default = tmp_path / "data" / "lamina" / "library.sqlite"
+    assert main(["scans"]) == 0
+    assert capsys.readouterr().out.strip() == (
+        f"no scans yet: the scan library {default} is made by lamina scan"
+    )
+    assert main(["scans", "--set-side", "1", "left"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"lamina: there is no scan library at {default} yet: nothing has been scanned here "
+        "(lamina scan makes it; --library names a library elsewhere)"
+    )
+    assert not (tmp_path / "data").exists()
