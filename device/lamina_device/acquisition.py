@@ -38,20 +38,23 @@ from collections.abc import Callable, Generator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import closing
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from lamina_device.camera import CameraError, ColourCamera, TimedCamera, TimedFrame
 from lamina_device.extract import ExtractSettings, StripePoints, extract, to_segment
 from lamina_device.hardware import Hardware
-from lamina_device.motion import SpinningTable, move_axes
+from lamina_device.motion import SpinningTable, TimedLift, lift_steps_per_mm, move_axes
 from lamina_device.room_light import laser_off_reference
 from lamina_device.timing import (
     CONTINUOUS_PIPELINE_DEPTH,
     laser_pulse,
+    lift_move_s,
     lit_capture_s,
     next_turn_start_ns,
     next_view,
+    section_retiming,
     view_capture_s,
     view_workers,
 )
@@ -429,7 +432,7 @@ def _take_continuous(
         for views in sections.values():
             z_mm = views[0][0].z_mm
             if hardware.lift.z_mm != z_mm:
-                hardware.lift.move_to(z_mm)
+                _lift_beside_turn(hardware, table, z_mm, [v.angle_deg for v, _ in views], lead_s)
                 hardware.settle_lift()
             lit_views: list[tuple[ViewSpec, int, TimedFrame]] = []
             while views:
@@ -456,6 +459,38 @@ def _take_continuous(
     finally:
         hardware.laser.off()
         table.stop_spin()
+
+
+def _lift_beside_turn(
+    hardware: Hardware, table: SpinningTable, z_mm: float, angles_deg: list[float], lead_s: float
+) -> None:
+    """Move the lift to the next section, slowing the table meanwhile where that brings one
+    of the section's views round as the lift settles
+    (:func:`~lamina_device.timing.section_retiming`).
+
+    The table's new rates are made on the lift move's own time line (a second thread
+    would make the lift's pulses late); a lift or a configuration that cannot time them
+    moves alone, and the first view is waited for.
+    """
+    lift, config = hardware.lift, hardware.timing
+    if config is None or not isinstance(lift, TimedLift):
+        lift.move_to(z_mm)
+        return
+    per_mm = lift_steps_per_mm(config.lift)
+    move_s = lift_move_s(config.lift, round(lift.z_mm * per_mm), round(z_mm * per_mm))
+    speed = table.spin_speed_deg_s
+    ready_s = move_s + hardware.lift_settle_wait_s + lead_s
+    reach = table.angle_at(hardware.clock_ns()) + speed * ready_s
+    retiming = section_retiming(config.turntable, speed, angles_deg, reach, move_s)
+    calls = (
+        []
+        if retiming is None
+        else [
+            (offset_s, partial(table.set_rate, rate))
+            for offset_s, rate in zip(retiming.offsets_s, retiming.rates_sps, strict=True)
+        ]
+    )
+    lift.move_beside(z_mm, calls)
 
 
 def capture_moving(

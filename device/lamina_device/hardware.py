@@ -82,11 +82,15 @@ class Hardware:
         if self.settle_s > 0:
             self.sleep(self.settle_s)
 
+    @property
+    def lift_settle_wait_s(self) -> float:
+        """Return how long :meth:`settle_lift` waits."""
+        return self.settle_s if self.lift_settle_s is None else self.lift_settle_s
+
     def settle_lift(self) -> None:
         """Wait for the lift's vibration to die down (the table turning meanwhile)."""
-        settle_s = self.settle_s if self.lift_settle_s is None else self.lift_settle_s
-        if settle_s > 0:
-            self.sleep(settle_s)
+        if self.lift_settle_wait_s > 0:
+            self.sleep(self.lift_settle_wait_s)
 
     def sleep_until_ns(self, at_ns: int) -> None:
         """Wait until :attr:`clock_ns` reaches ``at_ns`` (nothing if it has passed)."""

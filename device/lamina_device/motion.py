@@ -151,8 +151,14 @@ class DriverRun:
     stop_when: Callable[[], bool] | None = None
 
 
+TimedCall = tuple[float, Callable[[], None]]
+"""A call made ``offset_s`` after a move's start, on the move's own time line."""
+
+
 def run_together(
-    runs: Sequence[DriverRun], clock: Callable[[], float] = time.perf_counter
+    runs: Sequence[DriverRun],
+    clock: Callable[[], float] = time.perf_counter,
+    calls: Sequence[TimedCall] = (),
 ) -> list[int]:
     """Run several drivers at once from one thread; return each run's steps made.
 
@@ -166,6 +172,9 @@ def run_together(
     Args:
         runs: the moves, one per driver (a driver at most once).
         clock: the time source the intervals are measured on.
+        calls: ``(offset_s, call)`` pairs, offsets ascending from the moves' start: each
+            call is made on the same time line (a turning table's new step rate, say, which
+            a second thread would make late); those the moves outlast are made at their end.
 
     Returns:
         The steps each run made, in the order of ``runs`` (fewer where ``stop_when`` ended it).
@@ -178,9 +187,16 @@ def run_together(
     last_s = [start_s] * len(runs)
     next_k = [0] * len(runs)
     live = [i for i, steps in enumerate(intervals) if steps]
+    pending = list(calls)
     while live:
         i = min(live, key=lambda j: last_s[j] + intervals[j][next_k[j]])
-        _wait_until(last_s[i] + intervals[i][next_k[i]], clock)
+        due_s = last_s[i] + intervals[i][next_k[i]]
+        if pending and start_s + pending[0][0] <= due_s:
+            offset_s, call = pending.pop(0)
+            _wait_until(start_s + offset_s, clock)
+            call()
+            continue
+        _wait_until(due_s, clock)
         run = runs[i]
         if run.stop_when is not None and run.stop_when():
             live.remove(i)
@@ -191,6 +207,8 @@ def run_together(
         next_k[i] += 1
         if next_k[i] == len(intervals[i]):
             live.remove(i)
+    for _, call in pending:
+        call()
     return [run.driver.last_run_steps for run in runs]
 
 
@@ -389,6 +407,99 @@ def spin_rates(config: TurntableConfig, speed_deg_s: float) -> tuple[list[float]
     return ramp, cruise
 
 
+@dataclass(frozen=True)
+class Retiming:
+    """A turning table's slow-down beside a lift move (:func:`slow_down`).
+
+    The table takes ``rates_sps[i]`` from ``offsets_s[i]`` after the move's start; the last
+    rate is the turn's own again, so the table ends ``loss_deg`` behind where it would
+    have been, turning as before.
+    """
+
+    offsets_s: tuple[float, ...]
+    rates_sps: tuple[float, ...]
+    loss_deg: float
+
+    @property
+    def duration_s(self) -> float:
+        """Return when the table is back at its speed, from the move's start."""
+        return self.offsets_s[-1]
+
+
+def slow_down(
+    config: TurntableConfig, speed_deg_s: float, loss_deg: float, within_s: float
+) -> Retiming | None:
+    """Return the shallowest slow-down that loses ``loss_deg`` within ``within_s``, or None.
+
+    A continuous scan's lift moves between sections while the table turns on; at the
+    turn's one speed the table brings the next section's first view round whenever the
+    phase says, up to a view's spacing after the lift has settled. Slowing the table a
+    little during the move brings a view round as the lift settles instead. The rate
+    steps down through the rates the driver sends exactly (:func:`pulse_rate`), each
+    step held as long as ``accel_deg_s2`` asks, holds the lowest, and steps back up the
+    same way; the hold is timed so that the loss is exact. One step (about 2 deg/s at
+    the shipped speed) is less than ``start_speed_deg_s``, which the motor takes from
+    standstill.
+
+    Args:
+        config: the turntable's configuration.
+        speed_deg_s: the turn's speed, to which the table returns.
+        loss_deg: how far the table is to fall behind.
+        within_s: the time the slow-down may take (the lift's move).
+
+    Returns:
+        The rate changes, or None where nothing is to be lost or no slow-down within the
+        time (down to half the speed) loses that much: the view is then waited for.
+    """
+    if not (loss_deg > 0 and within_s > 0 and speed_deg_s > 0):
+        return None
+    per_deg = turntable_steps_per_rev(config) / 360.0
+    cruise = pulse_rate(speed_deg_s * per_deg)
+    period_us = round(1e6 / cruise)
+    rates, deficits = [cruise], [0.0]
+    ramp_loss = ramp_s = 0.0  # of the levels above the lowest, down and up
+    for level in range(1, period_us + 1):
+        rate = 1e6 / (period_us + level)
+        if rate < 0.5 * cruise:
+            return None
+        deficit = (cruise - rate) / per_deg
+        if level > 1:  # the level above is held as the rate falls to this one and rises to it
+            above = deficits[-1]
+            held_s = (deficit - above + above - deficits[-2]) / config.accel_deg_s2
+            ramp_loss += above * held_s
+            ramp_s += held_s
+        rates.append(rate)
+        deficits.append(deficit)
+        hold_s = (loss_deg - ramp_loss) / deficit
+        if hold_s < (deficit - deficits[-2]) / config.accel_deg_s2:
+            return None  # this level overshoots even held briefly; the one above took too long
+        if ramp_s + hold_s <= within_s:
+            return _retiming(rates, deficits, hold_s, config.accel_deg_s2, loss_deg)
+    return None
+
+
+def _retiming(
+    rates: list[float], deficits: list[float], hold_s: float, accel: float, loss_deg: float
+) -> Retiming:
+    """Return the slow-down through ``rates[1:]`` and back to ``rates[0]``.
+
+    Each level is held as long as the next step's change takes at ``accel`` (deg/s^2):
+    on the way down the step to the level below, on the way up the step to the level
+    above; the lowest level is held ``hold_s``.
+    """
+    lowest = len(rates) - 1
+    down = [(n, (deficits[n + 1] - deficits[n]) / accel) for n in range(1, lowest)]
+    up = [(n, (deficits[n] - deficits[n - 1]) / accel) for n in range(lowest - 1, 0, -1)]
+    offsets, chosen, at_s = [], [], 0.0
+    for n, held_s in [*down, (lowest, hold_s), *up]:
+        offsets.append(at_s)
+        chosen.append(rates[n])
+        at_s += held_s
+    offsets.append(at_s)
+    chosen.append(rates[0])
+    return Retiming(tuple(offsets), tuple(chosen), loss_deg)
+
+
 class StepClock:
     """Where a turning table is at any moment: the step rates it was given, and when.
 
@@ -521,6 +632,10 @@ class SpinningTable(Protocol):
         """Ramp down and stop; the position is kept (a no-op when not turning)."""
         ...  # pragma: no cover - protocol
 
+    def set_rate(self, rate_sps: float) -> None:
+        """Turn on at ``rate_sps`` from now (a :class:`Retiming`'s step)."""
+        ...  # pragma: no cover - protocol
+
     def angle_at(self, at_ns: int) -> float:
         """Return the table's angle at monotonic time ``at_ns`` from its step clock."""
         ...  # pragma: no cover - protocol
@@ -639,6 +754,18 @@ class StepperTurntable(ContinuousTurntable):
             next_s += SPIN_TICK_S
             _wait_until(next_s, time.monotonic)
 
+    def set_rate(self, rate_sps: float) -> None:
+        """Turn on at ``rate_sps`` (steps/s, positive) from now, noted on the step clock.
+
+        Raises:
+            MotionError: the table is not turning.
+        """
+        clock = self.turns.current
+        if clock is None or rate_sps <= 0:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        self.driver.pulse_at(rate_sps)
+        clock.set_rate(self._clock_ns(), rate_sps)
+
     def stop_spin(self) -> None:
         """Ramp down and stop; the position becomes the step clock's count."""
         clock = self.turns.current
@@ -752,7 +879,21 @@ class StepperLift:
         """
         self.move_with(None, z_mm, 0.0)
 
-    def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
+    def move_beside(self, z_mm: float, calls: Sequence[TimedCall]) -> None:
+        """Move to ``z_mm``, making ``calls`` on the move's time line (:func:`run_together`).
+
+        Raises:
+            MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
+        """
+        self.move_with(None, z_mm, 0.0, calls)
+
+    def move_with(
+        self,
+        turntable: Turntable | None,
+        z_mm: float,
+        angle_deg: float,
+        calls: Sequence[TimedCall] = (),
+    ) -> None:
         """Move to ``z_mm`` while ``turntable`` (if any) turns to ``angle_deg``, both at once.
 
         The lift and a stepper table's first run share one pulse time line
@@ -763,6 +904,8 @@ class StepperLift:
         Raises:
             MotionError: ``z_mm`` lies outside the soft limits, or the switch trips on the way.
         """
+        if calls and turntable is not None:
+            raise ValueError("timed calls go with a lift move alone (move_beside)")
         low, high = self.min_mm, self.max_mm
         if not (math.isfinite(z_mm) and low <= z_mm <= high):
             raise MotionError(
@@ -789,7 +932,10 @@ class StepperLift:
             for run in table[1:]:
                 turntable._move(run)
         elif lift is not None:
-            done = self._run(lift.direction, lift.intervals_s, lift.stop_when)
+            done = self._run(lift.direction, lift.intervals_s, lift.stop_when, calls)
+        else:
+            for _, call in calls:  # no move to time them by: made at its (empty) end
+                call()
         if lift is not None and done < abs(steps):
             self._homed = False
             raise MotionError(
@@ -804,11 +950,16 @@ class StepperLift:
         return DriverRun(self.driver, direction, lift_intervals_s(self.config, abs(steps)), stop)
 
     def _run(
-        self, direction: int, intervals: np.ndarray, stop_when: Callable[[], bool] | None
+        self,
+        direction: int,
+        intervals: np.ndarray,
+        stop_when: Callable[[], bool] | None,
+        calls: Sequence[TimedCall] = (),
     ) -> int:
         """Run the driver, keeping the position even if the move is interrupted."""
+        run = DriverRun(self.driver, direction, intervals, stop_when)
         try:
-            return self.driver.run(direction, intervals, stop_when)
+            return run_together([run], self.driver._clock, calls)[0]
         finally:
             self._position += direction * self.driver.last_run_steps
 
@@ -854,6 +1005,15 @@ class StepperLift:
         """Disable the driver and release the pins."""
         self.driver.close()
         self._switch.close()
+
+
+@runtime_checkable
+class TimedLift(Protocol):
+    """A lift that can make timed calls on its move's time line (a table's new rates)."""
+
+    def move_beside(self, z_mm: float, calls: Sequence[TimedCall]) -> None:
+        """Move to ``z_mm``, making each ``(offset_s, call)`` that long after the start."""
+        ...  # pragma: no cover - protocol
 
 
 @runtime_checkable

@@ -27,8 +27,10 @@ from lamina_device.camera import LASER_LATENCY_NS, FrameTiming
 from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
 from lamina_device.motion import (
     SPIN_TICK_S,
+    Retiming,
     lift_intervals_s,
     lift_steps_per_mm,
+    slow_down,
     spin_rates,
     turntable_intervals_s,
     turntable_runs,
@@ -48,6 +50,7 @@ __all__ = [
     "lit_capture_s",
     "next_turn_start_ns",
     "next_view",
+    "section_retiming",
     "spin_up_s",
     "turntable_move_s",
     "view_capture_s",
@@ -212,6 +215,46 @@ def next_view(angles_deg: Sequence[float], from_deg: float) -> tuple[int, float]
     return k, from_deg + ahead[k]
 
 
+ARRIVE_EARLY_S = 0.002
+"""A slowed table is brought this far ahead of a section's first view, so that a rate
+change made a little late still leaves the view to come, not just missed."""
+
+
+def section_retiming(
+    config: TurntableConfig,
+    speed_deg_s: float,
+    angles_deg: Sequence[float],
+    reach_deg: float,
+    within_s: float,
+) -> Retiming | None:
+    """Return the slow-down that brings one of a section's views round as the lift settles.
+
+    At its one speed the table reaches the section's next view whenever the phase says,
+    up to a view's spacing after the lift has moved and settled (every section alike
+    where the pitch is even: 103 ms of each 10 mm section change at the shipped speeds).
+    Slowed during the lift's move by what it turned past the view before (and
+    :data:`ARRIVE_EARLY_S`), it brings that view round instead: the views stay at their
+    planned angles, taken at the turn's speed.
+
+    Args:
+        config: the turntable's configuration.
+        speed_deg_s: the turn's speed.
+        angles_deg: the section's planned angles.
+        reach_deg: the unwrapped angle the table, at its speed, would reach by the time
+            the section's first view can start (lift moved and settled, the view's lead).
+        within_s: the lift move's duration.
+
+    Returns:
+        The slow-down, or None to wait for the next view (it comes within
+        :data:`ARRIVE_EARLY_S`, or no slow-down within the move loses enough).
+    """
+    _, ahead_deg = next_view(angles_deg, reach_deg)
+    if ahead_deg - reach_deg <= speed_deg_s * ARRIVE_EARLY_S:
+        return None
+    behind_deg = min((reach_deg - a) % 360.0 for a in angles_deg)
+    return slow_down(config, speed_deg_s, behind_deg + speed_deg_s * ARRIVE_EARLY_S, within_s)
+
+
 def spin_up_s(config: TurntableConfig, speed_deg_s: float) -> tuple[float, float]:
     """Return a continuous turn's ramp-up: its duration and the angle turned meanwhile."""
     ramp, cruise = spin_rates(config, speed_deg_s)
@@ -267,18 +310,20 @@ def _continuous_time(
     """Return the modelled time of a continuous plan, as the loop takes it.
 
     The table ramps up once and turns on at ``continuous_speed_deg_s`` through every
-    section; each section waits for its lift move and the lift's settle, then takes its
-    views in the order the table reaches them (:func:`next_view`), each one started a lead
-    before its angle comes round; with ``continuous_off_frames = "next-turn"`` a view is
-    sent a turn later, when its laser-off frame has come round. Each view is handed to
-    the extraction stage, whose queue holds :data:`CONTINUOUS_PIPELINE_DEPTH` views:
-    ``workers`` threads process them in turn, each view as soon as one is free, and one
-    thread sends them in the plan's order, taking the next view off the queue once the
-    one before it is sent. Where the processing outlasts the table's time to the next view
-    and the lift moves do not take up the backlog, the queue fills and holds the capture
-    up, and the views still to take wait for their angles to come round again. The mechanical
-    minimum: the ramp, the lift moves and settles, each section's turn from its first view
-    to its last (and the turn on, next-turn), and one view's frames.
+    section; each section waits for its lift move and the lift's settle (the table slowed
+    during the move where that brings a view round as the lift settles:
+    :func:`section_retiming`), then takes its views in the order the table reaches them
+    (:func:`next_view`), each one started a lead before its angle comes round; with
+    ``continuous_off_frames = "next-turn"`` a view is sent a turn later, when its laser-off
+    frame has come round. Each view is handed to the extraction stage, whose queue holds
+    :data:`CONTINUOUS_PIPELINE_DEPTH` views: ``workers`` threads process them in turn, each
+    view as soon as one is free, and one thread sends them in the plan's order, taking the
+    next view off the queue once the one before it is sent. Where the processing outlasts
+    the table's time to the next view and the lift moves do not take up the backlog, the
+    queue fills and holds the capture up, and the views still to take wait for their angles
+    to come round again. The mechanical minimum: the ramp, the lift moves and settles, each
+    section's turn from its first view to its last (and the turn on, next-turn), and one
+    view's frames.
     """
     table = config.turntable
     speed = table.continuous_speed_deg_s
@@ -292,6 +337,7 @@ def _continuous_time(
     now_s = ramp_s
     steps_per_mm = lift_steps_per_mm(config.lift)
     lift_at: int | None = None
+    lost_deg = 0.0  # what the table's slow-downs beside the lift's moves lost
     lift_total = settle_total = frames_total = turning = minimum = 0.0
     finished_s = delivered_s = 0.0
     free_s = [0.0] * max(1, workers)  # when each processing thread is next free
@@ -313,20 +359,24 @@ def _continuous_time(
     for section in plan.sections:
         views = [v for v in plan.views if v.section == section]
         lift_to = round(views[0].z_mm * steps_per_mm)
+        pending = [v.angle_deg for v in views]
         if lift_at is not None and lift_to != lift_at:
-            move_s = lift_move_s(config.lift, lift_at, lift_to) + config.lift.settle_s
-            lift_total += move_s - config.lift.settle_s
+            lift_s = lift_move_s(config.lift, lift_at, lift_to)
+            move_s = lift_s + config.lift.settle_s
+            reach = angle - lost_deg + speed * (now_s + move_s + lead_s - ramp_s)
+            if retiming := section_retiming(table, speed, pending, reach, lift_s):
+                lost_deg += retiming.loss_deg
+            lift_total += lift_s
             settle_total += config.lift.settle_s
             now_s += move_s
             minimum += move_s
         lift_at = lift_to
-        pending = [v.angle_deg for v in views]
         first_s = None
         lit_done: list[float] = []
         while pending:
-            reach = angle + speed * (now_s - ramp_s) + speed * lead_s
+            reach = angle - lost_deg + speed * (now_s - ramp_s) + speed * lead_s
             k, target = next_view(pending, reach)
-            start_s = ramp_s + (target - angle) / speed - lead_s
+            start_s = ramp_s + (target - angle + lost_deg) / speed - lead_s
             first_s = start_s if first_s is None else first_s
             now_s = start_s + view_s
             frames_total += view_s

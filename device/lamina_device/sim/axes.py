@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 from lamina_device.camera import Stage
@@ -26,6 +26,7 @@ from lamina_device.motion import (
     SPIN_TICK_S,
     ContinuousTurntable,
     MotionError,
+    TimedCall,
     TurnLog,
     Turntable,
     lift_steps_per_mm,
@@ -262,6 +263,17 @@ class SimTurntable(ContinuousTurntable):
             clock.set_rate(self.clock.now_ns(), rate)
             self.clock.advance(SPIN_TICK_S)
 
+    def set_rate(self, rate_sps: float) -> None:
+        """Turn on at ``rate_sps`` (steps/s, positive) from the virtual now.
+
+        Raises:
+            MotionError: the table is not turning.
+        """
+        clock = self.turns.current
+        if clock is None or rate_sps <= 0:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        clock.set_rate(self.clock.now_ns(), rate_sps)
+
     def stop_spin(self) -> None:
         """Ramp down and stop; the commanded angle becomes where the step count ended."""
         clock = self.turns.current
@@ -409,6 +421,19 @@ class SimLift:
     def move_to(self, z_mm: float) -> None:
         """Move to ``z_mm``; refuse heights outside ``0..travel_mm``."""
         self.clock.advance(self._travel(z_mm))
+
+    def move_beside(self, z_mm: float, calls: Sequence[TimedCall]) -> None:
+        """Move to ``z_mm``, making each ``(offset_s, call)`` that long after the start on
+        the virtual clock (those the move outlasts at its end), as the box's lift does."""
+        duration_s = self._travel(z_mm)
+        elapsed_s = 0.0
+        for offset_s, call in calls:
+            at_s = min(offset_s, duration_s)
+            if at_s > elapsed_s:
+                self.clock.advance(at_s - elapsed_s)
+                elapsed_s = at_s
+            call()
+        self.clock.advance(duration_s - elapsed_s)
 
     def move_with(self, turntable: Turntable | None, z_mm: float, angle_deg: float) -> None:
         """Move to ``z_mm`` while a simulated ``turntable`` turns: the longer move counts."""
