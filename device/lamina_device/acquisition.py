@@ -55,6 +55,7 @@ from lamina_device.timing import (
     next_turn_start_ns,
     next_view,
     section_retiming,
+    turn_speed_deg_s,
     view_capture_s,
     view_workers,
 )
@@ -478,7 +479,7 @@ def _lift_beside_turn(
         return
     per_mm = lift_steps_per_mm(config.lift)
     move_s = lift_move_s(config.lift, round(lift.z_mm * per_mm), round(z_mm * per_mm))
-    speed = table.spin_speed_deg_s
+    speed = turn_speed_deg_s(config.turntable, table.spin_speed_deg_s)
     ready_s = move_s + hardware.lift_settle_wait_s + lead_s
     reach = table.angle_at(hardware.clock_ns()) + speed * ready_s
     retiming = section_retiming(config.turntable, speed, angles_deg, reach, move_s)

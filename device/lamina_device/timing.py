@@ -34,6 +34,7 @@ from lamina_device.motion import (
     spin_rates,
     turntable_intervals_s,
     turntable_runs,
+    turntable_steps_per_rev,
 )
 from lamina_shared.types import ScanPlan
 
@@ -52,6 +53,7 @@ __all__ = [
     "next_view",
     "section_retiming",
     "spin_up_s",
+    "turn_speed_deg_s",
     "turntable_move_s",
     "view_capture_s",
     "view_workers",
@@ -215,6 +217,15 @@ def next_view(angles_deg: Sequence[float], from_deg: float) -> tuple[int, float]
     return k, from_deg + ahead[k]
 
 
+def turn_speed_deg_s(config: TurntableConfig, speed_deg_s: float) -> float:
+    """Return the speed a continuous turn asked ``speed_deg_s`` really has: its step rate
+    is the nearest the driver sends exactly (:func:`~lamina_device.config.pulse_rate`;
+    360.6 deg/s for the shipped 360), which over a section change's second is a margin's
+    worth of angle."""
+    _, cruise = spin_rates(config, speed_deg_s)
+    return cruise * 360.0 / turntable_steps_per_rev(config)
+
+
 ARRIVE_EARLY_S = 0.002
 """A slowed table is brought this far ahead of a section's first view, so that a rate
 change made a little late still leaves the view to come, not just missed."""
@@ -326,9 +337,9 @@ def _continuous_time(
     view's frames.
     """
     table = config.turntable
-    speed = table.continuous_speed_deg_s
-    if speed <= 0:
+    if table.continuous_speed_deg_s <= 0:
         raise ValueError("this configuration turns no continuous scan: continuous_speed_deg_s 0")
+    speed = turn_speed_deg_s(table, table.continuous_speed_deg_s)
     timing = config_frame_timing(config, exposure_us)
     next_turn = table.continuous_off_frames == "next-turn"
     lead_s, view_s = lit_capture_s(timing) if next_turn else view_capture_s(timing)
