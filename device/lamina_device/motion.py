@@ -586,6 +586,16 @@ class TurnLog:
             return self.last.steps_at(at_ns)
         return float(position)
 
+    def for_rate(self, rate_sps: float) -> StepClock:
+        """Return the clock of the turn under way, to be given the new rate ``rate_sps``.
+
+        Raises:
+            MotionError: no turn is under way, or the rate would stop it (stop it instead).
+        """
+        if self.current is None or rate_sps <= 0:
+            raise MotionError("the turntable is not turning: start a continuous turn first")
+        return self.current
+
     def time_at(self, steps: float) -> int:
         """Return when the turn under way reaches ``steps``.
 
@@ -760,9 +770,7 @@ class StepperTurntable(ContinuousTurntable):
         Raises:
             MotionError: the table is not turning.
         """
-        clock = self.turns.current
-        if clock is None or rate_sps <= 0:
-            raise MotionError("the turntable is not turning: start a continuous turn first")
+        clock = self.turns.for_rate(rate_sps)
         self.driver.pulse_at(rate_sps)
         clock.set_rate(self._clock_ns(), rate_sps)
 

@@ -269,10 +269,7 @@ class SimTurntable(ContinuousTurntable):
         Raises:
             MotionError: the table is not turning.
         """
-        clock = self.turns.current
-        if clock is None or rate_sps <= 0:
-            raise MotionError("the turntable is not turning: start a continuous turn first")
-        clock.set_rate(self.clock.now_ns(), rate_sps)
+        self.turns.for_rate(rate_sps).set_rate(self.clock.now_ns(), rate_sps)
 
     def stop_spin(self) -> None:
         """Ramp down and stop; the commanded angle becomes where the step count ended."""
