@@ -474,7 +474,7 @@ def _lift_beside_turn(
     moves alone, and the first view is waited for.
     """
     lift, config = hardware.lift, hardware.timing
-    if config is None or not isinstance(lift, TimedLift):
+    if config is None or not config.turntable.continuous_retime or not isinstance(lift, TimedLift):
         lift.move_to(z_mm)
         return
     per_mm = lift_steps_per_mm(config.lift)

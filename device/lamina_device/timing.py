@@ -375,7 +375,10 @@ def _continuous_time(
             lift_s = lift_move_s(config.lift, lift_at, lift_to)
             move_s = lift_s + config.lift.settle_s
             reach = angle - lost_deg + speed * (now_s + move_s + lead_s - ramp_s)
-            if retiming := section_retiming(table, speed, pending, reach, lift_s):
+            retiming = table.continuous_retime and section_retiming(
+                table, speed, pending, reach, lift_s
+            )
+            if retiming:
                 lost_deg += retiming.loss_deg
             lift_total += lift_s
             settle_total += config.lift.settle_s

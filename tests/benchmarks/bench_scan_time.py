@@ -289,6 +289,33 @@ def next_turn_rows(
     ]
 
 
+def retime_rows(rows: list[dict[str, Any]], processing_s: dict[str, float]) -> list[dict[str, Any]]:
+    """Return each plan's modelled time continuously with the table slowed during the lift's
+    moves (``continuous_retime = true``, off by default), beside its time from ``rows``."""
+    from lamina_device.config import load_config
+    from lamina_device.timing import estimate_scan_time
+
+    shipped = load_config()
+    config = replace(shipped, turntable=replace(shipped.turntable, continuous_retime=True))
+    plans = _time_plans(config)
+    out = []
+    for row in rows:
+        if row["mode"] != "continuous":
+            continue
+        estimate = estimate_scan_time(
+            config, plans[row["plan"]].with_mode("continuous"), processing_s["continuous"]
+        )
+        out.append(
+            {
+                "plan": row["plan"],
+                "modelled_s": round(estimate.modelled_s, 3),
+                "ratio": round(estimate.ratio, 4),
+                "shipped_s": row["modelled_s"],
+            }
+        )
+    return out
+
+
 def relief(workers: int = WORKERS) -> list[dict[str, Any]]:
     """Scan :data:`RELIEF_SEEDS` each way of :data:`RELIEF_WAYS` (harsh, limb rig, 2 x 8)
     in the campaign's worker processes (``bench_campaign.run_scale``).
@@ -480,6 +507,7 @@ def run(full: bool = FULL) -> dict[str, Any]:
     ]
     results["comparison"] = _comparison(results["accuracy"])
     results["next_turn_rows"] = next_turn_rows(results["rows"], processing_s)
+    results["retime_rows"] = retime_rows(results["rows"], processing_s)
     results["relief"] = relief()
     return results
 
@@ -623,6 +651,12 @@ def report(results: dict[str, Any]) -> list[str]:
             f"  {row['plan']}: continuous with laser-off frames a turn later "
             f"({row['frame_duration_us']} us frames) {row['modelled_s']:.1f} s "
             f"(interleaved {row['interleaved_s']:.1f} s)"
+        )
+    for row in results.get("retime_rows", []):
+        lines.append(
+            f"  {row['plan']}: continuous with the table slowed during the lift's moves "
+            f"(continuous_retime) {row['modelled_s']:.1f} s, ratio {row['ratio']:.3f} "
+            f"(shipped {row['shipped_s']:.1f} s)"
         )
     if results.get("relief"):
         lines.append(

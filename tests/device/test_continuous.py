@@ -318,18 +318,16 @@ def test_the_estimate_agrees_with_the_simulators_clock_in_either_mode(scans, mod
     assert len(segments) == len(PLAN.views)
 
 
-def test_a_slowed_table_brings_each_later_sections_view_round_as_the_lift_settles(
-    monkeypatch,
-):
+def test_a_slowed_table_brings_each_later_sections_view_round_as_the_lift_settles():
     """At a 10 mm pitch each section change lands the table just past a view (the next one
-    about 100 ms on); slowed during the lift's move, it brings that view round instead. The
-    simulator's clock and the model agree on the time saved, and every view is still taken
-    at its planned angle."""
-    import lamina_device.acquisition as acquisition
-
+    about 100 ms on); slowed during the lift's move (``continuous_retime``), it brings that
+    view round instead. The simulator's clock and the model agree on the time saved, and
+    every view is still taken at its planned angle. The shipped configuration waits."""
+    shipped = load_config()
+    retimed = replace(shipped, turntable=replace(shipped.turntable, continuous_retime=True))
     plan = ScanPlan.regular(3, 10.0, 8, "continuous")
-    segments, took_s, _, _ = timed_scan("continuous", plan)
-    model = estimate_scan_time(load_config(), plan)
+    segments, took_s, _, _ = timed_scan("continuous", plan, config=retimed)
+    model = estimate_scan_time(retimed, plan)
     assert took_s == pytest.approx(model.modelled_s, rel=0.02)
     # Over the minimum: the first view's wait after the spin-up (at most a spacing, 125 ms)
     # and each later section's early arrival, no section change's wait.
@@ -337,19 +335,17 @@ def test_a_slowed_table_brings_each_later_sections_view_round_as_the_lift_settle
     assert sorted((s.section, s.view) for s in segments) == [
         (k, v) for k in range(3) for v in range(8)
     ]
-    turn_per_frame_deg = 360.0 * load_config().camera.frame_duration_us * 1e-6
+    turn_per_frame_deg = 360.0 * shipped.camera.frame_duration_us * 1e-6
     for segment in segments:  # measured within a frame's turn of the plan, as ever
         off = (segment.angle_deg - 45.0 * segment.view + 180.0) % 360.0 - 180.0
         assert abs(off) <= turn_per_frame_deg
-    for module in (timing, acquisition):  # as before: each section's first view waited for
-        monkeypatch.setattr(module, "section_retiming", lambda *args: None)
-    waited = estimate_scan_time(load_config(), plan)
+    waited = estimate_scan_time(shipped, plan)
     _, waited_s, _, _ = timed_scan("continuous", plan)
     # Two section changes, each about 100 ms less (the wait less the early arrival); on
     # the simulator's clock too, within a frame period a change (the frames' phase).
     saved_s = waited.modelled_s - model.modelled_s
     assert saved_s == pytest.approx(2 * 0.1, abs=0.01)
-    frame_s = load_config().camera.frame_duration_us * 1e-6
+    frame_s = shipped.camera.frame_duration_us * 1e-6
     assert waited_s - took_s == pytest.approx(saved_s, abs=2 * frame_s)
 
 
