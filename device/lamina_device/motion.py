@@ -463,10 +463,11 @@ def slow_down(
         if rate < 0.5 * cruise:
             return None
         deficit = (cruise - rate) / per_deg
-        if level > 1:  # the level above is held as the rate falls to this one and rises to it
-            above = deficits[-1]
-            held_s = (deficit - above + above - deficits[-2]) / config.accel_deg_s2
-            ramp_loss += above * held_s
+        if level > 1:
+            # The level above is held as long as the fall to this one takes on the way
+            # down, and the rise to the one above it on the way up.
+            held_s = (deficit - deficits[-2]) / config.accel_deg_s2
+            ramp_loss += deficits[-1] * held_s
             ramp_s += held_s
         rates.append(rate)
         deficits.append(deficit)
