@@ -1004,10 +1004,11 @@ def list_scans(args: argparse.Namespace) -> int:
     """Run ``lamina scans``: one line per scan in the library."""
     if args.set_test is not None and args.set_test == args.unset_test:
         raise UsageError("give a scan to --set-test or to --unset-test, not to both")
-    changes = (args.set_side, args.set_test, args.unset_test)
-    if args.library is None and not default_library_path().exists() and changes == (None,) * 3:
+    asked = (args.set_side, args.set_test, args.unset_test) != (None, None, None)
+    default = default_library_path()
+    if args.library is None and not os.path.lexists(default) and not asked:
         # A new box, where nothing has been scanned yet: no mistake to refuse.
-        print(f"no scans yet: the scan library {default_library_path()} is made by lamina scan")
+        print(f"no scans yet: the scan library {default} is made by lamina scan")
         return 0
     with _open_library(args.library) as library:
         if args.set_side:
