@@ -38,7 +38,6 @@ from collections.abc import Callable, Generator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import closing
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 
@@ -474,7 +473,7 @@ def _lift_beside_turn(
     moves alone, and the first view is waited for.
     """
     lift, config = hardware.lift, hardware.timing
-    if config is None or not config.turntable.continuous_retime or not isinstance(lift, TimedLift):
+    if config is None or not isinstance(lift, TimedLift):
         lift.move_to(z_mm)
         return
     per_mm = lift_steps_per_mm(config.lift)
@@ -483,15 +482,7 @@ def _lift_beside_turn(
     ready_s = move_s + hardware.lift_settle_wait_s + lead_s
     reach = table.angle_at(hardware.clock_ns()) + speed * ready_s
     retiming = section_retiming(config.turntable, speed, angles_deg, reach, move_s)
-    calls = (
-        []
-        if retiming is None
-        else [
-            (offset_s, partial(table.set_rate, rate))
-            for offset_s, rate in zip(retiming.offsets_s, retiming.rates_sps, strict=True)
-        ]
-    )
-    lift.move_beside(z_mm, calls)
+    lift.move_beside(z_mm, [] if retiming is None else retiming.calls(table.set_rate))
 
 
 def capture_moving(

@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -424,6 +425,11 @@ class Retiming:
     def duration_s(self) -> float:
         """Return when the table is back at its speed, from the move's start."""
         return self.offsets_s[-1]
+
+    def calls(self, set_rate: Callable[[float], None]) -> list[TimedCall]:
+        """Return the timed calls that give a table (``set_rate``) each rate at its offset."""
+        timeline = zip(self.offsets_s, self.rates_sps, strict=True)
+        return [(offset_s, partial(set_rate, rate)) for offset_s, rate in timeline]
 
 
 def slow_down(

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from lamina_device.camera import LASER_LATENCY_NS, FrameTiming
-from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig
+from lamina_device.config import DeviceConfig, LiftConfig, TurntableConfig, pulse_rate
 from lamina_device.motion import (
     SPIN_TICK_S,
     Retiming,
@@ -222,8 +222,8 @@ def turn_speed_deg_s(config: TurntableConfig, speed_deg_s: float) -> float:
     is the nearest the driver sends exactly (:func:`~lamina_device.config.pulse_rate`;
     360.6 deg/s for the shipped 360), which over a section change's second is a margin's
     worth of angle."""
-    _, cruise = spin_rates(config, speed_deg_s)
-    return cruise * 360.0 / turntable_steps_per_rev(config)
+    per_deg = turntable_steps_per_rev(config) / 360.0
+    return pulse_rate(speed_deg_s * per_deg) / per_deg
 
 
 ARRIVE_EARLY_S = 0.002
@@ -256,9 +256,12 @@ def section_retiming(
         within_s: the lift move's duration.
 
     Returns:
-        The slow-down, or None to wait for the next view (it comes within
-        :data:`ARRIVE_EARLY_S`, or no slow-down within the move loses enough).
+        The slow-down, or None to wait for the next view (the configuration leaves
+        ``continuous_retime`` off, the view comes within :data:`ARRIVE_EARLY_S`, or no
+        slow-down within the move loses enough).
     """
+    if not config.continuous_retime:
+        return None
     _, ahead_deg = next_view(angles_deg, reach_deg)
     if ahead_deg - reach_deg <= speed_deg_s * ARRIVE_EARLY_S:
         return None
@@ -375,10 +378,7 @@ def _continuous_time(
             lift_s = lift_move_s(config.lift, lift_at, lift_to)
             move_s = lift_s + config.lift.settle_s
             reach = angle - lost_deg + speed * (now_s + move_s + lead_s - ramp_s)
-            retiming = table.continuous_retime and section_retiming(
-                table, speed, pending, reach, lift_s
-            )
-            if retiming:
+            if retiming := section_retiming(table, speed, pending, reach, lift_s):
                 lost_deg += retiming.loss_deg
             lift_total += lift_s
             settle_total += config.lift.settle_s
